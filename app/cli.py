@@ -1,3 +1,98 @@
+"""`safesysid` command line (verbs of contracts.md).
+
+Exit status: 0 success, 2 bad input (one line naming file and field), 1 otherwise.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+class BadInput(ValueError):
+    """Raised for user-input problems; printed as one line, exit code 2."""
+
+
+def _bad_input_types():
+    from safesysid.joint_log import LogError
+    from safesysid.scenario import ScenarioError
+    from safesysid.systems.robot_model import ModelError
+
+    return (BadInput, LogError, ScenarioError, ModelError)
+
+
+def not_done(issue):
+    def run(args):
+        print(f"safesysid {args.verb}: not implemented yet (issue {issue})", file=sys.stderr)
+        return 1
+    return run
+
+
+def build_parser():
+    parser = argparse.ArgumentParser(prog="safesysid", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="verb", metavar="VERB")
+    sub.required = True
+
+    p = sub.add_parser("run", help="run Algorithm 2 (plan, track, identify) on a scenario")
+    p.add_argument("scenario", nargs="?", help="scenario YAML (default: scenarios/quickstart.yaml)")
+    p.add_argument("--out", default="out/run", help="output folder")
+    p.add_argument("--method", help="ours | random | conservative | wrong")
+    p.add_argument("--seed", type=int)
+    p.add_argument("--meshcat", action="store_true", help="show live in Meshcat (prints the URL)")
+
+    p = sub.add_parser("compare", help="run several methods and trials; write a table")
+    p.add_argument("scenario")
+    p.add_argument("--methods", default="ours,random")
+    p.add_argument("--trials", type=int, default=1)
+    p.add_argument("--out", default="out/compare")
+
+    p = sub.add_parser("sysid", help="Algorithm 1 offline on a joint log")
+    p.add_argument("log")
+    p.add_argument("--scenario", help="scenario YAML (robot, noise, estimator settings)")
+    p.add_argument("--out", default="out/sysid")
+
+    p = sub.add_parser("diagnose", help="where and why a model and logs disagree")
+    p.add_argument("--model", help="URDF/SDF of a fixed-base arm, or a scenario YAML")
+    p.add_argument("--fit", nargs="+", default=[], help="logs to fit effects on")
+    p.add_argument("--check", nargs="+", default=[], help="held-out logs to score on")
+    p.add_argument("--out", default="out/diagnose")
+    p.add_argument("--self-check", action="store_true", help="blind test on simulated logs with withheld effects")
+    p.add_argument("--cases", type=int, default=40, help="self-check: number of blind cases")
+    p.add_argument("--seed", type=int, default=0)
+
+    p = sub.add_parser("bench", help="timing benchmarks")
+    p.add_argument("--out", default="out/bench")
+    p.add_argument("--quick", action="store_true", help="smaller sizes")
+    return parser
+
+
+def _dispatch(args):
+    # Each verb lives in its own module of app/ (safesysid.<module>.<function>(args)).
+    handlers = {
+        "run": ("safesysid.run_cli", "cmd_run", 5),
+        "compare": ("safesysid.run_cli", "cmd_compare", 5),
+        "sysid": ("safesysid.sysid_cli", "cmd_sysid", 3),
+        "diagnose": ("safesysid.diagnose_cli", "cmd_diagnose", 6),
+        "bench": ("safesysid.bench_cli", "cmd_bench", 2),
+    }
+    module_name, fn_name, issue = handlers[args.verb]
+    import importlib
+
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as err:
+        if err.name != module_name:
+            raise
+        return not_done(issue)(args)
+    return getattr(module, fn_name)(args)
+
+
 def main(argv=None):
-    print("hello")
-    return 0
+    args = build_parser().parse_args(argv)
+    try:
+        return int(_dispatch(args) or 0)
+    except _bad_input_types() as err:
+        print(f"safesysid {args.verb}: error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,111 @@
+"""Joint log CSV (contracts.md): t, q1..qn, v1..vn, optional a1..an, tau1..taun, extra columns."""
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+
+class LogError(ValueError):
+    """Bad joint log; the message names file, row and column."""
+
+
+@dataclass
+class JointLog:
+    t: np.ndarray  # (N,)
+    q: np.ndarray  # (N, n)
+    v: np.ndarray
+    tau: np.ndarray
+    a: np.ndarray | None = None
+    extra: dict = field(default_factory=dict)  # other columns by name
+    source: str = ""
+
+    @property
+    def n(self):
+        return self.q.shape[1]
+
+    def __len__(self):
+        return len(self.t)
+
+    def slice(self, sl):
+        pick = lambda x: None if x is None else x[sl]  # noqa: E731
+        return JointLog(self.t[sl], self.q[sl], self.v[sl], self.tau[sl], pick(self.a),
+                        {k: x[sl] for k, x in self.extra.items()}, self.source)
+
+
+def _joint_count(header):
+    n = 0
+    while f"q{n + 1}" in header:
+        n += 1
+    return n
+
+
+def read_joint_log(path, n_joints=None) -> JointLog:
+    """Read and validate a joint log; LogError (one line) on any problem."""
+    path = Path(path)
+    try:
+        with path.open(newline="") as fh:
+            rows = list(csv.reader(fh))
+    except OSError as err:
+        raise LogError(f"{path}: cannot read ({err.strerror})") from err
+    if not rows:
+        raise LogError(f"{path}: empty file")
+    header = [h.strip() for h in rows[0]]
+    if "t" not in header:
+        raise LogError(f"{path}: row 1: missing column 't'")
+    n = _joint_count(header)
+    if n == 0:
+        raise LogError(f"{path}: row 1: missing columns q1..qn")
+    if n_joints is not None and n != n_joints:
+        raise LogError(f"{path}: row 1: the log has {n} joints (q1..q{n}), the model has {n_joints}")
+    need = [f"{p}{k}" for p in ("q", "v", "tau") for k in range(1, n + 1)]
+    for col in need:
+        if col not in header:
+            raise LogError(f"{path}: row 1: missing column '{col}'")
+    has_a = all(f"a{k}" in header for k in range(1, n + 1))
+    if len(rows) < 2:
+        raise LogError(f"{path}: no data rows")
+    data = np.empty((len(rows) - 1, len(header)))
+    for r, row in enumerate(rows[1:], start=2):
+        if len(row) != len(header):
+            raise LogError(f"{path}: row {r}: {len(row)} values, header has {len(header)}")
+        for c, cell in enumerate(row):
+            try:
+                data[r - 2, c] = float(cell)
+            except ValueError:
+                raise LogError(f"{path}: row {r}, column '{header[c]}': not a number ({cell!r})") from None
+    bad = ~np.isfinite(data)
+    if bad.any():
+        r, c = np.argwhere(bad)[0]
+        raise LogError(f"{path}: row {r + 2}, column '{header[c]}': NaN or inf")
+    col = {h: data[:, k] for k, h in enumerate(header)}
+    t = col["t"]
+    step = np.diff(t)
+    if np.any(step <= 0):
+        r = int(np.flatnonzero(step <= 0)[0]) + 3
+        raise LogError(f"{path}: row {r}, column 't': time is not strictly increasing")
+    stack = lambda p: np.stack([col[f"{p}{k}"] for k in range(1, n + 1)], 1)  # noqa: E731
+    known = {"t", *need, *([f"a{k}" for k in range(1, n + 1)] if has_a else [])}
+    extra = {h: col[h] for h in header if h not in known}
+    return JointLog(t, stack("q"), stack("v"), stack("tau"), stack("a") if has_a else None, extra, str(path))
+
+
+def write_joint_log(path, log: JointLog, extra_columns: dict | None = None):
+    """Write a joint log (plus extra named columns)."""
+    n = log.n
+    cols = {"t": log.t}
+    cols.update({f"q{k + 1}": log.q[:, k] for k in range(n)})
+    cols.update({f"v{k + 1}": log.v[:, k] for k in range(n)})
+    if log.a is not None:
+        cols.update({f"a{k + 1}": log.a[:, k] for k in range(n)})
+    cols.update({f"tau{k + 1}": log.tau[:, k] for k in range(n)})
+    cols.update(log.extra)
+    cols.update(extra_columns or {})
+    names = list(cols)
+    table = np.column_stack([np.asarray(cols[k], float) for k in names])
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savetxt(path, table, delimiter=",", header=",".join(names), comments="", fmt="%.10g")
+    return path

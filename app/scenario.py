@@ -1,0 +1,270 @@
+"""Scenario schema (typed dataclasses loaded with Drake's yaml_load_typed) and loader.
+
+Every constant a system uses comes from here, the unit in the field name (_m, _s, _rad, _Nm,
+_kg ...) or the docstring. Paths inside a scenario are relative to the scenario file; the
+prefix `builtin:` names a file in the package's models/ folder.
+"""
+from __future__ import annotations
+
+import dataclasses as dc
+import typing
+from pathlib import Path
+
+import numpy as np
+
+from safesysid.systems.robot_model import MODELS_DIR
+
+SCENARIOS_DIR = Path(__file__).resolve().parent.parent / "scenarios"
+List = typing.List
+Optional = typing.Optional
+
+
+class ScenarioError(ValueError):
+    """Bad scenario input; the message names the file and the field."""
+
+
+@dc.dataclass
+class Robot:
+    params: str = "builtin:kinova_gen3_params.yaml"  # joint parameters YAML (names the URDF)
+    model: str = ""  # URDF/SDF; empty: the one named in `params`
+    coulomb_smoothing_rad_s: float = 0.01  # Coulomb law Fc*tanh(v/vs); 0 = sign(v)
+
+
+@dc.dataclass
+class Payload:
+    dumbbell: str = "4lb"  # key of models/dumbbells.yaml, or "none"
+    dumbbells_file: str = "builtin:dumbbells.yaml"
+
+
+@dc.dataclass
+class Obstacle:
+    """Oriented box: centre, roll-pitch-yaw and full side lengths, in the robot base frame."""
+
+    name: str = "box"
+    xyz_m: List[float] = dc.field(default_factory=lambda: [0.5, 0.0, 0.2])
+    rpy_rad: List[float] = dc.field(default_factory=lambda: [0.0, 0.0, 0.0])
+    size_m: List[float] = dc.field(default_factory=lambda: [0.1, 0.1, 0.1])
+
+
+@dc.dataclass
+class Noise:
+    """Measurement model: |tau_meas - tau| <= ratio*|tau| + floor per sample and joint."""
+
+    torque_ratio: float = 0.025
+    torque_floor_Nm: float = 0.0
+    distribution: str = "uniform"  # uniform inside the declared bound | none
+    # Declared bound the estimator uses (may differ from the simulated noise, to test).
+    declared_torque_ratio: float = 0.025
+    declared_torque_floor_Nm: float = 0.05
+    theta_r_ratio: float = 0.05  # relative uncertainty of the rest-of-robot parameters
+
+
+@dc.dataclass
+class PlantEffects:
+    """Effects the models above the plant do not know (all off by default)."""
+
+    torque_sensor_offset_Nm: List[float] = dc.field(default_factory=list)
+    torque_sensor_scale: List[float] = dc.field(default_factory=list)
+    time_delay_s: float = 0.0
+    base_tilt_rad: List[float] = dc.field(default_factory=lambda: [0.0, 0.0])
+    joint_stiffness_Nm_rad: List[float] = dc.field(default_factory=list)
+
+
+@dc.dataclass
+class Plant:
+    time_step_s: float = 0.001
+    effects: PlantEffects = dc.field(default_factory=PlantEffects)
+
+
+@dc.dataclass
+class Controller:
+    """ARMOUR robust passivity controller (reference-notes.md)."""
+
+    Kr: List[float] = dc.field(default_factory=lambda: [5.0, 5.0, 5.0, 5.0, 7.0, 7.0, 7.0])
+    alpha: float = 20.0
+    V_max: float = 0.02
+    kind: str = "armour"  # armour | pid | adaptive | adaptive_robust
+
+
+@dc.dataclass
+class Planner:
+    duration_s: float = 3.0  # t_f
+    replan_period_s: float = 1.5  # t_p
+    num_plans: int = 4
+    k_center_rad: List[float] = dc.field(default_factory=lambda: [0.0] * 7)
+    k_range_rad: List[float] = dc.field(default_factory=lambda: [np.pi / 48] * 4 + [np.pi / 20] * 3)
+    num_time_intervals: int = 128  # reachability over-approximation
+    num_cost_samples: int = 128  # N_s of the exciting cost
+    cost: str = "exciting"  # exciting | goal | random
+    goal_q_rad: List[float] = dc.field(default_factory=list)
+    solver: str = "ipopt"  # ipopt | snopt
+    max_solve_time_s: float = 1.2  # wall cap inside t_p
+    max_iterations: int = 100
+    Kr: float = 5.0  # tracking gain assumed by the planner's error bound
+    floor_z_m: float = 0.0  # floor plane height (an obstacle)
+
+
+@dc.dataclass
+class Estimator:
+    horizon_s: float = 0.1  # segment length h
+    integration: str = "trapezoid"  # trapezoid | euler (paper)
+    solver: str = "ipopt"  # ipopt | snopt
+    max_gap_s: float = 0.05  # a segment never spans a time step longer than this
+
+
+@dc.dataclass
+class InitialInterval:
+    """End-effector prior (paper Table II): nominal and box, theta order of contracts.md."""
+
+    nominal: List[float] = dc.field(default_factory=lambda: [3.2, 0.0, 0.0, -0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    lower: List[float] = dc.field(default_factory=lambda: [1.2, -0.4, -0.4, -1.0] + [-0.2] * 6)
+    upper: List[float] = dc.field(default_factory=lambda: [5.2, 0.4, 0.4, -0.1] + [0.2] * 6)
+
+
+@dc.dataclass
+class Scenario:
+    name: str = "scenario"
+    robot: Robot = dc.field(default_factory=Robot)
+    q0_rad: List[float] = dc.field(default_factory=lambda: [0.0, 0.26, 0.0, 2.0, 0.0, 0.9, 1.57])
+    payload: Payload = dc.field(default_factory=Payload)
+    obstacles: List[Obstacle] = dc.field(default_factory=list)
+    noise: Noise = dc.field(default_factory=Noise)
+    plant: Plant = dc.field(default_factory=Plant)
+    controller: Controller = dc.field(default_factory=Controller)
+    planner: Planner = dc.field(default_factory=Planner)
+    estimator: Estimator = dc.field(default_factory=Estimator)
+    initial_interval: InitialInterval = dc.field(default_factory=InitialInterval)
+    method: str = "ours"  # ours | random | conservative | wrong
+    seed: int = 0
+    # Where the loader found the file (not a YAML field).
+    source: str = ""
+
+
+METHODS = ("ours", "random", "conservative", "wrong")
+_CHOICES = {
+    "method": METHODS,
+    "planner.cost": ("exciting", "goal", "random"),
+    "planner.solver": ("ipopt", "snopt"),
+    "estimator.solver": ("ipopt", "snopt"),
+    "estimator.integration": ("trapezoid", "euler"),
+    "noise.distribution": ("uniform", "none"),
+    "controller.kind": ("armour", "pid", "adaptive", "adaptive_robust"),
+}
+
+
+def _check(value, schema, path, errors):
+    """Walk raw YAML against the dataclass schema, collecting 'key.path: problem' strings."""
+    origin = typing.get_origin(schema)
+    if dc.is_dataclass(schema):
+        if not isinstance(value, dict):
+            errors.append(f"{path or 'top level'}: expected a mapping")
+            return
+        fields = {f.name: f for f in dc.fields(schema) if f.name != "source"}
+        for key, item in value.items():
+            sub = f"{path}.{key}" if path else str(key)
+            if key not in fields:
+                errors.append(f"{sub}: unknown key (known: {', '.join(fields)})")
+            else:
+                _check(item, typing.get_type_hints(schema)[key], sub, errors)
+    elif origin in (list, List):
+        if not isinstance(value, list):
+            errors.append(f"{path}: expected a list")
+            return
+        (inner,) = typing.get_args(schema)
+        for k, item in enumerate(value):
+            _check(item, inner, f"{path}[{k}]", errors)
+    elif origin is typing.Union:
+        inner = [a for a in typing.get_args(schema) if a is not type(None)][0]
+        if value is not None:
+            _check(value, inner, path, errors)
+    elif schema is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            errors.append(f"{path}: expected a number, got {value!r}")
+    elif schema is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            errors.append(f"{path}: expected an integer, got {value!r}")
+    elif schema is str:
+        if not isinstance(value, str):
+            errors.append(f"{path}: expected a string, got {value!r}")
+    elif schema is bool and not isinstance(value, bool):
+        errors.append(f"{path}: expected true/false, got {value!r}")
+
+
+def resolve_path(text, base_dir):
+    """`builtin:NAME` -> models/NAME; relative paths against the scenario's folder."""
+    if text.startswith("builtin:"):
+        return MODELS_DIR / text[len("builtin:"):]
+    p = Path(text).expanduser()
+    return p if p.is_absolute() else Path(base_dir) / p
+
+
+def _validate(s: Scenario, where):
+    def need(cond, field, msg):
+        if not cond:
+            raise ScenarioError(f"{where}: {field}: {msg}")
+
+    for key, allowed in _CHOICES.items():
+        obj = s
+        for part in key.split("."):
+            obj = getattr(obj, part)
+        need(obj in allowed, key, f"{obj!r} is not one of {', '.join(allowed)}")
+    need(len(s.q0_rad) == 7 or len(s.q0_rad) > 0, "q0_rad", "must list one angle per joint")
+    for k, ob in enumerate(s.obstacles):
+        need(len(ob.xyz_m) == 3, f"obstacles[{k}].xyz_m", "needs 3 values")
+        need(len(ob.rpy_rad) == 3, f"obstacles[{k}].rpy_rad", "needs 3 values")
+        need(len(ob.size_m) == 3 and min(ob.size_m) > 0, f"obstacles[{k}].size_m", "needs 3 positive values")
+    ii = s.initial_interval
+    for name in ("nominal", "lower", "upper"):
+        need(len(getattr(ii, name)) == 10, f"initial_interval.{name}", "needs 10 values")
+    need(np.all(np.array(ii.lower) <= np.array(ii.nominal)) and np.all(np.array(ii.nominal) <= np.array(ii.upper)),
+         "initial_interval", "needs lower <= nominal <= upper")
+    need(s.plant.time_step_s > 0, "plant.time_step_s", "must be > 0")
+    need(s.estimator.horizon_s > 0, "estimator.horizon_s", "must be > 0")
+    need(0 < s.planner.replan_period_s <= s.planner.duration_s, "planner.replan_period_s", "must be in (0, duration_s]")
+    need(s.noise.torque_ratio >= 0 and s.noise.declared_torque_ratio >= 0, "noise", "ratios must be >= 0")
+    for field, text in (("robot.params", s.robot.params), ("payload.dumbbells_file", s.payload.dumbbells_file)):
+        need(resolve_path(text, Path(where).parent).is_file(), field, f"file {text!r} not found")
+    if s.robot.model:
+        need(resolve_path(s.robot.model, Path(where).parent).is_file(), "robot.model", f"file {s.robot.model!r} not found")
+
+
+def load_scenario(path=None, text=None, overrides=None) -> Scenario:
+    """Scenario from a YAML file (or text); raises ScenarioError naming file and key."""
+    import yaml
+    from pydrake.common.yaml import yaml_load_typed
+
+    where = str(path) if path is not None else "<built-in defaults>"
+    if path is not None:
+        try:
+            text = Path(path).read_text()
+        except OSError as err:
+            raise ScenarioError(f"{path}: cannot read scenario ({err.strerror})") from err
+    text = text or "{}"
+    try:
+        raw = yaml.safe_load(text) or {}
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        line = f" line {mark.line + 1}" if mark else ""
+        raise ScenarioError(f"{where}:{line} invalid YAML ({getattr(err, 'problem', err)})") from err
+    raw.update(overrides or {})
+    errors = []
+    _check(raw, Scenario, "", errors)
+    if errors:
+        raise ScenarioError(f"{where}: {errors[0]}")
+    scenario = yaml_load_typed(schema=Scenario, data=yaml.safe_dump(raw) if raw else "{}")
+    scenario.source = str(Path(path).resolve()) if path is not None else str(SCENARIOS_DIR / "defaults")
+    _validate(scenario, where if path is not None else str(SCENARIOS_DIR / "defaults.yaml"))
+    return scenario
+
+
+def scenario_dir(s: Scenario):
+    return Path(s.source).parent
+
+
+def robot_from_scenario(s: Scenario):
+    """The RobotModel a scenario names (one source of truth for every system)."""
+    from safesysid.systems.robot_model import load_robot
+
+    base = scenario_dir(s)
+    model = resolve_path(s.robot.model, base) if s.robot.model else None
+    return load_robot(model, resolve_path(s.robot.params, base), coulomb_smoothing=s.robot.coulomb_smoothing_rad_s)
