@@ -4,7 +4,6 @@ Every constant a system uses comes from here, the unit in the field name (_m, _s
 _kg ...) or the docstring. Paths inside a scenario are relative to the scenario file; the
 prefix `builtin:` names a file in the package's models/ folder.
 """
-from __future__ import annotations
 
 import dataclasses as dc
 import typing

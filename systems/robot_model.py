@@ -193,7 +193,35 @@ def make_plant(model_path, time_step=0.0, scene_graph=False, builder=None):
     root = _root_body(plant, instance)
     if not any(j.child_body().index() == root.index() for j in _joints(plant, instance)):
         plant.WeldFrames(plant.world_frame(), root.body_frame())
+    _add_missing_actuators(plant, instance, _urdf_effort_limits(model_path))
     return plant, sg, instance
+
+
+def _urdf_effort_limits(model_path):
+    """{joint: effort} from URDF <limit effort=...> (Drake keeps it only with a transmission)."""
+    import xml.etree.ElementTree as ET
+
+    if Path(model_path).suffix.lower() != ".urdf":
+        return {}
+    try:
+        root = ET.parse(model_path).getroot()
+    except ET.ParseError as err:
+        raise ModelError(f"{model_path}: not valid XML ({err})") from err
+    out = {}
+    for joint in root.iter("joint"):
+        limit = joint.find("limit")
+        if limit is not None and limit.get("effort") is not None:
+            out[joint.get("name")] = float(limit.get("effort"))
+    return out
+
+
+def _add_missing_actuators(plant, instance, efforts):
+    """One actuator per 1-dof joint that has none, so the plant can be driven by torques."""
+    actuated = {plant.get_joint_actuator(i).joint().index() for i in plant.GetJointActuatorIndices()}
+    for joint in _joints(plant, instance):
+        if joint.num_velocities() == 1 and joint.index() not in actuated:
+            limit = efforts.get(joint.name(), np.inf)
+            plant.AddJointActuator(f"{joint.name()}_actuator", joint, limit if limit > 0 else np.inf)
 
 
 def _joints(plant, instance):

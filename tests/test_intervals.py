@@ -1,0 +1,54 @@
+import numpy as np
+
+from safesysid.systems import intervals
+from safesysid.systems.intervals import Interval
+
+
+def random_box(rng, shape, scale=3.0):
+    c = rng.normal(scale=scale, size=shape)
+    r = rng.uniform(0, 1.5, size=shape)
+    return Interval(c - r, c + r)
+
+
+def sample(box, rng):
+    return box.lo + (box.hi - box.lo) * rng.uniform(size=box.shape)
+
+
+def test_arithmetic_encloses_point_results():
+    rng = np.random.default_rng(0)
+    x, y = random_box(rng, 1000), random_box(rng, 1000)
+    for _ in range(20):
+        a, b = sample(x, rng), sample(y, rng)
+        assert (x + y).contains(a + b).all() and (x - y).contains(a - b).all()
+        assert (x * y).contains(a * b).all() and x.square().contains(a * a).all()
+        assert intervals.sin(x).contains(np.sin(a)).all() and intervals.cos(x).contains(np.cos(a)).all()
+
+
+def test_trig_is_tight_and_catches_extrema():
+    box = Interval(np.array([0.0, 1.0, 3.0]), np.array([0.1, 2.0, 3.3]))
+    s = intervals.sin(box)
+    assert s.hi[1] == 1.0  # pi/2 inside [1, 2]
+    assert np.all(s.width < [0.11, 0.17, 0.31])
+    assert intervals.cos(Interval(3.0, 3.3)).lo == -1.0
+
+
+def test_matmul_is_the_exact_hull():
+    rng = np.random.default_rng(1)
+    a = rng.normal(size=(4, 6))
+    x = random_box(rng, 6)
+    y = intervals.matmul(a, x)
+    corners = [sample(x, rng) for _ in range(200)]
+    assert all(y.contains(a @ c).all() for c in corners)
+    # attained: the vertex that maximizes row 0 reaches the upper bound
+    vertex = np.where(a[0] > 0, x.hi, x.lo)
+    assert np.isclose(a[0] @ vertex, y.hi[0], rtol=1e-12)
+
+
+def test_intersection_and_empty():
+    a, b = Interval(0.0, 2.0), Interval(1.0, 3.0)
+    c = a.intersect(b)
+    assert (c.lo, c.hi) == (1.0, 2.0)
+    import pytest
+
+    with pytest.raises(ValueError):
+        Interval(0.0, 1.0).intersect(Interval(2.0, 3.0))
