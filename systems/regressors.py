@@ -179,55 +179,68 @@ def _velocity_product_terms(tree, kin, va):
     return out
 
 
-def _project(tree, kin, wrench_reg_body, screws_world):
-    """Assemble (N, n, 10 n): [j, 10i:10i+10] = (X_i screw_j)^T Y_i for ancestors j of i."""
+def _project(tree, kin, wrench_reg_body, screws_world, bodies=None):
+    """Assemble (N, n, 10 b): block of body i = (X_i screw_j)^T Y_i for ancestors j of i.
+
+    bodies: indices of the bodies whose columns are wanted; wrench_reg_body holds their
+    6x10 blocks in that order (N, len(bodies), 6, 10).
+    """
     nsamp, n = kin.S.shape[:2]
-    out = np.zeros((nsamp, n, 10 * n))
+    out = np.zeros((nsamp, n, 10 * len(bodies)))
     anc = tree.ancestors()
-    for i in range(n):
+    for col, i in enumerate(bodies):
         js = np.flatnonzero(anc[:, i])
         s_body = _to_body(kin.R[:, i, None], kin.p[:, i, None], screws_world[:, js])  # (N, k, 6)
-        out[:, js, 10 * i:10 * i + 10] = s_body @ wrench_reg_body[:, i]
+        out[:, js, 10 * col:10 * col + 10] = s_body @ wrench_reg_body[:, col]
     return out
+
+
+def _selection(tree, bodies):
+    return list(range(tree.n)) if bodies is None else list(bodies)
 
 
 def _gravity_accel(tree, nsamp):
     return np.broadcast_to(np.concatenate([np.zeros(3), -tree.gravity]), (nsamp, 6))
 
 
-def passivity_regressor(tree, q, v, va, aa):
-    """Wp (N, n, 10n): Wp theta = M(q) aa + C(q, v) va + g(q), C Christoffel-consistent."""
+def passivity_regressor(tree, q, v, va, aa, bodies=None):
+    """Wp (N, n, 10n): Wp theta = M(q) aa + C(q, v) va + g(q), C Christoffel-consistent.
+
+    With `bodies`, only those bodies' column blocks (N, n, 10 len(bodies)).
+    """
     q, v, va, aa = (np.atleast_2d(np.asarray(x, float)) for x in (q, v, va, aa))
     kin = forward_kinematics(tree, q, v)
     nsamp = q.shape[0]
     vel_a = _accelerations(tree, kin, va, np.zeros((nsamp, 6)))  # Va_i = J_i va
     acc_a = _accelerations(tree, kin, aa, _gravity_accel(tree, nsamp)) + _velocity_product_terms(tree, kin, va)
-    vb = _to_body(kin.R, kin.p, kin.V)
-    vab = _to_body(kin.R, kin.p, vel_a)
-    ab = _to_body(kin.R, kin.p, acc_a)
-    return _project(tree, kin, body_wrench_regressor(vb, vab, ab), kin.S)
+    sel = _selection(tree, bodies)
+    R, p = kin.R[:, sel], kin.p[:, sel]
+    y = body_wrench_regressor(_to_body(R, p, kin.V[:, sel]), _to_body(R, p, vel_a[:, sel]), _to_body(R, p, acc_a[:, sel]))
+    return _project(tree, kin, y, kin.S, sel)
 
 
-def standard_regressor(tree, q, v, a):
+def standard_regressor(tree, q, v, a, bodies=None):
     """W (N, n, 10n): W theta = M(q) a + C(q, v) v + g(q) (rigid-body part)."""
-    return passivity_regressor(tree, q, v, v, a)
+    return passivity_regressor(tree, q, v, v, a, bodies)
 
 
-def momentum_regressor(tree, q, v):
+def momentum_regressor(tree, q, v, bodies=None):
     """Wm (N, n, 10n): Wm theta = M(q) v."""
     kin = forward_kinematics(tree, q, v)
-    vb = _to_body(kin.R, kin.p, kin.V)
-    return _project(tree, kin, inertia_times(vb), kin.S)
+    sel = _selection(tree, bodies)
+    vb = _to_body(kin.R[:, sel], kin.p[:, sel], kin.V[:, sel])
+    return _project(tree, kin, inertia_times(vb), kin.S, sel)
 
 
-def momentum_rate_regressor(tree, q, v):
+def momentum_rate_regressor(tree, q, v, bodies=None):
     """Wc (N, n, 10n): Wc theta = C(q, v)^T v - g(q), the rate of M v without input torque."""
     q = np.atleast_2d(np.asarray(q, float))
     kin = forward_kinematics(tree, q, v)
-    vb = _to_body(kin.R, kin.p, kin.V)
-    gb = _to_body(kin.R, kin.p, np.broadcast_to(-_gravity_accel(tree, q.shape[0])[:, None], kin.S.shape))
-    kv, kg = inertia_times(vb), inertia_times(gb)
-    return _project(tree, kin, kv, kin.Sdot) + _project(tree, kin, kg, kin.S)
+    sel = _selection(tree, bodies)
+    R, p = kin.R[:, sel], kin.p[:, sel]
+    vb = _to_body(R, p, kin.V[:, sel])
+    gb = _to_body(R, p, np.broadcast_to(-_gravity_accel(tree, q.shape[0])[:, None], vb.shape))
+    return _project(tree, kin, inertia_times(vb), kin.Sdot, sel) + _project(tree, kin, inertia_times(gb), kin.S, sel)
 
 
 def coulomb_shape(v, smoothing_velocity=0.0):
