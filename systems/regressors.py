@@ -98,11 +98,18 @@ class KinematicTree:
         return anc
 
 
-def _axis_rotation(axis, angle):
-    """Rodrigues rotation (N, 3, 3) about a fixed unit axis."""
-    k = skew(axis)
-    s, c = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
-    return np.eye(3) + s * k + (1 - c) * (k @ k)
+def _z_to(axis):
+    """A rotation A with A e_z = axis (axis unit)."""
+    axis = np.asarray(axis, float)
+    helper = np.array([1.0, 0, 0]) if abs(axis[0]) < 0.9 else np.array([0, 1.0, 0])
+    x = np.cross(helper, axis)
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(axis, x), axis], 1)
+
+
+def _times_const(R, C):
+    """(N, 3, 3) @ (3, 3) as one BLAS call."""
+    return (R.reshape(-1, 3) @ C).reshape(R.shape)
 
 
 @dataclass
@@ -117,7 +124,11 @@ class Kinematics:
 
 
 def forward_kinematics(tree: KinematicTree, q, v=None):
-    """Poses, screws (and twists, screw rates when v is given) for q (N, n)."""
+    """Poses, screws (and twists, screw rates when v is given) for q (N, n).
+
+    Each joint axis is rotated onto z once (R_F A, A^T X_MC), so the only per-sample rotation is
+    an elementwise Rz(q) and the constant products are single matrix multiplications.
+    """
     q = np.atleast_2d(np.asarray(q, float))
     nsamp, n = q.shape
     R = np.empty((nsamp, n, 3, 3))
@@ -126,29 +137,37 @@ def forward_kinematics(tree: KinematicTree, q, v=None):
     V = None if v is None else np.empty((nsamp, n, 6))
     Sdot = None if v is None else np.empty((nsamp, n, 6))
     v = None if v is None else np.atleast_2d(np.asarray(v, float))
+    cos, sin = np.cos(q), np.sin(q)
     for i in range(n):
         par = tree.parent[i]
-        xpj = tree.X_parent_joint[i]
+        xpj, xjc = tree.X_parent_joint[i], tree.X_joint_child[i]
+        a = _z_to(tree.axis[i])
         if par < 0:
-            r_f = np.broadcast_to(xpj[:3, :3], (nsamp, 3, 3))
+            r_f = np.broadcast_to(xpj[:3, :3] @ a, (nsamp, 3, 3))
             p_f = np.broadcast_to(xpj[:3, 3], (nsamp, 3))
         else:
-            r_f = R[:, par] @ xpj[:3, :3]
+            r_f = _times_const(R[:, par], xpj[:3, :3] @ a)
             p_f = p[:, par] + R[:, par] @ xpj[:3, 3]
-        z = r_f @ tree.axis[i]
+        z = r_f[:, :, 2]
         if tree.prismatic[i]:
             r_m, p_m = r_f, p_f + z * q[:, i, None]
-            S[:, i] = np.concatenate([np.zeros((nsamp, 3)), z], -1)
+            S[:, i, :3] = 0.0
+            S[:, i, 3:] = z
         else:
-            r_m, p_m = r_f @ _axis_rotation(tree.axis[i], q[:, i]), p_f
-            S[:, i] = np.concatenate([z, np.cross(p_f, z)], -1)
-        xjc = tree.X_joint_child[i]
-        R[:, i] = r_m @ xjc[:3, :3]
-        p[:, i] = p_m + r_m @ xjc[:3, 3]
+            c, s_ = cos[:, i, None], sin[:, i, None]
+            r_m = np.stack([r_f[:, :, 0] * c + r_f[:, :, 1] * s_, r_f[:, :, 1] * c - r_f[:, :, 0] * s_, z], -1)
+            p_m = p_f
+            S[:, i, :3] = z
+            S[:, i, 3:] = np.cross(p_f, z)
+        R[:, i] = _times_const(r_m, a.T @ xjc[:3, :3])
+        p[:, i] = p_m + r_m @ (a.T @ xjc[:3, 3])
         if v is not None:
-            v_par = 0.0 if par < 0 else V[:, par]
-            Sdot[:, i] = 0.0 if par < 0 else cross_motion(V[:, par], S[:, i])
-            V[:, i] = v_par + S[:, i] * v[:, i, None]
+            if par < 0:
+                Sdot[:, i] = 0.0
+                V[:, i] = S[:, i] * v[:, i, None]
+            else:
+                Sdot[:, i] = cross_motion(V[:, par], S[:, i])
+                V[:, i] = V[:, par] + S[:, i] * v[:, i, None]
     return Kinematics(R, p, S, V, Sdot)
 
 

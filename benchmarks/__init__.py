@@ -1,0 +1,1 @@
+"""Timing scripts behind `safesysid bench`."""
