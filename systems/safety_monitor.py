@@ -1,0 +1,89 @@
+"""SafetyMonitor: the referee of a closed-loop run, on the TRUE geometry and state.
+
+At every plant step it records the smallest signed distance between any robot geometry and any
+anchored environment geometry (obstacles, floor) from Drake's QueryObject, and the ratios of
+|q| to the position limits, |v| to the velocity limits and |u| to the torque limits. It knows
+nothing of the planner's spheres or over-approximations, so it can catch them being wrong.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.geometry import QueryObject
+from pydrake.systems.framework import LeafSystem
+
+
+@dataclass
+class SafetyRecord:
+    times: list = field(default_factory=list)
+    clearance: list = field(default_factory=list)  # min signed distance [m]
+    joint_ratio: list = field(default_factory=list)  # max over joints of limit usage (1 = at limit)
+    velocity_ratio: list = field(default_factory=list)
+    torque_ratio: list = field(default_factory=list)
+    closest_pair: list = field(default_factory=list)
+
+    def summary(self):
+        arr = lambda x: np.asarray(x, float) if x else np.zeros(1)  # noqa: E731
+        clearance = arr(self.clearance)
+        return {
+            "min_clearance_m": float(clearance.min()),
+            "collisions": int(np.sum(np.diff(np.r_[0, (clearance < 0).astype(int)]) == 1)),
+            "max_joint_limit_ratio": float(arr(self.joint_ratio).max()),
+            "max_velocity_ratio": float(arr(self.velocity_ratio).max()),
+            "max_torque_ratio": float(arr(self.torque_ratio).max()),
+        }
+
+
+def limit_ratio(x, lower, upper):
+    """Per-sample max over joints of how far x is into [lower, upper] from the centre (1 = at a limit)."""
+    finite = np.isfinite(lower) & np.isfinite(upper)
+    if not finite.any():
+        return np.zeros(np.shape(x)[:-1])
+    lo, hi = lower[finite], upper[finite]
+    return np.max(np.abs((np.asarray(x)[..., finite] - 0.5 * (lo + hi)) / (0.5 * (hi - lo))), axis=-1)
+
+
+class SafetyMonitor(LeafSystem):
+    """Inputs: geometry query, plant state (q, v), applied torque. Records every `period_s`."""
+
+    def __init__(self, plant, scene_graph, robot, period_s, max_distance_m=0.5):
+        super().__init__()
+        self._robot = robot
+        self._inspector = scene_graph.model_inspector()
+        self._world = plant.GetBodyFrameIdOrThrow(plant.world_body().index())
+        self._max_distance = max_distance_m
+        self.record = SafetyRecord()
+        n = robot.n
+        self.query_port = self.DeclareAbstractInputPort("query", AbstractValue.Make(QueryObject()))
+        self.state_port = self.DeclareVectorInputPort("state", 2 * n)
+        self.torque_port = self.DeclareVectorInputPort("applied_torque", n)
+        self.DeclarePeriodicPublishEvent(period_s, 0.0, self._publish)
+        self.DeclareForcedPublishEvent(self._publish)
+
+    def _is_environment(self, geometry_id):
+        return self._inspector.GetFrameId(geometry_id) == self._world
+
+    def min_clearance(self, query):
+        best, pair = np.inf, None
+        for d in query.ComputeSignedDistancePairwiseClosestPoints(self._max_distance):
+            if self._is_environment(d.id_A) != self._is_environment(d.id_B) and d.distance < best:
+                best = d.distance
+                pair = (self._inspector.GetName(d.id_A), self._inspector.GetName(d.id_B))
+        return (self._max_distance if pair is None else best), pair
+
+    def _publish(self, context):
+        jp = self._robot.joint_params
+        n = self._robot.n
+        query = self.query_port.Eval(context)
+        x = self.state_port.Eval(context)
+        u = self.torque_port.Eval(context)
+        clearance, pair = self.min_clearance(query)
+        rec = self.record
+        rec.times.append(context.get_time())
+        rec.clearance.append(clearance)
+        rec.closest_pair.append(pair)
+        rec.joint_ratio.append(float(limit_ratio(x[:n], jp.position_lower, jp.position_upper)))
+        rec.velocity_ratio.append(float(np.max(np.abs(x[n:]) / jp.velocity_limit)))
+        rec.torque_ratio.append(float(np.max(np.abs(u) / jp.torque_limit)))

@@ -1,0 +1,48 @@
+import numpy as np
+from pydrake.geometry import Box
+from pydrake.math import RigidTransform
+from pydrake.multibody.plant import CoulombFriction
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.primitives import ConstantVectorSource
+
+from safesysid.systems.robot_model import load_robot, make_plant
+from safesysid.systems.safety_monitor import SafetyMonitor, limit_ratio
+
+
+def run_with_box(box_center):
+    robot = load_robot()
+    builder = DiagramBuilder()
+    plant, sg, _ = make_plant(robot.source, time_step=0.001, builder=builder)
+    plant.RegisterCollisionGeometry(plant.world_body(), RigidTransform(box_center), Box(0.1, 0.1, 0.1), "box", CoulombFriction(0.5, 0.5))
+    plant.Finalize()
+    monitor = builder.AddSystem(SafetyMonitor(plant, sg, robot, period_s=0.001))
+    zero = builder.AddSystem(ConstantVectorSource(np.zeros(robot.n)))
+    builder.Connect(zero.get_output_port(), plant.get_actuation_input_port())
+    builder.Connect(sg.get_query_output_port(), monitor.query_port)
+    builder.Connect(plant.get_state_output_port(), monitor.state_port)
+    builder.Connect(zero.get_output_port(), monitor.torque_port)
+    diagram = builder.Build()
+    sim = Simulator(diagram)
+    ctx = plant.GetMyContextFromRoot(sim.get_mutable_context())
+    plant.SetPositions(ctx, np.zeros(robot.n))
+    sim.Initialize()
+    sim.AdvanceTo(0.0)
+    return monitor.record, plant, ctx
+
+
+def test_box_on_the_gripper_is_a_collision():
+    robot = load_robot()
+    plant_tip = robot.forward_kinematics(np.zeros(robot.n))
+    ee = plant_tip.p[0, robot.end_effector] + plant_tip.R[0, robot.end_effector] @ [0, 0, -0.15]
+    record, _, _ = run_with_box(ee)
+    summary = record.summary()
+    assert summary["collisions"] == 1 and summary["min_clearance_m"] < -0.02
+    far, _, _ = run_with_box(ee + [0.0, 0.6, 0.0])
+    assert far.summary()["collisions"] == 0 and far.summary()["min_clearance_m"] > 0.2
+
+
+def test_limit_ratio():
+    lower = np.array([-np.inf, -2.0])
+    upper = np.array([np.inf, 2.0])
+    assert np.allclose(limit_ratio(np.array([[5.0, 1.0], [0, -2.0]]), lower, upper), [0.5, 1.0])
