@@ -230,11 +230,16 @@ def passivity_regressor(tree, q, v, va, aa, bodies=None):
     q, v, va, aa = (np.atleast_2d(np.asarray(x, float)) for x in (q, v, va, aa))
     kin = forward_kinematics(tree, q, v)
     nsamp = q.shape[0]
-    vel_a = _accelerations(tree, kin, va, np.zeros((nsamp, 6)))  # Va_i = J_i va
+    same = np.array_equal(v, va)
+    vel_a = kin.V if same else _accelerations(tree, kin, va, np.zeros((nsamp, 6)))  # Va_i = J_i va
     acc_a = _accelerations(tree, kin, aa, _gravity_accel(tree, nsamp)) + _velocity_product_terms(tree, kin, va)
     sel = _selection(tree, bodies)
     R, p = kin.R[:, sel], kin.p[:, sel]
-    y = body_wrench_regressor(_to_body(R, p, kin.V[:, sel]), _to_body(R, p, vel_a[:, sel]), _to_body(R, p, acc_a[:, sel]))
+    vb, ab = _to_body(R, p, kin.V[:, sel]), _to_body(R, p, acc_a[:, sel])
+    if same:  # B(v) v = v x* I v
+        y = inertia_times(ab) + cross_force_matrix(vb) @ inertia_times(vb)
+    else:
+        y = body_wrench_regressor(vb, _to_body(R, p, vel_a[:, sel]), ab)
     return _project(tree, kin, y, kin.S, sel)
 
 
