@@ -1,0 +1,283 @@
+"""Controllers as Drake LeafSystems, all behind the same ports.
+
+Inputs:  desired (3 n: q_d, qd_d, qdd_d), state (2 n: q, v), theta0 (14 n),
+         theta_lower (14 n), theta_upper (14 n).       Output: torque (n), commanded.
+All laws evaluate at the step's inputs (direct feedthrough, cached once per step).
+
+- ArmourController: the robust passivity law of systems/controller.py (extra output
+  'diagnostics' = [V_bar, h, lambda, |r|, |w_bar|]).
+- GravityPidController ("grav-pid"): u = g(q; theta0) + beta + Kp e + Ki int e + Kd edot, the
+  handbook PID with gravity compensation (Siciliano et al., Robotics, sec. 8.5.2 + integral).
+- AdaptiveController ("adap-1"): Slotine-Li, u = Wp(q, qd, qd_a, qdd_a) theta_hat + K_D r,
+  r = qd_a - qd; the 10 end-effector parameters adapt, d theta_hat_e/dt = Gamma Wp_e^T r,
+  integrated at the plant step and projected on [theta_e] (box projection with diagonal Gamma
+  keeps the Lyapunov argument and bounds the estimate); theta_hat_e = theta0_e + delta, so an
+  estimator's new theta0 moves the estimate with it.
+- AdaptiveRobustController ("adap-2"): adaptive robust control in the style of Yao-Tomizuka:
+  the adaptive law above plus a smoothed robust term v_i = w_bar_i(theta_hat) sat(r_i / phi),
+  w_bar = |Wp| max(theta_hi - theta_hat, theta_hat - theta_lo) the worst model error over the box.
+Gains come from ControllerGains (from the scenario via gains_from_scenario).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .controller import ArmourGains, ControllerDynamics, armour_control, tracking_errors
+from .intervals import Interval
+
+# Defaults for the baselines (per joint for the Gen3's 7 joints; inertia incl. armature ~9-14
+# kg m^2, so Kp ~ M (10 rad/s)^2, Kd ~ 2 M 10 rad/s).
+DEFAULT_PID_KP = [1000.0] * 7  # N m / rad
+DEFAULT_PID_KI = [1000.0] * 7  # N m / (rad s)
+DEFAULT_PID_KD = [180.0] * 7  # N m s / rad
+DEFAULT_ADAPTIVE_KD = [100.0] * 7  # N m s / rad
+DEFAULT_ADAPTIVE_GAMMA = [5.0, 1.0, 1.0, 1.0, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1]  # per theta_e entry
+DEFAULT_ROBUST_BOUNDARY = 0.05  # rad/s, boundary layer phi of adap-2
+
+
+@dataclass
+class ControllerGains:
+    armour: ArmourGains
+    pid_kp: np.ndarray
+    pid_ki: np.ndarray
+    pid_kd: np.ndarray
+    adaptive_kd: np.ndarray
+    adaptive_gamma: np.ndarray
+    robust_boundary: float
+    extra: dict = field(default_factory=dict)
+
+
+def _fit(values, n, name):
+    arr = np.asarray(values, float)
+    if arr.size == 1:
+        return np.full(n, float(arr))
+    if arr.shape != (n,):
+        raise ValueError(f"controller.{name}: needs {n} values, got {arr.size}")
+    return arr
+
+
+def gains_from_scenario(scenario, n):
+    """Gains from scenario.controller (baseline fields optional: defaults above)."""
+    c = scenario.controller
+    get = lambda name, default: getattr(c, name, None) or default  # noqa: E731
+    return ControllerGains(
+        armour=ArmourGains(_fit(c.Kr, n, "Kr"), float(c.alpha), float(c.V_max)),
+        pid_kp=_fit(get("pid_kp_Nm_rad", DEFAULT_PID_KP), n, "pid_kp_Nm_rad"),
+        pid_ki=_fit(get("pid_ki_Nm_rad_s", DEFAULT_PID_KI), n, "pid_ki_Nm_rad_s"),
+        pid_kd=_fit(get("pid_kd_Nms_rad", DEFAULT_PID_KD), n, "pid_kd_Nms_rad"),
+        adaptive_kd=_fit(get("adaptive_kd_Nms_rad", DEFAULT_ADAPTIVE_KD), n, "adaptive_kd_Nms_rad"),
+        adaptive_gamma=_fit(get("adaptive_gamma", DEFAULT_ADAPTIVE_GAMMA), 10, "adaptive_gamma"),
+        robust_boundary=float(get("adaptive_boundary_rad_s", DEFAULT_ROBUST_BOUNDARY)))
+
+
+def _base_class():
+    from pydrake.systems.framework import BasicVector, LeafSystem
+
+    class ControllerBase(LeafSystem):
+        """Common ports; subclasses implement _torque(context, q, v, qd_all, theta0, box)."""
+
+        def __init__(self, robot, gains: ControllerGains):
+            super().__init__()
+            self.robot, self.gains, self.n = robot, gains, robot.n
+            n, p = robot.n, 14 * robot.n
+            self.dyn = ControllerDynamics(robot)
+            self.desired = self.DeclareVectorInputPort("desired", 3 * n)
+            self.state = self.DeclareVectorInputPort("state", 2 * n)
+            self.theta0 = self.DeclareVectorInputPort("theta0", p)
+            self.theta_lower = self.DeclareVectorInputPort("theta_lower", p)
+            self.theta_upper = self.DeclareVectorInputPort("theta_upper", p)
+            self.torque_output = self.DeclareVectorOutputPort("torque", BasicVector(n), self._calc_torque)
+
+        def _inputs(self, context):
+            n = self.n
+            x = self.state.Eval(context)
+            d = self.desired.Eval(context)
+            box = Interval(self.theta_lower.Eval(context), self.theta_upper.Eval(context))
+            return x[:n], x[n:], d[:n], d[n:2 * n], d[2 * n:], self.theta0.Eval(context), box
+
+        def _calc_torque(self, context, output):
+            output.SetFromVector(self._torque(context, *self._inputs(context)))
+
+    return ControllerBase, BasicVector
+
+
+def make_armour_controller(robot, gains: ControllerGains):
+    ControllerBase, BasicVector = _base_class()
+
+    class ArmourController(ControllerBase):
+        def __init__(self):
+            super().__init__(robot, gains)
+            from pydrake.common.value import AbstractValue
+            from pydrake.systems.framework import ValueProducer
+
+            # One evaluation of the law per step, shared by the torque and diagnostics outputs.
+            self._law = self.DeclareCacheEntry(
+                "law", ValueProducer(allocate=lambda: AbstractValue.Make(object()), calc=self._calc_law),
+                {self.all_input_ports_ticket()})
+            self.DeclareVectorOutputPort("diagnostics", BasicVector(5), self._calc_diag)
+
+        def _calc_law(self, context, value):
+            q, v, q_d, qd_d, qdd_d, theta0, box = self._inputs(context)
+            value.set_value(armour_control(self.dyn, gains.armour, q, v, q_d, qd_d, qdd_d, theta0, box))
+
+        def law(self, context):
+            """ArmourOutput of the current step (u, tau_nom, v, w_bar, V_bar, h, lam, err)."""
+            return self._law.Eval(context)
+
+        def _torque(self, context, *args):
+            return self.law(context).u
+
+        def _calc_diag(self, context, output):
+            out = self.law(context)
+            output.SetFromVector([out.V_bar, out.h, out.lam, np.linalg.norm(out.err.r), np.linalg.norm(out.w_bar)])
+
+    return ArmourController()
+
+
+def make_gravity_pid_controller(robot, gains: ControllerGains, time_step):
+    ControllerBase, _ = _base_class()
+
+    class GravityPidController(ControllerBase):
+        def __init__(self):
+            super().__init__(robot, gains)
+            self._integral = self.DeclareDiscreteState(robot.n)
+            self.DeclarePeriodicDiscreteUpdateEvent(time_step, 0.0, self._update)
+
+        def _errors(self, q, v, q_d, qd_d):
+            e = tracking_errors(np.zeros(self.n), q, v, q_d, qd_d, 0 * qd_d, robot.joint_params.continuous)
+            return e.e, e.edot
+
+        def _torque(self, context, q, v, q_d, qd_d, qdd_d, theta0, box):
+            e, edot = self._errors(q, v, q_d, qd_d)
+            z = context.get_discrete_state(self._integral).get_value()
+            return self.dyn.gravity(q, theta0) + gains.pid_kp * e + gains.pid_ki * z + gains.pid_kd * edot
+
+        def _update(self, context, discrete_state):
+            q, v, q_d, qd_d, *_ = self._inputs(context)
+            e, _ = self._errors(q, v, q_d, qd_d)
+            z = context.get_discrete_state(self._integral).get_value()
+            discrete_state.set_value(self._integral, z + time_step * e)
+
+    return GravityPidController()
+
+
+def make_adaptive_controller(robot, gains: ControllerGains, time_step, robust=False):
+    """adap-1 (robust=False) or adap-2 (robust=True)."""
+    ControllerBase, _ = _base_class()
+    ee = robot.ee_slice
+
+    class AdaptiveController(ControllerBase):
+        def __init__(self):
+            super().__init__(robot, gains)
+            self._delta = self.DeclareDiscreteState(10)  # theta_hat_e - theta0_e
+            self.DeclarePeriodicDiscreteUpdateEvent(time_step, 0.0, self._update)
+
+        def estimate(self, context, theta0, box):
+            """theta_hat (14 n): theta0 with the adapted end effector, projected on the box."""
+            theta = theta0.copy()
+            delta = context.get_discrete_state(self._delta).get_value()
+            theta[ee] = np.clip(theta0[ee] + delta, box.lo[ee], box.hi[ee])
+            return theta
+
+        def _terms(self, context, q, v, q_d, qd_d, qdd_d, theta0, box):
+            err = tracking_errors(gains.armour.Kr, q, v, q_d, qd_d, qdd_d, robot.joint_params.continuous)
+            wp, _ = self.dyn.regressors(q, v, err.qd_a, err.qdd_a, np.zeros(self.n))
+            return err, wp, self.estimate(context, theta0, box)
+
+        def _torque(self, context, *inputs):
+            err, wp, theta_hat = self._terms(context, *inputs)
+            u = wp @ theta_hat + gains.adaptive_kd * err.r
+            if robust:
+                box = inputs[-1]
+                spread = np.maximum(box.hi - theta_hat, theta_hat - box.lo)
+                w_bar = np.abs(wp) @ np.maximum(spread, 0.0)
+                u = u + w_bar * np.clip(err.r / gains.robust_boundary, -1.0, 1.0)
+            return u
+
+        def _update(self, context, discrete_state):
+            inputs = self._inputs(context)
+            err, wp, theta_hat = self._terms(context, *inputs)
+            theta0, box = inputs[-2], inputs[-1]
+            new = np.clip(theta_hat[ee] + time_step * gains.adaptive_gamma * (wp[:, ee].T @ err.r), box.lo[ee], box.hi[ee])
+            discrete_state.set_value(self._delta, new - theta0[ee])
+
+    system = AdaptiveController()
+    system.set_name("adaptive_robust_controller" if robust else "adaptive_controller")
+    return system
+
+
+def make_controller(kind, robot, gains: ControllerGains, time_step):
+    """kind: armour | pid | adaptive | adaptive_robust (scenario.controller.kind)."""
+    if kind == "armour":
+        return make_armour_controller(robot, gains)
+    if kind == "pid":
+        return make_gravity_pid_controller(robot, gains, time_step)
+    if kind in ("adaptive", "adaptive_robust"):
+        return make_adaptive_controller(robot, gains, time_step, robust=kind == "adaptive_robust")
+    raise ValueError(f"controller.kind: unknown controller {kind!r}")
+
+
+# ---- closed loop: real arm + controller + trajectory (tests, benchmarks, the run command) -----------
+@dataclass
+class ClosedLoop:
+    diagram: object
+    arm: object  # RealArm
+    controller: object
+    source: object
+    loggers: dict  # name -> VectorLogSink (state, desired, torque, measured_torque, diagnostics)
+
+
+def build_closed_loop(scenario, trajectory, theta0, theta_box: Interval, kind=None, robot=None,
+                      dumbbell="scenario", log=True, seed=None):
+    """Real arm + controller (scenario.controller.kind unless `kind`) + trajectory source, with
+    fixed theta0 / [theta] (an estimator can be connected instead by building by hand)."""
+    from pydrake.systems.framework import DiagramBuilder
+    from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
+
+    from .real_arm import add_real_arm
+    from .trajectory_source import make_trajectory_source
+
+    builder = DiagramBuilder()
+    arm = add_real_arm(builder, scenario, robot=robot, dumbbell=dumbbell, seed=seed)
+    robot = arm.robot
+    h = scenario.plant.time_step_s
+    gains = gains_from_scenario(scenario, robot.n)
+    ctrl = builder.AddSystem(make_controller(kind or scenario.controller.kind, robot, gains, h))
+    src = builder.AddSystem(make_trajectory_source(robot.n, trajectory))
+    src.set_name("trajectory_source")
+    builder.Connect(src.get_output_port(), ctrl.desired)
+    builder.Connect(arm.state_output, ctrl.state)
+    builder.Connect(ctrl.torque_output, arm.commanded_torque_input)
+    for port, value in ((ctrl.theta0, theta0), (ctrl.theta_lower, theta_box.lo), (ctrl.theta_upper, theta_box.hi)):
+        const = builder.AddSystem(ConstantVectorSource(np.asarray(value, float)))
+        builder.Connect(const.get_output_port(), port)
+    loggers = {}
+    if log:
+        outputs = {"state": arm.state_output, "desired": src.get_output_port(), "torque": ctrl.torque_output,
+                   "measured_torque": arm.measured_torque_output}
+        if ctrl.HasOutputPort("diagnostics"):
+            outputs["diagnostics"] = ctrl.GetOutputPort("diagnostics")
+        for name, port in outputs.items():
+            sink = builder.AddSystem(VectorLogSink(port.size(), h))
+            sink.set_name(f"log_{name}")
+            builder.Connect(port, sink.get_input_port())
+            loggers[name] = sink
+    return ClosedLoop(builder.Build(), arm, ctrl, src, loggers)
+
+
+def simulate_closed_loop(loop: ClosedLoop, q0, duration_s, v0=None):
+    """Run from (q0, v0); returns {name: (t, data (N, size))} from the loggers."""
+    from pydrake.systems.analysis import Simulator
+
+    sim = Simulator(loop.diagram)
+    ctx = sim.get_mutable_context()
+    loop.arm.set_state(ctx, q0, v0)
+    sim.Initialize()
+    sim.AdvanceTo(duration_s)
+    out = {}
+    for name, sink in loop.loggers.items():
+        data = sink.FindLog(ctx)
+        out[name] = (data.sample_times().copy(), data.data().T.copy())
+    return out

@@ -1,0 +1,320 @@
+"""The robot as the world sees it: a discrete MultibodyPlant with the true payload, friction,
+armature, saturation, a noisy torque sensor, encoders and optional unmodelled effects.
+
+Signal path (everything from the scenario and the RobotModel; nothing hard-coded):
+
+    commanded torque u -> Saturation(+-torque_limit)  = motor torque tau_m   -> TorqueSensor
+                       -> [DiscreteTimeDelay d]        = applied torque tau_a
+                       -> JointFriction: tau_a - (Fc tanh(v/vs) + Fv v + beta)  -> plant actuation
+    plant state (q, v) -> [SeriesElasticEncoders]      -> state output
+
+- Armature Ia: each JointActuator gets rotor inertia Ia and gear ratio 1, so Drake adds the
+  reflected inertia Ia to the mass-matrix diagonal (M_plant = M_rigid + diag(Ia), tested).
+- Friction uses the regressors' law (vs = robot.coulomb_smoothing), evaluated explicitly at the
+  step's velocity (stable by far at 1 kHz: h Fv / Ia ~ 1e-3).
+- Payload: a body welded at robot.extra["grasp_point"] on the end-effector link, dumbbell
+  shaped (handle cylinder along the end-effector x, two head cylinders; visual + collision).
+  `RealArm.set_payload(context, dumbbell | None)` grasps or releases it at run time by setting
+  the body's spatial inertia in the context (the geometry stays; a released payload is massless).
+- Torque sensor: tau_meas = scale * (tau_m + n) + offset, n uniform in +-(ratio |tau_m| + floor)
+  per sample and joint (noise.distribution "none": n = 0); scale = 1, offset = 0 by default.
+
+Unmodelled effects (scenario.plant.effects, each off by default):
+- torque_sensor_offset_Nm / torque_sensor_scale: per joint, on the measured torque only.
+- time_delay_s: the motor torque reaches the joint d seconds late (rounded to whole steps); the
+  sensor reports the motor torque when it is produced, so logs show torque leading motion by d.
+- base_tilt_rad [roll, pitch]: the base is tilted in the world, i.e. gravity in the base frame is
+  R(roll, pitch)^T [0, 0, -g].
+- joint_stiffness_Nm_rad: series elasticity, quasi-static approximation: the link is driven as
+  if rigid, but encoders sit on the motor side and read q + tau_s / K, tau_s = the torque the
+  transmission carries (applied torque minus friction). Velocities are reported unchanged. This
+  captures the torque-proportional position offset of a stiff gearbox, not its resonance.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .payload import Dumbbell, load_dumbbells, payload_theta_in_end_effector
+
+_NOISE_CHUNK = 4096
+
+
+def _leaf_system():
+    from pydrake.systems.framework import LeafSystem
+
+    return LeafSystem
+
+
+def scenario_dumbbell(scenario):
+    """The Dumbbell the scenario names, or None for payload.dumbbell == 'none'."""
+    from safesysid.scenario import ScenarioError, resolve_path, scenario_dir
+
+    name = scenario.payload.dumbbell
+    if name.lower() == "none":
+        return None
+    bells = load_dumbbells(resolve_path(scenario.payload.dumbbells_file, scenario_dir(scenario)))
+    if name not in bells:
+        raise ScenarioError(f"{scenario.source}: payload.dumbbell: {name!r} is not one of {', '.join(bells)}")
+    return bells[name]
+
+
+def true_theta(robot, dumbbell):
+    """The plant's true 14 n parameters: the model plus the payload on the end effector."""
+    theta = robot.theta.copy()
+    theta[robot.ee_slice] += payload_theta_in_end_effector(dumbbell, robot.extra["grasp_point"])
+    return theta
+
+
+def _make_friction_system(n, coulomb, viscous, offset, smoothing, stiffness):
+    from pydrake.systems.framework import BasicVector
+
+    LeafSystem = _leaf_system()
+
+    class JointFriction(LeafSystem):
+        """Generalized force on the joints: applied torque minus joint friction."""
+
+        def __init__(self):
+            super().__init__()
+            self.applied = self.DeclareVectorInputPort("applied_torque", n)
+            self.state = self.DeclareVectorInputPort("state", 2 * n)
+            self.DeclareVectorOutputPort("actuation", BasicVector(n), self._calc,
+                                         prerequisites_of_calc={self.all_input_ports_ticket()})
+
+        def _calc(self, context, output):
+            v = self.state.Eval(context)[n:]
+            law = np.tanh(v / smoothing) if smoothing > 0 else np.sign(v)
+            output.SetFromVector(self.applied.Eval(context) - (coulomb * law + viscous * v + offset))
+
+    class SeriesElasticEncoders(LeafSystem):
+        """Motor-side encoders: q + tau_s / K (quasi-static series elasticity), v unchanged."""
+
+        def __init__(self):
+            super().__init__()
+            self.state = self.DeclareVectorInputPort("state", 2 * n)
+            self.transmitted = self.DeclareVectorInputPort("transmitted_torque", n)
+            self.DeclareVectorOutputPort("measured_state", BasicVector(2 * n), self._calc)
+
+        def _calc(self, context, output):
+            x = self.state.Eval(context).copy()
+            x[:n] += self.transmitted.Eval(context) / stiffness
+            output.SetFromVector(x)
+
+    return JointFriction(), (SeriesElasticEncoders() if stiffness is not None else None)
+
+
+def _make_torque_sensor(n, time_step, ratio, floor, scale, offset, seed, noisy):
+    from pydrake.systems.framework import BasicVector
+
+    LeafSystem = _leaf_system()
+
+    class TorqueSensor(LeafSystem):
+        """scale * (tau + n) + offset, n uniform inside +-(ratio |tau| + floor), one draw per step."""
+
+        def __init__(self):
+            super().__init__()
+            self.torque = self.DeclareVectorInputPort("torque", n)
+            self.DeclareVectorOutputPort("measured_torque", BasicVector(n), self._calc)
+            self._rng = np.random.default_rng(seed)
+            self._unit = np.empty((0, n))
+
+        def unit_noise(self, step):
+            # Deterministic per (seed, step): a table of U(-1, 1) extended on demand.
+            while step >= len(self._unit):
+                self._unit = np.vstack([self._unit, self._rng.uniform(-1.0, 1.0, (_NOISE_CHUNK, n))])
+            return self._unit[step]
+
+        def _calc(self, context, output):
+            tau = self.torque.Eval(context)
+            if noisy:
+                step = int(round(context.get_time() / time_step))
+                tau = tau + self.unit_noise(step) * (ratio * np.abs(tau) + floor)
+            output.SetFromVector(scale * tau + offset)
+
+    return TorqueSensor()
+
+
+def _per_joint(values, n, default, field):
+    from safesysid.scenario import ScenarioError
+
+    if not values:
+        return np.full(n, default, float)
+    arr = np.asarray(values, float)
+    if arr.shape != (n,):
+        raise ScenarioError(f"plant.effects.{field}: needs {n} values, got {arr.size}")
+    return arr
+
+
+@dataclass
+class RealArm:
+    """Handles to the real arm's systems inside a DiagramBuilder (connect to the ports)."""
+
+    robot: object  # RobotModel
+    plant: object
+    scene_graph: object
+    instance: object
+    payload_body: object
+    dumbbell: Dumbbell | None
+    commanded_torque_input: object  # InputPort (n)
+    state_output: object  # OutputPort (2n): encoders q, v
+    measured_torque_output: object  # OutputPort (n)
+    applied_torque_output: object  # OutputPort (n): torque reaching the joints (saturated, delayed)
+    motor_torque_output: object  # OutputPort (n): saturated command (what the sensor measures)
+    torque_sensor: object
+    time_step: float
+
+    @property
+    def n(self):
+        return self.robot.n
+
+    def plant_context(self, root_context):
+        return self.plant.GetMyMutableContextFromRoot(root_context)
+
+    def set_payload(self, root_context, dumbbell: Dumbbell | None):
+        """Grasp (a Dumbbell) or release (None) at run time."""
+        from pydrake.multibody.tree import SpatialInertia
+
+        ctx = self.plant_context(root_context)
+        spatial = _dumbbell_spatial_inertia(dumbbell) if dumbbell is not None else SpatialInertia.Zero()
+        self.payload_body.SetSpatialInertiaInBodyFrame(ctx, spatial)
+
+    def set_state(self, root_context, q, v=None):
+        ctx = self.plant_context(root_context)
+        self.plant.SetPositions(ctx, self.instance, np.asarray(q, float))
+        self.plant.SetVelocities(ctx, self.instance, np.zeros(self.n) if v is None else np.asarray(v, float))
+
+    def true_theta(self, dumbbell="current"):
+        return true_theta(self.robot, self.dumbbell if dumbbell == "current" else dumbbell)
+
+
+def _dumbbell_spatial_inertia(db: Dumbbell):
+    from . import inertial
+
+    return inertial.to_spatial_inertia(db.theta_about_centre())
+
+
+def _register_dumbbell_geometry(plant, body, db: Dumbbell):
+    from pydrake.geometry import Cylinder
+    from pydrake.math import RigidTransform, RotationMatrix
+    from pydrake.multibody.plant import CoulombFriction
+
+    along_x = RotationMatrix.MakeYRotation(np.pi / 2)  # Drake cylinders run along z
+    friction = CoulombFriction(0.8, 0.6)
+    for k, (_, x, radius, length) in enumerate(db.parts()):
+        pose = RigidTransform(along_x, [x, 0.0, 0.0])
+        name = f"dumbbell_{db.name}_{['handle', 'head_pos', 'head_neg'][k]}"
+        plant.RegisterVisualGeometry(body, pose, Cylinder(radius, length), name + "_visual", [0.15, 0.15, 0.18, 1.0])
+        plant.RegisterCollisionGeometry(body, pose, Cylinder(radius, length), name, friction)
+
+
+def _register_obstacles(plant, scenario):
+    from pydrake.geometry import Box
+    from pydrake.math import RigidTransform, RollPitchYaw
+    from pydrake.multibody.plant import CoulombFriction
+
+    world = plant.world_body()
+    friction = CoulombFriction(0.8, 0.6)
+    for k, ob in enumerate(scenario.obstacles):
+        pose = RigidTransform(RollPitchYaw(np.asarray(ob.rpy_rad, float)), np.asarray(ob.xyz_m, float))
+        box = Box(*np.asarray(ob.size_m, float))
+        name = f"obstacle_{k}_{ob.name}"
+        plant.RegisterVisualGeometry(world, pose, box, name + "_visual", [0.8, 0.3, 0.2, 0.6])
+        plant.RegisterCollisionGeometry(world, pose, box, name, friction)
+    # Floor: a thick slab whose top face is the floor plane.
+    thickness = 0.05
+    pose = RigidTransform([0.0, 0.0, scenario.planner.floor_z_m - thickness / 2])
+    plant.RegisterVisualGeometry(world, pose, Box(4.0, 4.0, thickness), "floor_visual", [0.6, 0.6, 0.6, 0.3])
+    plant.RegisterCollisionGeometry(world, pose, Box(4.0, 4.0, thickness), "floor", friction)
+
+
+def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
+    """Add the real arm to `builder`; returns a RealArm with its ports.
+
+    dumbbell: "scenario" (the scenario's payload), a Dumbbell, or None (no payload at start).
+    """
+    from pydrake.geometry import CollisionFilterDeclaration
+    from pydrake.math import RollPitchYaw
+    from pydrake.multibody.tree import SpatialInertia
+    from pydrake.math import RigidTransform
+    from pydrake.systems.primitives import DiscreteTimeDelay, Saturation
+
+    from safesysid.scenario import ScenarioError, robot_from_scenario
+    from .robot_model import make_plant
+
+    robot = robot or robot_from_scenario(scenario)
+    n = robot.n
+    h = scenario.plant.time_step_s
+    eff = scenario.plant.effects
+    db = scenario_dumbbell(scenario) if isinstance(dumbbell, str) and dumbbell == "scenario" else dumbbell
+
+    plant, scene_graph, instance = make_plant(robot.source, h, builder=builder)
+    plant.set_name("real_arm_plant")
+    jp = robot.joint_params
+    joints = [plant.GetJointByName(name, instance) for name in jp.names]
+    actuators = {plant.get_joint_actuator(i).joint().name(): plant.get_joint_actuator(i)
+                 for i in plant.GetJointActuatorIndices()}
+    for k, joint in enumerate(joints):
+        if joint.name() not in actuators:
+            raise ScenarioError(f"{robot.source}: joint {joint.name()} has no actuator")
+        act = actuators[joint.name()]
+        act.set_default_gear_ratio(1.0)
+        act.set_default_rotor_inertia(float(jp.armature[k]))  # reflected inertia = Ia
+    # Payload body welded at the grasp point (its frame: origin at the dumbbell centre, x along it).
+    ee_body = plant.GetBodyByName(robot.body_names[robot.end_effector], instance)
+    payload_instance = plant.AddModelInstance("payload")
+    payload_body = plant.AddRigidBody("payload", payload_instance,
+                                      _dumbbell_spatial_inertia(db) if db is not None else SpatialInertia.Zero())
+    plant.WeldFrames(ee_body.body_frame(), payload_body.body_frame(), RigidTransform(robot.extra["grasp_point"]))
+    if db is not None:
+        _register_dumbbell_geometry(plant, payload_body, db)
+    _register_obstacles(plant, scenario)
+    tilt = _per_joint(eff.base_tilt_rad, 2, 0.0, "base_tilt_rad")
+    if np.any(tilt != 0):
+        g = plant.gravity_field().gravity_vector()
+        rot = RollPitchYaw(tilt[0], tilt[1], 0.0).ToRotationMatrix().matrix()
+        plant.mutable_gravity_field().set_gravity_vector(rot.T @ g)
+    plant.Finalize()
+    # The arm's own spheres overlap at the joints: no self-contact (obstacles and floor only).
+    robot_bodies = [plant.get_body(i) for i in plant.GetBodyIndices(instance)] + [payload_body]
+    scene_graph.collision_filter_manager().Apply(
+        CollisionFilterDeclaration().ExcludeWithin(plant.CollectRegisteredGeometries(robot_bodies)))
+
+    sat = builder.AddSystem(Saturation(-jp.torque_limit, jp.torque_limit))
+    sat.set_name("actuator_saturation")
+    delay_steps = int(round(eff.time_delay_s / h))
+    applied_port = sat.get_output_port()
+    if delay_steps > 0:
+        delay = builder.AddSystem(DiscreteTimeDelay(h, delay_steps, n))
+        delay.set_name("actuation_delay")
+        builder.Connect(sat.get_output_port(), delay.get_input_port())
+        applied_port = delay.get_output_port()
+    stiffness = _per_joint(eff.joint_stiffness_Nm_rad, n, 0.0, "joint_stiffness_Nm_rad") if eff.joint_stiffness_Nm_rad else None
+    if stiffness is not None and np.any(stiffness <= 0):
+        raise ScenarioError("plant.effects.joint_stiffness_Nm_rad: values must be > 0")
+    friction, encoders = _make_friction_system(n, jp.coulomb, jp.viscous, jp.offset, robot.coulomb_smoothing, stiffness)
+    builder.AddSystem(friction)
+    friction.set_name("joint_friction")
+    builder.Connect(applied_port, friction.applied)
+    builder.Connect(plant.get_state_output_port(instance), friction.state)
+    builder.Connect(friction.get_output_port(), plant.get_actuation_input_port(instance))
+    state_out = plant.get_state_output_port(instance)
+    if encoders is not None:
+        builder.AddSystem(encoders)
+        encoders.set_name("motor_side_encoders")
+        builder.Connect(plant.get_state_output_port(instance), encoders.state)
+        builder.Connect(friction.get_output_port(), encoders.transmitted)
+        state_out = encoders.get_output_port()
+    noise = scenario.noise
+    sensor = _make_torque_sensor(
+        n, h, noise.torque_ratio, noise.torque_floor_Nm,
+        _per_joint(eff.torque_sensor_scale, n, 1.0, "torque_sensor_scale"),
+        _per_joint(eff.torque_sensor_offset_Nm, n, 0.0, "torque_sensor_offset_Nm"),
+        scenario.seed if seed is None else seed, noise.distribution == "uniform")
+    builder.AddSystem(sensor)
+    sensor.set_name("torque_sensor")
+    builder.Connect(sat.get_output_port(), sensor.torque)
+    return RealArm(robot=robot, plant=plant, scene_graph=scene_graph, instance=instance, payload_body=payload_body,
+                   dumbbell=db, commanded_torque_input=sat.get_input_port(), state_output=state_out,
+                   measured_torque_output=sensor.get_output_port(), applied_torque_output=applied_port,
+                   motor_torque_output=sat.get_output_port(), torque_sensor=sensor, time_step=h)

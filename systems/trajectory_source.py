@@ -1,0 +1,78 @@
+"""Desired trajectory source: [q_d, qd_d, qdd_d] (3 n) from degree-5 Bezier pieces.
+
+A piece is (t_start_s, QuinticBezier, q_end). At time t the latest piece with t_start <= t is
+evaluated at t - t_start (after its duration it rests at q_end: the built-in brake). Pieces
+live in the context (abstract state), so a planner can append pieces while the diagram runs.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .bezier import QuinticBezier
+
+
+@dataclass(frozen=True)
+class Piece:
+    t_start: float
+    curve: QuinticBezier
+    q_end: np.ndarray
+
+    def evaluate(self, t):
+        q, qd, qdd = self.curve.evaluate([t - self.t_start], self.q_end)
+        return q[0], qd[0], qdd[0]
+
+
+def evaluate_pieces(pieces, t):
+    """(q, qd, qdd) of a sorted piece list at time t (before the first piece: its start, at rest)."""
+    if not pieces:
+        raise ValueError("trajectory has no pieces")
+    active = pieces[0]
+    for piece in pieces:
+        if piece.t_start <= t + 1e-12:
+            active = piece
+        else:
+            break
+    if t < active.t_start:
+        q0 = np.asarray(active.curve.q0, float)
+        return q0, np.zeros_like(q0), np.zeros_like(q0)
+    return active.evaluate(t)
+
+
+def _as_pieces(trajectory):
+    if isinstance(trajectory, QuinticBezier):
+        raise TypeError("pass (QuinticBezier, q_end) or a list of Piece")
+    if isinstance(trajectory, tuple) and len(trajectory) == 2 and isinstance(trajectory[0], QuinticBezier):
+        return [Piece(0.0, trajectory[0], np.asarray(trajectory[1], float))]
+    pieces = list(trajectory)
+    return sorted(pieces, key=lambda p: p.t_start)
+
+
+def make_trajectory_source(n, trajectory):
+    """LeafSystem with output 'desired' (3 n); trajectory = (QuinticBezier, q_end) or [Piece]."""
+    from pydrake.common.value import AbstractValue
+    from pydrake.systems.framework import BasicVector, LeafSystem
+
+    class TrajectorySource(LeafSystem):
+        def __init__(self):
+            super().__init__()
+            self._pieces_index = self.DeclareAbstractState(AbstractValue.Make(_as_pieces(trajectory)))
+            self.DeclareVectorOutputPort("desired", BasicVector(3 * n), self._calc,
+                                         prerequisites_of_calc={self.time_ticket(), self.abstract_state_ticket(self._pieces_index)})
+
+        def pieces(self, context):
+            return context.get_abstract_state(self._pieces_index).get_value()
+
+        def set_pieces(self, context, pieces):
+            """Replace the pieces (context: this system's context)."""
+            context.get_mutable_abstract_state(self._pieces_index).set_value(_as_pieces(pieces))
+
+        def append_piece(self, context, piece: Piece):
+            self.set_pieces(context, list(self.pieces(context)) + [piece])
+
+        def _calc(self, context, output):
+            q, qd, qdd = evaluate_pieces(self.pieces(context), context.get_time())
+            output.SetFromVector(np.concatenate([q, qd, qdd]))
+
+    return TrajectorySource()
