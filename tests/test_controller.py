@@ -1,0 +1,190 @@
+"""ARMOUR law: regressors, hand-computed cases, containment and exactness of w_bar / V_bar,
+the certified sigma_min and the per-joint tracking bounds."""
+import numpy as np
+import pytest
+
+from safesysid.systems import controller as C
+from safesysid.systems.intervals import Interval
+from safesysid.systems.payload import load_dumbbells, payload_theta_in_end_effector
+from safesysid.systems.robot_model import MODELS_DIR, load_robot
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return load_robot(coulomb_smoothing=0.01)
+
+
+@pytest.fixture(scope="module")
+def dyn(robot):
+    return C.ControllerDynamics(robot)
+
+
+def _box(robot, rng, ee_ratio=0.2):
+    theta_e = robot.theta_e + payload_theta_in_end_effector(load_dumbbells(MODELS_DIR / "dumbbells.yaml")["6lb"],
+                                                            robot.extra["grasp_point"])
+    rad = ee_ratio * np.abs(theta_e) + 1e-3
+    return C.parameter_box(robot, theta_e + rng.uniform(-0.5, 0.5, 10) * rad, theta_e - rad, theta_e + rad)
+
+
+def test_fast_regressors_equal_robot_model(robot, dyn):
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        q, v, va, aa, x = rng.normal(size=(5, robot.n))
+        wp, wm = dyn.regressors(q, v, va, aa, x)
+        np.testing.assert_allclose(wp, robot.passivity_regressor(q[None], v[None], va[None], aa[None])[0], atol=1e-11)
+        np.testing.assert_allclose(wm, robot.momentum_regressor(q[None], x[None])[0], atol=1e-11)
+
+
+def test_passivity_form_is_christoffel(robot, dyn):
+    """Mdot - 2C skew: x^T (Mdot - 2 C) x = 0, with C(q, v) x from Wp and Mdot by differences."""
+    rng = np.random.default_rng(1)
+    q, v, x = rng.normal(size=(3, robot.n))
+    theta = robot.theta
+    zero = np.zeros(robot.n)
+    c_x = (dyn.regressors(q, v, x, zero, zero)[0] - dyn.regressors(q, zero, zero, zero, zero)[0]) @ theta
+    c_x -= robot.joint_params.viscous * x + robot.joint_params.coulomb * np.tanh(x / 0.01)  # friction(va) columns
+    d = 1e-6
+    m_dot = (robot.mass_matrix(q + d * v, theta)[0] - robot.mass_matrix(q - d * v, theta)[0]) / (2 * d)
+    assert abs(x @ m_dot @ x - 2 * x @ c_x) < 1e-6 * (1 + abs(x @ m_dot @ x))
+
+
+def test_tracking_errors_hand_case(robot):
+    cont = robot.joint_params.continuous
+    kr = np.arange(1.0, 8.0)
+    q = np.zeros(7)
+    q_d = np.zeros(7)
+    q_d[0], q[0] = np.pi - 0.1, -np.pi + 0.1  # continuous: wraps to -0.2
+    q_d[1], q[1] = 0.3, 0.1  # limited joint: plain difference
+    v = np.full(7, 0.5)
+    qd_d = np.full(7, 0.25)
+    qdd_d = np.full(7, 2.0)
+    err = C.tracking_errors(kr, q, v, q_d, qd_d, qdd_d, cont)
+    assert err.e[0] == pytest.approx(-0.2) and err.e[1] == pytest.approx(0.2)
+    np.testing.assert_allclose(err.edot, -0.25)
+    np.testing.assert_allclose(err.qd_a, qd_d + kr * err.e)
+    np.testing.assert_allclose(err.qdd_a, qdd_d - 0.25 * kr)
+    np.testing.assert_allclose(err.r, -0.25 + kr * err.e)
+    assert C.wrap_error(np.array([2 * np.pi - 0.2]), np.array([False]))[0] == pytest.approx(2 * np.pi - 0.2)
+
+
+def test_robust_input_hand_cases():
+    r = np.array([3.0, 4.0])
+    w_bar = np.array([1.0, 2.0])
+    v, lam = C.robust_input(r, w_bar, h=0.5, alpha=2.0)
+    assert lam == pytest.approx(np.sqrt(5) - 0.2)
+    np.testing.assert_allclose(v, lam * np.array([0.6, 0.8]))
+    v, lam = C.robust_input(r, w_bar, h=100.0, alpha=2.0)  # deep inside the barrier: off
+    assert lam == 0 and not v.any()
+    v, lam = C.robust_input(r, w_bar, h=-1.0, alpha=2.0)  # outside: pushes back harder
+    assert lam == pytest.approx(0.4 + np.sqrt(5))
+    v, lam = C.robust_input(np.zeros(2), w_bar, h=-1.0, alpha=2.0)
+    assert lam == 0 and not v.any()
+
+
+def test_law_on_the_trajectory_is_inverse_dynamics(robot, dyn):
+    """e = edot = 0: r = 0, no robust input, u = M qdd + C qd + g + F of the nominal model."""
+    rng = np.random.default_rng(2)
+    theta0, box = _box(robot, rng)
+    gains = C.ArmourGains(np.array([5.0] * 4 + [7.0] * 3), 20.0, 0.02)
+    q, qd, qdd = rng.normal(size=(3, 7))
+    out = C.armour_control(dyn, gains, q, qd, q, qd, qdd, theta0, box)
+    assert out.lam == 0 and not out.v.any() and out.V_bar == 0 and out.h == pytest.approx(0.02)
+    np.testing.assert_allclose(out.u, robot.inverse_dynamics(q[None], qd[None], qdd[None], theta0)[0], atol=1e-10)
+
+
+def test_law_hand_assembled(robot, dyn):
+    """u = Wp theta0 + lambda r/|r| with every piece recomputed independently."""
+    rng = np.random.default_rng(3)
+    theta0, box = _box(robot, rng)
+    gains = C.ArmourGains(np.array([5.0] * 4 + [7.0] * 3), 20.0, 0.02)
+    q, v = rng.normal(size=(2, 7))
+    q_d, qd_d, qdd_d = q + 0.03 * rng.normal(size=7), v + 0.1 * rng.normal(size=7), rng.normal(size=7)
+    out = C.armour_control(dyn, gains, q, v, q_d, qd_d, qdd_d, theta0, box)
+    e = C.wrap_error(q_d - q, robot.joint_params.continuous)
+    r = (qd_d - v) + gains.Kr * e
+    wp = robot.passivity_regressor(q[None], v[None], (qd_d + gains.Kr * e)[None], (qdd_d + gains.Kr * (qd_d - v))[None])[0]
+    tau_nom = wp @ theta0
+    w_bar = np.maximum(wp @ box.mid + np.abs(wp) @ (box.hi - box.lo) / 2 - tau_nom,
+                       tau_nom - (wp @ box.mid - np.abs(wp) @ (box.hi - box.lo) / 2))
+    m = robot.momentum_regressor(q[None], r[None])[0]
+    v_bar = 0.5 * (r @ m @ box.mid + np.abs(r @ m) @ (box.hi - box.lo) / 2)
+    h = 0.02 - v_bar
+    lam = max(0.0, -20.0 * h / np.linalg.norm(r) + np.linalg.norm(w_bar))
+    np.testing.assert_allclose(out.tau_nom, tau_nom, atol=1e-10)
+    np.testing.assert_allclose(out.w_bar, w_bar, rtol=1e-9, atol=1e-10)
+    assert out.V_bar == pytest.approx(v_bar, rel=1e-9)
+    assert out.lam == pytest.approx(lam, rel=1e-9, abs=1e-12)
+    np.testing.assert_allclose(out.u, tau_nom + lam * r / np.linalg.norm(r), atol=1e-9)
+
+
+def test_disturbance_and_lyapunov_bounds_contain_and_are_exact(robot, dyn):
+    rng = np.random.default_rng(4)
+    theta0, box = _box(robot, rng)
+    for _ in range(5):
+        q, v, va, aa, r = rng.normal(size=(5, 7))
+        wp, wm = dyn.regressors(q, v, va, aa, r)
+        tau_nom, tau_box, w_bar = C.disturbance_bound(wp, theta0, box)
+        v_bar = C.lyapunov_upper(wm, r, box)
+        thetas = rng.uniform(box.lo, box.hi, (2000, box.lo.size))
+        tau = thetas @ wp.T
+        assert np.all(np.abs(tau - tau_nom) <= w_bar)
+        m_all = [robot.mass_matrix(q[None], th)[0] for th in thetas[:50]]
+        assert max(0.5 * r @ m @ r for m in m_all) <= v_bar
+        # Exact (not vacuous): the box vertex that maximises each expression attains the bound.
+        for i in range(7):
+            vertex = np.where(wp[i] >= 0, box.hi, box.lo)
+            assert wp[i] @ vertex == pytest.approx(tau_box.hi[i], rel=1e-12, abs=1e-9)
+        row = r @ wm
+        vertex = np.where(row >= 0, box.hi, box.lo)
+        assert 0.5 * r @ robot.mass_matrix(q[None], vertex)[0] @ r == pytest.approx(v_bar, rel=1e-9)
+
+
+def test_sigma_min_certified_and_nearly_tight(robot):
+    """Lower bound by the armature argument; sampled physical (q, theta) can only confirm it,
+    and the smallest sampled eigenvalue is within a few % (the bound is not vacuous)."""
+    rng = np.random.default_rng(5)
+    bells = load_dumbbells(MODELS_DIR / "dumbbells.yaml")
+    theta_lo = robot.theta * (1 - 0.05 * np.sign(robot.theta))
+    sigma = C.mass_matrix_lower_bound(robot.n, theta_lo)
+    assert sigma == pytest.approx(0.95 * robot.joint_params.armature.min())
+    smallest = np.inf
+    for k in range(60):
+        theta = robot.theta.copy()
+        theta[10 * robot.n:] = rng.uniform(theta_lo, robot.theta)[10 * robot.n:]  # Ia in its box
+        bell = list(bells.values())[k % len(bells)]
+        theta[robot.ee_slice] += payload_theta_in_end_effector(bell, robot.extra["grasp_point"])
+        q = rng.uniform(-np.pi, np.pi, 7)
+        smallest = min(smallest, np.linalg.eigvalsh(robot.mass_matrix(q[None], theta)[0]).min())
+    assert sigma <= smallest < 1.1 * sigma
+
+
+def test_sigma_min_without_armature_is_zero_bound():
+    assert C.mass_matrix_lower_bound(2, np.zeros(28)) == 0
+    assert C.ultimate_bound(0.02, 0.0) == np.inf
+
+
+def test_tracking_bounds_formulas_and_tightness():
+    kr = np.array([5.0, 7.0])
+    tb = C.tracking_bounds(kr, 0.02, 8.0)
+    eps = np.sqrt(2 * 0.02 / 8.0)
+    assert tb.eps == pytest.approx(eps) and tb.eps >= eps
+    np.testing.assert_allclose(tb.position, eps / kr)
+    np.testing.assert_allclose(tb.velocity, 2 * eps)
+    np.testing.assert_allclose(tb.qd_a, eps)
+    np.testing.assert_allclose(tb.qdd_a, 2 * kr * eps)
+    # Worst case of edot = r - Kr e with |r| <= eps: r = +eps until e ~ eps/Kr, then -eps.
+    dt, k = 1e-5, kr[0]
+    e, worst_e, worst_edot = 0.0, 0.0, 0.0
+    for step in range(int(2.0 / dt)):
+        r = eps if step * dt < 1.5 else -eps
+        edot = r - k * e
+        e += dt * edot
+        worst_e, worst_edot = max(worst_e, abs(e)), max(worst_edot, abs(edot))
+    assert worst_e <= tb.position[0] and worst_e > 0.99 * tb.position[0]
+    assert worst_edot <= tb.velocity[0] and worst_edot > 0.99 * tb.velocity[0]
+
+
+def test_parameter_box_contains_model(robot):
+    theta0, box = C.parameter_box(robot, robot.theta_e, robot.theta_e - 0.1, robot.theta_e + 0.1)
+    assert np.all(box.contains(robot.theta)) and np.all(box.contains(theta0))
+    assert isinstance(box, Interval) and np.any(box.hi[10:] > box.lo[10:])
