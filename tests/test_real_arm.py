@@ -1,0 +1,199 @@
+"""The real-arm block: true dynamics (armature, payload, friction law), saturation, torque
+sensor noise, unmodelled effects, and obstacle geometry for signed-distance queries."""
+import numpy as np
+import pytest
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
+
+from safesysid.scenario import load_scenario, robot_from_scenario
+from safesysid.systems.controller import ControllerDynamics
+from safesysid.systems.real_arm import add_real_arm, scenario_dumbbell, true_theta
+from safesysid.systems.regressors import friction_columns
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return robot_from_scenario(load_scenario())
+
+
+def _rig(scenario, robot, torque, dumbbell="scenario", log_step=None):
+    """Arm driven by a constant command; loggers on every output. Returns (sim, arm, logs)."""
+    b = DiagramBuilder()
+    arm = add_real_arm(b, scenario, robot=robot, dumbbell=dumbbell)
+    src = b.AddSystem(ConstantVectorSource(np.asarray(torque, float)))
+    b.Connect(src.get_output_port(), arm.commanded_torque_input)
+    logs = {}
+    for name, port in (("state", arm.state_output), ("measured", arm.measured_torque_output),
+                       ("applied", arm.applied_torque_output), ("motor", arm.motor_torque_output)):
+        logs[name] = b.AddSystem(VectorLogSink(port.size(), log_step or scenario.plant.time_step_s))
+        b.Connect(port, logs[name].get_input_port())
+    sim = Simulator(b.Build())
+    return sim, arm, logs
+
+
+def _log(sim, sink):
+    return sink.FindLog(sim.get_context()).data().T
+
+
+def test_mass_matrix_is_rigid_plus_armature(robot):
+    s = load_scenario(overrides={"payload": {"dumbbell": "8lb"}})
+    sim, arm, _ = _rig(s, robot, np.zeros(7))
+    ctx = sim.get_mutable_context()
+    rng = np.random.default_rng(0)
+    theta = true_theta(robot, scenario_dumbbell(s))
+    no_armature = theta.copy()
+    no_armature[10 * robot.n + 2::4] = 0.0
+    for _ in range(3):
+        q = rng.uniform(-2, 2, 7)
+        arm.set_state(ctx, q)
+        m_plant = arm.plant.CalcMassMatrix(arm.plant_context(ctx))
+        np.testing.assert_allclose(m_plant, robot.mass_matrix(q[None], theta)[0], atol=1e-12)
+        np.testing.assert_allclose(m_plant - np.diag(robot.joint_params.armature),
+                                   robot.mass_matrix(q[None], no_armature)[0], atol=1e-12)
+
+
+@pytest.mark.parametrize("bell", ["none", "8lb"])
+def test_holding_torque_keeps_the_arm_still(robot, bell):
+    """u = g(q; theta_true) + beta holds the arm: the plant has exactly the model's gravity."""
+    s = load_scenario(overrides={"payload": {"dumbbell": bell}, "noise": {"distribution": "none"}})
+    q0 = np.array(s.q0_rad)
+    hold = ControllerDynamics(robot).gravity(q0, true_theta(robot, scenario_dumbbell(s)))
+    sim, arm, logs = _rig(s, robot, hold)
+    arm.set_state(sim.get_mutable_context(), q0)
+    sim.AdvanceTo(0.5)
+    x = _log(sim, logs["state"])
+    assert np.abs(x[:, :7] - q0).max() < 1e-8
+    # The same torque without the payload's share lets the loaded arm sag: the payload is real.
+    if bell != "none":
+        wrong = ControllerDynamics(robot).gravity(q0, robot.theta)
+        sim, arm, logs = _rig(s, robot, wrong)
+        arm.set_state(sim.get_mutable_context(), q0)
+        sim.AdvanceTo(0.5)
+        assert np.abs(_log(sim, logs["state"])[-1, :7] - q0).max() > 1e-3
+
+
+def test_grasp_and_release_change_the_dynamics(robot):
+    s = load_scenario(overrides={"payload": {"dumbbell": "none"}})
+    bell = scenario_dumbbell(load_scenario(overrides={"payload": {"dumbbell": "5lb"}}))
+    sim, arm, _ = _rig(s, robot, np.zeros(7))
+    ctx = sim.get_mutable_context()
+    q = np.array(s.q0_rad)
+    arm.set_state(ctx, q)
+    dyn = ControllerDynamics(robot)
+    g = lambda: -arm.plant.CalcGravityGeneralizedForces(arm.plant_context(ctx)) + robot.joint_params.offset  # noqa: E731
+    np.testing.assert_allclose(g(), dyn.gravity(q, robot.theta), atol=1e-10)
+    arm.set_payload(ctx, bell)
+    np.testing.assert_allclose(g(), dyn.gravity(q, true_theta(robot, bell)), atol=1e-10)
+    arm.set_payload(ctx, None)
+    np.testing.assert_allclose(g(), dyn.gravity(q, robot.theta), atol=1e-10)
+
+
+def test_friction_uses_the_regressor_law(robot):
+    s = load_scenario()
+    b = DiagramBuilder()
+    add_real_arm(b, s, robot=robot)
+    diagram = b.Build()
+    friction = diagram.GetSubsystemByName("joint_friction")
+    ctx = friction.CreateDefaultContext()
+    rng = np.random.default_rng(1)
+    v = rng.normal(scale=0.02, size=7)  # around the smoothing velocity: tanh matters
+    tau = rng.normal(size=7)
+    friction.applied.FixValue(ctx, tau)
+    friction.state.FixValue(ctx, np.concatenate([np.zeros(7), v]))
+    law = friction_columns(v[None], np.zeros((1, 7)), "standard", robot.coulomb_smoothing)[0] @ robot.theta[70:]
+    np.testing.assert_allclose(friction.get_output_port().Eval(ctx), tau - law, atol=1e-12)
+    assert robot.coulomb_smoothing == s.robot.coulomb_smoothing_rad_s > 0
+
+
+def test_saturation_and_noisy_torque_sensor(robot):
+    s = load_scenario(overrides={"noise": {"torque_ratio": 0.05, "torque_floor_Nm": 0.1}, "payload": {"dumbbell": "none"}})
+    command = np.array([500.0, -500.0, 10.0, -10.0, 100.0, 1.0, 0.0])
+    sim, arm, logs = _rig(s, robot, command)
+    arm.set_state(sim.get_mutable_context(), s.q0_rad)
+    sim.AdvanceTo(0.3)
+    limit = robot.joint_params.torque_limit
+    applied = _log(sim, logs["applied"])
+    expected = np.clip(command, -limit, limit)
+    np.testing.assert_allclose(applied, np.broadcast_to(expected, applied.shape))
+    noise = _log(sim, logs["measured"]) - applied
+    bound = 0.05 * np.abs(applied) + 0.1
+    ratio = noise / bound
+    assert np.all(np.abs(ratio) <= 1.0)
+    assert np.abs(ratio).max() > 0.95 and abs(ratio.mean()) < 0.1  # uniform, filling the bound
+    # Deterministic per seed.
+    sim2, arm2, logs2 = _rig(s, robot, command)
+    arm2.set_state(sim2.get_mutable_context(), s.q0_rad)
+    sim2.AdvanceTo(0.3)
+    np.testing.assert_array_equal(_log(sim2, logs2["measured"]), _log(sim, logs["measured"]))
+
+
+def test_sensor_offset_scale_and_delay(robot):
+    eff = {"torque_sensor_offset_Nm": [0.5] * 7, "torque_sensor_scale": [1.1] * 7, "time_delay_s": 0.005}
+    s = load_scenario(overrides={"noise": {"distribution": "none"}, "payload": {"dumbbell": "none"},
+                                 "plant": {"effects": eff}})
+    q0 = np.array(s.q0_rad)
+    hold = ControllerDynamics(robot).gravity(q0, robot.theta)
+    sim, arm, logs = _rig(s, robot, hold)
+    arm.set_state(sim.get_mutable_context(), q0)
+    sim.AdvanceTo(0.05)
+    measured, motor, applied = (_log(sim, logs[k]) for k in ("measured", "motor", "applied"))
+    np.testing.assert_allclose(measured, 1.1 * motor + 0.5)
+    assert np.all(applied[:5] == 0) and np.allclose(applied[6:], hold)  # 5 steps late
+    # Before the delayed torque arrives the arm falls a little: the delay is physical.
+    assert np.abs(_log(sim, logs["state"])[-1, :7] - q0).max() > 1e-6
+
+
+def test_base_tilt_changes_gravity(robot):
+    s = load_scenario(overrides={"noise": {"distribution": "none"}, "payload": {"dumbbell": "none"},
+                                 "plant": {"effects": {"base_tilt_rad": [0.05, 0.0]}}})
+    q0 = np.array(s.q0_rad)
+    sim, arm, _ = _rig(s, robot, np.zeros(7))
+    g = arm.plant.gravity_field().gravity_vector()
+    assert np.linalg.norm(g) == pytest.approx(9.81, rel=1e-3) and abs(g[1]) > 0.4
+    ctx = sim.get_mutable_context()
+    arm.set_state(ctx, q0)
+    tilted = -arm.plant.CalcGravityGeneralizedForces(arm.plant_context(ctx))
+    assert np.abs(tilted - ControllerDynamics(robot).gravity(q0, robot.theta)).max() > 0.1
+
+
+def test_joint_elasticity_offsets_the_encoders(robot):
+    stiffness = np.full(7, 2000.0)
+    s = load_scenario(overrides={"noise": {"distribution": "none"}, "payload": {"dumbbell": "none"},
+                                 "plant": {"effects": {"joint_stiffness_Nm_rad": stiffness.tolist()}}})
+    q0 = np.array(s.q0_rad)
+    hold = ControllerDynamics(robot).gravity(q0, robot.theta)
+    sim, arm, logs = _rig(s, robot, hold)
+    arm.set_state(sim.get_mutable_context(), q0)
+    sim.AdvanceTo(0.1)
+    x = _log(sim, logs["state"])
+    true_q = arm.plant.GetPositions(arm.plant_context(sim.get_context()))
+    np.testing.assert_allclose(true_q, q0, atol=1e-8)
+    np.testing.assert_allclose(x[-1, :7], q0 + (hold - robot.joint_params.offset) / stiffness, atol=1e-8)
+
+
+def test_obstacles_and_floor_for_signed_distance(robot):
+    s = load_scenario(overrides={"payload": {"dumbbell": "8lb"}})
+    q0 = np.array(s.q0_rad)
+    kin = robot.forward_kinematics(q0[None])
+    ee_origin = kin.p[0, robot.end_effector]
+    grasp = kin.R[0, robot.end_effector] @ robot.extra["grasp_point"] + ee_origin
+    far = grasp + np.array([0.0, 0.0, 0.6])
+    obstacles = [{"name": "on_payload", "xyz_m": grasp.tolist(), "size_m": [0.05, 0.05, 0.05]},
+                 {"name": "far", "xyz_m": far.tolist(), "size_m": [0.05, 0.05, 0.05]}]
+    s = load_scenario(overrides={"payload": {"dumbbell": "8lb"}, "obstacles": obstacles})
+    sim, arm, _ = _rig(s, robot, np.zeros(7))
+    ctx = sim.get_mutable_context()
+    arm.set_state(ctx, q0)
+    query = arm.scene_graph.get_query_output_port().Eval(arm.scene_graph.GetMyContextFromRoot(ctx))
+    inspector = query.inspector()
+    names = {inspector.GetName(g) for g in inspector.GetAllGeometryIds()}
+    assert {"obstacle_0_on_payload", "obstacle_1_far", "floor"} <= names
+    assert any("dumbbell_8lb_handle" in name for name in names)
+    dist = {}
+    for pair in query.ComputeSignedDistancePairwiseClosestPoints(2.0):
+        for gid in (pair.id_A, pair.id_B):
+            name = inspector.GetName(gid)
+            if name.startswith("obstacle"):
+                dist[name] = min(dist.get(name, np.inf), pair.distance)
+    assert dist["obstacle_0_on_payload"] < 0 < dist["obstacle_1_far"]
