@@ -1,0 +1,579 @@
+"""Provably-safe exciting-trajectory planner (ARMOUR receding horizon, paper §VI). Pure math.
+
+One call plans one quintic Bézier (systems/bezier.py) from the current (q0, qd0, qdd0) to
+q_end = q0 + k_c + k_r * k. Safety (continuous time, every theta in [theta], every tracking error
+inside the controller's ultimate bound) comes from systems/reachability.py:
+- joint position / velocity limits -> a box of k (exact hull property);
+- torque -> a rigorous interval-RNEA check over the whole k box (the box is shrunk if needed);
+- collision -> one smooth constraint per (time interval, sphere, obstacle) pair that can be
+  active, sd(c_s(q_mid_i(k)), obstacle) >= r_s + spread_is (pairs that no k can bring close are
+  dropped, rigorously).
+Cost: "exciting" = log cond of the stacked end-effector regressor W_e(k) at N_s instants (exact
+gradient through the singular vectors; dW/dk by complex-step, exact to rounding: the regressor is
+analytic in (q, qd, qdd) and dq/dk_j = w(t) k_r,j e_j), "goal" = |q_end - goal|^2, "random" =
+random feasible k (the ablation). Solved with Drake MathematicalProgram (Ipopt or SNOPT) under a
+wall-time cap; the best iterate that our own constraint evaluation finds feasible is returned.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from functools import lru_cache
+
+import numpy as np
+
+from . import reachability as reach
+from .bezier import QuinticBezier, restriction_matrix
+
+COLLISION_SOLVER_MARGIN_M = 1e-4  # the solver aims this far inside; verification asks >= 0
+SOFTMIN_SHARPNESS_PER_M = 2000.0  # soft-min of a group <= its true min (gap <= log(count)/beta)
+
+
+# ---------------------------------------------------------------------------------------------
+# End-effector regressor W_e(q, qd, qdd), complex-step safe (all arithmetic analytic)
+# ---------------------------------------------------------------------------------------------
+
+
+def _skew(v):
+    z = np.zeros(v.shape[:-1], v.dtype)
+    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1), np.stack([v[..., 2], z, -v[..., 0]], -1),
+                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+
+
+def _cross(a, b):
+    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], -1)
+
+
+def _motion_cross(v, m):
+    return np.concatenate([_cross(v[..., :3], m[..., :3]), _cross(v[..., :3], m[..., 3:]) + _cross(v[..., 3:], m[..., :3])], -1)
+
+
+def _force_cross(v, f):
+    return np.concatenate([_cross(v[..., :3], f[..., :3]) + _cross(v[..., 3:], f[..., 3:]), _cross(v[..., :3], f[..., 3:])], -1)
+
+
+def _inertia_times(x):
+    """K(x) as (..., 10, 6) (column c of the 6x10 map theta -> I(theta) x is [..., c, :])."""
+    out = np.zeros(x.shape[:-1] + (10, 6), x.dtype)
+    for c, r, comp, sign in reach._K_TABLE:
+        out[..., c, r] = sign * x[..., comp]
+    return out
+
+
+def _to_body(R, p, x):
+    w, u = x[..., :3], x[..., 3:]
+    rt = np.swapaxes(R, -1, -2)
+    return np.concatenate([np.einsum("...ij,...j->...i", rt, w), np.einsum("...ij,...j->...i", rt, u + _cross(w, p))], -1)
+
+
+def ee_standard_regressor(tree, body, q, v, a):
+    """W_e (N, n, 10): the end-effector (body `body`) columns of the standard regressor.
+
+    Same as RobotModel.standard_regressor(q, v, a)[..., ee_slice]; dtype-generic (complex-step).
+    """
+    dtype = np.result_type(q, v, a, float)
+    q, v, a = (np.atleast_2d(np.asarray(x)).astype(dtype) for x in (q, v, a))
+    nsamp, n = q.shape
+    R = [None] * n
+    p = [None] * n
+    S = np.zeros((nsamp, n, 6), dtype)
+    V = [None] * n
+    A = [None] * n
+    g = np.concatenate([np.zeros(3), -tree.gravity])
+    for i in range(n):
+        par = tree.parent[i]
+        xpj, xjc = tree.X_parent_joint[i], tree.X_joint_child[i]
+        if par < 0:
+            r_f = np.broadcast_to(xpj[:3, :3], (nsamp, 3, 3)).astype(dtype)
+            p_f = np.broadcast_to(xpj[:3, 3], (nsamp, 3)).astype(dtype)
+            v_par = np.zeros((nsamp, 6), dtype)
+            a_par = np.broadcast_to(g, (nsamp, 6)).astype(dtype)
+        else:
+            r_f = R[par] @ xpj[:3, :3]
+            p_f = p[par] + R[par] @ xpj[:3, 3]
+            v_par, a_par = V[par], A[par]
+        z = r_f @ tree.axis[i]
+        if tree.prismatic[i]:
+            r_m, p_m = r_f, p_f + z * q[:, i, None]
+            S[:, i] = np.concatenate([np.zeros_like(z), z], -1)
+        else:
+            k = regressors_skew(tree.axis[i])
+            s, c = np.sin(q[:, i])[:, None, None], np.cos(q[:, i])[:, None, None]
+            r_m, p_m = r_f @ (np.eye(3) + s * k + (1 - c) * (k @ k)), p_f
+            S[:, i] = np.concatenate([z, _cross(p_f, z)], -1)
+        R[i] = r_m @ xjc[:3, :3]
+        p[i] = p_m + r_m @ xjc[:3, 3]
+        V[i] = v_par + S[:, i] * v[:, i, None]
+        A[i] = a_par + S[:, i] * a[:, i, None] + _motion_cross(v_par, S[:, i]) * v[:, i, None]
+    e = body
+    vb = _to_body(R[e], p[e], V[e])
+    ab = _to_body(R[e], p[e], A[e])
+    kv = _inertia_times(vb)
+    y = _inertia_times(ab) + _force_cross(vb[:, None, :], kv)  # (N, 10, 6)
+    anc = np.flatnonzero(tree.ancestors()[:, e])
+    sb = _to_body(R[e][:, None], p[e][:, None], S[:, anc])  # (N, k, 6)
+    out = np.zeros((nsamp, n, 10), dtype)
+    out[:, anc] = np.einsum("nkr,ncr->nkc", sb, y)
+    return out
+
+
+def regressors_skew(axis):
+    from .regressors import skew
+
+    return skew(np.asarray(axis, float))
+
+
+# ---------------------------------------------------------------------------------------------
+# Results
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class PlanResult:
+    """Outcome of one planning call. `ok` is True only for a k verified feasible by our checks."""
+
+    ok: bool
+    status: str  # solved | best_feasible | random | infeasible | infeasible_start | solver_failed
+    reason: str = ""
+    k: np.ndarray | None = None
+    q_end: np.ndarray | None = None
+    trajectory: QuinticBezier | None = None
+    cost: float = float("nan")
+    cond: float = float("nan")  # cond(W_e) of the plan (exciting cost = log cond)
+    solve_time_s: float = 0.0  # wall time of the whole call (precompute + solve + verification)
+    solver: str = ""
+    solver_status: str = ""
+    num_collision_constraints: int = 0
+    k_box: tuple = ()
+    min_clearance_m: float = float("nan")  # smallest verified collision slack
+    max_torque_ratio: float = float("nan")  # sup |u| / limit over the plan (rigorous)
+    details: dict = field(default_factory=dict)
+
+    def evaluate(self, t):
+        """Desired q, qd, qdd (each (len(t), n)) at times t since the plan's start."""
+        return self.trajectory.evaluate(t, self.q_end)
+
+
+# ---------------------------------------------------------------------------------------------
+# One planning problem (everything that does not depend on k, precomputed once)
+# ---------------------------------------------------------------------------------------------
+
+
+@lru_cache(maxsize=8)
+def _restrictions(num_intervals):
+    s = np.linspace(0, 1, num_intervals + 1)
+    return [np.stack([restriction_matrix(5 - o, a, b) for a, b in zip(s[:-1], s[1:])]) for o in range(3)]
+
+
+class PlanningProblem:
+    """Constraints and costs of one planning call, as functions of k (numpy, vectorized)."""
+
+    def __init__(self, planner, q0, v0, a0, theta0, theta_lo, theta_hi, mode=None):
+        self.planner = planner
+        self.mode = mode or planner.config.cost
+        cfg = planner.config
+        robot = planner.robot
+        self.n = robot.n
+        self.reach = reach.PlanReach(q0, v0, a0, cfg.duration_s, planner.k_center, planner.k_range,
+                                     cfg.num_time_intervals, planner.tracking, restrictions=_restrictions(cfg.num_time_intervals))
+        self.reason = ""
+        self.feasible_start = True
+        k_lo, k_hi, why = self.reach.limit_box(robot.joint_params)
+        if k_lo is None:
+            self._fail(why)
+            return
+        self.k_lo, self.k_hi = k_lo, k_hi
+        self.torque_ratio = np.nan
+        if not self._torque_box(theta0, theta_lo, theta_hi):
+            return
+        self._collision_pairs()
+        # Exciting-cost sample instants and their end weights (dq/dq_end, dqd/dq_end, dqdd/dq_end).
+        ns = cfg.num_cost_samples
+        self.t_cost = np.linspace(0.0, cfg.duration_s, ns)
+        self.w_cost = np.stack(QuinticBezier.end_weights(self.t_cost, cfg.duration_s))  # (3, ns)
+        self._cache = {}
+        self.log = []  # (k, cost, min slack) at every evaluated point
+
+    def _fail(self, why):
+        self.feasible_start = False
+        self.reason = why
+
+    # -- torque: rigorous check over the k box, shrinking it toward the centre when needed ----------
+    def _torque_box(self, theta0, theta_lo, theta_hi):
+        limit = self.planner.robot.joint_params.torque_limit
+        centre = np.clip(np.zeros(self.n), self.k_lo, self.k_hi)
+        lo, hi = self.k_lo.copy(), self.k_hi.copy()
+        for attempt in range(self.planner.torque_shrink_steps + 1):
+            q, v, va, aa = self.reach.state_boxes(lo, hi)
+            wp = reach.interval_passivity_regressor(self.planner.robot, q, v, va, aa)
+            sup, _, _ = reach.torque_bound(wp, theta0, theta_lo, theta_hi)
+            ratio = (sup / limit).max()
+            if ratio <= 1.0:
+                self.k_lo, self.k_hi, self.torque_ratio = lo, hi, float(ratio)
+                return True
+            lo, hi = centre + 0.5 * (lo - centre), centre + 0.5 * (hi - centre)
+        i, j = np.unravel_index(np.argmax(sup / limit), sup.shape)
+        self._fail(f"torque limit of joint {j + 1} cannot be guaranteed (bound {sup[i, j]:.1f} N m > "
+                   f"{limit[j]:.1f} N m at t = {self.reach.t_mid[i]:.2f} s, robust term included)")
+        return False
+
+    # -- collision pairs -------------------------------------------------------------------------
+    def _collision_pairs(self):
+        pl = self.planner
+        spheres, lips = pl.spheres, pl.lipschitz
+        r = self.reach
+        self.spread = r.rho @ lips.T  # (nint, m)
+        k_mid = 0.5 * (self.k_lo + self.k_hi)
+        k_half = 0.5 * (self.k_hi - self.k_lo)
+        c, _ = reach.sphere_centres(pl.robot.tree, spheres, r.q_mid(k_mid), with_jacobian=False)
+        # Centre motion over the whole k box (Lipschitz): used to drop pairs no k can activate.
+        k_motion = (np.abs(r.w_mid)[:, None] * (r.kr * k_half)[None, :]) @ lips.T  # (nint, m)
+        need = spheres.radius[None, :] + self.spread  # required clearance of the centre
+        nint, m = self.spread.shape
+        ii, ss = np.meshgrid(np.arange(nint), np.arange(m), indexing="ij")
+        pairs_i, pairs_s, pairs_o = [], [], []
+        boxes = pl.boxes
+        for o in range(len(boxes)):
+            sd, _ = reach.box_signed_distance(c.reshape(-1, 3), np.broadcast_to(boxes.centre[o], (nint * m, 3)),
+                                              np.broadcast_to(boxes.rotation[o], (nint * m, 3, 3)),
+                                              np.broadcast_to(boxes.half_size[o], (nint * m, 3)))
+            sd = sd.reshape(nint, m)
+            self._check_start(sd, need, k_motion, o)
+            keep = sd - k_motion - need < 1e-3
+            pairs_i.append(ii[keep]), pairs_s.append(ss[keep]), pairs_o.append(np.full(keep.sum(), o))
+        if pl.floor_z is not None:
+            sd = c[..., 2] - pl.floor_z
+            sd = np.where(pl.floor_exempt[None, :], np.inf, sd)
+            self._check_start(sd, need, k_motion, -1)
+            keep = sd - k_motion - need < 1e-3
+            pairs_i.append(ii[keep]), pairs_s.append(ss[keep]), pairs_o.append(np.full(keep.sum(), -1))
+        self.pair_i = np.concatenate(pairs_i) if pairs_i else np.zeros(0, int)
+        self.pair_s = np.concatenate(pairs_s) if pairs_s else np.zeros(0, int)
+        self.pair_o = np.concatenate(pairs_o) if pairs_o else np.zeros(0, int)
+        # Solver constraints: one soft-min per (sphere, obstacle) over its time intervals.
+        group_key = self.pair_s * (len(pl.boxes) + 1) + (self.pair_o + 1)
+        order = np.argsort(group_key, kind="stable")
+        self.pair_i, self.pair_s, self.pair_o = self.pair_i[order], self.pair_s[order], self.pair_o[order]
+        _, self.group_start, self.group_of_pair = np.unique(group_key[order], return_index=True, return_inverse=True)
+        self.pair_need = need[self.pair_i, self.pair_s]
+        self.active_intervals = np.unique(self.pair_i)
+
+    def _check_start(self, sd, need, k_motion, o):
+        """A pair violated for EVERY k of the box (e.g. the start is inside a margin) -> infeasible."""
+        if not self.feasible_start:
+            return
+        hopeless = sd + k_motion - need < 0
+        if np.any(hopeless):
+            i, s = np.argwhere(hopeless)[0]
+            what = "the floor" if o < 0 else f"obstacle {self.planner.boxes.names[o]!r}"
+            self._fail(f"sphere {self.planner.spheres.names[s]!r} cannot clear {what} at t = "
+                       f"{self.reach.t_mid[i]:.2f} s for any k (start inside the safety margin)")
+
+    @property
+    def num_constraints(self):
+        """Number of solver constraints (soft-min groups)."""
+        return len(self.group_start)
+
+    @property
+    def num_pairs(self):
+        """Number of (interval, sphere, obstacle) constraints checked rigorously."""
+        return len(self.pair_i)
+
+    def collision_grouped(self, k):
+        """Soft-min per group, -log(sum exp(-beta g))/beta <= min g: >= 0 implies every pair >= 0."""
+        vals, jac = self.collision(k)
+        if len(vals) == 0:
+            return vals, jac
+        beta = SOFTMIN_SHARPNESS_PER_M
+        gmin = np.minimum.reduceat(vals, self.group_start)
+        e = np.exp(-beta * (vals - gmin[self.group_of_pair]))
+        total = np.add.reduceat(e, self.group_start)
+        soft = gmin - np.log(total) / beta
+        weights = e / total[self.group_of_pair]
+        return soft, np.add.reduceat(weights[:, None] * jac, self.group_start, axis=0)
+
+    def collision(self, k, with_jacobian=True):
+        """Constraint values (P,) >= 0 means safe, and d/dk (P, n)."""
+        k = np.asarray(k, float)
+        if len(self.pair_i) == 0:
+            return np.zeros(0), np.zeros((0, self.n))
+        pl = self.planner
+        r = self.reach
+        ints = self.active_intervals
+        qm = r.q_mid(k)[ints]
+        c, dc = reach.sphere_centres(pl.robot.tree, pl.spheres, qm, with_jacobian)
+        pos = np.searchsorted(ints, self.pair_i)
+        pts = c[pos, self.pair_s]
+        vals = np.empty(len(pts))
+        grad = np.empty((len(pts), 3))
+        box = self.pair_o >= 0
+        if np.any(box):
+            o = self.pair_o[box]
+            sd, g = reach.box_signed_distance(pts[box], pl.boxes.centre[o], pl.boxes.rotation[o], pl.boxes.half_size[o])
+            vals[box], grad[box] = sd, g
+        floor = ~box
+        vals[floor] = pts[floor, 2] - pl.floor_z
+        grad[floor] = (0.0, 0.0, 1.0)
+        vals = vals - self.pair_need
+        if not with_jacobian:
+            return vals, None
+        dcdq = dc[pos, self.pair_s]  # (P, n, 3)
+        dqdk = r.w_mid[self.pair_i][:, None] * r.kr[None, :]  # (P, n)
+        jac = np.einsum("pjx,px->pj", dcdq, grad) * dqdk
+        return vals, jac
+
+    def is_feasible(self, k):
+        k = np.asarray(k, float)
+        if np.any(k < self.k_lo) or np.any(k > self.k_hi):
+            return False
+        vals, _ = self.collision(k, with_jacobian=False)
+        return bool(np.all(vals >= 0))
+
+    # -- costs -----------------------------------------------------------------------------------
+    def desired_at(self, t, k):
+        return self.reach.bezier.evaluate(t, self.reach.q_end(k))
+
+    def exciting_cost(self, k):
+        """log sigma_max - log sigma_min of stacked W_e(k) and its exact gradient in k."""
+        pl = self.planner
+        n = self.n
+        q, v, a = self.desired_at(self.t_cost, k)
+        h = 1e-30
+        ns = len(self.t_cost)
+        # One complex sample per (instant, k_j): direction kr_j * (w_q, w_v, w_a)(t) e_j.
+        dirs = np.zeros((n, ns, 3, n))
+        for j in range(n):
+            dirs[j, :, :, j] = pl.k_range[j] * self.w_cost.T
+        qc = q[None] + 1j * h * dirs[:, :, 0]
+        vc = v[None] + 1j * h * dirs[:, :, 1]
+        ac = a[None] + 1j * h * dirs[:, :, 2]
+        w = ee_standard_regressor(pl.robot.tree, pl.robot.end_effector, qc.reshape(-1, n), vc.reshape(-1, n),
+                                  ac.reshape(-1, n)).reshape(n, ns * n, 10)
+        W = w[0].real
+        dW = w.imag / h  # (n_k, rows, 10)
+        u, s, vt = np.linalg.svd(W, full_matrices=False)
+        if s[-1] <= 0:
+            return np.inf, np.zeros(n), W
+        d_max = np.einsum("r,jrc,c->j", u[:, 0], dW, vt[0])
+        d_min = np.einsum("r,jrc,c->j", u[:, -1], dW, vt[-1])
+        return float(np.log(s[0]) - np.log(s[-1])), d_max / s[0] - d_min / s[-1], W
+
+    def goal_cost(self, k):
+        goal = np.asarray(self.planner.config.goal_q_rad, float)
+        diff = self.reach.q_end(k) - goal
+        return float(diff @ diff), 2 * diff * self.reach.kr
+
+    def cost(self, k):
+        if self.mode == "goal":
+            return self.goal_cost(k)
+        val, grad, _ = self.exciting_cost(k)
+        return val, grad
+
+    def cond(self, k):
+        _, _, W = self.exciting_cost(k)
+        return float(np.linalg.cond(W))
+
+
+# ---------------------------------------------------------------------------------------------
+# The planner
+# ---------------------------------------------------------------------------------------------
+
+
+class SafePlanner:
+    """ARMOUR-style planner for one robot, scene and payload.
+
+    config: scenario `Planner` record (duration_s, num_time_intervals, num_cost_samples, cost,
+    goal_q_rad, solver, max_solve_time_s, max_iterations, k_center_rad, k_range_rad, floor_z_m).
+    obstacles: scenario Obstacle records or a reachability.Boxes. payload: Dumbbell or None.
+    tracking: reachability.TrackingBounds (from the controller's ultimate bound).
+    """
+
+    def __init__(self, robot, config, obstacles=(), payload=None, tracking=None, floor=True, torque_shrink_steps=3):
+        self.robot = robot
+        self.config = config
+        n = robot.n
+        self.k_center = np.broadcast_to(np.asarray(config.k_center_rad, float), (n,)).copy()
+        self.k_range = np.broadcast_to(np.asarray(config.k_range_rad, float), (n,)).copy()
+        self.boxes = obstacles if isinstance(obstacles, reach.Boxes) else reach.Boxes.from_obstacles(list(obstacles))
+        self.spheres = reach.arm_spheres(robot).concat(reach.payload_spheres(robot, payload))
+        self.lipschitz = reach.sphere_lipschitz(robot.tree, self.spheres)
+        self.floor_z = float(config.floor_z_m) if floor else None
+        self.floor_exempt = _floor_exempt(robot.tree, self.spheres)
+        self.tracking = tracking if tracking is not None else reach.TrackingBounds.zero(n)
+        self.torque_shrink_steps = torque_shrink_steps
+
+    def problem(self, q0, v0, a0, theta0, theta_lo, theta_hi, mode=None):
+        return PlanningProblem(self, q0, v0, a0, theta0, theta_lo, theta_hi, mode)
+
+    def plan(self, q0, v0, a0, theta0, theta_lo, theta_hi, k_init=None, rng=None, mode=None):
+        """One planning call -> PlanResult (ok False: keep the previous plan, which brakes)."""
+        t_start = time.perf_counter()
+        mode = mode or self.config.cost
+        prob = self.problem(q0, v0, a0, theta0, theta_lo, theta_hi, mode)
+        res = PlanResult(ok=False, status="infeasible_start", solver=self.config.solver if mode != "random" else "random")
+        if not prob.feasible_start:
+            res.reason = prob.reason
+            res.solve_time_s = time.perf_counter() - t_start
+            return res
+        res.k_box = (prob.k_lo.copy(), prob.k_hi.copy())
+        res.num_collision_constraints = prob.num_pairs
+        res.details["solver_constraints"] = prob.num_constraints
+        res.max_torque_ratio = prob.torque_ratio
+        if mode == "random":
+            k = self._random(prob, rng or np.random.default_rng())
+            status, solver_status = "random", "sampled"
+        else:
+            k, status, solver_status = self._optimize(prob, k_init, t_start)
+        res.solver_status = solver_status
+        if k is None:
+            res.status = "infeasible" if status != "solver_failed" else status
+            res.reason = f"no feasible k found ({solver_status})"
+        else:
+            vals, _ = prob.collision(k, with_jacobian=False)
+            res.ok, res.status, res.k = True, status, k
+            res.q_end = prob.reach.q_end(k)
+            res.trajectory = prob.reach.bezier
+            res.min_clearance_m = float(vals.min()) if len(vals) else float("inf")
+            res.cost = prob.cost(k)[0] if mode != "random" else float("nan")
+            res.cond = prob.cond(k)
+        res.solve_time_s = time.perf_counter() - t_start
+        return res
+
+    def _initial_guess(self, prob, k_init):
+        """Warm start from k_init; a plan that does not move at all makes W_e rank deficient (cost
+        undefined), so fall back to alternating half-range moves, preferring a feasible guess."""
+        pattern = 0.5 * np.where(np.arange(self.n) % 2 == 0, 1.0, -1.0)
+        cands = ([] if k_init is None else [np.asarray(k_init, float)]) + [pattern, -pattern, np.zeros(self.n)]
+        cands = [np.clip(c, prob.k_lo, prob.k_hi) for c in cands]
+        usable = []
+        for c in cands:
+            val = prob.cost(c)[0] if prob.mode != "random" else 0.0
+            if np.isfinite(val) and val < 25.0:  # cond < 7e10: the gradient is meaningful
+                usable.append(c)
+                if prob.is_feasible(c):
+                    return c
+        return usable[0] if usable else cands[0]
+
+    # -- random feasible k (ablation) ------------------------------------------------------------
+    def _random(self, prob, rng, tries=200):
+        for _ in range(tries):
+            k = rng.uniform(prob.k_lo, prob.k_hi)
+            if prob.is_feasible(k):
+                return k
+        return None
+
+    # -- optimization ----------------------------------------------------------------------------
+    def _optimize(self, prob, k_init, t_start):
+        from pydrake.autodiffutils import ExtractGradient, ExtractValue, InitializeAutoDiff
+        from pydrake.solvers import IpoptSolver, MathematicalProgram, SnoptSolver, SolverOptions
+
+        cfg = self.config
+        n = self.n
+        record = {}  # x bytes -> [cost, min slack]
+
+        def key(x):
+            return np.asarray(x, float).tobytes()
+
+        def cost_eval(x):
+            kk = key(x)
+            if kk not in prob._cache:
+                prob._cache[kk] = prob.cost(x)
+            val, grad = prob._cache[kk]
+            record.setdefault(kk, [None, None])[0] = val
+            return val, grad
+
+        con_cache = {}
+
+        def con_eval(x):
+            kk = key(x)
+            if kk not in con_cache:
+                con_cache[kk] = prob.collision_grouped(x)
+            vals, jac = con_cache[kk]
+            record.setdefault(kk, [None, None])[1] = vals.min() if len(vals) else np.inf
+            return vals, jac
+
+        def cost_fn(x):
+            if x.dtype == object:
+                val, grad = cost_eval(ExtractValue(x)[:, 0])
+                from pydrake.autodiffutils import AutoDiffXd
+
+                return AutoDiffXd(val, grad @ ExtractGradient(x))
+            return cost_eval(x)[0]
+
+        def con_fn(x):
+            if x.dtype == object:
+                vals, jac = con_eval(ExtractValue(x)[:, 0])
+                return InitializeAutoDiff(vals, jac @ ExtractGradient(x))[:, 0]
+            return con_eval(x)[0]
+
+        prog = MathematicalProgram()
+        k = prog.NewContinuousVariables(n, "k")
+        prog.AddBoundingBoxConstraint(prob.k_lo, prob.k_hi, k)
+        prog.AddCost(cost_fn, k)
+        if prob.num_constraints:
+            m = prob.num_constraints
+            prog.AddConstraint(con_fn, np.full(m, COLLISION_SOLVER_MARGIN_M), np.full(m, np.inf), k)
+        k0 = self._initial_guess(prob, k_init)
+        prog.SetInitialGuess(k, k0)
+        remaining = max(0.05, cfg.max_solve_time_s - (time.perf_counter() - t_start))
+        options = SolverOptions()
+        if cfg.solver == "snopt":
+            solver = SnoptSolver()
+            sid = solver.solver_id()
+            options.SetOption(sid, "Major iterations limit", int(cfg.max_iterations))
+            options.SetOption(sid, "Time limit", float(remaining))
+            options.SetOption(sid, "Major optimality tolerance", 1e-4)
+            options.SetOption(sid, "Major feasibility tolerance", 1e-6)
+        else:
+            solver = IpoptSolver()
+            sid = solver.solver_id()
+            options.SetOption(sid, "max_iter", int(cfg.max_iterations))
+            options.SetOption(sid, "max_wall_time", float(remaining))
+            options.SetOption(sid, "hessian_approximation", "limited-memory")
+            options.SetOption(sid, "tol", 1e-4)
+            options.SetOption(sid, "print_level", 0)
+            options.SetOption(sid, "mu_strategy", "adaptive")
+        try:
+            result = solver.Solve(prog, k0, options)
+            status = str(result.get_solution_result()).split(".")[-1]
+            x_sol = np.clip(result.GetSolution(k), prob.k_lo, prob.k_hi)
+        except Exception as err:  # solver crash -> safe fallback (keep the previous plan)
+            return None, "solver_failed", f"solver error: {str(err).splitlines()[0]}"
+        # Candidates: the solver's answer and every evaluated point; keep the best verified feasible.
+        cands = [(cost_eval(x_sol)[0], x_sol, "solved" if result.is_success() else "best_feasible")]
+        for kk, (c, slack) in record.items():
+            if c is not None and slack is not None and slack >= 0:
+                cands.append((c, np.frombuffer(kk), "best_feasible"))
+        cands.append((cost_eval(k0)[0], k0, "best_feasible"))
+        cands.sort(key=lambda item: item[0])
+        for c, x, st in cands:
+            if prob.is_feasible(x):
+                return np.array(x), st, status
+        return None, "infeasible", status
+
+    @property
+    def n(self):
+        return self.robot.n
+
+
+def _floor_exempt(tree, spheres):
+    """Spheres whose height no joint can change (world-fixed, or carried only by root joints with a
+    vertical axis): the floor constraint is constant for them and the base sits on the floor."""
+    out = np.zeros(len(spheres), bool)
+    anc = tree.ancestors()
+    for s in range(len(spheres)):
+        b = spheres.body[s]
+        if b < 0:
+            out[s] = True
+            continue
+        joints = np.flatnonzero(anc[:, b])
+        vertical = []
+        for j in joints:
+            if tree.parent[j] >= 0 or tree.prismatic[j]:
+                vertical.append(False)
+                continue
+            axis_world = tree.X_parent_joint[j, :3, :3] @ tree.axis[j]
+            vertical.append(abs(abs(axis_world[2]) - 1) < 1e-12)
+        out[s] = all(vertical)
+    return out

@@ -1,0 +1,622 @@
+"""Rigorous per-time-interval over-approximations of what the arm can reach while tracking a plan.
+
+Pure math for the planner (systems/planner.py). A plan is the quintic Bézier of systems/bezier.py
+from the current (q0, qd0, qdd0) to q_end = q0 + k_c + k_r * k, k in [-1, 1]^n, tracked by the
+robust passivity controller whose ultimate bound gives the TrackingBounds below. [0, t_f] is
+split into intervals I_i; every statement holds for EVERY t in I_i (continuous time), every
+tracking error inside the bound and every theta in [theta]:
+
+1. Joint boxes. On I_i, q_d(t; k) - q_d(t_mid; k) = a(t) + (w(t) - w(t_mid)) k_r k, with a(t) the
+   k = 0 deviation and w the (scalar) end weight of the Bézier. Both are Bézier curves; restricted
+   to I_i their control points contain them (hull property), so |q_d(t; k) - q_d(t_mid; k)| <=
+   dev_i := max|restricted a| + max|restricted w - w(t_mid)| k_r, for all k. With the tracking
+   error |q - q_d| <= e_q: q(t) in q_mid_i(k) +- rho_i, rho_i = dev_i + e_q, a k-independent radius
+   around a centre affine in k.
+2. Joint position/velocity limits. The restricted control points of q_d (and of qd_d) on every I_i
+   are affine in q_end_j alone; requiring each inside the limits shrunk by the tracking bound is a
+   set of 1-d linear inequalities in k_j, i.e. a box in k (exact hull property, no sampling).
+3. Collision. Sphere centre c_s(q) has |dc_s/dq_j| = |z_j x (c_s - o_j)| <= L_sj, the length of the
+   fixed chain from joint j's axis origin to the centre (triangle inequality along the links), so on
+   the joint box |c_s(q) - c_s(q_mid)| <= sum_j L_sj rho_ij =: spread_is (mean value theorem along
+   the segment inside the box). The constraint sd(c_s(q_mid_i(k)), obstacle) >= r_s + spread_is
+   keeps the whole sphere out of the obstacle on I_i; it is C1 in k outside the obstacle.
+4. Torque. The commanded input is u = W_p(q, qd, qd_a, qdd_a) theta0 + v with |v_j| <= ||w_bar||_2
+   and w_bar_i <= sum_k |W_p,ik| max(theta_hi - theta0, theta0 - theta_lo)_k (the controller's
+   interval disturbance bound). An interval evaluation of the passivity regressor
+   (interval RNEA in local frames, outward rounded) over the state box of I_i that covers every
+   k of the allowed box and the tracking tube bounds sup|u_j| rigorously; the planner requires
+   it to be inside the torque limit for every interval (a check over the whole k box; if it
+   fails the k box is shrunk).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import numpy as np
+
+from . import regressors
+from .bezier import QuinticBezier, restriction_matrix
+from .intervals import Interval, _down, _up
+
+# ---------------------------------------------------------------------------------------------
+# Tracking bounds
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TrackingBounds:
+    """Per-joint bounds inside the controller's ultimate bound (radians, rad/s, rad/s^2).
+
+    position: |q - q_d|, velocity: |qd - qd_d|, ref_velocity: |qd_a - qd_d|,
+    ref_acceleration: |qdd_a - qdd_d|.
+    """
+
+    position: np.ndarray
+    velocity: np.ndarray
+    ref_velocity: np.ndarray
+    ref_acceleration: np.ndarray
+
+    @classmethod
+    def from_ultimate_bound(cls, V_max, sigma_min, Kr, n=7):
+        """eps = sqrt(2 V_max / sigma_min): |e| <= eps/Kr, |de| <= 2 eps, |qd_a - qd_d| <= eps,
+        |qdd_a - qdd_d| <= 2 Kr eps (sigma_min: a true lower bound of sigma_min(M) over q and [theta],
+        e.g. min armature since M = M_rigid + diag(Ia) with M_rigid PSD)."""
+        kr = np.broadcast_to(np.asarray(Kr, float), (n,)).copy()
+        eps = np.sqrt(2.0 * V_max / sigma_min)
+        return cls(eps / kr, np.full(n, 2 * eps), np.full(n, eps), 2 * kr * eps)
+
+    @classmethod
+    def zero(cls, n):
+        z = np.zeros(n)
+        return cls(z, z.copy(), z.copy(), z.copy())
+
+
+# ---------------------------------------------------------------------------------------------
+# Collision geometry: spheres on bodies, oriented boxes
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Spheres:
+    """Collision spheres: carrying tree body (-1: fixed to the world), centre in that body frame."""
+
+    body: np.ndarray
+    centre: np.ndarray
+    radius: np.ndarray
+    names: list = field(default_factory=list)
+
+    def __len__(self):
+        return len(self.radius)
+
+    def concat(self, other):
+        return Spheres(np.concatenate([self.body, other.body]), np.concatenate([self.centre, other.centre]),
+                       np.concatenate([self.radius, other.radius]), list(self.names) + list(other.names))
+
+
+def arm_spheres(robot):
+    """The collision spheres of the robot's model file (its collision geometry), per tree body."""
+    from pydrake.geometry import Sphere
+    from pydrake.multibody.tree import BodyIndex
+
+    from .robot_model import ModelError, make_plant
+
+    plant, sg, _ = make_plant(robot.source, scene_graph=True)
+    plant.Finalize()
+    ctx = plant.CreateDefaultContext()
+    inspector = sg.model_inspector()
+    tree_index = {name: i for i, name in enumerate(robot.body_names)}
+    inboard = {plant.get_joint(j).child_body().index(): plant.get_joint(j) for j in plant.GetJointIndices()}
+    body, centre, radius, names = [], [], [], []
+    for b in range(plant.num_bodies()):
+        drake_body = plant.get_body(BodyIndex(b))
+        # Carrier: the nearest tree body at or above this one (bodies welded to it ride along).
+        carrier = drake_body
+        while carrier.name() not in tree_index and carrier.index() in inboard:
+            carrier = inboard[carrier.index()].parent_body()
+        idx = tree_index.get(carrier.name(), -1)
+        x_cb = plant.CalcRelativeTransform(ctx, carrier.body_frame(), drake_body.body_frame())
+        for gid in plant.GetCollisionGeometriesForBody(drake_body):
+            shape = inspector.GetShape(gid)
+            if not isinstance(shape, Sphere):
+                raise ModelError(f"{robot.source}: collision geometry {inspector.GetName(gid)!r} is not a sphere "
+                                 "(the planner over-approximates the arm with spheres)")
+            x_bg = inspector.GetPoseInFrame(gid)
+            body.append(idx)
+            centre.append((x_cb @ x_bg).translation())
+            radius.append(shape.radius())
+            names.append(inspector.GetName(gid))
+    return Spheres(np.array(body, int), np.array(centre, float).reshape(-1, 3), np.array(radius, float), names)
+
+
+def payload_spheres(robot, dumbbell):
+    """Covering spheres of a dumbbell held at robot.extra['grasp_point'] (handle along EE x)."""
+    if dumbbell is None:
+        return Spheres(np.zeros(0, int), np.zeros((0, 3)), np.zeros(0), [])
+    grasp = np.asarray(robot.extra.get("grasp_point", np.zeros(3)), float)
+    spheres = dumbbell.covering_spheres()
+    return Spheres(np.full(len(spheres), robot.end_effector, int), np.array([grasp + np.asarray(c) for c, _ in spheres]),
+                   np.array([r for _, r in spheres], float), [f"payload_{dumbbell.name}_{k}" for k in range(len(spheres))])
+
+
+def sphere_lipschitz(tree, spheres):
+    """L (m, n): bound of |d c_s / d q_j| over ALL configurations.
+
+    Revolute: |z_j x (c - o_j)| <= |c - o_j| <= length of the fixed chain o_j -> child origin ->
+    ... -> sphere centre (each link offset is a rigid translation). Prismatic: 1.
+    """
+    n = tree.n
+    anc = tree.ancestors()
+    t_pj = np.linalg.norm(tree.X_parent_joint[:, :3, 3], axis=1)
+    t_jc = np.linalg.norm(tree.X_joint_child[:, :3, 3], axis=1)
+    out = np.zeros((len(spheres), n))
+    for s in range(len(spheres)):
+        b = spheres.body[s]
+        if b < 0:
+            continue
+        for j in np.flatnonzero(anc[:, b]):
+            if tree.prismatic[j]:
+                out[s, j] = 1.0
+                continue
+            # chain j -> b: joints strictly below j on the path to b
+            path = [k for k in np.flatnonzero(anc[:, b]) if anc[j, k] and k != j]
+            length = t_jc[j] + sum(t_pj[k] + t_jc[k] for k in path) + np.linalg.norm(spheres.centre[s])
+            out[s, j] = length * (1 + 1e-12)
+    return out
+
+
+def sphere_centres(tree, spheres, q, with_jacobian=True):
+    """Centres (N, m, 3) in world and d c / d q (N, m, n, 3) at configurations q (N, n)."""
+    kin = regressors.forward_kinematics(tree, q)
+    nsamp = kin.p.shape[0]
+    m = len(spheres)
+    moving = spheres.body >= 0
+    c = np.broadcast_to(spheres.centre, (nsamp, m, 3)).copy()
+    b = spheres.body[moving]
+    c[:, moving] = kin.p[:, b] + np.einsum("nsij,sj->nsi", kin.R[:, b], spheres.centre[moving])
+    if not with_jacobian:
+        return c, None
+    anc = tree.ancestors()
+    mask = np.zeros((m, tree.n))
+    mask[moving] = anc[:, b].T
+    w, u = kin.S[..., :3], kin.S[..., 3:]  # screw about O: point velocity = w x c + u
+    jac = np.cross(w[:, None, :, :], c[:, :, None, :]) + u[:, None, :, :]
+    return c, jac * mask[None, :, :, None]
+
+
+@dataclass
+class Boxes:
+    """Oriented boxes: centre (m, 3), rotation box->world (m, 3, 3), half sizes (m, 3)."""
+
+    centre: np.ndarray
+    rotation: np.ndarray
+    half_size: np.ndarray
+    names: list = field(default_factory=list)
+
+    def __len__(self):
+        return len(self.centre)
+
+    @classmethod
+    def from_obstacles(cls, obstacles):
+        """From scenario Obstacle records (xyz_m, rpy_rad, size_m), Drake's roll-pitch-yaw."""
+        from pydrake.math import RollPitchYaw
+
+        if not obstacles:
+            return cls(np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)), [])
+        return cls(np.array([o.xyz_m for o in obstacles], float),
+                   np.array([RollPitchYaw(o.rpy_rad).ToRotationMatrix().matrix() for o in obstacles]),
+                   0.5 * np.array([o.size_m for o in obstacles], float), [o.name for o in obstacles])
+
+
+def box_signed_distance(points, centre, rotation, half_size):
+    """Signed distance of points (P, 3) to boxes given per point (P, ...) and its gradient (P, 3)."""
+    local = np.einsum("pji,pj->pi", rotation, points - centre)
+    d = np.abs(local) - half_size
+    outside = np.maximum(d, 0.0)
+    dist_out = np.linalg.norm(outside, axis=1)
+    inside = dist_out <= 0
+    sd = np.where(inside, d.max(1), dist_out)
+    g_out = outside * np.sign(local) / np.where(inside, 1.0, dist_out)[:, None]
+    g_in = np.zeros_like(local)
+    arg = d.argmax(1)
+    g_in[np.arange(len(local)), arg] = np.sign(local[np.arange(len(local)), arg])
+    grad_local = np.where(inside[:, None], g_in, g_out)
+    return sd, np.einsum("pij,pj->pi", rotation, grad_local)
+
+
+# ---------------------------------------------------------------------------------------------
+# Time intervals of one plan: joint boxes, joint-limit box in k, state boxes for the torque check
+# ---------------------------------------------------------------------------------------------
+
+
+def _bezier_derivative(points, order, duration):
+    deg = points.shape[0] - 1
+    for r in range(order):
+        points = (deg - r) * np.diff(points, axis=0)
+    return points / duration ** order
+
+
+class PlanReach:
+    """Per-interval over-approximations of one plan family (fixed start, k free in a box)."""
+
+    def __init__(self, q0, v0, a0, duration, k_center, k_range, num_intervals, bounds: TrackingBounds, restrictions=None):
+        self.bezier = QuinticBezier(np.asarray(q0, float), np.asarray(v0, float), np.asarray(a0, float), float(duration))
+        self.n = len(self.bezier.q0)
+        self.kc = np.asarray(k_center, float)
+        self.kr = np.asarray(k_range, float)
+        self.bounds = bounds
+        self.T = float(duration)
+        self.edges = np.linspace(0.0, self.T, num_intervals + 1)
+        self.t_mid = 0.5 * (self.edges[:-1] + self.edges[1:])
+        s_edges = self.edges / self.T
+        # Restriction matrices per interval for degree 5, 4, 3 (position, velocity, acceleration).
+        self._restrict = restrictions or [np.stack([restriction_matrix(5 - o, a, b) for a, b in zip(s_edges[:-1], s_edges[1:])])
+                                          for o in range(3)]
+        self.q_end0 = self.bezier.q0 + self.kc
+        self.q_mid0, _, _ = self.bezier.evaluate(self.t_mid, self.q_end0)
+        self.w_mid = QuinticBezier.end_weights(self.t_mid, self.T)[0]  # dq_mid / dq_end (scalar per interval)
+        # k-independent deviation on each interval around its midpoint (hull property).
+        p0 = self.bezier.control_points(self.q_end0)  # (6, n)
+        sub = self._restrict[0] @ p0  # (nint, 6, n)
+        dev_a = np.abs(sub - self.q_mid0[:, None, :]).max(1)
+        wpts = self._restrict[0] @ np.array([0, 0, 0, 1, 1, 1.0])  # (nint, 6)
+        dev_w = np.abs(wpts - self.w_mid[:, None]).max(1)
+        dev = dev_a + dev_w[:, None] * self.kr[None, :]
+        self.rho = _up(_up(dev * (1 + 1e-12)) + bounds.position[None, :])  # (nint, n)
+
+    # -- centres -------------------------------------------------------------------------------
+    def q_end(self, k):
+        return self.q_end0 + self.kr * np.asarray(k, float)
+
+    def k_of_q_end(self, q_end):
+        return (np.asarray(q_end, float) - self.q_end0) / self.kr
+
+    def q_mid(self, k):
+        """(nint, n) joint-box centres; d q_mid[i, j] / d k_j = w_mid[i] * kr[j]."""
+        return self.q_mid0 + self.w_mid[:, None] * (self.kr * np.asarray(k, float))[None, :]
+
+    # -- joint limits -> box of k --------------------------------------------------------------
+    def _affine_control_points(self, order):
+        """fixed (nint, p, n), weight (nint, p): restricted control points = fixed + weight * q_end."""
+        zero = _bezier_derivative(self.bezier.control_points(np.zeros(self.n)), order, self.T)
+        one = _bezier_derivative(self.bezier.control_points(np.ones(self.n)), order, self.T)
+        r = self._restrict[order]
+        fixed = r @ zero
+        weight = (r @ (one - zero))[..., 0]
+        return fixed, weight
+
+    def limit_box(self, joint_params):
+        """(k_lo, k_hi, reason): the box of k whose plans respect position and velocity limits
+        for every t and every tracking error (reason is '' when not empty)."""
+        qe_lo = self.q_end(-np.ones(self.n))
+        qe_hi = self.q_end(np.ones(self.n))
+        lo, hi = qe_lo.copy(), qe_hi.copy()
+        checks = [(0, joint_params.position_lower + self.bounds.position, joint_params.position_upper - self.bounds.position, "position"),
+                  (1, -joint_params.velocity_limit + self.bounds.velocity, joint_params.velocity_limit - self.bounds.velocity, "velocity")]
+        margin = 1e-9
+        for order, low, high, what in checks:
+            fixed, weight = self._affine_control_points(order)
+            w = weight[..., None]
+            for bound, sign in ((high - margin, 1.0), (low + margin, -1.0)):
+                finite = np.isfinite(bound)
+                # sign * (fixed + w x) <= sign * bound
+                a = sign * fixed
+                ws = sign * np.broadcast_to(w, fixed.shape)
+                b = sign * bound
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    lim = (b - a) / ws
+                pos = (ws > 0) & finite
+                neg = (ws < 0) & finite
+                zero = (ws == 0) & finite
+                if np.any(zero & (a > b)):
+                    j = int(np.argwhere(zero & (a > b))[0, -1])
+                    return None, None, (f"joint {j + 1} {what} limit: the start state already violates the limit "
+                                        "shrunk by the tracking bound")
+                hi = np.minimum(hi, np.where(pos, lim, np.inf).min((0, 1)))
+                lo = np.maximum(lo, np.where(neg, lim, -np.inf).max((0, 1)))
+        k_lo, k_hi = self.k_of_q_end(lo), self.k_of_q_end(hi)
+        k_lo, k_hi = np.maximum(k_lo, -1.0), np.minimum(k_hi, 1.0)
+        bad = k_lo > k_hi
+        if np.any(bad):
+            j = int(np.flatnonzero(bad)[0])
+            return None, None, f"joint {j + 1}: no end position keeps the position/velocity limits with the tracking margin"
+        return k_lo, k_hi, ""
+
+    # -- state boxes for every k in a box -------------------------------------------------------
+    def state_boxes(self, k_lo, k_hi):
+        """Intervals (nint, n) of q, qd, qd_a, qdd_a covering every t in I_i, k in [k_lo, k_hi] and
+        tracking error in the bound (hull of the restricted control points at both k ends: the
+        control points are affine in each q_end_j)."""
+        hulls = []
+        for order in range(3):
+            fixed, weight = self._affine_control_points(order)
+            pts = [fixed + weight[..., None] * self.q_end(k)[None, None, :] for k in (k_lo, k_hi)]
+            hulls.append(Interval(np.minimum(pts[0].min(1), pts[1].min(1)), np.maximum(pts[0].max(1), pts[1].max(1))))
+        qd, vd, ad = hulls
+        b = self.bounds
+        pad = lambda x, r: Interval(_down(_down(x.lo - r) - 1e-12 * np.abs(x.lo)), _up(_up(x.hi + r) + 1e-12 * np.abs(x.hi)))  # noqa: E731
+        return pad(qd, b.position), pad(vd, b.velocity), pad(vd, b.ref_velocity), pad(ad, b.ref_acceleration)
+
+
+# ---------------------------------------------------------------------------------------------
+# Interval passivity regressor (local-frame RNEA over interval states), torque bound
+# ---------------------------------------------------------------------------------------------
+
+
+_REL = 5e-16  # > 2 units of roundoff: |fl(x) - x| <= u |x|, and the inflation step itself rounds
+
+
+def _dn(x):
+    """Cheap outward rounding (faster than nextafter): x - (5e-16 |x| + tiny) <= exact value."""
+    return x - (np.abs(x) * _REL + 1e-300)
+
+
+def _upr(x):
+    return x + (np.abs(x) * _REL + 1e-300)
+
+
+class _Box:
+    """Minimal outward-rounded interval arrays for the RNEA below (no validation: faster than
+    intervals.Interval, same rounding rules; sums add the k*eps*sum|x| accumulation bound)."""
+
+    __slots__ = ("lo", "hi")
+
+    def __init__(self, lo, hi=None):
+        self.lo = np.asarray(lo, float)
+        self.hi = self.lo if hi is None else np.asarray(hi, float)
+
+    @property
+    def shape(self):
+        return self.lo.shape
+
+    @property
+    def mag(self):
+        return np.maximum(np.abs(self.lo), np.abs(self.hi))
+
+    @property
+    def mid(self):
+        return 0.5 * (self.lo + self.hi)
+
+    @property
+    def rad(self):
+        return _upr(0.5 * (self.hi - self.lo))
+
+    def __getitem__(self, idx):
+        return _Box(self.lo[idx], self.hi[idx])
+
+    def __neg__(self):
+        return _Box(-self.hi, -self.lo)
+
+    def __add__(self, o):
+        if isinstance(o, _Box):
+            return _Box(_dn(self.lo + o.lo), _upr(self.hi + o.hi))
+        return _Box(_dn(self.lo + o), _upr(self.hi + o))
+
+    __radd__ = __add__
+
+    def __sub__(self, o):
+        if isinstance(o, _Box):
+            return _Box(_dn(self.lo - o.hi), _upr(self.hi - o.lo))
+        return _Box(_dn(self.lo - o), _upr(self.hi - o))
+
+    def __mul__(self, o):
+        if isinstance(o, _Box):
+            p1, p2, p3, p4 = self.lo * o.lo, self.lo * o.hi, self.hi * o.lo, self.hi * o.hi
+            return _Box(_dn(np.minimum(np.minimum(p1, p2), np.minimum(p3, p4))),
+                        _upr(np.maximum(np.maximum(p1, p2), np.maximum(p3, p4))))
+        p1, p2 = self.lo * o, self.hi * o
+        return _Box(_dn(np.minimum(p1, p2)), _upr(np.maximum(p1, p2)))
+
+    __rmul__ = __mul__
+
+    def sum(self, axis):
+        k = self.lo.shape[axis]
+        err = (k * np.finfo(float).eps) * self.mag.sum(axis)
+        return _Box(_dn(self.lo.sum(axis) - err), _upr(self.hi.sum(axis) + err))
+
+
+def _I(lo, hi=None):
+    return _Box(lo, hi)
+
+
+def _stack(items, axis=-1):
+    return _Box(np.stack([x.lo for x in items], axis), np.stack([x.hi for x in items], axis))
+
+
+def _cross(a, b):
+    """Interval cross product over the last axis (length 3)."""
+    ax, ay, az = a[..., 0], a[..., 1], a[..., 2]
+    bx, by, bz = b[..., 0], b[..., 1], b[..., 2]
+    return _stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx])
+
+
+def _matvec(m, x):
+    """(..., 3, 3) interval matrix times (..., 3) interval vector."""
+    return (m * x[..., None, :]).sum(-1)
+
+
+def _tmatvec(m, x):
+    """m^T x."""
+    return (m * x[..., :, None]).sum(-2)
+
+
+def _motion_cross(v, m):
+    w, u = v[..., :3], v[..., 3:]
+    return _cat([_cross(w, m[..., :3]), _cross(w, m[..., 3:]) + _cross(u, m[..., :3])])
+
+
+def _force_cross(v, f):
+    w, u = v[..., :3], v[..., 3:]
+    return _cat([_cross(w, f[..., :3]) + _cross(u, f[..., 3:]), _cross(w, f[..., 3:])])
+
+
+def _cat(items):
+    return _Box(np.concatenate([x.lo for x in items], -1), np.concatenate([x.hi for x in items], -1))
+
+
+# Columns of K(x) (I(theta) x = K(x) theta) as wrenches: (column, row, component of x, sign).
+_K_TABLE = [(0, 3, 3, 1), (0, 4, 4, 1), (0, 5, 5, 1),
+            (1, 1, 5, -1), (1, 2, 4, 1), (1, 4, 2, 1), (1, 5, 1, -1),
+            (2, 0, 5, 1), (2, 2, 3, -1), (2, 3, 2, -1), (2, 5, 0, 1),
+            (3, 0, 4, -1), (3, 1, 3, 1), (3, 3, 1, 1), (3, 4, 0, -1),
+            (4, 0, 0, 1), (5, 1, 1, 1), (6, 2, 2, 1),
+            (7, 0, 1, 1), (7, 1, 0, 1), (8, 1, 2, 1), (8, 2, 1, 1), (9, 0, 2, 1), (9, 2, 0, 1)]
+
+
+def _inertia_times(x):
+    """Interval K(x) stored as (..., 10, 6): column c of the 6x10 regressor is [..., c, :]."""
+    shape = x.shape[:-1] + (10, 6)
+    lo, hi = np.zeros(shape), np.zeros(shape)
+    for c, r, comp, sign in _K_TABLE:
+        if sign > 0:
+            lo[..., c, r], hi[..., c, r] = x.lo[..., comp], x.hi[..., comp]
+        else:
+            lo[..., c, r], hi[..., c, r] = -x.hi[..., comp], -x.lo[..., comp]
+    return _Box(lo, hi)
+
+
+def _body_wrench_regressor(v, va, a):
+    """Interval Y (..., 10, 6) with Y theta = I a + B(v) va (regressors.body_wrench_regressor)."""
+    kv, kva = _inertia_times(v), _inertia_times(va)
+    v_, va_ = v[..., None, :], va[..., None, :]
+    return _inertia_times(a) + 0.5 * (_force_cross(v_, kva) + _force_cross(va_, kv) - _inertia_times(_motion_cross(v, va)))
+
+
+def _joint_transforms(tree, q):
+    """Interval E (N, n, 3, 3) (parent->child rotation of coordinates) and r (N, n, 3) (child
+    origin in parent coords) of each joint, entries affine in sin q, cos q (Rodrigues)."""
+    n = tree.n
+    s, c = _sin_cos(q)
+    es, rs = [], []
+    for i in range(n):
+        rp, tp = tree.X_parent_joint[i, :3, :3], tree.X_parent_joint[i, :3, 3]
+        rc, tc = tree.X_joint_child[i, :3, :3], tree.X_joint_child[i, :3, 3]
+        if tree.prismatic[i]:
+            rot = _Box(np.broadcast_to(rp @ rc, (q.shape[0], 3, 3)))
+            pos = q[:, i, None] * (rp @ tree.axis[i]) + (tp + rp @ tc)
+        else:
+            k = regressors.skew(tree.axis[i])
+            # R_parent_child = rp (I + s K + (1 - c) K^2) rc = A0 + s A1 + c A2
+            a0 = rp @ (np.eye(3) + k @ k) @ rc
+            a1 = rp @ k @ rc
+            a2 = -rp @ k @ k @ rc
+            si, ci = s[:, i, None, None], c[:, i, None, None]
+            rot = _affine3(a0, a1, a2, si, ci)
+            b0 = tp + rp @ (np.eye(3) + k @ k) @ tc
+            b1 = rp @ k @ tc
+            b2 = -rp @ k @ k @ tc
+            pos = _affine3(b0, b1, b2, s[:, i, None], c[:, i, None])
+        # E = R_parent_child^T: child coords of a parent-coords vector.
+        es.append(_Box(np.swapaxes(rot.lo, -1, -2), np.swapaxes(rot.hi, -1, -2)))
+        rs.append(pos)
+    return _stack(es, 1), _stack(rs, 1)
+
+
+def _affine3(a0, a1, a2, s, c):
+    """a0 + s a1 + c a2 with interval s, c (exact per entry: s, c independent), outward."""
+    mid = a0 + s.mid * a1 + c.mid * a2
+    rad = np.abs(a1) * s.rad + np.abs(a2) * c.rad
+    err = 4 * np.finfo(float).eps * (np.abs(a0) + np.abs(a1) * s.mag + np.abs(a2) * c.mag)
+    return _Box(_down(mid - rad - err), _up(mid + rad + err))
+
+
+def _sin_cos(q):
+    from . import intervals
+
+    s, c = intervals.sin(Interval(q.lo, q.hi)), intervals.cos(Interval(q.lo, q.hi))
+    return _Box(s.lo, s.hi), _Box(c.lo, c.hi)
+
+
+def _to_child(e, r, x):
+    """Motion vector from parent to child coordinates: w' = E w, u' = E (u - r x w)."""
+    w, u = x[..., :3], x[..., 3:]
+    return _cat([_matvec(e, w), _matvec(e, u - _cross(r, w))])
+
+
+def _force_to_parent(e, r, f):
+    """Force vector from child to parent coordinates: f_p = E^T f, n_p = E^T n + r x f_p."""
+    n_, f_ = f[..., :3], f[..., 3:]
+    fp = _tmatvec(e, f_)
+    return _cat([_tmatvec(e, n_) + _cross(r, fp), fp])
+
+
+def interval_passivity_regressor(robot, q, v, va, aa):
+    """Interval Wp (N, n, 14n) enclosing RobotModel.passivity_regressor over boxes q, v, va, aa
+    (Intervals (N, n)). Local-frame RNEA: each body's velocity/acceleration from its parent's
+    through one interval joint transform; the body wrench regressors carried back up the tree."""
+    tree = robot.tree
+    n = tree.n
+    q, v, va, aa = (_Box(x.lo, x.hi) for x in (q, v, va, aa))
+    nsamp = q.shape[0]
+    e, r = _joint_transforms(tree, q)
+    # Joint motion subspace in child coordinates (constant).
+    s_local = np.zeros((n, 6))
+    for i in range(n):
+        rc, tc = tree.X_joint_child[i, :3, :3], tree.X_joint_child[i, :3, 3]
+        ax = tree.axis[i]
+        if tree.prismatic[i]:
+            s_local[i, 3:] = rc.T @ ax
+        else:
+            # axis through the joint origin, which sits at -rc^T tc in child coordinates
+            w = rc.T @ ax
+            s_local[i, :3] = w
+            s_local[i, 3:] = np.cross(-rc.T @ tc, w)
+    g_world = np.concatenate([np.zeros(3), -tree.gravity])  # base "acceleration" (gravity trick)
+    vel, vela, acc = [None] * n, [None] * n, [None] * n
+    ys = [None] * n
+    for i in range(n):
+        par = tree.parent[i]
+        ei, ri = e[:, i], r[:, i]
+        if par < 0:
+            v_par = _I(np.zeros((nsamp, 6)))
+            va_par = v_par
+            a_par = _I(np.broadcast_to(g_world, (nsamp, 6)))
+        else:
+            v_par, va_par, a_par = vel[par], vela[par], acc[par]
+        si = _I(s_local[i])[None]
+        vp_c = _to_child(ei, ri, v_par)
+        vel[i] = vp_c + si * v[:, i, None]
+        vela[i] = _to_child(ei, ri, va_par) + si * va[:, i, None]
+        # a_i = X a_par + s aa_i + v_i x s va_i
+        acc[i] = _to_child(ei, ri, a_par) + si * aa[:, i, None] + _motion_cross(vel[i], si * va[:, i, None])
+        ys[i] = _body_wrench_regressor(vel[i], vela[i], acc[i])  # (N, 10, 6)
+    lo = np.zeros((nsamp, n, 14 * n))
+    hi = np.zeros((nsamp, n, 14 * n))
+    for i in range(n):
+        f = ys[i]
+        j = i
+        while j >= 0:
+            col = (f * _I(s_local[j])[None, None]).sum(-1)  # (N, 10)
+            lo[:, j, 10 * i:10 * i + 10], hi[:, j, 10 * i:10 * i + 10] = col.lo, col.hi
+            par = tree.parent[j]
+            if par < 0:
+                break
+            f = _force_to_parent(e[:, j, None], r[:, j, None], f)
+            j = par
+    # Friction columns [Fc, Fv, Ia, beta] per joint.
+    vs = robot.coulomb_smoothing
+    if vs > 0:
+        sgn = _Box(np.maximum(_down(np.tanh(va.lo / vs)) - 1e-15, -1.0), np.minimum(_up(np.tanh(va.hi / vs)) + 1e-15, 1.0))
+    else:
+        sgn = _Box(np.sign(va.lo), np.sign(va.hi))
+    idx = np.arange(n)
+    base = 10 * n + 4 * idx
+    for off, x in ((0, sgn), (1, va), (2, aa), (3, _Box(np.ones((nsamp, n))))):
+        lo[:, idx, base + off], hi[:, idx, base + off] = x.lo, x.hi
+    return Interval(lo, hi)
+
+
+def torque_bound(wp, theta0, theta_lo, theta_hi):
+    """sup |u| per (interval, joint) over the boxes of wp (Interval (N, n, p)).
+
+    u = W_p theta0 + v, |v_j| <= ||w_bar||_2, w_bar_i <= sum_k |W_p,ik| d_k with
+    d = max(theta_hi - theta0, theta0 - theta_lo). Returns (sup|u| (N, n), nominal part, robust part (N,)).
+    """
+    theta0 = np.asarray(theta0, float)
+    d = np.maximum(np.asarray(theta_hi, float) - theta0, theta0 - np.asarray(theta_lo, float))
+    d = np.maximum(d, 0.0)
+    mid = wp.mid @ theta0
+    rad = wp.rad @ np.abs(theta0)
+    err = 8 * np.finfo(float).eps * (wp.mag @ np.abs(theta0))
+    nominal = _up(np.abs(mid) + rad + err)
+    wbar = _up((wp.mag @ d) * (1 + 1e-12))
+    robust = _up(np.linalg.norm(wbar, axis=-1) * (1 + 1e-12))
+    return _up(nominal + robust[:, None]), nominal, robust
