@@ -1,0 +1,102 @@
+"""Estimator (Algorithm 1) timing: one update on 7.5 s of 1 kHz data, and an incremental update
+on 1.5 s of new data after 6 s already processed (Algorithm 2's cadence).
+
+Targets (2-core machine): full update <= 0.25 s, incremental <= 0.1 s. Best of `repeat`, since
+other processes share the cores.
+"""
+from __future__ import annotations
+
+import copy
+import time
+
+import numpy as np
+
+from safesysid.systems import estimator as est_mod
+from safesysid.systems.payload import load_dumbbells, payload_theta_in_end_effector
+from safesysid.systems.robot_model import MODELS_DIR, load_robot
+
+TARGET_FULL_S = 0.25
+TARGET_INCREMENTAL_S = 0.1
+CENTRE = [0.0, 0.3, 0.0, 1.5, 0.0, 0.8, 0.0]
+
+
+def _data(robot, seed=0, duration_s=7.5, rate_hz=1000.0):
+    rng = np.random.default_rng(seed)
+    db = load_dumbbells(MODELS_DIR / "dumbbells.yaml")["8lb"]
+    theta = est_mod.perturbed_robot_theta(rng, robot, 0.05)
+    theta[robot.ee_slice] = robot.theta_e + payload_theta_in_end_effector(db, robot.extra["grasp_point"])
+    t, q, v, tau, _ = est_mod.simulate_log(rng, robot, theta, duration_s, rate_hz, centre=CENTRE)
+    return t, q, v, tau
+
+
+def _best(fn, repeat):
+    best, out = np.inf, None
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t0)
+    return best, out
+
+
+def run(quick: bool = False) -> dict:
+    robot = load_robot(coulomb_smoothing=0.01)
+    settings = est_mod.EstimatorSettings()
+    repeat = 2 if quick else 5
+    t, q, v, tau = _data(robot)
+    n_new = int(round(1.5 * 1000))
+
+    def full():
+        e = est_mod.IncrementalEstimator(robot, settings)
+        t0 = time.perf_counter()
+        e.add(t, q, v, tau)
+        t1 = time.perf_counter()
+        r = e.update()
+        return t1 - t0, time.perf_counter() - t1, r
+
+    full_s, (add_s, upd_s, result) = _best(full, repeat)
+
+    base = est_mod.IncrementalEstimator(robot, settings)
+    split = len(t) - n_new
+    base.add(t[:split], q[:split], v[:split], tau[:split])
+    base.update()
+
+    def incremental():
+        e = copy.deepcopy(base)
+        t0 = time.perf_counter()
+        e.add(t[split:], q[split:], v[split:], tau[split:])
+        return time.perf_counter() - t0, e.update()
+
+    def timed_incremental():
+        e = copy.deepcopy(base)
+        t0 = time.perf_counter()
+        e.add(t[split:], q[split:], v[split:], tau[split:])
+        e.update()
+        return time.perf_counter() - t0
+
+    inc_s = min(timed_incremental() for _ in range(repeat))
+    _, (inc_add_s, inc_result) = _best(incremental, 1)
+    return {
+        "samples": int(len(t)),
+        "segments": int(result.num_segments),
+        "full_update_s": full_s,
+        "full_update_add_s": add_s,
+        "full_update_solve_and_interval_s": upd_s,
+        "full_update_target_s": TARGET_FULL_S,
+        "full_update_meets_target": bool(full_s <= TARGET_FULL_S),
+        "incremental_update_s": inc_s,
+        "incremental_add_s": inc_add_s,
+        "incremental_target_s": TARGET_INCREMENTAL_S,
+        "incremental_meets_target": bool(inc_s <= TARGET_INCREMENTAL_S),
+        "case": result.case,
+        "solver": result.solver,
+        "cond_Y": result.cond_Y,
+        "mass_halfwidth_kg": float(0.5 * (result.upper[0] - result.lower[0])),
+        "incremental_case": inc_result.case,
+    }
+
+
+if __name__ == "__main__":
+    import json
+    import sys
+
+    print(json.dumps(run(quick="--quick" in sys.argv), indent=2, default=float))
