@@ -1,0 +1,81 @@
+"""Plots and tables of a closed-loop run (matplotlib, Agg backend)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from safesysid.systems.inertial import NAMES, UNITS  # noqa: E402
+
+
+def plot_tracking(path, t, error, bound, torque_ratio):
+    """Per-joint |e| against the ultimate bound, and max |u|/limit."""
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+    ax1.plot(t, np.abs(error), lw=0.8)
+    ax1.plot(t, np.broadcast_to(np.max(bound), t.shape), "k--", label="ultimate bound")
+    ax1.set_ylabel("|q_d - q| [rad]")
+    ax1.legend(loc="upper right")
+    ax2.plot(t, torque_ratio, lw=0.8)
+    ax2.axhline(1.0, color="k", ls="--")
+    ax2.set_ylabel("max |u| / limit")
+    ax2.set_xlabel("t [s]")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def plot_clearance(path, t, clearance):
+    fig, ax = plt.subplots(figsize=(8, 3))
+    ax.plot(t, clearance)
+    ax.axhline(0.0, color="r", ls="--")
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel("min signed distance [m]")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def plot_intervals(path, nominal, lower, upper, truth=None, title=""):
+    """The 10 end-effector intervals with nominal (and truth), like the paper's Fig. 5."""
+    fig, axes = plt.subplots(2, 5, figsize=(13, 5))
+    for k, ax in enumerate(axes.ravel()):
+        ax.errorbar([0], [nominal[k]], yerr=[[nominal[k] - lower[k]], [upper[k] - nominal[k]]], fmt="o", capsize=8)
+        if truth is not None:
+            ax.plot([0], [truth[k]], "r*", ms=12, label="truth")
+        ax.set_title(f"{NAMES[k]} [{UNITS[k]}]", fontsize=9)
+        ax.set_xticks([])
+    if truth is not None:
+        axes[0, 0].legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def plot_estimate_history(path, times, nominal, lower, upper, truth=None, index=0):
+    """Evolution of one parameter's estimate and interval over the updates (default: mass)."""
+    fig, ax = plt.subplots(figsize=(8, 3))
+    ax.fill_between(times, np.asarray(lower)[:, index], np.asarray(upper)[:, index], step="post", alpha=0.3, label="interval")
+    ax.step(times, np.asarray(nominal)[:, index], where="post", label="estimate")
+    if truth is not None:
+        ax.axhline(truth[index], color="r", ls="--", label="truth")
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel(f"{NAMES[index]} [{UNITS[index]}]")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def markdown_table(rows, columns):
+    head = "| " + " | ".join(columns) + " |\n|" + "---|" * len(columns) + "\n"
+    fmt = lambda x: f"{x:.4g}" if isinstance(x, float) else str(x)  # noqa: E731
+    return head + "".join("| " + " | ".join(fmt(r.get(c, "")) for c in columns) + " |\n" for r in rows)
