@@ -115,59 +115,60 @@ class ControllerDynamics:
         self.has_parent = (self.parent >= 0)[:, None]
         self.parent_idx = np.where(self.parent >= 0, self.parent, 0)
         self.idx = np.arange(n)
+        self.z_in_parent = (self.r_pj @ self.axis[:, :, None])[:, :, 0]  # joint axis in the carrier frame
 
     def _poses(self, q):
+        """Body rotations R (n,3,3), origins p (n,3) and joint screws S (n,6) about O."""
         n = self.n
         s, c = np.sin(q), np.cos(q)
         rot = np.eye(3) + s[:, None, None] * self.k1 + (1 - c)[:, None, None] * self.k2
+        # Body i in its carrier's frame: R_i = R_par T_i, p_i = p_par + R_par t_i (batched).
+        r_pm = self.r_pj @ rot
+        T = r_pm @ self.r_jc
+        t = self.p_pj + (r_pm @ self.p_jc[:, :, None])[:, :, 0]
         R = np.empty((n, 3, 3))
         p = np.empty((n, 3))
-        z = np.empty((n, 3))
-        pf = np.empty((n, 3))
         for i in range(n):
             par = self.parent[i]
             if par < 0:
-                r_f, p_f = self.r_pj[i], self.p_pj[i]
+                R[i], p[i] = T[i], t[i]
             else:
-                r_f = R[par] @ self.r_pj[i]
-                p_f = p[par] + R[par] @ self.p_pj[i]
-            z[i] = r_f @ self.axis[i]
-            pf[i] = p_f
-            r_m = r_f @ rot[i]
-            R[i] = r_m @ self.r_jc[i]
-            p[i] = p_f + r_m @ self.p_jc[i]
-        S = np.concatenate([z, _cross(pf, z)], -1)
+                R[i] = R[par] @ T[i]
+                p[i] = p[par] + R[par] @ t[i]
+        r_par = np.where(self.has_parent[:, :, None], R[self.parent_idx], np.eye(3))
+        p_par = np.where(self.has_parent, p[self.parent_idx], 0.0)
+        z = (r_par @ self.z_in_parent[:, :, None])[:, :, 0]
+        p_f = p_par + (r_par @ self.p_pj[:, :, None])[:, :, 0]
+        S = np.concatenate([z, _cross(p_f, z)], -1)
         return R, p, S
-
-    def _tree_sum(self, S, x):
-        """sum over ancestors j of body i of S_j x_j -> (n, 6)."""
-        return self.anc_t @ (S * x[:, None])
 
     def regressors(self, q, v, va, aa, x):
         """(Wp, Wm): Wp theta = M aa + C(q, v) va + g + F(va, aa); Wm theta = (M + diag Ia) x."""
         q, v, va, aa, x = (np.asarray(a, float).reshape(-1) for a in (q, v, va, aa, x))
         n = self.n
         R, p, S = self._poses(q)
-        V = self._tree_sum(S, v)
+        # Twists of v, va and x at once: [k, i] = sum over ancestors j of i of S_j x_k,j.
+        V, vel_a, vel_x = np.einsum("ij,kj,jl->kil", self.anc_t, np.stack([v, va, x]), S)
         v_par = np.where(self.has_parent, V[self.parent_idx], 0.0)
         Sdot = _cross_motion(v_par, S)
-        vel_a = self._tree_sum(S, va)
         acc_a = self.gravity_acc + self.anc_t @ (S * aa[:, None] + Sdot * va[:, None])
-        stacked = np.stack([V, vel_a, acc_a, self._tree_sum(S, x)], 1)  # (n, 4, 6)
-        body = _to_body(R[:, None], p[:, None], stacked)
+        # One change of frame for the body quantities and the screws X_i S_j.
+        world = np.concatenate([np.stack([V, vel_a, acc_a, vel_x], 1), np.broadcast_to(S, (n, n, 6))], 1)
+        body = _to_body(R[:, None], p[:, None], world)
         vb, vab, ab, xb = body[:, 0], body[:, 1], body[:, 2], body[:, 3]
+        s_body = body[:, 4:] * self.anc_t[:, :, None]  # [i, j] = X_i S_j for ancestors j of i
         # Y theta = I a + B(v) va, B(v) va = 1/2 [v x* I va + va x* I v - I (v x va)]  (regressors.py)
         k = _inertia_times(np.stack([ab, vab, vb, _cross_motion(vb, vab), xb], 1))  # (n, 5, 6, 10)
         xf = _cross_force_matrix(np.stack([vb, vab], 1))  # (n, 2, 6, 6)
         y_p = k[:, 0] + 0.5 * (xf[:, 0] @ k[:, 1] + xf[:, 1] @ k[:, 2] - k[:, 3])
-        y = np.stack([y_p, k[:, 4]], 0)  # (2, n, 6, 10)
-        s_body = _to_body(R[:, None], p[:, None], S[None, :]) * self.anc_t[:, :, None]  # [i, j] = X_i S_j
-        w = np.einsum("ijk,bikl->bjil", s_body, y).reshape(2, n, 10 * n)
-        f = np.zeros((2, n, n, 4))
-        idx = self.idx
-        f[0, idx, idx] = np.stack([regressors.coulomb_shape(va, self.smoothing), va, aa, np.ones(n)], -1)
-        f[1, idx, idx, 2] = x
-        out = np.concatenate([w, f.reshape(2, n, 4 * n)], -1)
+        out = np.zeros((2, n, 14 * n))
+        out[:, :, :10 * n] = np.einsum("ijk,bikl->bjil", s_body, np.stack([y_p, k[:, 4]])).reshape(2, n, 10 * n)
+        idx, f0 = self.idx, 10 * n + 4 * self.idx
+        out[0, idx, f0] = regressors.coulomb_shape(va, self.smoothing)
+        out[0, idx, f0 + 1] = va
+        out[0, idx, f0 + 2] = aa
+        out[0, idx, f0 + 3] = 1.0
+        out[1, idx, f0 + 2] = x
         return out[0], out[1]
 
     def gravity(self, q, theta):

@@ -170,9 +170,23 @@ def make_adaptive_controller(robot, gains: ControllerGains, time_step, robust=Fa
 
     class AdaptiveController(ControllerBase):
         def __init__(self):
+            from pydrake.common.value import AbstractValue
+            from pydrake.systems.framework import ValueProducer
+
             super().__init__(robot, gains)
             self._delta = self.DeclareDiscreteState(10)  # theta_hat_e - theta0_e
             self.DeclarePeriodicDiscreteUpdateEvent(time_step, 0.0, self._update)
+            # Errors and regressor depend on the inputs only: shared by output and update.
+            self._regressor = self.DeclareCacheEntry(
+                "errors_and_regressor", ValueProducer(allocate=lambda: AbstractValue.Make(object()),
+                                                      calc=self._calc_regressor),
+                {self.all_input_ports_ticket()})
+
+        def _calc_regressor(self, context, value):
+            q, v, q_d, qd_d, qdd_d, _, _ = self._inputs(context)
+            err = tracking_errors(gains.armour.Kr, q, v, q_d, qd_d, qdd_d, robot.joint_params.continuous)
+            wp, _ = self.dyn.regressors(q, v, err.qd_a, err.qdd_a, np.zeros(self.n))
+            value.set_value((err, wp))
 
         def estimate(self, context, theta0, box):
             """theta_hat (14 n): theta0 with the adapted end effector, projected on the box."""
@@ -182,8 +196,7 @@ def make_adaptive_controller(robot, gains: ControllerGains, time_step, robust=Fa
             return theta
 
         def _terms(self, context, q, v, q_d, qd_d, qdd_d, theta0, box):
-            err = tracking_errors(gains.armour.Kr, q, v, q_d, qd_d, qdd_d, robot.joint_params.continuous)
-            wp, _ = self.dyn.regressors(q, v, err.qd_a, err.qdd_a, np.zeros(self.n))
+            err, wp = self._regressor.Eval(context)
             return err, wp, self.estimate(context, theta0, box)
 
         def _torque(self, context, *inputs):

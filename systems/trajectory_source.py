@@ -10,7 +10,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .bezier import QuinticBezier
+from .bezier import DEGREE, QuinticBezier, _monomial_of_bernstein
+
+_POWERS = np.arange(DEGREE + 1)
 
 
 @dataclass(frozen=True)
@@ -19,9 +21,23 @@ class Piece:
     curve: QuinticBezier
     q_end: np.ndarray
 
+    def __post_init__(self):
+        # Monomial coefficients in s = (t - t_start)/T, so one evaluation is three small dot
+        # products (the source runs every control step); equal to QuinticBezier.evaluate.
+        coef = _monomial_of_bernstein(DEGREE) @ self.curve.control_points(self.q_end)
+        T = self.curve.duration
+        object.__setattr__(self, "_c0", coef)
+        object.__setattr__(self, "_c1", coef[1:] * _POWERS[1:, None] / T)
+        object.__setattr__(self, "_c2", coef[2:] * (_POWERS[2:] * (_POWERS[2:] - 1))[:, None] / T ** 2)
+
     def evaluate(self, t):
-        q, qd, qdd = self.curve.evaluate([t - self.t_start], self.q_end)
-        return q[0], qd[0], qdd[0]
+        """(q, qd, qdd) at absolute time t; at rest at q_end after the duration."""
+        s = (t - self.t_start) / self.curve.duration
+        if s >= 1.0:
+            q_end = np.broadcast_to(np.asarray(self.q_end, float), self._c0.shape[1:]).copy()
+            return q_end, np.zeros_like(q_end), np.zeros_like(q_end)
+        pw = max(s, 0.0) ** _POWERS
+        return pw @ self._c0, pw[:-1] @ self._c1, pw[:-2] @ self._c2
 
 
 def evaluate_pieces(pieces, t):

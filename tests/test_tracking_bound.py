@@ -129,3 +129,28 @@ def test_adaptive_estimate_moves_toward_the_payload(robot):
     mass_hat = loop.controller.estimate(ctx, theta0, box)[robot.ee_slice][0]
     m_true = true_theta(robot, scenario_dumbbell(s))[robot.ee_slice][0]
     assert abs(mass_hat - m_true) < abs(robot.theta_e[0] - m_true)
+
+
+def test_trajectory_source_matches_bezier_and_switches_pieces():
+    from safesysid.systems.trajectory_source import Piece, make_trajectory_source
+
+    rng = np.random.default_rng(12)
+    q0, v0, a0 = rng.normal(size=(3, 7))
+    first = QuinticBezier(q0, v0, a0, 2.0)
+    end1 = q0 + 0.1
+    piece1 = Piece(0.0, first, end1)
+    q1, v1, a1 = (x[0] for x in first.evaluate([1.0], end1))
+    second = QuinticBezier(q1, v1, a1, 2.0)
+    end2 = q1 - 0.2
+    source = make_trajectory_source(7, [piece1])
+    ctx = source.CreateDefaultContext()
+    for t in (0.0, 0.4, 1.3, 2.0, 2.5):
+        ctx.SetTime(t)
+        expected = np.concatenate([x[0] for x in first.evaluate([t], end1)])
+        np.testing.assert_allclose(source.get_output_port().Eval(ctx), expected, atol=1e-12)
+    source.append_piece(ctx, Piece(1.0, second, end2))
+    for t in (0.5, 1.0, 1.7, 3.5):
+        ctx.SetTime(t)
+        curve, start, end = (first, 0.0, end1) if t < 1.0 else (second, 1.0, end2)
+        expected = np.concatenate([x[0] for x in curve.evaluate([t - start], end)])
+        np.testing.assert_allclose(source.get_output_port().Eval(ctx), expected, atol=1e-12)

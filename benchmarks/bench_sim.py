@@ -1,0 +1,65 @@
+"""Real-time factor of the closed loop: real arm (1 kHz discrete MultibodyPlant, friction,
+sensor) + ARMOUR controller (interval bounds over all 14 n parameters) + Bezier source.
+
+Target: real-time factor >= 1 (simulated seconds per wall-clock second), loggers included.
+Also reports the per-step cost of the controller law alone and of the baselines' loops.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from safesysid.scenario import load_scenario, robot_from_scenario
+from safesysid.systems import controller as C
+from safesysid.systems.bezier import QuinticBezier
+from safesysid.systems.controllers import build_closed_loop, simulate_closed_loop
+
+TARGET_RTF = 1.0
+
+
+def _loop_rtf(s, robot, theta0, box, kind, sim_s, repeat):
+    q0 = np.array(s.q0_rad)
+    q_end = q0 + np.array(s.planner.k_range_rad) * np.linspace(-1, 1, robot.n)
+    trajectory = (QuinticBezier(q0, np.zeros(robot.n), np.zeros(robot.n), s.planner.duration_s), q_end)
+    best = np.inf
+    for _ in range(repeat):
+        loop = build_closed_loop(s, trajectory, theta0, box, kind=kind, robot=robot)
+        t0 = time.perf_counter()
+        simulate_closed_loop(loop, q0, sim_s)
+        best = min(best, time.perf_counter() - t0)
+    return sim_s / best
+
+
+def run(quick: bool = False) -> dict:
+    s = load_scenario(overrides={"payload": {"dumbbell": "8lb"}})
+    robot = robot_from_scenario(s)
+    ii = s.initial_interval
+    theta0, box = C.parameter_box(robot, ii.nominal, ii.lower, ii.upper)
+    sim_s = 1.0 if quick else 3.0
+    repeat = 1 if quick else 2
+    result = {"sim_time_s": sim_s, "time_step_s": s.plant.time_step_s, "target_real_time_factor": TARGET_RTF}
+    rtf = _loop_rtf(s, robot, theta0, box, "armour", sim_s, repeat)
+    result["armour_real_time_factor"] = rtf
+    result["meets_target"] = bool(rtf >= TARGET_RTF)
+    # The law alone (one evaluation = one control step).
+    dyn = C.ControllerDynamics(robot)
+    gains = C.ArmourGains(np.asarray(s.controller.Kr, float), s.controller.alpha, s.controller.V_max)
+    rng = np.random.default_rng(0)
+    q, v = rng.normal(size=(2, robot.n))
+    count = 300 if quick else 2000
+    t0 = time.perf_counter()
+    for _ in range(count):
+        C.armour_control(dyn, gains, q, v, q + 0.01, v, v, theta0, box)
+    result["armour_law_us_per_step"] = (time.perf_counter() - t0) / count * 1e6
+    if not quick:
+        for kind in ("pid", "adaptive", "adaptive_robust"):
+            result[f"{kind}_real_time_factor"] = _loop_rtf(s, robot, theta0, box, kind, sim_s, 1)
+    return result
+
+
+if __name__ == "__main__":
+    import json
+    import sys
+
+    print(json.dumps(run(quick="--quick" in sys.argv), indent=2))
