@@ -83,6 +83,15 @@ class Controller:
     alpha: float = 20.0
     V_max: float = 0.02
     kind: str = "armour"  # armour | pid | adaptive | adaptive_robust
+    # Baselines (systems/controllers.py), per joint; Gen3 inertia with armature is ~9-14 kg m^2,
+    # so Kp ~ M (10 rad/s)^2 and Kd ~ 2 M 10 rad/s.
+    pid_kp_Nm_rad: List[float] = dc.field(default_factory=lambda: [1000.0] * 7)
+    pid_ki_Nm_rad_s: List[float] = dc.field(default_factory=lambda: [1000.0] * 7)
+    pid_kd_Nms_rad: List[float] = dc.field(default_factory=lambda: [180.0] * 7)
+    adaptive_kd_Nms_rad: List[float] = dc.field(default_factory=lambda: [100.0] * 7)
+    # Adaptation gain per end-effector parameter [m, m c (3), I (6)] (units of theta_e^2 / (N m rad)).
+    adaptive_gamma: List[float] = dc.field(default_factory=lambda: [5.0, 1.0, 1.0, 1.0, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1])
+    adaptive_boundary_rad_s: float = 0.05  # boundary layer of the adaptive robust (adap-2) term
 
 
 @dc.dataclass

@@ -27,16 +27,6 @@ import numpy as np
 from .controller import ArmourGains, ControllerDynamics, armour_control, tracking_errors
 from .intervals import Interval
 
-# Defaults for the baselines (per joint for the Gen3's 7 joints; inertia incl. armature ~9-14
-# kg m^2, so Kp ~ M (10 rad/s)^2, Kd ~ 2 M 10 rad/s).
-DEFAULT_PID_KP = [1000.0] * 7  # N m / rad
-DEFAULT_PID_KI = [1000.0] * 7  # N m / (rad s)
-DEFAULT_PID_KD = [180.0] * 7  # N m s / rad
-DEFAULT_ADAPTIVE_KD = [100.0] * 7  # N m s / rad
-DEFAULT_ADAPTIVE_GAMMA = [5.0, 1.0, 1.0, 1.0, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1]  # per theta_e entry
-DEFAULT_ROBUST_BOUNDARY = 0.05  # rad/s, boundary layer phi of adap-2
-
-
 @dataclass
 class ControllerGains:
     armour: ArmourGains
@@ -54,22 +44,23 @@ def _fit(values, n, name):
     if arr.size == 1:
         return np.full(n, float(arr))
     if arr.shape != (n,):
-        raise ValueError(f"controller.{name}: needs {n} values, got {arr.size}")
+        from safesysid.scenario import ScenarioError
+
+        raise ScenarioError(f"controller.{name}: needs {n} values, got {arr.size}")
     return arr
 
 
 def gains_from_scenario(scenario, n):
-    """Gains from scenario.controller (baseline fields optional: defaults above)."""
+    """Gains from scenario.controller (defaults and units: app/scenario.py, class Controller)."""
     c = scenario.controller
-    get = lambda name, default: getattr(c, name, None) or default  # noqa: E731
     return ControllerGains(
         armour=ArmourGains(_fit(c.Kr, n, "Kr"), float(c.alpha), float(c.V_max)),
-        pid_kp=_fit(get("pid_kp_Nm_rad", DEFAULT_PID_KP), n, "pid_kp_Nm_rad"),
-        pid_ki=_fit(get("pid_ki_Nm_rad_s", DEFAULT_PID_KI), n, "pid_ki_Nm_rad_s"),
-        pid_kd=_fit(get("pid_kd_Nms_rad", DEFAULT_PID_KD), n, "pid_kd_Nms_rad"),
-        adaptive_kd=_fit(get("adaptive_kd_Nms_rad", DEFAULT_ADAPTIVE_KD), n, "adaptive_kd_Nms_rad"),
-        adaptive_gamma=_fit(get("adaptive_gamma", DEFAULT_ADAPTIVE_GAMMA), 10, "adaptive_gamma"),
-        robust_boundary=float(get("adaptive_boundary_rad_s", DEFAULT_ROBUST_BOUNDARY)))
+        pid_kp=_fit(c.pid_kp_Nm_rad, n, "pid_kp_Nm_rad"),
+        pid_ki=_fit(c.pid_ki_Nm_rad_s, n, "pid_ki_Nm_rad_s"),
+        pid_kd=_fit(c.pid_kd_Nms_rad, n, "pid_kd_Nms_rad"),
+        adaptive_kd=_fit(c.adaptive_kd_Nms_rad, n, "adaptive_kd_Nms_rad"),
+        adaptive_gamma=_fit(c.adaptive_gamma, 10, "adaptive_gamma"),
+        robust_boundary=float(c.adaptive_boundary_rad_s))
 
 
 def _base_class():
