@@ -42,7 +42,7 @@ class ControllerGains:
 def _fit(values, n, name):
     arr = np.asarray(values, float)
     if arr.size == 1:
-        return np.full(n, float(arr))
+        return np.full(n, float(arr.reshape(-1)[0]))
     if arr.shape != (n,):
         from safesysid.scenario import ScenarioError
 
