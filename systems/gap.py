@@ -1,0 +1,825 @@
+"""Sim-to-real gap diagnosis: residual of a nominal model, where it lies, which effect explains it.
+
+Pure math on (RobotModel, joint logs). The CLI (app/diagnose_cli.py) and the self-check
+(systems/gap_simulate.py) call `diagnose`.
+
+Residual forms (one per diagnosis, chosen from the logs):
+  inverse_dynamics  logs carry accelerations: r(t) = tau - W(q, v, a) theta0, one row per sample.
+  momentum          no accelerations: over windows [t1, t2] of about `window_s` that never span a
+                    time gap, r = (int tau dt - [Wm theta0]_t1^t2 + int Wc theta0 dt) / (t2 - t1)
+                    (trapezoid), the window-mean torque residual, so nothing is differentiated.
+  The smoothing differentiator (Savitzky-Golay, cubic, ~0.1 s window, per gap-free segment) is
+  only used to compare (gap.residual_forms) and to classify acceleration regimes.
+
+Every effect is linear (or linearized) in its parameters p: r = Phi p, with Phi built from the
+log in the same residual form (terms in the acceleration are integrated exactly: int a dt = dv,
+int W_e dt = [Wm_e] - int Wc_e dt, int tau_dot dt = d tau). Effects and their physical model:
+  coulomb_friction   dFc_j sgn(v_j)                          Fc0 + dFc >= 0
+  viscous_friction   dFv_j v_j                               Fv0 + dFv >= 0
+  stribeck_friction  Fs_j sgn(v_j) exp(-(v_j/vs)^2)          Fs >= 0, vs from a grid (shared)
+  armature           dIa_j a_j                               Ia0 + dIa >= 0
+  torque_offset      b_j                                     sensor offset
+  torque_scale       (s_j - 1) tau_nominal_j                 tau_meas = s tau_true (first order in the
+                                                             other effects; regressing on tau_meas itself
+                                                             would let it soak up any residual)
+  payload            W_e(q, v, a) dtheta_e (10 params)       theta_e0 + dtheta_e physically
+                                                             consistent (log-Cholesky), dm >= 0
+  time_delay         model side (nominal + all effect rows)   tau_meas(t) = tau_true(t - d), 0 <= d <= 0.2 s
+                     read d earlier: grid shift + first-order (only smooth model rows are interpolated,
+                     lag column -d' dtau/dt for the rest      never the noisy measurement)
+  base_tilt          G(q; g_x) x + G(q; g_y) y               gravity gains horizontal parts (x, y)|g|
+  joint_elasticity   -(dg/dq_j)(q) tau_j c_j                 link angle q - tau/k, c = 1/k >= 0
+                                                             (quasi-static deflection under load)
+Fits are bounded linear least squares (scipy lsq_linear on the Cholesky factor of the normal
+equations, so each fit costs microseconds); the payload uses a log-Cholesky Gauss-Newton
+(scipy least_squares) when the linear fit is not physically consistent.
+
+Selection is forward-greedy: the candidate with the largest held-out improvement is added while
+it is significant, i.e. all of
+  (1) held-out (check) mean-square residual drops by more than Z_BLOCK block standard errors
+      (blocks of BLOCK_S seconds, so autocorrelated residuals do not fake significance),
+  (2) the drop exceeds MIN_RELATIVE of the current check mean square and MIN_NOISE_FRACTION of
+      the noise variance (estimated from first differences of the check residual): improvement
+      beyond what measurement noise explains,
+  (3) BIC on the fit logs decreases.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import inertial, regressors
+
+EFFECTS = ("coulomb_friction", "viscous_friction", "stribeck_friction", "armature", "torque_offset",
+           "torque_scale", "payload", "time_delay", "base_tilt", "joint_elasticity")
+PER_JOINT = ("coulomb_friction", "viscous_friction", "stribeck_friction", "armature", "torque_offset",
+             "torque_scale", "joint_elasticity")
+STRIBECK_VELOCITIES = tuple(round(0.02 * 1.3 ** k, 4) for k in range(10))  # rad/s grid for vs (0.02..0.21)
+BLOCK_S = 0.5
+Z_BLOCK = 3.0
+MIN_RELATIVE = 0.01
+MIN_NOISE_FRACTION = 0.05
+MAX_DELAY_S = 0.2
+DELAY_STEP_S = 0.02
+DELAY_GRID_S = tuple(np.round(np.arange(0.0, MAX_DELAY_S + 1e-9, DELAY_STEP_S), 6))
+MAX_TILT = 0.2
+MAX_COMPLIANCE = 0.05  # rad/(N m)
+REGIME_QUANTILE = 0.75
+
+
+# ---- per-log preparation --------------------------------------------------------------------
+def segments(t, max_gap_s=None):
+    """Index ranges [(i0, i1)] (inclusive) of gap-free pieces; a gap is a step > max_gap_s
+    (default 5 median steps)."""
+    dt = np.diff(t)
+    if max_gap_s is None:
+        max_gap_s = 5.0 * float(np.median(dt)) if len(dt) else np.inf
+    cuts = np.flatnonzero(dt > max_gap_s)
+    starts = np.concatenate([[0], cuts + 1])
+    ends = np.concatenate([cuts, [len(t) - 1]])
+    return [(int(a), int(b)) for a, b in zip(starts, ends)]
+
+
+def smooth_derivative(t, x, segs, window_s=0.1, order=3):
+    """Savitzky-Golay derivative of x (N, ...) along t, per gap-free segment (np.gradient when
+    a segment is too short). The documented differentiator used only where a derivative is needed."""
+    from scipy.signal import savgol_filter
+
+    out = np.empty_like(np.asarray(x, float))
+    for i0, i1 in segs:
+        tt, xx = t[i0:i1 + 1], x[i0:i1 + 1]
+        if len(tt) < 2:
+            out[i0:i1 + 1] = 0.0
+            continue
+        h = float(np.median(np.diff(tt)))
+        w = int(round(window_s / h)) | 1
+        w = max(w, order + 2 + (order % 2 == 0))
+        if len(tt) >= w:
+            out[i0:i1 + 1] = savgol_filter(xx, w, order, deriv=1, delta=h, axis=0)
+        else:
+            out[i0:i1 + 1] = np.gradient(xx, tt, axis=0)
+    return out
+
+
+def _windows(t, segs, window_s):
+    """Non-overlapping windows (i0, i1) of about window_s inside each segment."""
+    out = []
+    for s0, s1 in segs:
+        if s1 <= s0:
+            continue
+        h = float(np.median(np.diff(t[s0:s1 + 1])))
+        step = max(1, int(round(window_s / h)))
+        edges = list(range(s0, s1 + 1, step))
+        if edges[-1] != s1:
+            if s1 - edges[-1] < step // 2 and len(edges) > 1:
+                edges[-1] = s1
+            else:
+                edges.append(s1)
+        out.extend(zip(edges[:-1], edges[1:]))
+    return np.array(out, int).reshape(-1, 2)
+
+
+def _cumtrapz(t, x):
+    """Cumulative trapezoid along axis 0 (integrals between any two samples by difference)."""
+    dt = np.diff(t).reshape((-1,) + (1,) * (x.ndim - 1))
+    c = np.zeros_like(x, dtype=float)
+    c[1:] = np.cumsum(0.5 * (x[1:] + x[:-1]) * dt, axis=0)
+    return c
+
+
+def _gravity(tree, theta_b, q, gravity=None):
+    if gravity is not None:
+        tree = dataclasses.replace(tree, gravity=np.asarray(gravity, float))
+    z = np.zeros_like(q)
+    return regressors.standard_regressor(tree, q, z, z) @ theta_b
+
+
+def _diag(x):
+    """(N, n) -> (N, n, n) with x on the diagonal (per-joint effect columns)."""
+    n = x.shape[1]
+    out = np.zeros(x.shape + (n,))
+    idx = np.arange(n)
+    out[:, idx, idx] = x
+    return out
+
+
+@dataclass
+class Design:
+    """One log in one residual form: residual rows y (R, n) and effect columns (R, n, k)."""
+
+    form: str
+    y: np.ndarray
+    cols: dict  # group name -> (R, n, k)
+    row_time: np.ndarray  # (R,) time of each row (window middle)
+    row_block: np.ndarray  # (R,) block id (BLOCK_S pieces, never across gaps)
+    features: dict  # v, a, g per row (R, n) for regimes
+    tau_hat_nominal: np.ndarray  # (R, n) nominal model torque (row form)
+    source: str = ""
+    row_segment: np.ndarray = None  # (R,) gap-free segment of each row
+    residual_forms: dict = field(default_factory=dict)
+    segments: list = field(default_factory=list)
+
+
+def build_design(model, log, form, window_s=0.1, max_gap_s=None, columns=True):
+    """Residual rows and every effect's columns for one JointLog (see module docstring)."""
+    n = model.n
+    t, q, v, tau = log.t, log.q, log.v, log.tau
+    nb = 10 * n
+    theta, theta_b = model.theta, model.theta[:nb]
+    tree = model.tree
+    segs = segments(t, max_gap_s)
+    a_smooth = smooth_derivative(t, v, segs)
+    g = _gravity(tree, theta_b, q)
+    gnorm = float(np.linalg.norm(tree.gravity)) or 9.81
+    sgn = regressors.coulomb_shape(v, model.coulomb_smoothing)
+    std_cols = {}
+    if columns:
+        std_cols["coulomb_friction"] = _diag(sgn)
+        std_cols["viscous_friction"] = _diag(v)
+        for vs in STRIBECK_VELOCITIES:
+            std_cols[f"stribeck_friction@{vs}"] = _diag(sgn * np.exp(-(v / vs) ** 2))
+        std_cols["torque_offset"] = _diag(np.ones_like(v))
+        std_cols["base_tilt"] = np.stack([_gravity(tree, theta_b, q, [gnorm, 0, 0]),
+                                          _gravity(tree, theta_b, q, [0, gnorm, 0])], -1)
+        h = 1e-6
+        dgdq = np.stack([(_gravity(tree, theta_b, q + h * np.eye(n)[j]) - g) / h for j in range(n)], -1)
+        std_cols["joint_elasticity"] = -dgdq * tau[:, None, :]
+    ee = [model.end_effector]
+    if form == "inverse_dynamics":
+        a = log.a
+        W = model.standard_regressor(q, v, a)
+        tau_nom = W @ theta
+        y = tau - tau_nom
+        cols = dict(std_cols)
+        if columns:
+            cols["torque_scale"] = _diag(tau_nom)
+            cols["armature"] = _diag(a)
+            cols["payload"] = W[:, :, model.ee_slice]
+            cols["time_delay"] = -smooth_derivative(t, tau, segs)[:, :, None]
+        rows = np.arange(len(t))
+        row_time = t
+        feat = {"v": v, "a": a, "g": g}
+    elif form == "momentum":
+        win = _windows(t, segs, window_s)
+        i0, i1 = win[:, 0], win[:, 1]
+        span = (t[i1] - t[i0])[:, None]
+        Wm = model.momentum_regressor(q, v)
+        Wc = model.momentum_rate_regressor(q, v)
+        pm = Wm @ theta
+        cc = _cumtrapz(t, Wc @ theta)
+        ct = _cumtrapz(t, tau)
+        y = (ct[i1] - ct[i0] - (pm[i1] - pm[i0]) + (cc[i1] - cc[i0])) / span
+        tau_nom = ((pm[i1] - pm[i0]) - (cc[i1] - cc[i0])) / span
+        cols = {}
+        if columns:
+            s3 = span[:, :, None]
+            for name, c in std_cols.items():
+                ci = _cumtrapz(t, c)
+                cols[name] = (ci[i1] - ci[i0]) / s3
+            cols["torque_scale"] = _diag(tau_nom)
+            cols["armature"] = _diag((v[i1] - v[i0]) / span)
+            wm_e = Wm[:, :, model.ee_slice]
+            wc_e = _cumtrapz(t, Wc[:, :, model.ee_slice])
+            cols["payload"] = ((wm_e[i1] - wm_e[i0]) - (wc_e[i1] - wc_e[i0])) / s3
+            cols["time_delay"] = (-(tau[i1] - tau[i0]) / span)[:, :, None]
+        rows = (i0 + i1) // 2
+        row_time = 0.5 * (t[i0] + t[i1])
+        feat = {"v": v[rows], "a": a_smooth[rows], "g": g[rows]}
+        del ee
+    else:
+        raise ValueError(f"unknown residual form {form!r}")
+    # Blocks for the held-out standard error: BLOCK_S pieces inside each segment.
+    seg_id = np.zeros(len(t), int)
+    for k, (s0, s1) in enumerate(segs):
+        seg_id[s0:s1 + 1] = k
+    blk = seg_id[rows] * 100000 + np.floor((row_time - t[0]) / BLOCK_S).astype(int)
+    _, row_block = np.unique(blk, return_inverse=True)
+    d = Design(form, y, cols, row_time, row_block, feat, tau_nom, log.source, segments=segs)
+    d.row_segment = seg_id[rows]
+    return d
+
+
+def row_shift(design, delay):
+    """Linear interpolation of row quantities at row_time - delay inside each gap-free segment:
+    (i0, i1, w) with X_delayed = (1 - w) X[i0] + w X[i1]. Rows are smooth in time (samples of
+    model quantities, or window means), so this delays the model without touching the noise."""
+    t = design.row_time
+    seg = design.row_segment
+    i0 = np.empty(len(t), int)
+    i1 = np.empty(len(t), int)
+    w = np.empty(len(t))
+    for k in np.unique(seg):
+        rows = np.flatnonzero(seg == k)
+        tt = t[rows]
+        ts = np.clip(tt - delay, tt[0], tt[-1])
+        pos = np.clip(np.searchsorted(tt, ts, side="right") - 1, 0, len(tt) - 1)
+        nxt = np.minimum(pos + 1, len(tt) - 1)
+        span = tt[nxt] - tt[pos]
+        frac = np.where(span > 0, (ts - tt[pos]) / np.where(span > 0, span, 1), 0.0)
+        i0[rows], i1[rows], w[rows] = rows[pos], rows[nxt], frac
+    return i0, i1, w
+
+
+def residual_forms(model, log):
+    """RMS of the nominal residual in each form: logged acceleration (if any), smoothed
+    derivative of v (Savitzky-Golay) and the momentum form (window means)."""
+    out = {}
+    segs = segments(log.t)
+    theta = model.theta
+    if log.a is not None:
+        out["inverse_dynamics_logged_a"] = _rms(log.tau - model.standard_regressor(log.q, log.v, log.a) @ theta)
+    a_s = smooth_derivative(log.t, log.v, segs)
+    out["inverse_dynamics_smoothed_a"] = _rms(log.tau - model.standard_regressor(log.q, log.v, a_s) @ theta)
+    out["momentum_window_mean"] = _rms(build_design(model, log, "momentum", columns=False).y)
+    return out
+
+
+def _rms(x, axis=None):
+    return float(np.sqrt(np.mean(np.square(x)))) if axis is None else np.sqrt(np.mean(np.square(x), axis=axis))
+
+
+# ---- effect groups, bounds, fitting ---------------------------------------------------------
+def effect_groups(effect):
+    """Column groups that realise an effect (Stribeck: one per grid velocity, alternatives)."""
+    if effect == "stribeck_friction":
+        return [f"stribeck_friction@{vs}" for vs in STRIBECK_VELOCITIES]
+    return [effect]
+
+
+def group_bounds(model, group, k):
+    jp = model.joint_params
+    inf = np.inf
+    name = group.split("@")[0]
+    if name == "coulomb_friction":
+        return -np.maximum(jp.coulomb, 0), np.full(k, inf)
+    if name == "viscous_friction":
+        return -np.maximum(jp.viscous, 0), np.full(k, inf)
+    if name == "armature":
+        return -np.maximum(jp.armature, 0), np.full(k, inf)
+    if name == "stribeck_friction":
+        return np.zeros(k), np.full(k, inf)
+    if name == "torque_scale":
+        return np.full(k, -0.5), np.full(k, 1.0)
+    if name == "time_delay":
+        return np.zeros(k), np.full(k, MAX_DELAY_S)
+    if name == "base_tilt":
+        return np.full(k, -MAX_TILT), np.full(k, MAX_TILT)
+    if name == "joint_elasticity":
+        return np.zeros(k), np.full(k, MAX_COMPLIANCE)
+    if name == "payload":
+        lo = np.full(k, -inf)
+        lo[0] = 0.0  # added mass >= 0
+        return lo, np.full(k, inf)
+    return np.full(k, -inf), np.full(k, inf)
+
+
+class Problem:
+    """Fit and check designs with their flattened matrices and fit normal equations."""
+
+    def __init__(self, model, fit, check):
+        self.model = model
+        self.fit, self.check = fit, check
+        self.groups = list(fit[0].cols)
+        self.k = {g: fit[0].cols[g].shape[-1] for g in self.groups}
+        self.offset = {}
+        start = 0
+        for g in self.groups:
+            self.offset[g] = start
+            start += self.k[g]
+        self.K = start
+
+        def flat(d):
+            A = np.concatenate([d.cols[g] for g in self.groups], -1)
+            return A.reshape(-1, self.K), d.y.reshape(-1)
+
+        fa = [flat(d) for d in fit]
+        self.A_fit = np.concatenate([a for a, _ in fa])
+        self.y_fit = np.concatenate([y for _, y in fa])
+        self.G = self.A_fit.T @ self.A_fit
+        self.b = self.A_fit.T @ self.y_fit
+        self.yy = float(self.y_fit @ self.y_fit)
+        ca = [flat(d) for d in check]
+        self.A_check = np.concatenate([a for a, _ in ca])
+        self.y_check = np.concatenate([y for _, y in ca])
+        n = fit[0].y.shape[1]
+        self.n = n
+        # Row-major flattening: element (row, joint); blocks numbered across check logs.
+        blocks, base = [], 0
+        for d in check:
+            blocks.append(np.repeat(d.row_block + base, n))
+            base += d.row_block.max() + 1
+        self.check_block = np.concatenate(blocks)
+        self.check_joint = np.tile(np.arange(n), len(self.y_check) // n)
+        self.n_fit_rows = len(self.y_fit)
+        self._cache = {}
+
+    def index(self, groups):
+        return np.concatenate([np.arange(self.offset[g], self.offset[g] + self.k[g]) for g in groups]) \
+            if groups else np.zeros(0, int)
+
+    def _shifted(self, designs, delay):
+        """Flattened (A, y) of designs with the model side delayed by `delay`: every effect
+        column and the nominal torque are read at t - delay; the measurement stays."""
+        As, ys = [], []
+        for d in designs:
+            i0, i1, w = row_shift(d, delay)
+            A = np.concatenate([d.cols[g] for g in self.groups], -1)
+            A = (1 - w)[:, None, None] * A[i0] + w[:, None, None] * A[i1]
+            tn = d.tau_hat_nominal
+            tn_d = (1 - w)[:, None] * tn[i0] + w[:, None] * tn[i1]
+            As.append(A.reshape(-1, self.K))
+            ys.append((d.y + tn - tn_d).reshape(-1))
+        return np.concatenate(As), np.concatenate(ys)
+
+    def _ys(self, delay):
+        """(G, b, yy) of the fit logs with the model delayed by `delay` on the grid (cached)."""
+        key = round(float(delay), 6)
+        if key == 0.0:
+            return self.G, self.b, self.yy
+        if key not in self._cache:
+            A, y = self._shifted(self.fit, delay)
+            self._cache[key] = (A.T @ A, A.T @ y, float(y @ y))
+        return self._cache[key]
+
+    def _check_system(self, delay):
+        key = round(float(delay), 6)
+        if key == 0.0:
+            return self.A_check, self.y_check
+        ck = ("check", key)
+        if ck not in self._cache:
+            self._cache[ck] = self._shifted(self.check, delay)
+        return self._cache[ck]
+
+    def _fit_system(self, delay):
+        key = round(float(delay), 6)
+        if key == 0.0:
+            return self.A_fit, self.y_fit
+        return self._shifted(self.fit, delay)
+
+    def solve(self, groups):
+        """Constrained least squares on the fit logs for the union of `groups`.
+
+        A time delay d = d_grid + delta: the model side is shifted by d_grid on a grid
+        (DELAY_GRID_S) and the remainder delta (|delta| <= one grid step) is the first-order lag
+        column -dtau/dt, so the delay is exact to second order in delta. params['time_delay'] =
+        [d_grid, delta]. Returns (params dict group -> array, fit SSE)."""
+        if "time_delay" not in groups:
+            return self._solve_linear(groups, 0.0)
+        best = None
+        for d in DELAY_GRID_S:
+            params, sse = self._solve_linear(groups, d, consistent=False)
+            if best is None or sse < best[1]:
+                best = (d, sse)
+        params, sse = self._solve_linear(groups, best[0])
+        params = dict(params)
+        params["time_delay"] = np.array([best[0], params["time_delay"][0]])
+        return {g: params[g] for g in groups}, sse
+
+    def _solve_linear(self, groups, delay, consistent=True):
+        from scipy.optimize import lsq_linear
+
+        G_all, b_all, yy = self._ys(delay)
+        idx = self.index(groups)
+        if len(idx) == 0:
+            return {}, yy
+        G = G_all[np.ix_(idx, idx)]
+        b = b_all[idx]
+        s = np.sqrt(np.diag(G))
+        s[s <= 1e-12 * max(s.max(), 1e-300)] = 1.0
+        Gs = G / np.outer(s, s)
+        bs = b / s
+        jitter = 1e-10 * np.trace(Gs) / len(idx)
+        R = np.linalg.cholesky(Gs + jitter * np.eye(len(idx))).T
+        z = np.linalg.solve(R.T, bs)
+        lo, hi = [], []
+        for g in groups:
+            l, h = group_bounds(self.model, g, self.k[g])
+            if g == "time_delay":  # the fine lag around the grid delay
+                l, h = np.array([max(-DELAY_STEP_S, -delay)]), np.array([DELAY_STEP_S])
+            lo.append(l)
+            hi.append(h)
+        lo, hi = np.concatenate(lo) * s, np.concatenate(hi) * s
+        if np.all(np.isinf(lo)) and np.all(np.isinf(hi)):
+            ps = np.linalg.solve(R, z)
+        else:
+            ps = lsq_linear(R, z, bounds=(lo, hi), method="bvls", tol=1e-12).x
+        p = ps / s
+        if "payload" in groups and consistent:
+            p = self._consistent_payload(groups, idx, p, R, z, s, lo, hi)
+        sse = yy - 2 * p @ b + p @ G @ p
+        out, pos = {}, 0
+        for g in groups:
+            out[g] = p[pos:pos + self.k[g]]
+            pos += self.k[g]
+        return out, max(float(sse), 0.0)
+
+    def _consistent_payload(self, groups, idx, p, R, z, s, lo, hi):
+        """Re-fit with theta_e0 + dtheta = P(eta) (log-Cholesky) when the linear fit is not
+        physically consistent; other parameters keep their bounds."""
+        from scipy.optimize import least_squares
+
+        pos = 0
+        for g in groups:
+            if g == "payload":
+                break
+            pos += self.k[g]
+        sl = slice(pos, pos + 10)
+        theta_e0 = self.model.theta_e
+        total = theta_e0 + p[sl]
+        if p[sl][0] >= -1e-12 and inertial.is_physically_consistent(total, 1e-9):
+            return p
+        # Start: nominal end effector (plus a tiny sphere so the pseudo-inertia is invertible).
+        start = theta_e0 + inertial.from_mass_com_inertia(1e-3, np.zeros(3), 1e-6 * np.eye(3))
+        try:
+            eta0 = inertial.theta_to_log_cholesky(start)
+        except ValueError:
+            eta0 = inertial.theta_to_log_cholesky(inertial.from_mass_com_inertia(1e-2, np.zeros(3), 1e-5 * np.eye(3)))
+        others = np.ones(len(p), bool)
+        others[sl] = False
+        x0 = np.concatenate([eta0, np.clip(p[others] * s[others], lo[others], hi[others])])
+        lo_x = np.concatenate([np.full(10, -np.inf), lo[others]])
+        hi_x = np.concatenate([np.full(10, np.inf), hi[others]])
+        eps = 1e-12
+        x0 = np.clip(x0, lo_x + eps * (np.isfinite(lo_x)), hi_x - eps * (np.isfinite(hi_x)))
+
+        def unpack(x):
+            full = np.empty(len(p))
+            full[sl] = (inertial.log_cholesky_to_theta(x[:10]) - theta_e0) * s[sl]
+            full[others] = x[10:]
+            return full
+
+        def res(x):
+            return R @ unpack(x) - z
+
+        def jac(x):
+            J = np.empty((len(z), len(x)))
+            J[:, :10] = (R[:, sl] * s[sl]) @ inertial.log_cholesky_jacobian(x[:10])
+            J[:, 10:] = R[:, others]
+            return J
+
+        with np.errstate(over="ignore", invalid="ignore"):
+            sol = least_squares(res, x0, jac=jac, bounds=(lo_x, hi_x), method="trf", x_scale="jac", max_nfev=60)
+        q = unpack(sol.x) / s
+        if not np.all(np.isfinite(q)):  # solver failure: safe fallback, no payload change
+            q = np.where(np.isfinite(q), q, 0.0)
+            q[sl] = 0.0
+        if q[sl][0] < 0:  # the payload must not remove mass: fall back to no payload change
+            q[sl] = 0.0
+        return q
+
+    def _residual(self, system, params):
+        A, y = system(params["time_delay"][0] if "time_delay" in params else 0.0)
+        r = y.copy()
+        for g, p in params.items():
+            r -= A[:, self.index([g])] @ (p[1:] if g == "time_delay" else p)
+        return r
+
+    def check_residual(self, params):
+        return self._residual(self._check_system, params)
+
+    def fit_residual(self, params):
+        return self._residual(self._fit_system, params)
+
+
+def fit_effects(problem, effects):
+    """Best fit of a set of effects (Stribeck: the grid velocity with the lowest fit SSE)."""
+    options = [[]]
+    for e in effects:
+        options = [o + [g] for o in options for g in effect_groups(e)]
+    best = None
+    for groups in options:
+        params, sse = problem.solve(groups)
+        if best is None or sse < best[1]:
+            best = (params, sse)
+    return best
+
+
+def n_params(params):
+    """Free parameters of a fit (the time delay is one, though stored as [grid, fine])."""
+    return sum(len(p) for p in params.values()) - ("time_delay" in params)
+
+
+def noise_variance(r, block):
+    """White-noise variance from first differences inside blocks (smooth effects cancel)."""
+    same = block[1:] == block[:-1]
+    d = np.diff(r)[same]
+    return float(np.mean(d ** 2) / 2) if len(d) else float(np.mean(r ** 2))
+
+
+def significance(problem, r0, r1, sse0_fit, sse1_fit, k_added, joint=None):
+    """The significance rule of the module docstring. r0/r1: check residual vectors."""
+    sel = slice(None) if joint is None else (problem.check_joint == joint)
+    r0, r1 = r0[sel], r1[sel]
+    blocks = problem.check_block[sel]
+    n_rows = len(r0)
+    mse0 = float(np.mean(r0 ** 2))
+    gain = r0 ** 2 - r1 ** 2
+    delta = float(np.mean(gain))
+    per_block = np.bincount(blocks, weights=gain)
+    used = np.bincount(blocks) > 0
+    per_block = per_block[used]
+    nb = len(per_block)
+    se = float(np.sqrt(nb / max(nb - 1, 1) * np.sum((per_block - per_block.mean()) ** 2))) / n_rows if nb > 1 else np.inf
+    z = delta / se if se > 0 else (np.inf if delta > 0 else 0.0)
+    sigma2 = noise_variance(r0, blocks)
+    m = problem.n_fit_rows
+    bic = m * np.log(max(sse1_fit, 1e-300) / max(sse0_fit, 1e-300)) + k_added * np.log(m)
+    ok = bool(z >= Z_BLOCK and delta >= MIN_RELATIVE * mse0 and delta >= MIN_NOISE_FRACTION * sigma2
+              and (joint is not None or bic < 0))
+    return {"significant": ok, "z": float(z), "delta_mse": delta, "relative": delta / mse0 if mse0 > 0 else 0.0,
+            "noise_variance": sigma2, "bic_change": float(bic)}
+
+
+# ---- the diagnosis --------------------------------------------------------------------------
+def choose_form(logs):
+    return "inverse_dynamics" if all(l.a is not None for l in logs) else "momentum"
+
+
+def regimes(designs, residuals):
+    """Share of the squared residual per motion regime (per joint element) and per time window."""
+    v = np.concatenate([d.features["v"] for d in designs])
+    a = np.concatenate([d.features["a"] for d in designs])
+    g = np.concatenate([d.features["g"] for d in designs])
+    r2 = np.concatenate(residuals) ** 2
+    total = r2.sum() or 1.0
+    vmax = np.abs(v).max(0)
+    near_zero = np.abs(v) < np.maximum(0.02, 0.05 * vmax)
+    rev = np.zeros_like(near_zero)
+    base = 0
+    for d in designs:
+        vv = d.features["v"]
+        tt = d.row_time
+        sign_change = np.zeros(vv.shape, bool)
+        sign_change[1:] = np.sign(vv[1:]) * np.sign(vv[:-1]) < 0
+        for j in range(vv.shape[1]):
+            ts = tt[sign_change[:, j]]
+            if len(ts):
+                dist = np.min(np.abs(tt[:, None] - ts[None, :]), axis=1)
+                rev[base:base + len(tt), j] = dist <= 0.1
+        base += len(tt)
+    masks = {
+        "near_zero_velocity": near_zero,
+        "reversal": rev,
+        "high_acceleration": np.abs(a) >= np.quantile(np.abs(a), REGIME_QUANTILE, axis=0),
+        "high_speed": np.abs(v) >= np.quantile(np.abs(v), REGIME_QUANTILE, axis=0),
+        "high_gravity_load": np.abs(g) >= np.quantile(np.abs(g), REGIME_QUANTILE, axis=0),
+    }
+    share = {k: float(r2[m].sum() / total) for k, m in masks.items()}
+    samples = {k: float(m.mean()) for k, m in masks.items()}
+    windows = []
+    base = 0
+    for d, r in zip(designs, residuals):
+        tt = d.row_time
+        edges = np.arange(tt[0], tt[-1] + 1.0, 1.0)
+        idx = np.digitize(tt, edges) - 1
+        for w in np.unique(idx):
+            sel = idx == w
+            windows.append({"log": d.source, "t_start": float(edges[w]), "t_end": float(edges[w] + 1.0),
+                            "share": float((r[sel] ** 2).sum() / total)})
+    windows.sort(key=lambda x: -x["share"])
+    return share, samples, windows[:5]
+
+
+def effect_params(model, effect, params, group_used):
+    """Physical parameters of a fitted effect (JSON friendly)."""
+    jp = model.joint_params
+    p = params[group_used]
+    lst = lambda x: [float(v) for v in np.atleast_1d(x)]  # noqa: E731
+    if effect == "coulomb_friction":
+        return {"delta_Fc_Nm": lst(p), "Fc_Nm": lst(jp.coulomb + p)}
+    if effect == "viscous_friction":
+        return {"delta_Fv_Nms_rad": lst(p), "Fv_Nms_rad": lst(jp.viscous + p)}
+    if effect == "stribeck_friction":
+        return {"Fs_Nm": lst(p), "vs_rad_s": float(group_used.split("@")[1])}
+    if effect == "armature":
+        return {"delta_Ia_kgm2": lst(p), "Ia_kgm2": lst(jp.armature + p)}
+    if effect == "torque_offset":
+        return {"offset_Nm": lst(p)}
+    if effect == "torque_scale":
+        return {"scale": lst(1.0 + p)}
+    if effect == "payload":
+        m = float(p[0])
+        return {"theta_delta": lst(p), "theta_e": lst(model.theta_e + p), "mass_kg": m,
+                "com_m": lst(p[1:4] / m) if m > 1e-9 else [0.0, 0.0, 0.0]}
+    if effect == "time_delay":
+        return {"delay_s": float(p[0] + p[1]) if len(p) > 1 else float(p[0])}
+    if effect == "base_tilt":
+        gx, gy = float(p[0]), float(p[1])
+        roll = float(-np.arcsin(np.clip(gy, -1, 1)))
+        pitch = float(np.arcsin(np.clip(gx / max(np.cos(roll), 1e-9), -1, 1)))
+        return {"gravity_xy_over_g": [gx, gy], "roll_rad": roll, "pitch_rad": pitch}
+    if effect == "joint_elasticity":
+        return {"compliance_rad_per_Nm": lst(p), "stiffness_Nm_rad": [float(1 / c) if c > 1e-12 else None for c in p]}
+    raise ValueError(effect)
+
+
+def _group_of(effect, params):
+    return next(g for g in params if g.split("@")[0] == effect)
+
+
+@dataclass
+class Diagnosis:
+    result: dict  # diagnosis.json content
+    form: str
+    fit_designs: list
+    check_designs: list
+    check_residual_before: list  # per check log (R, n)
+    check_residual_after: list
+    combined_params: dict
+    corrected: dict  # corrected joint parameters and other effects for the YAML
+
+
+def diagnose(model, fit_logs, check_logs, effects=EFFECTS, form=None, max_effects=6):
+    """Diagnose the gap between `model` and logs; returns a Diagnosis (result = contract JSON)."""
+    form = form or choose_form(list(fit_logs) + list(check_logs))
+    fit = [build_design(model, l, form) for l in fit_logs]
+    check = [build_design(model, l, form) for l in check_logs]
+    prob = Problem(model, fit, check)
+    n = model.n
+    r0 = prob.y_check
+    sse0_fit = prob.yy
+    rms_fit = float(np.sqrt(np.mean(prob.y_fit ** 2)))
+    rms_check = _rms(r0)
+    res_check0 = [d.y for d in check]
+    per_joint0 = _rms(np.concatenate(res_check0), axis=0)
+    share, samples, windows = regimes(check, res_check0)
+
+    # Each effect alone (marginal) against the nominal model.
+    single = {}
+    for e in effects:
+        params, sse = fit_effects(prob, [e])
+        r1 = prob.check_residual(params)
+        sig = significance(prob, r0, r1, sse0_fit, sse, n_params(params))
+        single[e] = {"params": params, "sse": sse, "rms": _rms(r1), "sig": sig}
+
+    # Forward-greedy selection with the significance rule.
+    selected, cur_params, cur_sse, cur_r = [], {}, sse0_fit, r0
+    steps = []
+    while len(selected) < max_effects:
+        best = None
+        for e in effects:
+            if e in selected:
+                continue
+            params, sse = fit_effects(prob, selected + [e])
+            r1 = prob.check_residual(params)
+            k_added = n_params(params) - n_params(cur_params)
+            sig = significance(prob, cur_r, r1, cur_sse, sse, k_added)
+            if sig["significant"] and (best is None or sig["delta_mse"] > best[4]["delta_mse"]):
+                best = (e, params, sse, r1, sig)
+        if best is None:
+            break
+        e, cur_params, cur_sse, cur_r, sig = best
+        selected.append(e)
+        steps.append({"effect": e, "rms_check_after": _rms(cur_r), **sig})
+
+    # Joints where each selected effect matters: removing it from the combined fit on that
+    # joint must lose a significant amount on the check logs.
+    joints_of = {}
+    for e in selected:
+        g = _group_of(e, cur_params)
+        without = {k: v for k, v in cur_params.items() if k != g}
+        r_wo = prob.check_residual(without)
+        if e in PER_JOINT:
+            js = [j + 1 for j in range(n)
+                  if significance(prob, r_wo, cur_r, 1, 1, 0, joint=j)["significant"]]
+        else:
+            gain = np.array([np.mean(r_wo[prob.check_joint == j] ** 2 - cur_r[prob.check_joint == j] ** 2)
+                             for j in range(n)])
+            js = [j + 1 for j in range(n) if gain[j] > MIN_RELATIVE * np.mean(r_wo[prob.check_joint == j] ** 2)]
+        joints_of[e] = js or list(range(1, n + 1))
+
+    entries = []
+    for e in effects:
+        sgl = single[e]
+        sig_e = e in selected
+        params_src = cur_params if sig_e else sgl["params"]
+        g = _group_of(e, params_src)
+        entry = {"name": e,
+                 "joints": joints_of.get(e, _effect_joints_single(prob, sgl["params"], e, n)),
+                 "params": effect_params(model, e, params_src, g),
+                 "rms_check_after": sgl["rms"],
+                 "reduction": _reduction(rms_check, sgl["rms"]),
+                 "significant": sig_e,
+                 "params_from": "combined" if sig_e else "alone",
+                 "test_alone": _json_sig(sgl["sig"])}
+        if sig_e:
+            entry["selection_step"] = selected.index(e) + 1
+        entries.append(entry)
+    entries.sort(key=lambda x: (not x["significant"], x.get("selection_step", 0), -x["reduction"]))
+
+    r_after = cur_r
+    per_joint1 = _rms(r_after.reshape(-1, n), axis=0)
+    split = np.cumsum([len(d.y) for d in check])[:-1]
+    res_check1 = np.split(r_after.reshape(-1, n), split)
+    rms_after = _rms(r_after)
+    where_joints = [int(j) + 1 for j in np.argsort(-per_joint0)]
+    result = {
+        "gap": {"rms_fit": rms_fit, "rms_check": rms_check, "rms_check_per_joint": [float(x) for x in per_joint0],
+                "where": {"joints": where_joints, "regimes": share, "regime_sample_share": samples,
+                          "time_windows": windows},
+                "residual_form": form,
+                "rms_check_per_log": [_rms(r) for r in res_check0]},
+        "effects": entries,
+        "cause": list(selected),
+        "combined": {"effects": list(selected), "rms_check_after": rms_after,
+                     "reduction": _reduction(rms_check, rms_after),
+                     "rms_check_per_joint_after": [float(x) for x in per_joint1],
+                     "rms_check_per_log_after": [_rms(r) for r in res_check1],
+                     "rms_fit_after": _rms(prob.fit_residual(cur_params)),
+                     "selection": steps},
+        "significance_rule": {"z_block": Z_BLOCK, "block_s": BLOCK_S, "min_relative": MIN_RELATIVE,
+                              "min_noise_fraction": MIN_NOISE_FRACTION, "information_criterion": "BIC on fit logs"},
+    }
+    corrected = corrected_parameters(model, selected, cur_params)
+    return Diagnosis(result, form, fit, check, res_check0, res_check1, cur_params, corrected)
+
+
+def _reduction(before, after):
+    return float(np.clip(1.0 - after / before, 0.0, 1.0)) if before > 0 else 0.0
+
+
+def _json_sig(sig):
+    return {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in sig.items()}
+
+
+def _effect_joints_single(prob, params, e, n):
+    """Joints an insignificant effect would touch most (for information only)."""
+    r0 = prob.y_check
+    r1 = prob.check_residual(params)
+    gain = np.array([np.mean(r0[prob.check_joint == j] ** 2 - r1[prob.check_joint == j] ** 2) for j in range(n)])
+    return [int(j) + 1 for j in np.argsort(-gain)[:3] if gain[j] > 0]
+
+
+def corrected_parameters(model, selected, params):
+    """Corrected joint parameters (models/*_params.yaml `joints` format) plus the other effects."""
+    jp = model.joint_params
+    fric = {"coulomb_Nm": jp.coulomb.copy(), "viscous_Nms_rad": jp.viscous.copy(),
+            "armature_kgm2": jp.armature.copy(), "offset_Nm": jp.offset.copy()}
+    other = {}
+    plant_effects = {}
+    for e in selected:
+        g = _group_of(e, params)
+        p = params[g]
+        if e == "coulomb_friction":
+            fric["coulomb_Nm"] = jp.coulomb + p
+        elif e == "viscous_friction":
+            fric["viscous_Nms_rad"] = jp.viscous + p
+        elif e == "armature":
+            fric["armature_kgm2"] = jp.armature + p
+        elif e == "torque_offset":  # same term as the model's beta (tau = ... + beta)
+            fric["offset_Nm"] = jp.offset + p
+            plant_effects["torque_sensor_offset_Nm"] = [float(x) for x in p]
+        else:
+            other[e] = effect_params(model, e, params, g)
+            if e == "torque_scale":
+                plant_effects["torque_sensor_scale"] = other[e]["scale"]
+            elif e == "time_delay":
+                plant_effects["time_delay_s"] = other[e]["delay_s"]
+            elif e == "base_tilt":
+                plant_effects["base_tilt_rad"] = [other[e]["roll_rad"], other[e]["pitch_rad"]]
+            elif e == "joint_elasticity":
+                plant_effects["joint_stiffness_Nm_rad"] = [s if s is not None else 1e12 for s in other[e]["stiffness_Nm_rad"]]
+    return {"friction": {k: [float(x) for x in v] for k, v in fric.items()}, "other": other,
+            "plant_effects": plant_effects}

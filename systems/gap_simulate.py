@@ -1,0 +1,298 @@
+"""Withheld-effect logs for the diagnosis self-check (`safesysid diagnose --self-check`).
+
+How a log is made (fast and deterministic given the seed):
+  * trajectory: per joint a sum of three sines (0.1..0.7 Hz, random phases) about a random centre
+    inside the joint limits, amplitudes scaled so |v| <= 0.8 of the velocity limit; sampled at
+    100 Hz with one 0.5 s gap (samples removed), like the real logs;
+  * torque: the RobotModel's exact inverse dynamics (same regressor as the diagnoser's nominal)
+    with the withheld effects applied in their physical form, not in the diagnoser's linearised
+    columns: delay evaluates the dynamics at t - d, base tilt rotates the gravity vector, joint
+    elasticity logs the motor-side angle q_link + tau / k, payload changes the end-effector
+    inertia (physically consistent), scale and offset act on the torque sensor;
+  * noise: bounded uniform on the torque, +-level * (torque range of the joint), level drawn in
+    [0.5 %, 3 %].
+Effect sizes are drawn as a signal-to-noise ratio: the effect's torque RMS on the joints it
+acts on is SNR times the noise RMS there (SNR in [1, 4]), capped by physical limits (delay
+<= 50 ms, tilt <= 0.05 rad, ...). Logs are written with or without the acceleration columns.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from . import inertial
+from .gap import EFFECTS, PER_JOINT
+
+RATE_HZ = 100.0
+GAP_S = 0.5
+SNR_RANGE = (1.0, 4.0)
+NOISE_LEVEL_RANGE = (0.005, 0.03)
+STRIBECK_VS = (0.03, 0.05, 0.08, 0.15)
+
+
+@dataclasses.dataclass
+class Trajectory:
+    centre: np.ndarray
+    amp: np.ndarray  # (3, n)
+    omega: np.ndarray  # (3, n)
+    phase: np.ndarray  # (3, n)
+
+    def __call__(self, t):
+        t = np.asarray(t, float)[:, None, None]
+        arg = self.omega * t + self.phase
+        q = self.centre + np.sum(self.amp * np.sin(arg), 1)
+        v = np.sum(self.amp * self.omega * np.cos(arg), 1)
+        a = -np.sum(self.amp * self.omega ** 2 * np.sin(arg), 1)
+        return q, v, a
+
+
+def random_trajectory(model, rng):
+    jp = model.joint_params
+    n = model.n
+    lo = np.where(np.isfinite(jp.position_lower) & (jp.position_lower > -1e3), jp.position_lower, -np.pi)
+    hi = np.where(np.isfinite(jp.position_upper) & (jp.position_upper < 1e3), jp.position_upper, np.pi)
+    half = 0.5 * (hi - lo)
+    centre = 0.5 * (lo + hi) + rng.uniform(-0.3, 0.3, n) * half
+    room = 0.85 * (half - np.abs(centre - 0.5 * (lo + hi)))
+    omega = 2 * np.pi * rng.uniform(0.1, 0.7, (3, n))
+    amp = rng.uniform(0.3, 1.0, (3, n))
+    amp *= np.minimum(1.0, room / amp.sum(0))
+    vlim = np.where(np.isfinite(jp.velocity_limit) & (jp.velocity_limit > 0), jp.velocity_limit, 1.5)
+    vmax = (amp * omega).sum(0)
+    amp *= np.minimum(1.0, 0.8 * vlim / vmax)
+    return Trajectory(centre, amp, omega, rng.uniform(0, 2 * np.pi, (3, n)))
+
+
+def sample_times(rng, duration_s):
+    t = np.arange(0.0, duration_s, 1.0 / RATE_HZ)
+    t = t + rng.uniform(-0.1, 0.1, len(t)) / RATE_HZ  # timing jitter, still increasing
+    g0 = rng.uniform(0.3, 0.7) * duration_s
+    return t[(t < g0) | (t > g0 + GAP_S)]
+
+
+# ---- effects in their physical form ---------------------------------------------------------
+def _tilted_model(model, roll, pitch):
+    g = np.linalg.norm(model.tree.gravity)
+    cr, sr, cp, sp = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch)
+    # Gravity in the base frame for a base rotated by Rx(roll) Ry(pitch): -g (row 3 of R)^T.
+    gb = g * np.array([sp * cr, -sr, -cr * cp])
+    return dataclasses.replace(model, tree=dataclasses.replace(model.tree, gravity=gb))
+
+
+def payload_theta(model, mass, rng):
+    """A solid cylinder held near the grasp point (end-effector frame), physically consistent."""
+    c = model.extra.get("grasp_point", np.zeros(3)) + rng.uniform(-0.05, 0.05, 3)
+    r, h = 0.04, 0.15
+    i_c = mass * np.diag([(3 * r * r + h * h) / 12, (3 * r * r + h * h) / 12, r * r / 2])
+    return inertial.from_mass_com_inertia(mass, c, i_c)
+
+
+def true_torque(model, traj, t, effects):
+    """Joint torque the 'real' arm measures (before noise) and the logged q offset."""
+    d = effects.get("time_delay", {}).get("delay_s", 0.0)
+    q, v, a = traj(t - d)
+    m = model
+    if "base_tilt" in effects:
+        m = _tilted_model(m, *effects["base_tilt"]["roll_pitch_rad"])
+    if "payload" in effects:
+        m = m.with_end_effector_theta(m.theta_e + effects["payload"]["theta"])
+    tau = m.inverse_dynamics(q, v, a)
+    e = effects
+    if "coulomb_friction" in e:
+        tau = tau + e["coulomb_friction"]["delta"] * np.sign(v)
+    if "viscous_friction" in e:
+        tau = tau + e["viscous_friction"]["delta"] * v
+    if "stribeck_friction" in e:
+        s = e["stribeck_friction"]
+        tau = tau + s["delta"] * np.sign(v) * np.exp(-(v / s["vs"]) ** 2)
+    if "armature" in e:
+        tau = tau + e["armature"]["delta"] * a
+    # Sensor: scale and offset on the measured torque.
+    if "torque_scale" in e:
+        tau = tau * e["torque_scale"]["scale"]
+    if "torque_offset" in e:
+        tau = tau + e["torque_offset"]["delta"]
+    q_log, v_log, a_log = traj(t)
+    if "joint_elasticity" in e:
+        # Encoders on the motor side: logged angle = link angle + deflection tau / k.
+        q_log = q_log + tau * e["joint_elasticity"]["compliance"]
+    return q_log, v_log, a_log, tau
+
+
+def _unit_effect(name, model, rng, joints):
+    """Effect at a reference magnitude (scaled to the target SNR afterwards) and its cap."""
+    n = model.n
+    mask = np.zeros(n)
+    mask[joints] = 1.0
+    sign = np.where(rng.random(n) < 0.5, -1.0, 1.0)
+    if name == "coulomb_friction":
+        return {"delta": mask * rng.uniform(0.5, 1.5, n)}, 10.0
+    if name == "viscous_friction":
+        return {"delta": mask * rng.uniform(0.5, 1.5, n)}, 30.0
+    if name == "stribeck_friction":
+        return {"delta": mask * rng.uniform(0.5, 1.5, n), "vs": float(rng.choice(STRIBECK_VS))}, 20.0
+    if name == "armature":
+        return {"delta": mask * rng.uniform(0.5, 1.5, n)}, 5.0
+    if name == "torque_offset":
+        return {"delta": mask * sign * rng.uniform(0.5, 1.5, n)}, 10.0
+    if name == "torque_scale":
+        return {"scale": 1.0 + mask * sign * rng.uniform(0.02, 0.04, n)}, 0.3
+    if name == "payload":
+        return {"mass_kg": 1.0, "theta": payload_theta(model, 1.0, rng)}, 5.0
+    if name == "time_delay":
+        return {"delay_s": 0.01}, 0.05
+    if name == "base_tilt":
+        ang = rng.uniform(-1, 1, 2)
+        return {"roll_pitch_rad": 0.01 * ang / np.abs(ang).max()}, 0.05
+    if name == "joint_elasticity":
+        return {"compliance": mask * rng.uniform(0.5, 1.5, n) * 1e-3}, 0.02
+    raise ValueError(name)
+
+
+def _scale_effect(name, eff, factor, cap):
+    """Multiply the effect magnitude by `factor` (capped)."""
+    e = dict(eff)
+    if name == "torque_scale":
+        dev = (e["scale"] - 1.0) * factor
+        e["scale"] = 1.0 + np.clip(dev, -cap, cap)
+    elif name == "payload":
+        m = min(e["mass_kg"] * factor, cap)
+        e["theta"] = e["theta"] * (m / e["mass_kg"])
+        e["mass_kg"] = m
+    elif name == "time_delay":
+        e["delay_s"] = float(min(e["delay_s"] * factor, cap))
+    elif name == "base_tilt":
+        v = np.asarray(e["roll_pitch_rad"]) * factor
+        e["roll_pitch_rad"] = v * min(1.0, cap / np.abs(v).max())
+    elif name == "joint_elasticity":
+        e["compliance"] = e["compliance"] * factor
+    else:
+        d = e["delta"] * factor
+        e["delta"] = np.clip(d, -cap, cap)
+    return e
+
+
+def make_case(model, rng, injected, with_acceleration, n_fit=2, n_check=1, duration_s=10.0):
+    """Fit and check logs with the `injected` effects withheld from `model`.
+
+    Returns (fit_logs, check_logs, truth) where truth records every effect's parameters, the
+    achieved SNR and the affected joints (1-based)."""
+    from safesysid.joint_log import JointLog
+
+    n = model.n
+    trajs = [random_trajectory(model, rng) for _ in range(n_fit + n_check)]
+    times = [sample_times(rng, duration_s) for _ in trajs]
+    clean = [true_torque(model, tr, t, {}) for tr, t in zip(trajs, times)]
+    tau_all = np.concatenate([c[3] for c in clean])
+    level = rng.uniform(*NOISE_LEVEL_RANGE)
+    noise_amp = level * (tau_all.max(0) - tau_all.min(0))
+    noise_rms = noise_amp / np.sqrt(3.0)
+    effects, truth = {}, {}
+    for name in injected:
+        joints = np.sort(rng.choice(n, size=rng.integers(1, 4), replace=False)) if name in PER_JOINT else np.arange(n)
+        eff, cap = _unit_effect(name, model, rng, joints)
+        contrib = np.concatenate([true_torque(model, tr, t, {name: eff})[3] - c[3]
+                                  for tr, t, c in zip(trajs, times, clean)])
+        if name == "joint_elasticity":  # acts through the logged angle: the nominal model sees it there
+            contrib = np.concatenate([model.inverse_dynamics(*true_torque(model, tr, t, {name: eff})[:3]) - c[3]
+                                      for tr, t, c in zip(trajs, times, clean)])
+        rms = np.sqrt(np.mean(contrib ** 2, 0))
+        acts = rms >= 0.2 * rms.max() if rms.max() > 0 else np.zeros(n, bool)
+        snr = rng.uniform(*SNR_RANGE)
+        target = snr * np.sqrt(np.mean(noise_rms[acts] ** 2))
+        achieved = np.sqrt(np.mean(rms[acts] ** 2))
+        eff = _scale_effect(name, eff, target / achieved if achieved > 0 else 1.0, cap)
+        effects[name] = eff
+        truth[name] = {"joints": [int(j) + 1 for j in np.flatnonzero(acts)], "snr_target": float(snr),
+                       "params": {k: (np.asarray(v).tolist() if not isinstance(v, (float, int)) else v)
+                                  for k, v in eff.items()}}
+    logs = []
+    for tr, t in zip(trajs, times):
+        q, v, a, tau = true_torque(model, tr, t, effects)
+        tau = tau + rng.uniform(-1, 1, tau.shape) * noise_amp
+        logs.append(JointLog(t, q, v, tau, a if with_acceleration else None, {}, "simulated"))
+    truth_all = {"effects": truth, "noise_level": float(level), "noise_amplitude_Nm": noise_amp.tolist(),
+                 "with_acceleration": bool(with_acceleration)}
+    return logs[:n_fit], logs[n_fit:], truth_all
+
+
+def case_plan(n_cases, rng, effects=EFFECTS):
+    """Injected effect sets: every 5th case null, then alternating single and double effects;
+    accelerations logged in every other case."""
+    plan, count = [], {0: 0, 1: 0, 2: 0}
+    for i in range(n_cases):
+        if i % 5 == 0:
+            inj = []
+        elif i % 2 == 1:
+            inj = [effects[(i // 2) % len(effects)]]
+        else:
+            inj = [str(e) for e in rng.choice(effects, size=2, replace=False)]
+        with_a = count[len(inj)] % 2 == 0  # alternate per kind: both forms for null/single/double
+        count[len(inj)] += 1
+        plan.append((inj, with_a))
+    return plan
+
+
+def run_self_check(model, n_cases, seed, progress=None):
+    """Blind diagnosis of simulated cases; returns (cases, summary, confusion)."""
+    from .gap import diagnose
+
+    rng = np.random.default_rng(seed)
+    plan = case_plan(n_cases, rng)
+    cases = []
+    for i, (inj, with_a) in enumerate(plan):
+        crng = np.random.default_rng([seed, i])
+        fit, check, truth = make_case(model, crng, inj, with_a)
+        d = diagnose(model, fit, check)
+        named = d.result["cause"]
+        cases.append({"case": i, "injected": inj, "named": named, "with_acceleration": with_a,
+                      "form": d.form, "missed": [e for e in inj if e not in named],
+                      "false": [e for e in named if e not in inj], "truth": truth,
+                      "rms_check": d.result["gap"]["rms_check"],
+                      "rms_check_after": d.result["combined"]["rms_check_after"],
+                      "joints_named": {e["name"]: e["joints"] for e in d.result["effects"] if e["significant"]}})
+        if progress:
+            progress(cases[-1])
+    return cases, summarize(cases), confusion(cases)
+
+
+def summarize(cases):
+    n_inj = sum(len(c["injected"]) for c in cases)
+    n_found = sum(len(c["injected"]) - len(c["missed"]) for c in cases)
+    n_named = sum(len(c["named"]) for c in cases)
+    n_false = sum(len(c["false"]) for c in cases)
+    nulls = [c for c in cases if not c["injected"]]
+    return {"cases": len(cases), "injected_effects": n_inj, "injected_named": n_found,
+            "injected_named_rate": n_found / n_inj if n_inj else 1.0,
+            "named_effects": n_named, "false_effects": n_false,
+            "false_effect_rate": n_false / n_named if n_named else 0.0,
+            "cases_with_false_effect": sum(bool(c["false"]) for c in cases),
+            "cases_with_false_effect_rate": sum(bool(c["false"]) for c in cases) / len(cases) if cases else 0.0,
+            "null_cases": len(nulls), "null_correct": sum(not c["named"] for c in nulls),
+            "exact_cases": sum(not c["missed"] and not c["false"] for c in cases)}
+
+
+def confusion(cases, effects=EFFECTS):
+    """counts[injected][named]: per case, every injected effect (or 'none') against every named
+    effect (or 'none')."""
+    labels = list(effects) + ["none"]
+    table = {r: {c: 0 for c in labels} for r in labels}
+    for c in cases:
+        rows = c["injected"] or ["none"]
+        cols = c["named"] or ["none"]
+        for r in rows:
+            for k in cols:
+                table[r][k] += 1
+    return table
+
+
+def confusion_markdown(table):
+    labels = list(table)
+    short = {e: "".join(w[0] for w in e.split("_")) if e != "none" else "none" for e in labels}
+    head = "| injected \\ named | " + " | ".join(short[c] for c in labels) + " |"
+    sep = "|---" * (len(labels) + 1) + "|"
+    rows = [f"| {r} | " + " | ".join(str(table[r][c]) if table[r][c] else "." for c in labels) + " |"
+            for r in labels if any(table[r].values())]
+    key = "Columns: " + ", ".join(f"{short[e]} = {e}" for e in labels)
+    return "\n".join([head, sep, *rows, "", key])
