@@ -274,6 +274,9 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
         g = plant.gravity_field().gravity_vector()
         rot = RollPitchYaw(tilt[0], tilt[1], 0.0).ToRotationMatrix().matrix()
         plant.mutable_gravity_field().set_gravity_vector(rot.T @ g)
+    # Saturation acts on the motor torque (the Saturation system below); Drake's own clamp would
+    # act on motor torque minus friction, so it is removed.
+    plant.RemoveAllJointActuatorEffortLimits()
     plant.Finalize()
     # The arm's own spheres overlap at the joints: no self-contact (obstacles and floor only).
     robot_bodies = [plant.get_body(i) for i in plant.GetBodyIndices(instance)] + [payload_body]

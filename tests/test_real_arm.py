@@ -113,6 +113,8 @@ def test_saturation_and_noisy_torque_sensor(robot):
     arm.set_state(sim.get_mutable_context(), s.q0_rad)
     sim.AdvanceTo(0.3)
     limit = robot.joint_params.torque_limit
+    # The only clamp is on the motor torque (friction acts after it, unclamped).
+    assert all(np.isinf(arm.plant.get_joint_actuator(i).effort_limit()) for i in arm.plant.GetJointActuatorIndices())
     applied = _log(sim, logs["applied"])
     expected = np.clip(command, -limit, limit)
     np.testing.assert_allclose(applied, np.broadcast_to(expected, applied.shape))

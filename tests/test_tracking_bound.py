@@ -61,7 +61,7 @@ def test_error_inside_ultimate_bound(robot, bell):
     s = load_scenario(overrides={"payload": {"dumbbell": bell}})
     theta_true = true_theta(robot, scenario_dumbbell(s))
     rng = np.random.default_rng(100 + PAYLOADS.index(bell))
-    worst = {"position": 0.0, "r": 0.0, "torque": 0.0}
+    worst = {"position": 0.0, "r": 0.0, "velocity": 0.0, "torque": 0.0}
     for _ in range(n_trials(1, 20)):
         theta0, box = interval_around_truth(robot, theta_true, rng)
         q0, trajectory = random_trajectory(s, rng)
@@ -69,7 +69,7 @@ def test_error_inside_ultimate_bound(robot, bell):
         for key in worst:
             worst[key] = max(worst[key], float(out[key].max()))
     print(f"{bell}: max |e|/bound {worst['position']:.3f}, |r|/eps {worst['r']:.3f}, |u|/limit {worst['torque']:.3f}")
-    assert worst["position"] <= 1.0 and worst["r"] <= 1.0
+    assert worst["position"] <= 1.0 and worst["r"] <= 1.0 and worst["velocity"] <= 1.0
     assert worst["torque"] <= 1.0
 
 
