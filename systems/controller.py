@@ -20,6 +20,7 @@ faster, so the controller runs at 1 kHz in real time); tests check it equals Rob
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import accumulate
 
 import numpy as np
 
@@ -103,10 +104,6 @@ class ControllerDynamics:
         self.parent = tree.parent.copy()
         self.anc_t = tree.ancestors().T.astype(float)  # [i, j] = 1 when joint j moves body i
         self.anc = self.anc_t.T.copy()
-        self.r_pj = tree.X_parent_joint[:, :3, :3].copy()
-        self.p_pj = tree.X_parent_joint[:, :3, 3].copy()
-        self.r_jc = tree.X_joint_child[:, :3, :3].copy()
-        self.p_jc = tree.X_joint_child[:, :3, 3].copy()
         self.axis = tree.axis.copy()
         k = regressors.skew(self.axis)
         self.k1, self.k2 = k, k @ k
@@ -115,32 +112,28 @@ class ControllerDynamics:
         self.has_parent = (self.parent >= 0)[:, None]
         self.parent_idx = np.where(self.parent >= 0, self.parent, 0)
         self.idx = np.arange(n)
-        self.z_in_parent = (self.r_pj @ self.axis[:, :, None])[:, :, 0]  # joint axis in the carrier frame
+        self.x_pj = tree.X_parent_joint.copy()
+        self.x_jc = tree.X_joint_child.copy()
+        self.serial = bool(np.all(self.parent == np.arange(n) - 1))  # a chain: cumulative product
 
     def _poses(self, q):
         """Body rotations R (n,3,3), origins p (n,3) and joint screws S (n,6) about O."""
         n = self.n
         s, c = np.sin(q), np.cos(q)
-        rot = np.eye(3) + s[:, None, None] * self.k1 + (1 - c)[:, None, None] * self.k2
-        # Body i in its carrier's frame: R_i = R_par T_i, p_i = p_par + R_par t_i (batched).
-        r_pm = self.r_pj @ rot
-        T = r_pm @ self.r_jc
-        t = self.p_pj + (r_pm @ self.p_jc[:, :, None])[:, :, 0]
-        R = np.empty((n, 3, 3))
-        p = np.empty((n, 3))
-        for i in range(n):
-            par = self.parent[i]
-            if par < 0:
-                R[i], p[i] = T[i], t[i]
-            else:
-                R[i] = R[par] @ T[i]
-                p[i] = p[par] + R[par] @ t[i]
-        r_par = np.where(self.has_parent[:, :, None], R[self.parent_idx], np.eye(3))
-        p_par = np.where(self.has_parent, p[self.parent_idx], 0.0)
-        z = (r_par @ self.z_in_parent[:, :, None])[:, :, 0]
-        p_f = p_par + (r_par @ self.p_pj[:, :, None])[:, :, 0]
-        S = np.concatenate([z, _cross(p_f, z)], -1)
-        return R, p, S
+        # Homogeneous transform of body i in its carrier body: X_pj Rot(q_i) X_jc (batched).
+        rot = np.tile(np.eye(4), (n, 1, 1))
+        rot[:, :3, :3] += s[:, None, None] * self.k1 + (1 - c)[:, None, None] * self.k2
+        G = self.x_pj @ rot @ self.x_jc
+        if self.serial:
+            H = np.array(list(accumulate(G, np.matmul)))
+        else:
+            H = np.empty((n, 4, 4))
+            for i in range(n):
+                H[i] = G[i] if self.parent[i] < 0 else H[self.parent[i]] @ G[i]
+        F = np.where(self.has_parent[:, :, None], H[self.parent_idx], np.eye(4)) @ self.x_pj  # joint frames
+        z = (F[:, :3, :3] @ self.axis[:, :, None])[:, :, 0]
+        S = np.concatenate([z, _cross(F[:, :3, 3], z)], -1)
+        return H[:, :3, :3], H[:, :3, 3], S
 
     def regressors(self, q, v, va, aa, x):
         """(Wp, Wm): Wp theta = M aa + C(q, v) va + g + F(va, aa); Wm theta = (M + diag Ia) x."""

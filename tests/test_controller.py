@@ -33,6 +33,9 @@ def test_fast_regressors_equal_robot_model(robot, dyn):
         wp, wm = dyn.regressors(q, v, va, aa, x)
         np.testing.assert_allclose(wp, robot.passivity_regressor(q[None], v[None], va[None], aa[None])[0], atol=1e-11)
         np.testing.assert_allclose(wm, robot.momentum_regressor(q[None], x[None])[0], atol=1e-11)
+    general = C.ControllerDynamics(robot)
+    general.serial = False  # the tree path (loop over parents) gives the same
+    np.testing.assert_allclose(general.regressors(q, v, va, aa, x)[0], wp, atol=1e-12)
 
 
 def test_passivity_form_is_christoffel(robot, dyn):
