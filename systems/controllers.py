@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .controller import ArmourGains, ControllerDynamics, armour_control, tracking_errors
+from .controller import ArmourGains, ControllerDynamics, armour_control, tracking_errors, wrap_error
 from .intervals import Interval
 
 @dataclass
@@ -137,8 +137,7 @@ def make_gravity_pid_controller(robot, gains: ControllerGains, time_step):
             self.DeclarePeriodicDiscreteUpdateEvent(time_step, 0.0, self._update)
 
         def _errors(self, q, v, q_d, qd_d):
-            e = tracking_errors(np.zeros(self.n), q, v, q_d, qd_d, 0 * qd_d, robot.joint_params.continuous)
-            return e.e, e.edot
+            return wrap_error(q_d - q, robot.joint_params.continuous), qd_d - v
 
         def _torque(self, context, q, v, q_d, qd_d, qdd_d, theta0, box):
             e, edot = self._errors(q, v, q_d, qd_d)
