@@ -69,6 +69,16 @@ class TrackingBounds:
         z = np.zeros(n)
         return cls(z, z.copy(), z.copy(), z.copy())
 
+    @classmethod
+    def coerce(cls, bounds, n):
+        """Accept ours or systems/controller.TrackingBounds (fields position, velocity, qd_a, qdd_a)."""
+        if bounds is None:
+            return cls.zero(n)
+        if isinstance(bounds, cls):
+            return bounds
+        full = lambda x: np.broadcast_to(np.asarray(x, float), (n,)).copy()  # noqa: E731
+        return cls(full(bounds.position), full(bounds.velocity), full(bounds.qd_a), full(bounds.qdd_a))
+
 
 # ---------------------------------------------------------------------------------------------
 # Collision geometry: spheres on bodies, oriented boxes
@@ -171,7 +181,7 @@ def sphere_centres(tree, spheres, q, with_jacobian=True):
     moving = spheres.body >= 0
     c = np.broadcast_to(spheres.centre, (nsamp, m, 3)).copy()
     b = spheres.body[moving]
-    c[:, moving] = kin.p[:, b] + np.einsum("nsij,sj->nsi", kin.R[:, b], spheres.centre[moving])
+    c[:, moving] = kin.p[:, b] + (kin.R[:, b] @ spheres.centre[moving][..., None])[..., 0]
     if not with_jacobian:
         return c, None
     anc = tree.ancestors()

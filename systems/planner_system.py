@@ -1,0 +1,112 @@
+"""ExcitingPlanner: thin Drake LeafSystem around planner.SafePlanner (receding horizon, Alg. 2).
+
+Outputs the desired q, qd, qdd of the current plan. Plans once at initialization from rest at q0,
+then every t_p from the state the current plan reaches at that instant (known exactly: it is the
+desired trajectory). A failed planning call keeps the current plan, which ends at rest (the
+braking manoeuvre), and ends the loop, as Algorithm 2 does. After `num_plans` calls the last
+plan simply runs to rest. Inputs theta0, theta_lower, theta_upper (14 n each) come from the
+estimator; when unconnected the constructor's values are used.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import BasicVector, EventStatus, LeafSystem
+
+
+@dataclasses.dataclass
+class PlannerState:
+    plan: object = None  # PlanResult being followed (None: hold q0)
+    t_start: float = 0.0  # simulation time at which `plan` started
+    calls: int = 0  # planning calls made
+    done: bool = False  # no more planning (num_plans reached or a call failed)
+    records: tuple = ()  # one dict per planning call
+
+
+class ExcitingPlanner(LeafSystem):
+    def __init__(self, planner, q0, theta0, theta_lower, theta_upper, num_plans=None, replan_period_s=None,
+                 mode=None, seed=0):
+        super().__init__()
+        self._planner = planner
+        cfg = planner.config
+        n = planner.robot.n
+        self._n = n
+        self._q0 = np.asarray(q0, float).copy()
+        self._defaults = [np.asarray(x, float).copy() for x in (theta0, theta_lower, theta_upper)]
+        self._num_plans = int(cfg.num_plans if num_plans is None else num_plans)
+        self._period = float(cfg.replan_period_s if replan_period_s is None else replan_period_s)
+        self._mode = mode
+        self._rng = np.random.default_rng(seed)
+        p = 14 * n
+        self._theta0 = self.DeclareVectorInputPort("theta0", p)
+        self._theta_lo = self.DeclareVectorInputPort("theta_lower", p)
+        self._theta_hi = self.DeclareVectorInputPort("theta_upper", p)
+        self._state = self.DeclareAbstractState(AbstractValue.Make(PlannerState()))
+        deps = {self.abstract_state_ticket(self._state), self.time_ticket()}
+        for k, name in enumerate(("q_desired", "v_desired", "a_desired")):
+            self.DeclareVectorOutputPort(name, n, lambda c, out, k=k: out.SetFromVector(self._desired(c)[k]),
+                                         prerequisites_of_calc=deps)
+        self.DeclareAbstractOutputPort("plan", lambda: AbstractValue.Make(PlannerState()),
+                                       lambda c, out: out.set_value(self._get(c)), prerequisites_of_calc=deps)
+        self.DeclareInitializationUnrestrictedUpdateEvent(self._on_init)
+        self.DeclarePeriodicUnrestrictedUpdateEvent(self._period, self._period, self._on_period)
+
+    # -- helpers ---------------------------------------------------------------------------------
+    def _get(self, context) -> PlannerState:
+        return context.get_abstract_state(int(self._state)).get_value()
+
+    def planner_state(self, context) -> PlannerState:
+        return self._get(context)
+
+    def records(self, context):
+        return list(self._get(context).records)
+
+    def _desired_at(self, st: PlannerState, t):
+        if st.plan is None:
+            z = np.zeros(self._n)
+            return self._q0.copy(), z, z.copy()
+        q, v, a = st.plan.evaluate([t - st.t_start])
+        return q[0], v[0], a[0]
+
+    def _desired(self, context):
+        return self._desired_at(self._get(context), context.get_time())
+
+    def _thetas(self, context):
+        out = []
+        for port, default in zip((self._theta0, self._theta_lo, self._theta_hi), self._defaults):
+            out.append(port.Eval(context) if port.HasValue(context) else default)
+        return out
+
+    # -- events ----------------------------------------------------------------------------------
+    def _on_init(self, context, state):
+        self._plan_into(context, state, PlannerState())
+        return EventStatus.Succeeded()
+
+    def _on_period(self, context, state):
+        st = self._get(context)
+        if not st.done:
+            self._plan_into(context, state, st)
+        return EventStatus.Succeeded()
+
+    def _plan_into(self, context, state, st: PlannerState):
+        t = context.get_time()
+        q, v, a = self._desired_at(st, t)
+        theta0, lo, hi = self._thetas(context)
+        k_prev = None if st.plan is None else st.plan.k
+        wall = time.perf_counter()
+        res = self._planner.plan(q, v, a, theta0, lo, hi, k_init=k_prev, rng=self._rng, mode=self._mode)
+        wall = time.perf_counter() - wall
+        calls = st.calls + 1
+        record = dict(t_s=t, index=calls - 1, ok=res.ok, status=res.status, reason=res.reason, cost=res.cost,
+                      cond=res.cond, solve_time_s=res.solve_time_s, wall_s=wall, solver=res.solver,
+                      solver_status=res.solver_status, braking=not res.ok and st.plan is not None,
+                      k=None if res.k is None else res.k.tolist(), min_clearance_m=res.min_clearance_m,
+                      max_torque_ratio=res.max_torque_ratio, constraints=res.num_collision_constraints)
+        new = dataclasses.replace(st, calls=calls, records=st.records + (record,))
+        if res.ok:
+            new.plan, new.t_start = res, t
+        new.done = (not res.ok) or calls >= self._num_plans
+        state.get_mutable_abstract_state(int(self._state)).set_value(new)
