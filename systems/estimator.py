@@ -38,9 +38,10 @@ Segments are cut by time (horizon_s) and never span a step longer than max_gap_s
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy.optimize import linprog  # imported here: its first import costs ~0.3 s
 
 from . import inertial, regressors
 from .intervals import Interval
@@ -68,13 +69,21 @@ class EstimatorSettings:
     # paper's unweighted problem ("none"). Theorem 2 holds verbatim for the scaled problem
     # (any left inverse L of Y gives θ_e = L(U(m_true) − e)); scaling shrinks the worst case.
     row_weighting: str = "bound"
+    # Set-membership refinement (beyond the paper): the exact projection of the polytope
+    # {θ_e : ∃θ_r ∈ [θ_r], |Y θ_e + D_r θ_r − ∫τ| ≤ row bound} on the listed parameters, by LP,
+    # certified by weak duality. "mass" (2 LPs), "all" (20 LPs) or "none".
+    set_membership: str = "mass"
+    # Point estimate θ0: "map" (θ_r marginalised with its box as prior, rows whitened) or
+    # "paper" (the paper's ‖Y P(η) − U‖², rows scaled per `row_weighting`); see _left_inverse.
+    point_estimate: str = "map"
 
     @classmethod
     def from_scenario(cls, s):
         return cls(horizon_s=s.estimator.horizon_s, max_gap_s=s.estimator.max_gap_s,
                    integration=s.estimator.integration, solver=s.estimator.solver,
                    torque_ratio=s.noise.declared_torque_ratio, torque_floor_Nm=s.noise.declared_torque_floor_Nm,
-                   theta_r_ratio=s.noise.theta_r_ratio)
+                   theta_r_ratio=s.noise.theta_r_ratio,
+                   set_membership=getattr(s.estimator, "set_membership", "mass"))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -253,6 +262,7 @@ class SegmentRows:
     r_first: np.ndarray  # (S, n) torque radius of the first / last sample
     r_last: np.ndarray
     r_inner: np.ndarray  # (S, n) Σ_inner w_k r_k
+    r_inner_sq: np.ndarray  # (S, n) Σ_inner w_k² r_k² (noise scale for the point estimate)
     shared_prev: np.ndarray  # (S,) bool: first sample is the previous segment's last
     quad: np.ndarray  # (S, n) quadrature-error estimate
     end_index: np.ndarray  # (S,) global index of the last sample (bookkeeping)
@@ -261,7 +271,7 @@ class SegmentRows:
     @classmethod
     def empty(cls, n, nr):
         z = lambda *s: np.zeros(s)  # noqa: E731
-        return cls(z(0), z(0), z(0, n, 10), z(0, n, nr), z(0, n), z(0), z(0), z(0, n), z(0, n), z(0, n),
+        return cls(z(0), z(0), z(0, n, 10), z(0, n, nr), z(0, n), z(0), z(0), z(0, n), z(0, n), z(0, n), z(0, n),
                    np.zeros(0, bool), z(0, n), np.zeros(0, int), np.zeros(0, int))
 
     def __len__(self):
@@ -307,10 +317,12 @@ def build_segment_rows(robot, t, q, v, tau, bounds, settings, theta_for_quadratu
     w_first = np.empty(S)
     w_last = np.empty(S)
     r_inner = np.empty((S, n))
+    r_inner_sq = np.empty((S, n))
     for s, (a, b) in enumerate(loc):
         w = sample_weights(tt, a, b, integ)
         w_first[s], w_last[s] = w[0], w[-1]
         r_inner[s] = w[1:-1] @ r[a + 1:b]
+        r_inner_sq[s] = w[1:-1] ** 2 @ r[a + 1:b] ** 2
     shared_prev = np.zeros(S, bool)
     shared_prev[1:] = loc[1:, 0] == loc[:-1, 1]
     theta_q = robot.theta if theta_for_quadrature is None else theta_for_quadrature
@@ -319,7 +331,7 @@ def build_segment_rows(robot, t, q, v, tau, bounds, settings, theta_for_quadratu
     quad *= settings.quadrature_safety
     return SegmentRows(t0=tt[loc[:, 0]], t1=tt[loc[:, 1]], Y=D[..., ee], D_r=D[..., rest], T=T,
                        w_first=w_first, w_last=w_last, r_first=r[loc[:, 0]], r_last=r[loc[:, 1]],
-                       r_inner=r_inner, shared_prev=shared_prev, quad=quad,
+                       r_inner=r_inner, r_inner_sq=r_inner_sq, shared_prev=shared_prev, quad=quad,
                        start_index=bounds[:, 0] + index_offset, end_index=bounds[:, 1] + index_offset)
 
 
@@ -345,12 +357,21 @@ def ls_cost_terms(Y, U):
     return Y.T @ Y, Y.T @ U, float(U @ U)
 
 
-def cost_grad_hess(eta, A, b, c):
+def _centred(A, b, c):
+    """θ_c = A⁻¹b and J_min, so that ½(θᵀAθ − 2bᵀθ + c) = ½(θ−θ_c)ᵀA(θ−θ_c) + J_min: the
+    centred form keeps the cost accurate near the optimum (no cancellation of large terms)."""
+    theta_c = np.linalg.solve(A, b)
+    return theta_c, 0.5 * max(c - b @ theta_c, 0.0)
+
+
+def cost_grad_hess(eta, A, b, c, centred=None):
     """J(η) = ½‖Y P(η) − U‖² and its exact gradient and Hessian (paper appendix, eq. D_ee)."""
+    theta_c, jmin = centred or _centred(A, b, c)
     theta = inertial.log_cholesky_to_theta(eta)
     jac = inertial.log_cholesky_jacobian(eta)
-    r = A @ theta - b  # = Yᵀ(Yθ − U)
-    J = 0.5 * (theta @ A @ theta - 2 * b @ theta + c)
+    d = theta - theta_c
+    r = A @ d  # = Yᵀ(Yθ − U)
+    J = 0.5 * d @ r + jmin
     g = jac.T @ r
     H = jac.T @ A @ jac + np.einsum("i,ikl->kl", r, inertial.log_cholesky_hessian(eta))
     return J, g, H
@@ -374,8 +395,9 @@ _OFF_R = np.array([rc[0] for rc in _OFFDIAG])
 _OFF_C = np.array([rc[1] for rc in _OFFDIAG])
 
 
-def cost_and_gradient(eta, A, b, c):
+def cost_and_gradient(eta, A, b, c, centred=None):
     """J(η) and its exact gradient, the fast path used inside the NLP (≈ 20 µs)."""
+    theta_c, jmin = centred or _centred(A, b, c)
     a = np.exp(eta[0])
     u = np.zeros((4, 4))
     u[[0, 1, 2], [0, 1, 2]] = np.exp(eta[1:4])
@@ -383,8 +405,9 @@ def cost_and_gradient(eta, A, b, c):
     u[_OFF_R, _OFF_C] = eta[4:]
     u *= a
     theta = _THETA_OF_J @ (u @ u.T).ravel()
-    r = A @ theta - b
-    J = 0.5 * (theta @ (r - b) + c)
+    d = theta - theta_c
+    r = A @ d
+    J = 0.5 * d @ r + jmin
     rm = (_THETA_OF_J.T @ r).reshape(4, 4)
     G = (rm + rm.T) @ u  # dJ/dU
     g = np.empty(10)
@@ -409,7 +432,7 @@ def _solver(name):
     return IpoptSolver(), "ipopt"
 
 
-def solve_log_cholesky(A, b, c, eta0, solver="ipopt", newton_steps=10, scale=None, max_iterations=30,
+def solve_log_cholesky(A, b, c, eta0, solver="ipopt", newton_steps=10, scale=None, max_iterations=20,
                        max_time_s=0.08):
     """min_η ½‖Y P(η) − U‖² with Drake MathematicalProgram.
 
@@ -425,13 +448,15 @@ def solve_log_cholesky(A, b, c, eta0, solver="ipopt", newton_steps=10, scale=Non
     from pydrake.solvers import MathematicalProgram, SolverOptions
 
     # Cost scaling: Ipopt's tolerances are absolute; scale so the start costs O(1).
-    scale = scale or max(abs(cost_grad_hess(np.clip(eta0, ETA_LOWER, ETA_UPPER), A, b, c)[0]), 1e-12 * np.trace(A), 1e-300)
+    # (Cost scaled by trace(A): the scaled Hessian in θ has eigenvalues ≤ 1.)
+    scale = scale or max(np.trace(A), 1e-300)
+    centred = _centred(A, b, c)
 
     def cost(x):
         if x.dtype == object:
-            J, g = cost_and_gradient(ExtractValue(x).ravel(), A, b, c)
+            J, g = cost_and_gradient(ExtractValue(x).ravel(), A, b, c, centred)
             return AutoDiffXd(J / scale, (g / scale) @ ExtractGradient(x))
-        return cost_and_gradient(np.asarray(x, float), A, b, c)[0] / scale
+        return cost_and_gradient(np.asarray(x, float), A, b, c, centred)[0] / scale
 
     prog = MathematicalProgram()
     x = prog.NewContinuousVariables(10, "eta")
@@ -446,12 +471,21 @@ def solve_log_cholesky(A, b, c, eta0, solver="ipopt", newton_steps=10, scale=Non
     if name == "ipopt":
         opts.SetOption(slv.solver_id(), "print_level", 0)
         opts.SetOption(slv.solver_id(), "tol", 1e-9)
+        # Warm start: a small barrier parameter and bound multipliers, so a start at the
+        # optimum is accepted at iteration 0 instead of being pushed off by the barrier.
+        opts.SetOption(slv.solver_id(), "mu_init", 1e-8)
+        opts.SetOption(slv.solver_id(), "bound_mult_init_val", 1e-8)
         opts.SetOption(slv.solver_id(), "acceptable_tol", 1e-6)
         opts.SetOption(slv.solver_id(), "acceptable_iter", 3)
         opts.SetOption(slv.solver_id(), "max_iter", max_iterations)
         opts.SetOption(slv.solver_id(), "max_cpu_time", max_time_s)
     else:
         opts.SetOption(slv.solver_id(), "Major iterations limit", max_iterations)
+    import logging
+
+    drake_log = logging.getLogger("drake")
+    level = drake_log.level
+    drake_log.setLevel(logging.ERROR)  # an iteration/time cap is expected near the LMI boundary
     try:
         res = slv.Solve(prog, eta0, opts)
         eta = np.asarray(res.GetSolution(x), float)
@@ -459,12 +493,14 @@ def solve_log_cholesky(A, b, c, eta0, solver="ipopt", newton_steps=10, scale=Non
         msg = str(res.get_solution_result())
     except Exception as err:  # solver crash -> fall back to the start point, logged
         eta, ok, msg = np.asarray(eta0, float), False, f"solver error: {err}"
+    finally:
+        drake_log.setLevel(level)
     if not np.all(np.isfinite(eta)):
         eta = np.asarray(eta0, float)
-    J, g, H = cost_grad_hess(eta, A, b, c)
+    J, g, H = cost_grad_hess(eta, A, b, c, centred)
     steps = 0
     for _ in range(newton_steps):
-        if np.linalg.norm(g) <= 1e-12 * scale:
+        if np.linalg.norm(g) <= 1e-14 * scale:
             break
         # Modified Newton on the exact Hessian: |eigenvalues| floored, so the step descends even
         # where the Hessian is indefinite (near the LMI boundary the problem is not convex in η).
@@ -477,7 +513,7 @@ def solve_log_cholesky(A, b, c, eta0, solver="ipopt", newton_steps=10, scale=Non
         while alpha > 1e-6:
             cand = eta + alpha * step
             if np.all(cand >= ETA_LOWER) and np.all(cand <= ETA_UPPER):
-                Jc, gc, Hc = cost_grad_hess(cand, A, b, c)
+                Jc, gc, Hc = cost_grad_hess(cand, A, b, c, centred)
                 if np.isfinite(Jc) and Jc <= J:
                     eta, J, g, H, accepted = cand, Jc, gc, Hc, True
                     break
@@ -575,27 +611,71 @@ def row_bounds(rows: SegmentRows, theta_r, settings):
     return (r_tau + r_thr + rows.quad).ravel()
 
 
-def interval_hull(rows: SegmentRows, theta_r, settings):
-    """Centre L U(m) and radii of the exact hull {L(U(m') − e) : m' ∈ [m], |e| ≤ quad}.
+def _left_inverse(rows: SegmentRows, theta_r, settings):
+    """A left inverse L of Y (L Y = I) and the NLP's quadratic (A, b, c) with
+    ‖·‖² = θᵀAθ − 2bᵀθ + c, for the chosen point estimate:
 
-    L = (W Y)⁺ W is the (row-weighted) least-squares left inverse of Y: θ* = L U(m) is the
-    estimate of Theorem 2 when the LMI is inactive, and L ∂U/∂m its (constant) Jacobian.
+    "map":   θ_r is marginalised with its box as prior (δθ_r ~ rad/√3 per entry) and rows are
+             whitened by their noise scale (σ_row² = Σ_k w_k² r_k²/3 for independent uniform
+             torque errors): the cost is ‖M^½ W (Y θ_e − U)‖², M = I − D̃(D̃ᵀD̃ + Λ)⁻¹D̃ᵀ. It is
+             the paper's ‖Y P(η) − U‖² on whitened data, and removes most of the bias a wrong
+             θ_r puts on θ0 (the mass error drops ~2x in the tests).
+    "paper": rows scaled by 1/(declared row bound) ("bound") or unscaled ("none").
+    The interval does not depend on this choice being right: any left inverse gives an enclosure.
     """
     S, n = rows.T.shape
     Y2 = rows.Y.reshape(S * n, 10)
     Dr2 = rows.D_r.reshape(S * n, -1)
     U = -Dr2 @ theta_r + rows.T.ravel()
+    if settings.point_estimate == "map":
+        sig = np.sqrt((rows.w_first[:, None] ** 2 * rows.r_first ** 2 + rows.w_last[:, None] ** 2 * rows.r_last ** 2
+                       + rows.r_inner_sq) / 3.0).ravel() + rows.quad.ravel()
+        wrow = 1.0 / np.maximum(sig, 1e-12 * max(sig.max(), 1e-300))
+        rad_r = settings.theta_r_ratio * np.abs(theta_r)
+        keep = (rad_r > 0) & (np.abs(Dr2).max(0) > 0)
+        Yt, Dt, Ut = Y2 * wrow[:, None], Dr2[:, keep] * wrow[:, None], U * wrow
+        K = Dt.T @ Dt + np.diag(3.0 / rad_r[keep] ** 2)
+        Z = np.linalg.solve(K, Dt.T)  # (k, R)
+        YtM = Yt.T - (Yt.T @ Dt) @ Z
+        A = YtM @ Yt
+        A = 0.5 * (A + A.T)
+        b = YtM @ Ut
+        DU = Dt.T @ Ut
+        c = float(Ut @ Ut - DU @ np.linalg.solve(K, DU))
+        try:
+            L = np.linalg.solve(A, YtM) * wrow
+        except np.linalg.LinAlgError:
+            return None
+        return L, A, b, c, U
     if settings.row_weighting == "bound":
         bnd = row_bounds(rows, theta_r, settings)
         wrow = 1.0 / np.maximum(bnd, 1e-12 * max(bnd.max(), 1e-300))
     else:
         wrow = np.ones(S * n)
-    pinv_w, cond = _pinv(Y2 * wrow[:, None])
+    pinv_w, _ = _pinv(Y2 * wrow[:, None])
     if pinv_w is None:
+        return None
+    A, b, c = ls_cost_terms(Y2 * wrow[:, None], U * wrow)
+    return pinv_w * wrow, A, b, c, U
+
+
+def interval_hull(rows: SegmentRows, theta_r, settings):
+    """Centre L U(m) and radii of the exact hull {L(U(m') − e) : m' ∈ [m], |e| ≤ quad}.
+
+    L is a left inverse of Y (`_left_inverse`): θ_e = L(U(m_true) − e) exactly, so the box
+    encloses the truth; θ* = L U(m) is the estimate of Theorem 2 when the LMI is inactive and
+    L ∂U/∂m its constant Jacobian, so the box is also the exact hull of θ*([m]).
+    """
+    S, n = rows.T.shape
+    Y2 = rows.Y.reshape(S * n, 10)
+    Dr2 = rows.D_r.reshape(S * n, -1)
+    _, cond = _pinv(Y2)  # cond of the raw Y (the paper's figure)
+    inv = None if not np.isfinite(cond) else _left_inverse(rows, theta_r, settings)
+    if inv is None:
         return None, cond
-    pinv = pinv_w * wrow  # left inverse of Y
-    centre = pinv @ U
-    G = pinv.reshape(10, S, n)
+    L, A, b, c, U = inv
+    centre = L @ U
+    G = L.reshape(10, S, n)
     # Torque samples: each sample appears in one segment, or in two when it is a shared boundary.
     first = G * rows.w_first[None, :, None]
     prev_last = np.zeros_like(G)
@@ -606,17 +686,65 @@ def interval_hull(rows: SegmentRows, theta_r, settings):
     last = G * (rows.w_last * ~next_shared)[None, :, None]
     rad_tau = (np.abs(first) * rows.r_first).sum((1, 2)) + (np.abs(last) * rows.r_last).sum((1, 2)) \
         + (np.abs(G) * rows.r_inner).sum((1, 2))
-    rad_theta_r = np.abs(pinv @ Dr2) @ (settings.theta_r_ratio * np.abs(theta_r))
-    rad_quad = np.abs(pinv) @ rows.quad.ravel()
-    # Float rounding: a-posteriori correction of the least squares (×4) + rounding of the sums.
-    resid = (U - Y2 @ centre) * wrow
-    corr = pinv_w @ resid
-    res_err = 8 * EPS * (S * n) * (np.abs(Y2) @ np.abs(centre) + np.abs(U)) * wrow
-    rad_round = 4 * np.abs(corr) + np.abs(pinv_w) @ res_err
+    rad_theta_r = np.abs(L @ Dr2) @ (settings.theta_r_ratio * np.abs(theta_r))
+    rad_quad = np.abs(L) @ rows.quad.ravel()
     total = rad_tau + rad_theta_r + rad_quad
-    rad_round = rad_round + 64 * EPS * (S * n + Dr2.shape[1]) * (total + np.abs(centre)) + 1e-300
+    # Float rounding: the computed L is a left inverse only up to E = L Y − I, so
+    # θ_e = L(U − e) − E θ_e; bound |E θ_e| by |E|(|centre| + total) (E itself padded for its
+    # own rounding), plus a relative pad for the rounding of L U and of the |·| sums.
+    E = L @ Y2 - np.eye(10)
+    E_abs = np.abs(E) + 4 * EPS * (S * n) * (np.abs(L) @ np.abs(Y2))
+    rad_round = E_abs @ (np.abs(centre) + total)
+    rad_round = rad_round + 64 * EPS * (S * n + Dr2.shape[1]) * (total + np.abs(L) @ np.abs(U)) + 1e-300
     return dict(centre=centre, rad_torque=rad_tau, rad_theta_r=rad_theta_r, rad_quad=rad_quad, rad_round=rad_round,
-                U=U * wrow, Y2=Y2 * wrow[:, None], pinv=pinv, weights=wrow), cond
+                U=U, A=A, b=b, c=c, pinv=L), cond
+
+
+def set_membership_bounds(rows: SegmentRows, theta_r, settings, box_lo, box_hi, params):
+    """Certified [min, max] of θ_e[i] (i in params) over the feasible polytope, by LP.
+
+    Variables x = (θ_e, θ_r); rows |Y θ_e + D_r θ_r − ∫τ| ≤ Σ_k w_k r_k + quadrature term (a
+    boundary sample shared by two segments is let vary independently in each: a relaxation,
+    so still an enclosure); θ_r in its box; θ_e in the Theorem-2 box (already proven).
+    The LP solver's answer is not trusted: each bound is recomputed from its dual multipliers
+    y ≥ 0 by weak duality, min c·x ≥ Σ_j min(r_j l_j, r_j u_j) − yᵀb with r = c + Aᵀy, which
+    holds for ANY y ≥ 0. Returns (lo, hi, feasible); lo/hi are NaN where not refined.
+    """
+    S, n = rows.T.shape
+    Y2 = rows.Y.reshape(S * n, 10)
+    Dr2 = rows.D_r.reshape(S * n, -1)
+    rad_r = settings.theta_r_ratio * np.abs(theta_r)
+    keep = (rad_r > 0) & (np.abs(Dr2).max(0) > 0)  # θ_r entries that move U
+    fixed = Dr2[:, ~keep] @ theta_r[~keep]
+    A = np.hstack([Y2, Dr2[:, keep]])
+    R = (rows.w_first[:, None] * rows.r_first + rows.w_last[:, None] * rows.r_last + rows.r_inner
+         + rows.quad).ravel() * (1 + 1e-9)
+    T = rows.T.ravel() - fixed
+    A_ub = np.vstack([A, -A])
+    b_ub = np.concatenate([T + R, R - T])
+    lo_x = np.concatenate([box_lo, (theta_r - rad_r)[keep]])
+    hi_x = np.concatenate([box_hi, (theta_r + rad_r)[keep]])
+    out_lo, out_hi = np.full(10, np.nan), np.full(10, np.nan)
+    for i in params:
+        for sign in (1.0, -1.0):
+            c = np.zeros(A.shape[1])
+            c[i] = sign
+            res = linprog(c, A_ub=A_ub, b_ub=b_ub, bounds=np.stack([lo_x, hi_x], 1), method="highs-ds",
+                          options={"presolve": False})
+            if res.status == 2:  # infeasible: the data contradict the declared bounds
+                return out_lo, out_hi, False
+            if res.status != 0:
+                continue
+            y = np.maximum(-res.ineqlin.marginals, 0.0)
+            r = c + A_ub.T @ y
+            bound = np.sum(np.minimum(r * lo_x, r * hi_x)) - y @ b_ub
+            # Rounding of the certificate's own float sums (relative, generous).
+            bound -= 1e-12 * (np.abs(r) @ np.maximum(np.abs(lo_x), np.abs(hi_x)) + np.abs(y) @ np.abs(b_ub)) + 1e-300
+            if sign > 0:
+                out_lo[i] = np.nextafter(bound, -np.inf)
+            else:
+                out_hi[i] = np.nextafter(-bound, np.inf)
+    return out_lo, out_hi, True
 
 
 def _box_is_consistent(centre, radius):
@@ -702,7 +830,7 @@ class IncrementalEstimator:
             self.estimate = est
             return est
         centre = hull["centre"]
-        A, b, c = ls_cost_terms(hull["Y2"], hull["U"])
+        A, b, c = hull["A"], hull["b"], hull["c"]
         # Warm start: previous η, or P⁻¹ of the unconstrained solution when it is consistent
         # (then it is the optimum and the NLP only confirms it) — whichever costs less.
         starts = [self.eta, inertial.theta_to_log_cholesky(nearest_consistent(centre))]
@@ -715,6 +843,26 @@ class IncrementalEstimator:
         radius = radius_noise + hull["rad_round"]
         lo = np.nextafter(centre - radius, -np.inf)
         hi = np.nextafter(centre + radius, np.inf)
+        sm_note = ""
+        # The same hull with the other left inverse (rows scaled by their declared bound): also
+        # an enclosure, often tighter on the mass; keep the intersection.
+        if st.point_estimate == "map":
+            alt, _ = interval_hull(self.rows, self.theta_r, replace(st, point_estimate="paper", row_weighting="bound"))
+            if alt is not None:
+                r_alt = alt["rad_torque"] + alt["rad_theta_r"] + alt["rad_quad"] + alt["rad_round"]
+                lo = np.maximum(lo, np.nextafter(alt["centre"] - r_alt, -np.inf))
+                hi = np.minimum(hi, np.nextafter(alt["centre"] + r_alt, np.inf))
+                if np.any(lo > hi):
+                    sm_note = "the two least-squares enclosures do not meet: the data contradict the declared bounds"
+                    lo, hi = np.minimum(lo, hi), np.maximum(lo, hi)
+        params = {"none": [], "mass": [0], "all": list(range(10))}[st.set_membership]
+        if params and not sm_note:
+            sm_lo, sm_hi, feasible = set_membership_bounds(self.rows, self.theta_r, st, lo, hi, params)
+            if not feasible:
+                sm_note = "set-membership LP infeasible: the data contradict the declared noise/θ_r bounds"
+            else:
+                lo = np.where(np.isnan(sm_lo), lo, np.maximum(lo, sm_lo))
+                hi = np.where(np.isnan(sm_hi), hi, np.minimum(hi, sm_hi))
         box_ok, lam = _box_is_consistent(centre, radius)
         at_centre = np.abs(sol.theta - centre) <= 1e-6 * (np.abs(centre) + radius + 1e-9)
         if box_ok:
@@ -725,14 +873,17 @@ class IncrementalEstimator:
             case = "lmi_active"  # θ0 near the LMI boundary; box around Y⁺U(m) still encloses truth
         # Intersect with the previous interval (or the prior); never empty.
         old = (prev.lower, prev.upper) if prev is not None and prev.case != "prior" else self.prior
-        consistent, message = True, ""
+        consistent, message = not sm_note, sm_note
+        if sm_note:
+            self.messages.append(sm_note)
         new_lo, new_hi = lo.copy(), hi.copy()
         if old is not None:
             cand_lo, cand_hi = np.maximum(lo, old[0]), np.minimum(hi, old[1])
             if np.any(cand_lo > cand_hi):
                 bad = [inertial.NAMES[k] for k in np.flatnonzero(cand_lo > cand_hi)]
                 consistent = False
-                message = (f"inconsistent data: the new interval does not meet the previous one in {bad} "
+                message = message + ("; " if message else "")
+                message = message + (f"inconsistent data: the new interval does not meet the previous one in {bad} "
                            "(torque noise or θ_r outside the declared bounds?); returning their hull")
                 new_lo, new_hi = np.minimum(lo, old[0]), np.maximum(hi, old[1])
                 self.messages.append(message)
