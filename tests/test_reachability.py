@@ -1,0 +1,222 @@
+"""Every over-approximation of systems/reachability.py contains what it claims to contain."""
+import numpy as np
+import pytest
+
+from safesysid.systems import reachability as reach
+from safesysid.systems.intervals import Interval
+from safesysid.systems.payload import load_dumbbells
+from safesysid.systems.robot_model import MODELS_DIR, load_robot
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return load_robot(coulomb_smoothing=0.01)
+
+
+@pytest.fixture(scope="module")
+def spheres(robot):
+    db = load_dumbbells(MODELS_DIR / "dumbbells.yaml")["8lb"]
+    return reach.arm_spheres(robot).concat(reach.payload_spheres(robot, db))
+
+
+def test_interval_passivity_regressor_is_exact_on_points_and_encloses_boxes(robot):
+    rng = np.random.default_rng(0)
+    n = robot.n
+    q, v, va, aa = (rng.normal(size=(6, n)) for _ in range(4))
+    point = robot.passivity_regressor(q, v, va, aa)
+    wp = reach.interval_passivity_regressor(robot, *(Interval(x) for x in (q, v, va, aa)))
+    assert np.all(wp.lo <= point + 1e-9) and np.all(point <= wp.hi + 1e-9)
+    assert np.max(wp.hi - wp.lo) < 1e-9  # degenerate boxes give the point regressor
+    # Random boxes: every sampled point inside the box has its regressor inside the enclosure.
+    mids = [rng.normal(size=(16, n)) for _ in range(4)]
+    rads = [rng.uniform(0, r, size=(16, n)) for r in (0.2, 0.5, 0.5, 1.0)]
+    boxes = [Interval(m - r, m + r) for m, r in zip(mids, rads)]
+    wp = reach.interval_passivity_regressor(robot, *boxes)
+    for _ in range(30):
+        x = [m + r * rng.uniform(-1, 1, size=m.shape) for m, r in zip(mids, rads)]
+        w = robot.passivity_regressor(*x)
+        tol = 1e-10 * (1 + np.abs(w))
+        assert np.all(wp.lo - tol <= w) and np.all(w <= wp.hi + tol)
+    # ... including the corners, where interval bounds are usually attained.
+    x = [m + r * np.sign(rng.normal(size=m.shape)) for m, r in zip(mids, rads)]
+    w = robot.passivity_regressor(*x)
+    assert np.all(wp.lo - 1e-10 * (1 + np.abs(w)) <= w) and np.all(w <= wp.hi + 1e-10 * (1 + np.abs(w)))
+
+
+def test_spheres_come_from_the_urdf_and_match_drake_geometry_poses(robot, spheres):
+    from pydrake.systems.framework import DiagramBuilder
+
+    from safesysid.systems.robot_model import make_plant
+
+    builder = DiagramBuilder()
+    plant, sg, _ = make_plant(robot.source, builder=builder)
+    plant.Finalize()
+    diagram = builder.Build()
+    ctx = diagram.CreateDefaultContext()
+    pctx = plant.GetMyContextFromRoot(ctx)
+    arm = reach.arm_spheres(robot)
+    inspector = sg.model_inspector()
+    ids = {inspector.GetName(g): g for g in inspector.GetAllGeometryIds()}
+    assert len(arm) == sum(1 for name in ids if "sphere" in name) and len(arm) > 10
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        q = rng.uniform(-2, 2, robot.n)
+        plant.SetPositions(pctx, q)
+        query = sg.get_query_output_port().Eval(sg.GetMyContextFromRoot(ctx))
+        c, _ = reach.sphere_centres(robot.tree, arm, q[None], with_jacobian=False)
+        for s, name in enumerate(arm.names):
+            assert np.allclose(query.GetPoseInWorld(ids[name]).translation(), c[0, s], atol=1e-12)
+
+
+def test_sphere_jacobian_and_global_lipschitz_bound(robot, spheres):
+    rng = np.random.default_rng(2)
+    lips = reach.sphere_lipschitz(robot.tree, spheres)
+    q = rng.uniform(-3, 3, size=(200, robot.n))
+    c, jac = reach.sphere_centres(robot.tree, spheres, q)
+    h = 1e-6
+    for j in range(robot.n):
+        dq = np.zeros(robot.n)
+        dq[j] = h
+        cp, _ = reach.sphere_centres(robot.tree, spheres, q[:5] + dq, with_jacobian=False)
+        cm, _ = reach.sphere_centres(robot.tree, spheres, q[:5] - dq, with_jacobian=False)
+        assert np.allclose((cp - cm) / (2 * h), jac[:5, :, j], atol=1e-8)
+    norms = np.linalg.norm(jac, axis=-1)  # (N, m, n)
+    assert np.all(norms <= lips[None] + 1e-12)
+    assert np.max(norms / np.where(lips > 0, lips, 1)) > 0.6  # the bound is not wildly loose
+
+
+def test_box_signed_distance_and_gradient():
+    from pydrake.math import RollPitchYaw
+
+    rng = np.random.default_rng(3)
+    rot = RollPitchYaw([0.3, -0.2, 1.1]).ToRotationMatrix().matrix()
+    centre, half = np.array([0.5, -0.1, 0.3]), np.array([0.1, 0.2, 0.05])
+    pts = centre + rng.uniform(-0.5, 0.5, size=(400, 3))
+    bc = lambda x: (np.broadcast_to(centre, x.shape), np.broadcast_to(rot, x.shape + (3,)),  # noqa: E731
+                    np.broadcast_to(half, x.shape))
+    sd, grad = reach.box_signed_distance(pts, *bc(pts))
+    # Brute force: outside, the distance to a dense sampling of the box surface is never smaller.
+    local = (pts - centre) @ rot
+    inside = np.all(np.abs(local) <= half, axis=1)
+    assert np.all((sd <= 0) == inside)
+    dense = rng.uniform(-1, 1, size=(20000, 3)) * half
+    world = centre + dense @ rot.T
+    d = np.linalg.norm(pts[~inside, None] - world[None], axis=-1).min(1)
+    assert np.all(sd[~inside] <= d + 1e-12) and np.all(d - sd[~inside] < 0.02)
+    h = 1e-7
+    for axis in range(3):
+        e = np.zeros(3)
+        e[axis] = h
+        fd = (reach.box_signed_distance(pts + e, *bc(pts))[0] - reach.box_signed_distance(pts - e, *bc(pts))[0]) / (2 * h)
+        assert np.allclose(fd, grad[:, axis], atol=1e-5)
+
+
+def _reach(robot, rng, bounds=None, v_scale=0.5, a_scale=0.5):
+    q0 = rng.uniform(-1, 1, robot.n)
+    v0 = rng.uniform(-v_scale, v_scale, robot.n)
+    a0 = rng.uniform(-a_scale, a_scale, robot.n)
+    kr = np.array([np.pi / 48] * 4 + [np.pi / 20] * 3)
+    bounds = bounds or reach.TrackingBounds.from_ultimate_bound(0.02, 8.0, 5.0, robot.n)
+    return reach.PlanReach(q0, v0, a0, 3.0, np.zeros(robot.n), kr, 64, bounds)
+
+
+def test_joint_boxes_contain_the_continuous_trajectory_with_tracking_error(robot):
+    rng = np.random.default_rng(4)
+    for _ in range(4):
+        r = _reach(robot, rng)
+        t = np.linspace(0, r.T, 6401)
+        idx = np.minimum(np.searchsorted(r.edges, t, side="right") - 1, len(r.t_mid) - 1)
+        for _ in range(5):
+            k = rng.uniform(-1, 1, robot.n)
+            q, _, _ = r.bezier.evaluate(t, r.q_end(k))
+            err = rng.uniform(-1, 1, q.shape) * r.bounds.position
+            dev = np.abs(q + err - r.q_mid(k)[idx])
+            assert np.all(dev <= r.rho[idx])
+        # not vacuous: the radius is attained up to the tracking part within a few percent
+        assert np.max(np.abs(q - r.q_mid(k)[idx]) / (r.rho[idx] - r.bounds.position + 1e-15)) > 0.5
+
+
+def test_state_boxes_contain_every_k_time_and_tracking_error(robot):
+    rng = np.random.default_rng(5)
+    r = _reach(robot, rng)
+    k_lo, k_hi = -0.5 * np.ones(robot.n), np.ones(robot.n)
+    qb, vb, vab, aab = r.state_boxes(k_lo, k_hi)
+    t = np.linspace(0, r.T, 3001)
+    idx = np.minimum(np.searchsorted(r.edges, t, side="right") - 1, len(r.t_mid) - 1)
+    b = r.bounds
+    for _ in range(10):
+        k = rng.uniform(k_lo, k_hi)
+        q, v, a = r.bezier.evaluate(t, r.q_end(k))
+        u = lambda: rng.uniform(-1, 1, q.shape)  # noqa: E731
+        for box, x in ((qb, q + u() * b.position), (vb, v + u() * b.velocity), (vab, v + u() * b.ref_velocity),
+                       (aab, a + u() * b.ref_acceleration)):
+            assert np.all(box.lo[idx] <= x) and np.all(x <= box.hi[idx])
+
+
+def test_limit_box_keeps_position_and_velocity_limits_and_is_not_vacuous(robot):
+    rng = np.random.default_rng(6)
+    jp = robot.joint_params
+    b = reach.TrackingBounds.from_ultimate_bound(0.02, 8.0, 5.0, robot.n)
+    q0 = np.zeros(robot.n)
+    q0[1] = jp.position_upper[1] - 0.05  # joint 2 close to its upper limit, moving up
+    v0 = np.zeros(robot.n)
+    v0[1] = 0.05
+    v0[4] = jp.velocity_limit[4] - 0.3  # joint 5 fast
+    kr = np.array([np.pi / 48] * 4 + [np.pi / 20] * 3)
+    r = reach.PlanReach(q0, v0, np.zeros(robot.n), 3.0, np.zeros(robot.n), kr, 128, b)
+    k_lo, k_hi, why = r.limit_box(jp)
+    assert why == ""
+    assert k_hi[1] < 1.0  # the limit binds
+    t = np.linspace(0, 3.0, 30001)
+    worst_q = -np.inf
+    for k in [k_lo, k_hi] + [rng.uniform(k_lo, k_hi) for _ in range(20)]:
+        q, v, _ = r.bezier.evaluate(t, r.q_end(k))
+        assert np.all(q + b.position <= jp.position_upper) and np.all(q - b.position >= jp.position_lower)
+        assert np.all(np.abs(v) + b.velocity <= jp.velocity_limit)
+        worst_q = max(worst_q, (q[:, 1] + b.position[1]).max())
+    # At the edge of the box the trajectory comes within 2 mrad of the limit: not vacuous.
+    assert jp.position_upper[1] - worst_q < 2e-3
+    # A start already past the shrunk limit is reported, not planned.
+    q_bad = q0.copy()
+    q_bad[1] = jp.position_upper[1] - 0.5 * b.position[1]
+    r_bad = reach.PlanReach(q_bad, np.zeros(robot.n), np.zeros(robot.n), 3.0, np.zeros(robot.n), kr, 128, b)
+    k_lo, _, why = r_bad.limit_box(jp)
+    assert k_lo is None and "joint 2" in why
+
+
+def test_torque_bound_covers_the_controller_command_inside_the_tube(robot):
+    """sup|u| from the interval RNEA >= |u| of the actual ARMOUR law (systems/controller.py) at
+    sampled states inside the tube, with h >= 0 (V <= V_max)."""
+    from safesysid.systems import controller as ctl
+
+    rng = np.random.default_rng(7)
+    n = robot.n
+    theta0 = robot.theta.copy()
+    rel = 0.1 * np.abs(theta0)
+    lo, hi = theta0 - rel, theta0 + rel
+    gains = ctl.ArmourGains(Kr=np.array([5.0] * 4 + [7.0] * 3), alpha=20.0, V_max=0.02)
+    tb = ctl.tracking_bounds_for(robot, gains, lo)
+    bounds = reach.TrackingBounds.coerce(tb, n)
+    r = _reach(robot, rng, bounds)
+    qb, vb, vab, aab = r.state_boxes(-np.ones(n), np.ones(n))
+    wp = reach.interval_passivity_regressor(robot, qb, vb, vab, aab)
+    sup, _, _ = reach.torque_bound(wp, theta0, lo, hi)
+    dyn = ctl.ControllerDynamics(robot)
+    t = np.linspace(0, r.T, 400)
+    idx = np.minimum(np.searchsorted(r.edges, t, side="right") - 1, len(r.t_mid) - 1)
+    worst = 0.0
+    checked = 0
+    for _ in range(3):
+        k = rng.uniform(-1, 1, n)
+        qd, vd, ad = r.bezier.evaluate(t, r.q_end(k))
+        for m in range(len(t)):
+            e = rng.uniform(-1, 1, n) * bounds.position * 0.35
+            edot = rng.uniform(-1, 1, n) * bounds.velocity * 0.1
+            out = ctl.armour_control(dyn, gains, qd[m] - e, vd[m] - edot, qd[m], vd[m], ad[m], theta0, Interval(lo, hi))
+            if out.h < 0:
+                continue  # outside V <= V_max: not a state the bound is about
+            checked += 1
+            assert np.all(np.abs(out.u) <= sup[idx[m]])
+            worst = max(worst, np.max(np.abs(out.u) / sup[idx[m]]))
+    assert checked > 200
+    assert worst > 0.2  # the bound is not absurdly loose
