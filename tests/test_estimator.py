@@ -1,0 +1,305 @@
+"""Algorithm 1 (systems/estimator.py): data model, solver, provable interval, incremental use."""
+import numpy as np
+import pytest
+
+from conftest import n_trials
+from safesysid.systems import estimator as E
+from safesysid.systems import inertial
+from safesysid.systems.payload import load_dumbbells, payload_theta_in_end_effector
+from safesysid.systems.robot_model import MODELS_DIR, load_robot
+
+CENTRE = [0.0, 0.3, 0.0, 1.5, 0.0, 0.8, 0.0]
+PAYLOADS = ["4lb", "5lb", "6lb", "7lb", "8lb"]
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return load_robot(coulomb_smoothing=0.01)
+
+
+@pytest.fixture(scope="module")
+def dumbbells():
+    return load_dumbbells(MODELS_DIR / "dumbbells.yaml")
+
+
+def true_theta(rng, robot, dumbbell, ratio=0.05):
+    """Whole-robot truth: θ_r perturbed inside its ±ratio box, θ_e = end effector + payload."""
+    theta = E.perturbed_robot_theta(rng, robot, ratio)
+    theta_e = robot.theta_e + payload_theta_in_end_effector(dumbbell, robot.extra["grasp_point"])
+    theta[robot.ee_slice] = theta_e
+    return theta, theta_e
+
+
+def run_online(robot, t, q, v, tau, settings=None, period_s=1.5):
+    """Feed the log chunk by chunk and update every period (Algorithm 2's cadence)."""
+    est = E.IncrementalEstimator(robot, settings or E.EstimatorSettings())
+    out = []
+    edges = np.arange(t[0] + period_s, t[-1] + 1e-9, period_s)
+    start = 0
+    for edge in edges:
+        stop = int(np.searchsorted(t, edge, side="right"))
+        est.add(t[start:stop], q[start:stop], v[start:stop], tau[start:stop])
+        start = stop
+        out.append(est.update())
+    return est, out
+
+
+# ---- data model -----------------------------------------------------------------------------------
+def test_segments_by_time_never_span_a_gap():
+    rng = np.random.default_rng(1)
+    steps = rng.uniform(0.0005, 0.0015, 3000)
+    steps[1200] = 0.5  # a logging gap
+    t = np.concatenate([[0.0], np.cumsum(steps)])
+    bounds, next_start = E.segment_bounds(t, 0.1, 0.05)
+    assert len(bounds) > 10
+    for a, b in bounds:
+        assert t[b] - t[a] >= 0.1 - 1e-12
+        assert np.max(np.diff(t[a:b + 1])) <= 0.05  # never across the gap
+        assert t[b - 1] - t[a] < 0.1  # ends at the first sample past the horizon
+    shared = bounds[1:, 0] == bounds[:-1, 1]
+    assert shared.sum() == len(bounds) - 2  # contiguous except across the gap
+    assert next_start == bounds[-1, 1]
+
+
+@pytest.mark.parametrize("integration", ["trapezoid", "euler"])
+def test_integrated_rate_regressor_matches_per_sample_regressor(robot, integration):
+    rng = np.random.default_rng(2)
+    t, q, v, _ = E.fourier_trajectory(rng, robot, 0.35, 1000.0, centre=CENTRE)
+    t = t + rng.uniform(0, 2e-4, len(t)) * (np.arange(len(t)) > 0)  # uneven steps
+    bounds, _ = E.segment_bounds(t, 0.1, 0.05)
+    fast = E.integrated_rate_regressor(robot.tree, q, v, t, bounds, integration)
+    wc = robot.momentum_rate_regressor(q, v)[..., :10 * robot.n]
+    ref = np.stack([np.tensordot(E.sample_weights(t, a, b, integration), wc[a:b + 1], 1) for a, b in bounds])
+    assert np.abs(fast - ref).max() <= 1e-12 * np.abs(ref).max()
+
+
+def test_momentum_identity_and_quadrature_error_is_covered(robot, dumbbells):
+    """Noise-free data and the true θ: every row's residual is the pure quadrature error; it is
+    inside the (safety-scaled) quadrature estimate and tiny next to the declared torque bound."""
+    rng = np.random.default_rng(3)
+    theta, theta_e = true_theta(rng, robot, dumbbells["8lb"])
+    t, q, v, _, tau = E.simulate_log(rng, robot, theta, 3.0, centre=CENTRE)
+    settings = E.EstimatorSettings()
+    bounds, _ = E.segment_bounds(t, settings.horizon_s, settings.max_gap_s)
+    rows = E.build_segment_rows(robot, t, q, v, tau, bounds, settings, theta)
+    resid = rows.Y @ theta_e + np.einsum("snk,k->sn", rows.D_r, theta[robot.rest_mask()]) - rows.T
+    assert np.all(np.abs(resid) <= rows.quad)
+    torque_bound = rows.w_first[:, None] * rows.r_first + rows.w_last[:, None] * rows.r_last + rows.r_inner
+    assert np.abs(resid).max() < 0.05 * torque_bound.min()  # quadrature error << noise bound
+
+
+def test_euler_quadrature_error_is_covered(robot, dumbbells):
+    rng = np.random.default_rng(4)
+    theta, theta_e = true_theta(rng, robot, dumbbells["6lb"])
+    t, q, v, _, tau = E.simulate_log(rng, robot, theta, 1.0, centre=CENTRE)
+    settings = E.EstimatorSettings(integration="euler")
+    bounds, _ = E.segment_bounds(t, settings.horizon_s, settings.max_gap_s)
+    rows = E.build_segment_rows(robot, t, q, v, tau, bounds, settings, theta)
+    resid = rows.Y @ theta_e + np.einsum("snk,k->sn", rows.D_r, theta[robot.rest_mask()]) - rows.T
+    assert np.all(np.abs(resid) <= rows.quad)
+
+
+# ---- solver and sensitivity ---------------------------------------------------------------------
+def test_cost_gradient_and_hessian_are_exact():
+    rng = np.random.default_rng(5)
+    Y = rng.normal(size=(60, 10))
+    U = rng.normal(size=60)
+    A, b, c = E.ls_cost_terms(Y, U)
+    eta = rng.normal(scale=0.3, size=10)
+    J, g, H = E.cost_grad_hess(eta, A, b, c)
+    J2, g2 = E.cost_and_gradient(eta, A, b, c)
+    theta = inertial.log_cholesky_to_theta(eta)
+    assert J == pytest.approx(0.5 * np.sum((Y @ theta - U) ** 2), rel=1e-10)
+    assert J2 == pytest.approx(J, rel=1e-12) and np.allclose(g2, g, rtol=1e-10, atol=1e-12)
+    h = 1e-6
+    for k in range(10):
+        d = np.zeros(10)
+        d[k] = h
+        gp, gm = E.cost_grad_hess(eta + d, A, b, c)[1], E.cost_grad_hess(eta - d, A, b, c)[1]
+        assert g[k] == pytest.approx((E.cost_grad_hess(eta + d, A, b, c)[0] - E.cost_grad_hess(eta - d, A, b, c)[0]) / (2 * h), rel=1e-5, abs=1e-6)
+        assert np.allclose(H[:, k], (gp - gm) / (2 * h), rtol=1e-5, atol=1e-5)
+
+
+def test_solver_recovers_consistent_optimum_and_ift_equals_linear_map(robot):
+    """Interior optimum: θ0 = Y⁺U, and the paper's implicit-function sensitivity equals the
+    constant linear map Y⁺ ∂U/∂m (the residual-curvature term vanishes at the optimum)."""
+    rng = np.random.default_rng(6)
+    theta_true = robot.theta_e + payload_theta_in_end_effector(
+        load_dumbbells(MODELS_DIR / "dumbbells.yaml")["5lb"], robot.extra["grasp_point"])
+    Y = rng.normal(size=(80, 10)) * np.r_[5.0, 1, 1, 1, 0.3, 0.3, 0.3, 0.3, 0.3, 0.3]
+    U = Y @ theta_true + rng.normal(scale=1e-3, size=80)
+    A, b, c = E.ls_cost_terms(Y, U)
+    sol = E.solve_log_cholesky(A, b, c, np.zeros(10))
+    theta_ls = np.linalg.lstsq(Y, U, rcond=None)[0]
+    assert inertial.is_physically_consistent(theta_ls)
+    assert sol.success
+    assert np.allclose(sol.theta, theta_ls, rtol=1e-7, atol=1e-9)
+    dU_dm = rng.normal(size=(80, 30))
+    sens = E.ift_sensitivity(sol.eta, A, b, Y.T @ dU_dm)
+    assert np.allclose(sens, np.linalg.pinv(Y) @ dU_dm, rtol=1e-6, atol=1e-9)
+
+
+def test_solver_stays_finite_when_the_lmi_is_active():
+    """Unconstrained optimum not physically consistent: infimum on the LMI boundary; the solver
+    returns a finite, consistent θ close to the best consistent cost."""
+    rng = np.random.default_rng(7)
+    theta_bad = np.array([1.0, 0, 0, 0, -0.1, 0.2, 0.2, 0, 0, 0])  # negative inertia
+    Y = rng.normal(size=(50, 10))
+    A, b, c = E.ls_cost_terms(Y, Y @ theta_bad)
+    sol = E.solve_log_cholesky(A, b, c, np.zeros(10))
+    assert np.all(np.isfinite(sol.theta)) and inertial.is_physically_consistent(sol.theta)
+    proj = E.nearest_consistent(theta_bad)
+    assert sol.cost <= E.cost_grad_hess(inertial.theta_to_log_cholesky(proj), A, b, c)[0] + 1e-9
+
+
+# ---- the guarantee ----------------------------------------------------------------------------------
+@pytest.mark.slow
+@pytest.mark.parametrize("payload", PAYLOADS)
+def test_truth_inside_interval_in_every_randomized_run(robot, dumbbells, payload):
+    """Gen3 + dumbbell, random exciting motion, θ_r inside ±5%, uniform torque noise inside the
+    declared bound: the truth is inside [θ_e] after every update of every run; θ0's mass within
+    2%; mass interval within ±0.5 kg after 7.5 s at 1 kHz."""
+    runs = n_trials(2, 50)
+    mass_err, half = [], []
+    for seed in range(runs):
+        rng = np.random.default_rng(1000 * PAYLOADS.index(payload) + seed)
+        theta, theta_e = true_theta(rng, robot, dumbbells[payload])
+        t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 7.5, 1000.0, centre=CENTRE)
+        _, history = run_online(robot, t, q, v, tau)
+        for k, est in enumerate(history):
+            assert est.consistent, est.message
+            assert est.contains(theta_e), (seed, k, est.lower, est.upper, theta_e)
+            assert np.all(est.lower <= est.upper)
+        final = history[-1]
+        mass_err.append(abs(final.theta_e[0] - theta_e[0]) / theta_e[0])
+        half.append(0.5 * (final.upper[0] - final.lower[0]))
+    assert max(mass_err) <= 0.02, mass_err
+    assert max(half) <= 0.5, half
+
+
+@pytest.mark.parametrize("integration", ["trapezoid", "euler"])
+def test_containment_with_uneven_steps_and_gaps(robot, dumbbells, integration):
+    rng = np.random.default_rng(11)
+    theta, theta_e = true_theta(rng, robot, dumbbells["7lb"])
+    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 7.5, 1000.0, centre=CENTRE)
+    keep = np.ones(len(t), bool)
+    keep[rng.choice(len(t), 1500, replace=False)] = False  # dropped samples (uneven steps)
+    keep[3000:3500] = False  # a 0.5 s gap
+    keep[0] = True
+    settings = E.EstimatorSettings(integration=integration)
+    est = E.identify(robot, t[keep], q[keep], v[keep], tau[keep], settings)
+    assert est.consistent and est.contains(theta_e)
+    ie = E.IncrementalEstimator(robot, settings)
+    ie.add(t[keep], q[keep], v[keep], tau[keep])
+    t_k = t[keep]
+    for a, b in zip(ie.rows.start_index, ie.rows.end_index):
+        assert np.max(np.diff(t_k[a:b + 1])) <= settings.max_gap_s
+
+
+def test_bound_is_not_vacuous_containment_fails_when_noise_exceeds_it(robot, dumbbells):
+    """Same experiment with torque noise 10x the declared bound: the truth falls outside the
+    interval or the estimator reports the data inconsistent, in most runs."""
+    failures = 0
+    runs = 4
+    for seed in range(runs):
+        rng = np.random.default_rng(500 + seed)
+        theta, theta_e = true_theta(rng, robot, dumbbells["8lb"])
+        t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 7.5, 1000.0, centre=CENTRE, noise_scale=10.0)
+        _, history = run_online(robot, t, q, v, tau)
+        if any((not e.contains(theta_e)) or (not e.consistent) for e in history):
+            failures += 1
+    assert failures >= runs - 1
+
+
+def test_theta_r_outside_its_box_is_caught(robot, dumbbells):
+    """θ_r perturbed by 40% while the estimator declares 5%: containment fails or is flagged."""
+    rng = np.random.default_rng(21)
+    theta, theta_e = true_theta(rng, robot, dumbbells["8lb"], ratio=0.0)
+    theta[robot.rest_mask()] *= 1.4
+    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 7.5, 1000.0, centre=CENTRE)
+    _, history = run_online(robot, t, q, v, tau)
+    assert any((not e.contains(theta_e)) or (not e.consistent) for e in history)
+
+
+def test_set_membership_lp_is_certified_and_tighter(robot, dumbbells):
+    rng = np.random.default_rng(31)
+    theta, theta_e = true_theta(rng, robot, dumbbells["6lb"])
+    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 4.5, 1000.0, centre=CENTRE)
+    plain = E.identify(robot, t, q, v, tau, E.EstimatorSettings(set_membership="none"))
+    full = E.identify(robot, t, q, v, tau, E.EstimatorSettings(set_membership="all"))
+    assert full.contains(theta_e) and plain.contains(theta_e)
+    assert np.all(full.widths <= plain.widths + 1e-12)
+    assert full.widths[0] < 0.9 * plain.widths[0]
+
+
+def test_interval_reports_widths_cond_and_radii(robot, dumbbells):
+    rng = np.random.default_rng(41)
+    theta, theta_e = true_theta(rng, robot, dumbbells["5lb"])
+    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 3.0, 1000.0, centre=CENTRE)
+    est = E.identify(robot, t, q, v, tau)
+    assert np.isfinite(est.cond_Y) and est.cond_Y >= 1
+    assert est.widths.shape == (10,) and np.all(est.widths > 0)
+    for part in (est.radius_torque, est.radius_theta_r, est.radius_quadrature, est.radius_rounding):
+        assert np.all(part >= 0)
+    assert est.case in ("interior", "interior_at_m", "lmi_active")
+    doc = est.to_json()
+    assert len(doc["nominal"]) == 10 and doc["names"][0] == "m"
+    # Whole-robot outputs: θ_r nominal and its box, end effector replaced.
+    assert np.allclose(est.theta[robot.rest_mask()], robot.theta[robot.rest_mask()])
+    assert np.all(est.theta_lower <= est.theta) or est.case != "interior"
+    assert np.allclose(est.theta_lower[robot.ee_slice], est.lower)
+
+
+# ---- incremental use, intersection, bad input ------------------------------------------------------
+def test_incremental_chunks_give_the_batch_segments(robot, dumbbells):
+    rng = np.random.default_rng(51)
+    theta, _ = true_theta(rng, robot, dumbbells["4lb"])
+    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 3.0, 1000.0, centre=CENTRE)
+    batch = E.IncrementalEstimator(robot)
+    batch.add(t, q, v, tau)
+    inc = E.IncrementalEstimator(robot)
+    cuts = np.sort(rng.choice(np.arange(1, len(t)), 17, replace=False))
+    for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(t)]):
+        inc.add(t[a:b], q[a:b], v[a:b], tau[a:b])
+    assert len(inc.rows) == len(batch.rows)
+    assert np.array_equal(inc.rows.start_index, batch.rows.start_index)
+    assert np.allclose(inc.rows.Y, batch.rows.Y, rtol=1e-12, atol=1e-12)
+    assert np.allclose(inc.rows.T, batch.rows.T, rtol=1e-12, atol=1e-12)
+    assert np.array_equal(inc.rows.shared_prev, batch.rows.shared_prev)
+    e1, e2 = batch.update(), inc.update()
+    assert np.allclose(e1.lower, e2.lower, rtol=1e-9, atol=1e-12)
+
+
+def test_intersection_never_returns_an_inverted_interval(robot, dumbbells):
+    rng = np.random.default_rng(61)
+    theta, theta_e = true_theta(rng, robot, dumbbells["8lb"])
+    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 3.0, 1000.0, centre=CENTRE)
+    wrong_prior = (np.r_[10.0, -np.ones(9)], np.r_[11.0, np.ones(9)])  # excludes the true mass
+    est = E.identify(robot, t, q, v, tau, prior=wrong_prior)
+    assert not est.consistent and "inconsistent" in est.message
+    assert np.all(est.lower <= est.upper)
+    good_prior = (theta_e - 0.5, theta_e + 0.5)
+    est = E.identify(robot, t, q, v, tau, prior=good_prior)
+    assert est.consistent and est.contains(theta_e)
+    assert np.all(est.lower >= good_prior[0]) and np.all(est.upper <= good_prior[1])
+
+
+def test_bad_input_is_rejected(robot):
+    rng = np.random.default_rng(71)
+    t, q, v, _ = E.fourier_trajectory(rng, robot, 1.0, 1000.0, centre=CENTRE)
+    tau = np.zeros_like(q)
+    est = E.IncrementalEstimator(robot)
+    with pytest.raises(E.EstimatorError, match="joints"):
+        est.add(t, q[:, :6], v, tau)
+    bad = q.copy()
+    bad[5, 2] = np.nan
+    with pytest.raises(E.EstimatorError, match="NaN"):
+        est.add(t, bad, v, tau)
+    t_bad = t.copy()
+    t_bad[10] = t_bad[9]
+    with pytest.raises(E.EstimatorError, match="increasing"):
+        est.add(t_bad, q, v, tau)
+    short = E.IncrementalEstimator(robot)
+    short.add(t[:50], q[:50], v[:50], tau[:50])  # 0.05 s: not one 0.1 s segment
+    with pytest.raises(E.EstimatorError, match="too little data"):
+        short.update()
