@@ -1,0 +1,315 @@
+"""The planner's constraints are conservative in continuous time (checked densely with Drake's
+signed distance on the true geometry, the actual ARMOUR law and random parameters), they are not
+vacuous, and the exciting cost is right."""
+import numpy as np
+import pytest
+
+from conftest import n_trials
+from safesysid.scenario import Obstacle, Planner
+from safesysid.systems import controller as ctl
+from safesysid.systems import planner as P
+from safesysid.systems import reachability as reach
+from safesysid.systems.intervals import Interval
+from safesysid.systems.payload import load_dumbbells, payload_theta_in_end_effector
+from safesysid.systems.robot_model import MODELS_DIR, load_robot
+
+Q0 = np.array([0.0, 0.26, 0.0, 2.0, 0.0, 0.9, 1.57])
+GAINS = ctl.ArmourGains(Kr=np.array([5.0] * 4 + [7.0] * 3), alpha=20.0, V_max=0.02)
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return load_robot(coulomb_smoothing=0.01)
+
+
+@pytest.fixture(scope="module")
+def payload():
+    return load_dumbbells(MODELS_DIR / "dumbbells.yaml")["4lb"]
+
+
+def theta_box(robot, payload, ee_ratio=0.2):
+    theta0 = robot.theta.copy()
+    sl = robot.ee_slice
+    theta0[sl] = robot.theta_e + payload_theta_in_end_effector(payload, robot.extra["grasp_point"])
+    rel = 0.05 * np.abs(theta0)
+    rel[sl] = ee_ratio * np.abs(theta0[sl])
+    return theta0, theta0 - rel, theta0 + rel
+
+
+def scene_obstacles():
+    """Three boxes 6-12 cm from the arm/payload at Q0 (in front, beside, above the wrist)."""
+    return [Obstacle(name="front", xyz_m=[0.56, -0.02, 0.17], rpy_rad=[0, 0, 0.3], size_m=[0.1, 0.3, 0.34]),
+            Obstacle(name="side", xyz_m=[0.30, 0.27, 0.30], rpy_rad=[0, 0, -0.4], size_m=[0.2, 0.08, 0.4]),
+            Obstacle(name="above", xyz_m=[0.28, -0.05, 0.88], rpy_rad=[0.2, 0, 0], size_m=[0.3, 0.3, 0.1])]
+
+
+def make_planner(robot, payload, obstacles, **cfg):
+    theta0, lo, hi = theta_box(robot, payload)
+    bounds = ctl.tracking_bounds_for(robot, GAINS, lo)
+    config = Planner(**{"num_cost_samples": 32, **cfg})
+    return P.SafePlanner(robot, config, obstacles, payload, bounds), (theta0, lo, hi)
+
+
+class DrakeScene:
+    """The true geometry: the URDF's collision spheres, the dumbbell's cylinders at the grasp
+    point (not its covering spheres) and the boxes, queried with Drake's signed distance."""
+
+    def __init__(self, robot, payload, obstacles):
+        from pydrake.geometry import Box, Cylinder
+        from pydrake.math import RigidTransform, RollPitchYaw
+        from pydrake.multibody.plant import CoulombFriction
+        from pydrake.systems.framework import DiagramBuilder
+
+        from safesysid.systems.robot_model import make_plant
+
+        builder = DiagramBuilder()
+        self.plant, self.sg, _ = make_plant(robot.source, builder=builder)
+        plant = self.plant
+        self.obstacle_ids = set()
+        for o in obstacles:
+            self.obstacle_ids.add(plant.RegisterCollisionGeometry(
+                plant.world_body(), RigidTransform(RollPitchYaw(o.rpy_rad), o.xyz_m), Box(*o.size_m), o.name,
+                CoulombFriction()))
+        ee = plant.GetBodyByName(robot.body_names[robot.end_effector])
+        grasp = np.asarray(robot.extra["grasp_point"], float)
+        for k, (_, x, r, length) in enumerate(payload.parts()):
+            pose = RigidTransform(RollPitchYaw(0, np.pi / 2, 0), grasp + [x, 0, 0])  # cylinder z -> EE x
+            plant.RegisterCollisionGeometry(ee, pose, Cylinder(r, length), f"payload_{k}", CoulombFriction())
+        plant.Finalize()
+        self.diagram = builder.Build()
+        self.ctx = self.diagram.CreateDefaultContext()
+        self.pctx = plant.GetMyContextFromRoot(self.ctx)
+        self.sgctx = self.sg.GetMyContextFromRoot(self.ctx)
+
+    def min_obstacle_distance(self, q):
+        self.plant.SetPositions(self.pctx, q)
+        query = self.sg.get_query_output_port().Eval(self.sgctx)
+        best = np.inf
+        for pair in query.ComputeSignedDistancePairwiseClosestPoints(0.3):
+            if (pair.id_A in self.obstacle_ids) != (pair.id_B in self.obstacle_ids):
+                best = min(best, pair.distance)
+        return best
+
+
+def check_plan_densely(robot, planner, thetas, k, scene, rng, samples=400):
+    """Continuous trajectory at dense instants + random tracking errors inside the ultimate bound +
+    random theta in [theta]: no penetration, limits hold, |u| of the ARMOUR law within limits."""
+    theta0, lo, hi = thetas
+    prob_reach = planner._last_problem.reach
+    jp = robot.joint_params
+    b = planner.tracking
+    n = robot.n
+    t = np.sort(np.concatenate([rng.uniform(0, prob_reach.T, samples - 2), [0.0, prob_reach.T]]))
+    qd, vd, ad = prob_reach.bezier.evaluate(t, prob_reach.q_end(k))
+    dyn = ctl.ControllerDynamics(robot)
+    box = Interval(lo, hi)
+    stats = dict(samples=0, torque_samples=0, min_distance=np.inf, max_torque_ratio=0.0)
+    spheres = planner.spheres
+    for m in range(len(t)):
+        e = rng.uniform(-1, 1, n) * b.position
+        edot = rng.uniform(-1, 1, n) * b.velocity
+        q, v = qd[m] - e, vd[m] - edot
+        assert np.all(q >= jp.position_lower) and np.all(q <= jp.position_upper)
+        assert np.all(np.abs(v) <= jp.velocity_limit)
+        dist = scene.min_obstacle_distance(q)
+        assert dist >= 0.0, f"penetration {dist} at t={t[m]}"
+        c, _ = reach.sphere_centres(robot.tree, spheres, q[None], with_jacobian=False)
+        assert np.all(c[0, :, 2] - spheres.radius >= planner.floor_z)
+        stats["min_distance"] = min(stats["min_distance"], dist)
+        stats["samples"] += 1
+        # Torque: the ARMOUR command at a state inside V <= V_max (smaller errors so h >= 0).
+        e_s, edot_s = 0.3 * e, 0.1 * edot
+        theta_true = rng.uniform(lo, hi)
+        out = ctl.armour_control(dyn, GAINS, qd[m] - e_s, vd[m] - edot_s, qd[m], vd[m], ad[m], theta0, box)
+        if out.h >= 0:
+            assert np.all(np.abs(out.u) <= jp.torque_limit)
+            tau_true = dyn.regressors(qd[m] - e_s, vd[m] - edot_s, out.err.qd_a, out.err.qdd_a, out.err.r)[0] @ theta_true
+            assert np.all(np.abs(tau_true) <= jp.torque_limit)
+            stats["torque_samples"] += 1
+            stats["max_torque_ratio"] = max(stats["max_torque_ratio"], float(np.max(np.abs(out.u) / jp.torque_limit)))
+    return stats
+
+
+@pytest.fixture(scope="module")
+def planned(robot, payload):
+    """A planner on the 3-box scene, with its last problem kept for the dense checks."""
+    obstacles = scene_obstacles()
+    planner, thetas = make_planner(robot, payload, obstacles)
+    orig = planner.problem
+
+    def keep(*args, **kw):
+        planner._last_problem = orig(*args, **kw)
+        return planner._last_problem
+
+    planner.problem = keep
+    return planner, thetas, DrakeScene(robot, payload, obstacles)
+
+
+def test_ee_regressor_equals_the_robot_model_columns(robot):
+    rng = np.random.default_rng(0)
+    q, v, a = (rng.normal(size=(20, robot.n)) for _ in range(3))
+    ours = P.ee_standard_regressor(robot.tree, robot.end_effector, q, v, a)
+    assert np.allclose(ours, robot.standard_regressor(q, v, a)[..., robot.ee_slice], atol=1e-12)
+
+
+def test_exciting_cost_gradient_matches_finite_differences(robot, payload, planned):
+    planner, thetas, _ = planned
+    rng = np.random.default_rng(1)
+    prob = planner.problem(Q0 + 0.1, rng.uniform(-0.2, 0.2, 7), rng.uniform(-0.2, 0.2, 7), *thetas)
+    for _ in range(3):
+        k = rng.uniform(-1, 1, 7)
+        val, grad, W = prob.exciting_cost(k)
+        s = np.linalg.svd(W, compute_uv=False)
+        assert np.isclose(val, np.log(s[0] / s[-1]))
+        h = 1e-6
+        fd = np.array([(prob.exciting_cost(k + h * e)[0] - prob.exciting_cost(k - h * e)[0]) / (2 * h) for e in np.eye(7)])
+        assert np.allclose(grad, fd, rtol=1e-5, atol=1e-6)
+
+
+def test_planned_and_random_plans_are_safe_in_continuous_time(robot, planned):
+    """Monte Carlo: feasible k (optimized, then random feasible ones) checked densely."""
+    planner, thetas, scene = planned
+    rng = np.random.default_rng(2)
+    res = planner.plan(Q0, np.zeros(7), np.zeros(7), *thetas)
+    assert res.ok, res.reason
+    ks = [res.k]
+    prob = planner._last_problem
+    while len(ks) < n_trials(4, 20):
+        k = rng.uniform(prob.k_lo, prob.k_hi)
+        if prob.is_feasible(k):
+            ks.append(k)
+    totals = dict(samples=0, torque_samples=0, min_distance=np.inf, max_torque_ratio=0.0)
+    for k in ks:
+        st = check_plan_densely(robot, planner, thetas, k, scene, rng, samples=n_trials(250, 1500))
+        totals["samples"] += st["samples"]
+        totals["torque_samples"] += st["torque_samples"]
+        totals["min_distance"] = min(totals["min_distance"], st["min_distance"])
+        totals["max_torque_ratio"] = max(totals["max_torque_ratio"], st["max_torque_ratio"])
+    print("conservativeness", len(ks), "plans", totals)
+    assert totals["torque_samples"] > 0.5 * totals["samples"]
+    # The optimized plan uses the room it has: some obstacle comes within a few cm.
+    assert totals["min_distance"] < 0.08
+
+
+def test_receding_horizon_plans_from_a_moving_state_are_safe(robot, planned):
+    planner, thetas, scene = planned
+    rng = np.random.default_rng(3)
+    res = planner.plan(Q0, np.zeros(7), np.zeros(7), *thetas)
+    q, v, a = (x[0] for x in res.evaluate([1.5]))
+    for solver in ("ipopt", "snopt"):
+        planner.config.solver = solver
+        nxt = planner.plan(q, v, a, *thetas, k_init=res.k)
+        assert nxt.ok, nxt.reason
+        # the new plan starts exactly where the old one is at t_p
+        q1, v1, a1 = (x[0] for x in nxt.evaluate([0.0]))
+        assert np.allclose(q1, q) and np.allclose(v1, v) and np.allclose(a1, a)
+        check_plan_densely(robot, planner, thetas, nxt.k, scene, rng, samples=n_trials(150, 1000))
+    planner.config.solver = "ipopt"
+
+
+def test_a_colliding_plan_is_rejected_and_the_planner_goes_around(robot, payload):
+    """Put a box where the payload ends up for k = k_bad: k_bad must be infeasible (the nominal
+    trajectory really collides), and the planner must still find a safe plan."""
+    n = robot.n
+    theta0, lo, hi = theta_box(robot, payload)
+    from pydrake.math import RollPitchYaw, RotationMatrix
+
+    # Wider shoulder/elbow ranges than the default so a sphere moves farther than its start margin.
+    k_range = [np.pi / 12] * 4 + [np.pi / 20] * 3
+    planner, thetas = make_planner(robot, payload, [], k_range_rad=k_range)
+    prob = planner.problem(Q0, np.zeros(n), np.zeros(n), theta0, lo, hi)
+    sp = planner.spheres
+    margin = sp.radius + prob.spread[:4].max(0)
+    c0, _ = reach.sphere_centres(robot.tree, sp, Q0[None], with_jacobian=False)
+    best = -np.inf
+    for pattern in np.sign(np.random.default_rng(5).normal(size=(64, n))):
+        k = np.clip(pattern, prob.k_lo, prob.k_hi)
+        c, _ = reach.sphere_centres(robot.tree, sp, prob.reach.q_end(k)[None], with_jacobian=False)
+        room = np.linalg.norm(c - c0, axis=-1)[0] - margin
+        if room.max() > best:
+            best, k_bad, s, c1 = room.max(), k, int(room.argmax()), c
+    assert best > 0.02
+    q_end = prob.reach.q_end(k_bad)
+    u = (c1 - c0)[0, s] / np.linalg.norm((c1 - c0)[0, s])
+    gap = margin[s] + 0.005
+    # A 10 cm cube facing the motion, just outside the start's safety margin.
+    gap = sp.radius[s] + prob.spread[:4, s].max() + 0.005
+    basis = np.linalg.qr(np.stack([u, np.cross(u, [0, 0, 1.0]), [0, 0, 1.0]], 1))[0]
+    basis *= np.sign(np.diag(basis))
+    basis[:, 2] = np.cross(basis[:, 0], basis[:, 1])
+    rpy = RollPitchYaw(RotationMatrix(basis)).vector()
+    need = sp.radius + prob.spread[:4].max(0) + 0.005  # every sphere's start margin
+    m = len(sp)
+    for dist in np.arange(gap, gap + 0.1, 0.002):  # the nearest placement clear of every sphere
+        centre = c0[0, s] + (dist + 0.05) * u
+        sd, _ = reach.box_signed_distance(c0[0], np.broadcast_to(centre, (m, 3)), np.broadcast_to(basis, (m, 3, 3)),
+                                          np.full((m, 3), 0.05))
+        if np.all(sd >= need):
+            break
+    box = Obstacle(name="trap", xyz_m=centre.tolist(), rpy_rad=list(rpy), size_m=[0.1, 0.1, 0.1])
+    planner, thetas = make_planner(robot, payload, [box], cost="exciting", k_range_rad=k_range)
+    prob = planner.problem(Q0, np.zeros(n), np.zeros(n), theta0, lo, hi)
+    scene = DrakeScene(robot, payload, [box])
+    assert scene.min_obstacle_distance(q_end) < -0.01  # the nominal end pose really penetrates
+    assert prob.feasible_start, prob.reason
+    assert not prob.is_feasible(k_bad)
+    vals, _ = prob.collision(k_bad, with_jacobian=False)
+    assert vals.min() < 0
+    # Every sampled k whose nominal trajectory touches the box is rejected.
+    rng = np.random.default_rng(6)
+    t = np.linspace(0, 3.0, 120)
+    colliding = 0
+    for _ in range(40):
+        k = rng.uniform(prob.k_lo, prob.k_hi)
+        q, _, _ = prob.reach.bezier.evaluate(t, prob.reach.q_end(k))
+        if min(scene.min_obstacle_distance(x) for x in q) < 0:
+            colliding += 1
+            assert not prob.is_feasible(k)
+    assert colliding > 0
+    res = planner.plan(Q0, np.zeros(n), np.zeros(n), theta0, lo, hi, k_init=k_bad)
+    assert res.ok, res.reason
+    q, _, _ = res.evaluate(np.linspace(0, 3.0, 300))
+    assert min(scene.min_obstacle_distance(x) for x in q) > 0
+
+
+def test_start_inside_an_obstacle_margin_gives_no_plan_and_a_reason(robot, payload):
+    n = robot.n
+    theta0, lo, hi = theta_box(robot, payload)
+    planner, _ = make_planner(robot, payload, [])
+    c, _ = reach.sphere_centres(robot.tree, planner.spheres, Q0[None], with_jacobian=False)
+    box = Obstacle(name="touching", xyz_m=(c[0, 5] + [0.0, 0.0, 0.0]).tolist(), size_m=[0.05, 0.05, 0.05])
+    planner, _ = make_planner(robot, payload, [box])
+    res = planner.plan(Q0, np.zeros(n), np.zeros(n), theta0, lo, hi)
+    assert not res.ok and res.status == "infeasible_start"
+    assert "touching" in res.reason and res.k is None
+
+
+def test_torque_limits_that_cannot_be_guaranteed_give_no_plan(robot, payload):
+    from dataclasses import replace
+
+    weak = replace(robot, joint_params=replace(robot.joint_params, torque_limit=np.full(robot.n, 15.0)))
+    theta0, lo, hi = theta_box(robot, payload)
+    planner, _ = make_planner(weak, payload, [])
+    res = planner.plan(Q0, np.zeros(7), np.zeros(7), theta0, lo, hi)
+    assert not res.ok and "torque" in res.reason
+
+
+def test_exciting_beats_random_on_the_condition_number(robot, payload):
+    planner, thetas = make_planner(robot, payload, scene_obstacles(), num_cost_samples=64)
+    rng = np.random.default_rng(4)
+    res = planner.plan(Q0, np.zeros(7), np.zeros(7), *thetas)
+    assert res.ok
+    conds = []
+    for _ in range(8):
+        r = planner.plan(Q0, np.zeros(7), np.zeros(7), *thetas, mode="random", rng=rng)
+        assert r.ok and r.status == "random"
+        conds.append(r.cond)
+    print("cond exciting", res.cond, "random", np.round(conds))
+    assert res.cond < 0.8 * np.median(conds)
+
+
+def test_goal_mode_moves_toward_the_goal(robot, payload):
+    goal = Q0 + np.array([0.05, -0.03, 0.02, 0.04, -0.1, 0.1, 0.05])
+    planner, thetas = make_planner(robot, payload, [], cost="goal", goal_q_rad=goal.tolist())
+    res = planner.plan(Q0, np.zeros(7), np.zeros(7), *thetas)
+    assert res.ok and np.linalg.norm(res.q_end - goal) < 0.01
