@@ -24,12 +24,15 @@ int W_e dt = [Wm_e] - int Wc_e dt, int tau_dot dt = d tau). Effects and their ph
                                                              would let it soak up any residual)
   payload            W_e(q, v, a) dtheta_e (10 params)       theta_e0 + dtheta_e physically
                                                              consistent (log-Cholesky), dm >= 0
-  time_delay         model side (nominal + all effect rows)   tau_meas(t) = tau_true(t - d), 0 <= d <= 0.2 s
-                     read d earlier: grid shift + first-order (only smooth model rows are interpolated,
-                     lag column -d' dtau/dt for the rest      never the noisy measurement)
+  time_delay         two laws, the better fit is kept:
+                     pure delay: model side (nominal + all   tau_meas(t) = tau_true(t - d), 0 <= d <= 0.2 s
+                     effect rows) read d earlier, grid to    (only smooth model rows are interpolated,
+                     5 ms                                    never the noisy measurement)
+                     first-order lag: -d dtau_meas/dt        tau_meas + d dtau_meas/dt = tau_true (exact)
   base_tilt          G(q; g_x) x + G(q; g_y) y               gravity gains horizontal parts (x, y)|g|
-  joint_elasticity   -(dg/dq_j)(q) tau_j c_j                 link angle q - tau/k, c = 1/k >= 0
-                                                             (quasi-static deflection under load)
+  joint_elasticity   -(d tau_rigid/dq_j) tau_j c_j           link angle q - tau/k, c = 1/k >= 0
+                                                             (quasi-static deflection under load; tau_j
+                                                             from neighbouring samples, no shared noise)
 Fits are bounded linear least squares (scipy lsq_linear on the Cholesky factor of the normal
 equations, so each fit costs microseconds); the payload uses a log-Cholesky Gauss-Newton
 (scipy least_squares) when the linear fit is not physically consistent.
@@ -56,16 +59,17 @@ EFFECTS = ("coulomb_friction", "viscous_friction", "stribeck_friction", "armatur
            "torque_scale", "payload", "time_delay", "base_tilt", "joint_elasticity")
 PER_JOINT = ("coulomb_friction", "viscous_friction", "stribeck_friction", "armature", "torque_offset",
              "torque_scale", "joint_elasticity")
-STRIBECK_VELOCITIES = tuple(round(0.02 * 1.3 ** k, 4) for k in range(10))  # rad/s grid for vs (0.02..0.21)
+STRIBECK_VELOCITIES = tuple(round(0.02 * 1.5 ** k, 4) for k in range(7))  # rad/s grid for vs (0.02..0.23)
 BLOCK_S = 0.5
 Z_BLOCK = 3.0
 MIN_RELATIVE = 0.01
 MIN_NOISE_FRACTION = 0.05
 MAX_DELAY_S = 0.2
 DELAY_STEP_S = 0.02
+DELAY_FINE_S = 0.005
 DELAY_GRID_S = tuple(np.round(np.arange(0.0, MAX_DELAY_S + 1e-9, DELAY_STEP_S), 6))
 MAX_TILT = 0.2
-MAX_COMPLIANCE = 0.05  # rad/(N m)
+MAX_COMPLIANCE = 0.02  # rad/(N m)
 REGIME_QUANTILE = 0.75
 
 
@@ -136,6 +140,22 @@ def _gravity(tree, theta_b, q, gravity=None):
     return regressors.standard_regressor(tree, q, z, z) @ theta_b
 
 
+def _neighbour_mean(x, segs):
+    """(x[i-1] + x[i+1]) / 2 inside segments: a smooth-signal estimate that shares no white
+    measurement noise with x[i] (so a column built from it is not correlated with the
+    residual's own noise)."""
+    out = np.empty_like(x)
+    for s0, s1 in segs:
+        seg = x[s0:s1 + 1]
+        if len(seg) < 3:
+            out[s0:s1 + 1] = seg
+            continue
+        o = out[s0:s1 + 1]
+        o[1:-1] = 0.5 * (seg[:-2] + seg[2:])
+        o[0], o[-1] = seg[1], seg[-2]
+    return out
+
+
 def _diag(x):
     """(N, n) -> (N, n, n) with x on the diagonal (per-joint effect columns)."""
     n = x.shape[1]
@@ -183,9 +203,13 @@ def build_design(model, log, form, window_s=0.1, max_gap_s=None, columns=True):
         std_cols["torque_offset"] = _diag(np.ones_like(v))
         std_cols["base_tilt"] = np.stack([_gravity(tree, theta_b, q, [gnorm, 0, 0]),
                                           _gravity(tree, theta_b, q, [0, gnorm, 0])], -1)
+        # d tau_rigid / dq at the logged motion (acceleration: logged, else the smoothed one).
         h = 1e-6
-        dgdq = np.stack([(_gravity(tree, theta_b, q + h * np.eye(n)[j]) - g) / h for j in range(n)], -1)
-        std_cols["joint_elasticity"] = -dgdq * tau[:, None, :]
+        a_el = log.a if (form == "inverse_dynamics" and log.a is not None) else a_smooth
+        tau0 = regressors.standard_regressor(tree, q, v, a_el) @ theta_b
+        dtdq = np.stack([(regressors.standard_regressor(tree, q + h * np.eye(n)[j], v, a_el) @ theta_b - tau0) / h
+                         for j in range(n)], -1)
+        std_cols["joint_elasticity"] = -dtdq * _neighbour_mean(tau, segs)[:, None, :]
     ee = [model.end_effector]
     if form == "inverse_dynamics":
         a = log.a
@@ -197,7 +221,10 @@ def build_design(model, log, form, window_s=0.1, max_gap_s=None, columns=True):
             cols["torque_scale"] = _diag(tau_nom)
             cols["armature"] = _diag(a)
             cols["payload"] = W[:, :, model.ee_slice]
+            # Savitzky-Golay derivative: zero weight on the centre sample, so the column shares
+            # no white noise with the residual row.
             cols["time_delay"] = -smooth_derivative(t, tau, segs)[:, :, None]
+            cols["time_delay@shift"] = np.zeros(y.shape + (0,))
         rows = np.arange(len(t))
         row_time = t
         feat = {"v": v, "a": a, "g": g}
@@ -224,6 +251,7 @@ def build_design(model, log, form, window_s=0.1, max_gap_s=None, columns=True):
             wc_e = _cumtrapz(t, Wc[:, :, model.ee_slice])
             cols["payload"] = ((wm_e[i1] - wm_e[i0]) - (wc_e[i1] - wc_e[i0])) / s3
             cols["time_delay"] = (-(tau[i1] - tau[i0]) / span)[:, :, None]
+            cols["time_delay@shift"] = np.zeros(y.shape + (0,))
         rows = (i0 + i1) // 2
         row_time = 0.5 * (t[i0] + t[i1])
         feat = {"v": v[rows], "a": a_smooth[rows], "g": g[rows]}
@@ -285,6 +313,8 @@ def effect_groups(effect):
     """Column groups that realise an effect (Stribeck: one per grid velocity, alternatives)."""
     if effect == "stribeck_friction":
         return [f"stribeck_friction@{vs}" for vs in STRIBECK_VELOCITIES]
+    if effect == "time_delay":  # first-order lag of the measurement, or a pure delay
+        return ["time_delay", "time_delay@shift"]
     return [effect]
 
 
@@ -401,21 +431,27 @@ class Problem:
     def solve(self, groups):
         """Constrained least squares on the fit logs for the union of `groups`.
 
-        A time delay d = d_grid + delta: the model side is shifted by d_grid on a grid
-        (DELAY_GRID_S) and the remainder delta (|delta| <= one grid step) is the first-order lag
-        column -dtau/dt, so the delay is exact to second order in delta. params['time_delay'] =
-        [d_grid, delta]. Returns (params dict group -> array, fit SSE)."""
-        if "time_delay" not in groups:
+        A time delay is a 1-D search: the model side (nominal torque and every effect row) is
+        read d earlier, on a coarse grid (DELAY_STEP_S) refined to DELAY_FINE_S around the best
+        point; only smooth model rows are interpolated, never the noisy measurement.
+        Returns (params dict group -> array, fit SSE)."""
+        if "time_delay@shift" not in groups:
             return self._solve_linear(groups, 0.0)
-        best = None
-        for d in DELAY_GRID_S:
-            params, sse = self._solve_linear(groups, d, consistent=False)
-            if best is None or sse < best[1]:
-                best = (d, sse)
-        params, sse = self._solve_linear(groups, best[0])
+        others = [g for g in groups if g != "time_delay@shift"]
+
+        def sse(d):
+            return self._solve_linear(others, d, consistent=False)[1]
+
+        coarse = {float(d): sse(d) for d in DELAY_GRID_S}
+        d0 = min(coarse, key=coarse.get)
+        fine = np.round(np.arange(d0 - DELAY_STEP_S + DELAY_FINE_S, d0 + DELAY_STEP_S, DELAY_FINE_S), 6)
+        fine = {float(d): sse(d) for d in fine if 0.0 <= d <= MAX_DELAY_S}
+        coarse.update(fine)
+        best = min(coarse, key=coarse.get)
+        params, err = self._solve_linear(others, best)
         params = dict(params)
-        params["time_delay"] = np.array([best[0], params["time_delay"][0]])
-        return {g: params[g] for g in groups}, sse
+        params["time_delay@shift"] = np.array([best])
+        return {g: params[g] for g in groups}, err
 
     def _solve_linear(self, groups, delay, consistent=True):
         from scipy.optimize import lsq_linear
@@ -436,8 +472,6 @@ class Problem:
         lo, hi = [], []
         for g in groups:
             l, h = group_bounds(self.model, g, self.k[g])
-            if g == "time_delay":  # the fine lag around the grid delay
-                l, h = np.array([max(-DELAY_STEP_S, -delay)]), np.array([DELAY_STEP_S])
             lo.append(l)
             hi.append(h)
         lo, hi = np.concatenate(lo) * s, np.concatenate(hi) * s
@@ -510,10 +544,11 @@ class Problem:
         return q
 
     def _residual(self, system, params):
-        A, y = system(params["time_delay"][0] if "time_delay" in params else 0.0)
+        A, y = system(params["time_delay@shift"][0] if "time_delay@shift" in params else 0.0)
         r = y.copy()
         for g, p in params.items():
-            r -= A[:, self.index([g])] @ (p[1:] if g == "time_delay" else p)
+            if g != "time_delay@shift":
+                r -= A[:, self.index([g])] @ p
         return r
 
     def check_residual(self, params):
@@ -537,8 +572,8 @@ def fit_effects(problem, effects):
 
 
 def n_params(params):
-    """Free parameters of a fit (the time delay is one, though stored as [grid, fine])."""
-    return sum(len(p) for p in params.values()) - ("time_delay" in params)
+    """Free parameters of a fit."""
+    return sum(len(p) for p in params.values())
 
 
 def noise_variance(r, block):
@@ -644,7 +679,8 @@ def effect_params(model, effect, params, group_used):
         return {"theta_delta": lst(p), "theta_e": lst(model.theta_e + p), "mass_kg": m,
                 "com_m": lst(p[1:4] / m) if m > 1e-9 else [0.0, 0.0, 0.0]}
     if effect == "time_delay":
-        return {"delay_s": float(p[0] + p[1]) if len(p) > 1 else float(p[0])}
+        return {"delay_s": float(p[0]),
+                "law": "pure delay tau(t - d)" if group_used.endswith("@shift") else "first-order lag tau + d dtau/dt"}
     if effect == "base_tilt":
         gx, gy = float(p[0]), float(p[1])
         roll = float(-np.arcsin(np.clip(gy, -1, 1)))

@@ -13,7 +13,7 @@ How a log is made (fast and deterministic given the seed):
     [0.5 %, 3 %].
 Effect sizes are drawn as a signal-to-noise ratio: the effect's torque RMS on the joints it
 acts on is SNR times the noise RMS there (SNR in [1, 4]), capped by physical limits (delay
-<= 50 ms, tilt <= 0.05 rad, ...). Logs are written with or without the acceleration columns.
+<= 50 ms, tilt <= 0.05 rad, compliance <= 0.003 rad/(N m), scale within +-15 %, payload <= 5 kg ...). Logs are written with or without the acceleration columns.
 """
 from __future__ import annotations
 
@@ -137,7 +137,7 @@ def _unit_effect(name, model, rng, joints):
     if name == "torque_offset":
         return {"delta": mask * sign * rng.uniform(0.5, 1.5, n)}, 10.0
     if name == "torque_scale":
-        return {"scale": 1.0 + mask * sign * rng.uniform(0.02, 0.04, n)}, 0.3
+        return {"scale": 1.0 + mask * sign * rng.uniform(0.02, 0.04, n)}, 0.15
     if name == "payload":
         return {"mass_kg": 1.0, "theta": payload_theta(model, 1.0, rng)}, 5.0
     if name == "time_delay":
@@ -146,7 +146,7 @@ def _unit_effect(name, model, rng, joints):
         ang = rng.uniform(-1, 1, 2)
         return {"roll_pitch_rad": 0.01 * ang / np.abs(ang).max()}, 0.05
     if name == "joint_elasticity":
-        return {"compliance": mask * rng.uniform(0.5, 1.5, n) * 1e-3}, 0.02
+        return {"compliance": mask * rng.uniform(0.5, 1.5, n) * 1e-3}, 0.003
     raise ValueError(name)
 
 
@@ -166,7 +166,7 @@ def _scale_effect(name, eff, factor, cap):
         v = np.asarray(e["roll_pitch_rad"]) * factor
         e["roll_pitch_rad"] = v * min(1.0, cap / np.abs(v).max())
     elif name == "joint_elasticity":
-        e["compliance"] = e["compliance"] * factor
+        e["compliance"] = np.minimum(e["compliance"] * factor, cap)
     else:
         d = e["delta"] * factor
         e["delta"] = np.clip(d, -cap, cap)

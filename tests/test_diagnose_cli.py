@@ -1,0 +1,125 @@
+"""`safesysid diagnose` end to end: contract fields, report, plots, corrected parameters,
+bad input -> one line, exit 2."""
+import json
+
+import numpy as np
+import pytest
+
+from safesysid.cli import main
+from safesysid.joint_log import JointLog, write_joint_log
+from safesysid.systems import gap
+from safesysid.systems import gap_simulate as gs
+from safesysid.systems.robot_model import load_robot
+from test_gap import TWO_LINK
+
+
+@pytest.fixture(scope="module")
+def case(tmp_path_factory):
+    """A 2-link arm URDF and three logs with viscous friction on joint 1 withheld."""
+    root = tmp_path_factory.mktemp("diag")
+    urdf = root / "two_link.urdf"
+    urdf.write_text(TWO_LINK)
+    model = load_robot(urdf)
+    rng = np.random.default_rng(21)
+    paths = []
+    for k in range(3):
+        traj = gs.random_trajectory(model, rng)
+        t = gs.sample_times(rng, 10.0)
+        q, v, a, tau = gs.true_torque(model, traj, t, {"viscous_friction": {"delta": np.array([1.5, 0.0])}})
+        tau = tau + 0.2 * rng.uniform(-1, 1, tau.shape)
+        paths.append(write_joint_log(root / f"log{k}.csv", JointLog(t, q, v, tau, a if k != 1 else None)))
+    return root, urdf, paths
+
+
+def test_diagnose_writes_the_contract(case, capsys):
+    root, urdf, (a, b, c) = case
+    out = root / "out"
+    assert main(["diagnose", "--model", str(urdf), "--fit", str(a), str(b), "--check", str(c), "--out", str(out)]) == 0
+    res = json.loads((out / "diagnosis.json").read_text())
+    g = res["gap"]
+    for key in ("rms_fit", "rms_check", "rms_check_per_joint", "where"):
+        assert key in g
+    assert len(g["rms_check_per_joint"]) == 2 and set(g["where"]["joints"]) == {1, 2}
+    assert set(g["where"]["regimes"]) >= {"near_zero_velocity", "high_acceleration", "high_speed", "high_gravity_load"}
+    assert [e["name"] for e in res["effects"]][0] == "viscous_friction"
+    assert sorted(e["name"] for e in res["effects"]) == sorted(gap.EFFECTS)
+    for e in res["effects"]:
+        assert set(e) >= {"name", "joints", "params", "rms_check_after", "reduction", "significant"}
+        assert 0.0 <= e["reduction"] <= 1.0
+    assert res["cause"] == ["viscous_friction"]
+    comb = res["combined"]
+    assert comb["effects"] == ["viscous_friction"] and comb["reduction"] > 0.5
+    assert len(comb["rms_check_per_joint_after"]) == 2
+    # One log has no accelerations -> the whole diagnosis uses the momentum form, and the
+    # differentiator comparison is reported.
+    assert g["residual_form"] == "momentum"
+    assert "inverse_dynamics_smoothed_a" in next(iter(g["residual_forms"].values()))
+    report = (out / "report.md").read_text()
+    assert "viscous_friction" in report and f"{g['rms_check']:.3f}" in report
+    for name in ("residual_vs_velocity.png", "residual_vs_acceleration.png", "residual_vs_gravity.png",
+                 "residual_timeseries.png", "joint_rms.png"):
+        assert (out / name).stat().st_size > 1000
+    # Feed back: the corrected parameters load as a joint-parameter YAML with the fitted friction.
+    fixed = load_robot(params_path=out / "corrected_params.yaml")
+    assert fixed.joint_params.viscous[0] == pytest.approx(1.5, abs=0.2)
+    assert fixed.joint_params.viscous[1] == pytest.approx(0.0, abs=1e-12)
+    assert "held-out RMS" in capsys.readouterr().out
+
+
+def test_corrected_model_closes_the_gap(case):
+    """Diagnosing again with the corrected parameters leaves nothing significant."""
+    root, urdf, (a, b, c) = case
+    from safesysid.joint_log import read_joint_log
+
+    out = root / "out2"
+    assert main(["diagnose", "--model", str(urdf), "--fit", str(a), str(b), "--check", str(c), "--out", str(out)]) == 0
+    fixed = load_robot(params_path=out / "corrected_params.yaml")
+    logs = [read_joint_log(p, 2) for p in (a, b, c)]
+    d = gap.diagnose(fixed, logs[:2], logs[2:])
+    assert d.result["cause"] == []
+
+
+def _one_line_exit_2(argv, capsys, needle):
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0], err
+
+
+def test_bad_input_is_one_line_exit_2(case, tmp_path, capsys):
+    root, urdf, (a, b, c) = case
+    base = ["diagnose", "--model", str(urdf), "--out", str(tmp_path / "o")]
+    text = a.read_text().splitlines()
+    header = text[0].split(",")
+    # Missing column.
+    drop = header.index("tau2")
+    bad = tmp_path / "missing.csv"
+    bad.write_text("\n".join(",".join(x for k, x in enumerate(r.split(",")) if k != drop) for r in text))
+    _one_line_exit_2(base + ["--fit", str(bad), "--check", str(c)], capsys, "tau2")
+    # NaN.
+    rows = [r.split(",") for r in text]
+    rows[5][2] = "nan"
+    nan = tmp_path / "nan.csv"
+    nan.write_text("\n".join(",".join(r) for r in rows))
+    _one_line_exit_2(base + ["--fit", str(nan), "--check", str(c)], capsys, "NaN")
+    # Joint count different from the model (the 7-joint Kinova).
+    kin = tmp_path / "kinova.yaml"
+    kin.write_text("name: k\n")
+    _one_line_exit_2(["diagnose", "--model", str(kin), "--fit", str(a), "--check", str(c), "--out", str(tmp_path / "o")],
+                     capsys, "joints")
+    # A URDF that does not load.
+    broken = tmp_path / "broken.urdf"
+    broken.write_text("<robot name='x'><link name='a'/><joint name='j' type='revolute'><parent link='a'/></joint></robot>")
+    _one_line_exit_2(["diagnose", "--model", str(broken), "--fit", str(a), "--check", str(c), "--out", str(tmp_path / "o")],
+                     capsys, "broken.urdf")
+    # No model.
+    _one_line_exit_2(["diagnose", "--fit", str(a), "--check", str(c)], capsys, "--model")
+
+
+def test_self_check_cli(tmp_path, capsys):
+    out = tmp_path / "sc"
+    assert main(["diagnose", "--self-check", "--cases", "2", "--seed", "3", "--out", str(out)]) == 0
+    res = json.loads((out / "self_check.json").read_text())
+    assert res["summary"]["cases"] == 2 and res["summary"]["null_cases"] == 1
+    assert res["cases"][0]["injected"] == [] and res["cases"][0]["named"] == []
+    assert "injected \\ named" in (out / "confusion.md").read_text()
+    assert "injected effects named" in capsys.readouterr().out
