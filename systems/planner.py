@@ -233,12 +233,13 @@ class PlanningProblem:
         pl = self.planner
         spheres, lips = pl.spheres, pl.lipschitz
         r = self.reach
-        self.spread = r.rho @ lips.T  # (nint, m)
         k_mid = 0.5 * (self.k_lo + self.k_hi)
         k_half = 0.5 * (self.k_hi - self.k_lo)
-        c, _ = reach.sphere_centres(pl.robot.tree, spheres, r.q_mid(k_mid), with_jacobian=False)
+        c, jac = reach.sphere_centres(pl.robot.tree, spheres, r.q_mid(k_mid))
+        k_dev = np.abs(r.w_mid)[:, None] * (r.kr * k_half)[None, :]  # |q_mid(k) - q_mid(k_mid)|
+        self.spread = reach.local_spread(pl.robot.tree, lips, np.linalg.norm(jac, axis=-1), r.rho, r.rho + k_dev)
         # Centre motion over the whole k box (Lipschitz): used to drop pairs no k can activate.
-        k_motion = (np.abs(r.w_mid)[:, None] * (r.kr * k_half)[None, :]) @ lips.T  # (nint, m)
+        k_motion = k_dev @ lips.T  # (nint, m)
         need = spheres.radius[None, :] + self.spread  # required clearance of the centre
         nint, m = self.spread.shape
         ii, ss = np.meshgrid(np.arange(nint), np.arange(m), indexing="ij")

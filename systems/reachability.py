@@ -173,6 +173,22 @@ def sphere_lipschitz(tree, spheres):
     return out
 
 
+def local_spread(tree, lipschitz, jac_norm, rho, reach_radius):
+    """spread (N, m) with |c_s(q) - c_s(q_mid)| <= spread for |q - q_mid| <= rho (per joint).
+
+    |dc_s/dq_j| is the distance of c_s from axis j. Joints above j and j itself move c_s and the
+    axis together (distance unchanged); a joint l below j moves c_s by at most L_sl |dq_l|. So on
+    the box q_c +- reach_radius (which contains every segment used: all k, the tube):
+        |dc_s/dq_j(q)| <= |dc_s/dq_j(q_c)| + sum_{l below j} L_sl reach_radius_l,
+    capped by the global L_sj; the mean value theorem along the segment gives the spread.
+    jac_norm (N, m, n) = |dc_s/dq_j| at q_c; rho, reach_radius (N, n).
+    """
+    below = tree.ancestors() & ~np.eye(tree.n, dtype=bool)  # [j, l]: joint l is below joint j
+    drift = np.einsum("sl,nl,jl->nsj", lipschitz, reach_radius, below.astype(float))
+    local = np.minimum(lipschitz[None], jac_norm + drift)
+    return _up(_up(np.einsum("nsj,nj->ns", local, rho)) * (1 + 1e-12))
+
+
 def sphere_centres(tree, spheres, q, with_jacobian=True):
     """Centres (N, m, 3) in world and d c / d q (N, m, n, 3) at configurations q (N, n)."""
     kin = regressors.forward_kinematics(tree, q)

@@ -220,3 +220,23 @@ def test_torque_bound_covers_the_controller_command_inside_the_tube(robot):
             worst = max(worst, np.max(np.abs(out.u) / sup[idx[m]]))
     assert checked > 200
     assert worst > 0.2  # the bound is not absurdly loose
+
+
+def test_local_spread_bounds_sphere_motion_on_joint_boxes(robot, spheres):
+    rng = np.random.default_rng(8)
+    n = robot.n
+    lips = reach.sphere_lipschitz(robot.tree, spheres)
+    q_c = rng.uniform(-2, 2, size=(40, n))
+    rho = rng.uniform(0.0, 0.08, size=(40, n))
+    c, jac = reach.sphere_centres(robot.tree, spheres, q_c)
+    spread = reach.local_spread(robot.tree, lips, np.linalg.norm(jac, axis=-1), rho, rho)
+    assert np.all(spread <= rho @ lips.T + 1e-12)  # never worse than the global bound
+    worst = 0.0
+    for _ in range(60):
+        pick = rng.uniform(-1, 1, size=q_c.shape)
+        pick = np.where(rng.uniform(size=q_c.shape) < 0.5, np.sign(pick), pick)  # many corners
+        cq, _ = reach.sphere_centres(robot.tree, spheres, q_c + pick * rho, with_jacobian=False)
+        moved = np.linalg.norm(cq - c, axis=-1)
+        assert np.all(moved <= spread)
+        worst = max(worst, np.max(moved / spread))
+    assert worst > 0.5  # and reasonably tight
