@@ -69,7 +69,7 @@ def _inertia_times(x):
 def _to_body(R, p, x):
     w, u = x[..., :3], x[..., 3:]
     rt = np.swapaxes(R, -1, -2)
-    return np.concatenate([np.einsum("...ij,...j->...i", rt, w), np.einsum("...ij,...j->...i", rt, u + _cross(w, p))], -1)
+    return np.concatenate([(rt @ w[..., None])[..., 0], (rt @ (u + _cross(w, p))[..., None])[..., 0]], -1)
 
 
 def ee_standard_regressor(tree, body, q, v, a):
@@ -119,7 +119,7 @@ def ee_standard_regressor(tree, body, q, v, a):
     anc = np.flatnonzero(tree.ancestors()[:, e])
     sb = _to_body(R[e][:, None], p[e][:, None], S[:, anc])  # (N, k, 6)
     out = np.zeros((nsamp, n, 10), dtype)
-    out[:, anc] = np.einsum("nkr,ncr->nkc", sb, y)
+    out[:, anc] = sb @ np.swapaxes(y, -1, -2)
     return out
 
 

@@ -606,11 +606,11 @@ def interval_passivity_regressor(robot, q, v, va, aa):
         ys[i] = _body_wrench_regressor(vel[i], vela[i], acc[i])  # (N, 10, 6)
     lo = np.zeros((nsamp, n, 14 * n))
     hi = np.zeros((nsamp, n, 14 * n))
-    for i in range(n):
+    for i in range(n):  # body i's wrench columns carried up to every joint above it
         f = ys[i]
         j = i
         while j >= 0:
-            col = (f * _I(s_local[j])[None, None]).sum(-1)  # (N, 10)
+            col = (f * s_local[j][None, None]).sum(-1)  # (N, 10)
             lo[:, j, 10 * i:10 * i + 10], hi[:, j, 10 * i:10 * i + 10] = col.lo, col.hi
             par = tree.parent[j]
             if par < 0:
