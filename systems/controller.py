@@ -36,54 +36,24 @@ def friction_index(n, joint, name):
     return 10 * n + 4 * joint + ("Fc", "Fv", "Ia", "beta").index(name)
 
 
-# Small-array versions of regressors.skew / cross_motion / ... (same math, fewer numpy calls:
-# at one sample, call overhead dominates).
-_C1, _C2 = np.array([1, 2, 0]), np.array([2, 0, 1])
+# Spatial algebra as constant tensors, built once from regressors.py's definitions: every
+# bilinear map becomes one matrix product on the outer product of its arguments (at a single
+# sample, numpy call overhead dominates, so fewer and larger calls win).
+_E6 = np.eye(6)
+_CROSS_MOTION = np.stack([regressors.cross_motion(_E6[k], _E6) for k in range(6)]).reshape(36, 6)
+_INERTIA = regressors.inertia_times(_E6).reshape(6, 60)  # K(x) = x @ _INERTIA  (6 x 10 blocks)
+# B(v) va = 1/2 [v x* K(va) + va x* K(v) - K(v x va)]  (Christoffel form, regressors.py)
+_BILINEAR = regressors.body_wrench_regressor(_E6[:, None].repeat(6, 1), _E6[None, :].repeat(6, 0),
+                                             np.zeros((6, 6, 6))).reshape(36, 60)
 
 
 def _cross(a, b):
-    return a[..., _C1] * b[..., _C2] - a[..., _C2] * b[..., _C1]
+    return np.cross(a, b)
 
 
-def _skew(v):
-    out = np.zeros(v.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
-
-
-def _cross_motion(v, m):
-    w, u = v[..., :3], v[..., 3:]
-    return np.concatenate([_cross(w, m[..., :3]), _cross(w, m[..., 3:]) + _cross(u, m[..., :3])], -1)
-
-
-def _cross_force_matrix(v):
-    sw, su = _skew(v[..., :3]), _skew(v[..., 3:])
-    out = np.zeros(v.shape[:-1] + (6, 6))
-    out[..., :3, :3] = sw
-    out[..., :3, 3:] = su
-    out[..., 3:, 3:] = sw
-    return out
-
-
-def _inertia_times(x):
-    w, u = x[..., :3], x[..., 3:]
-    k = np.zeros(x.shape[:-1] + (6, 10))
-    k[..., :3, 1:4] = -_skew(u)
-    wx, wy, wz = w[..., 0], w[..., 1], w[..., 2]
-    k[..., 0, 4], k[..., 0, 7], k[..., 0, 9] = wx, wy, wz
-    k[..., 1, 5], k[..., 1, 7], k[..., 1, 8] = wy, wx, wz
-    k[..., 2, 6], k[..., 2, 8], k[..., 2, 9] = wz, wy, wx
-    k[..., 3:, 0] = u
-    k[..., 3:, 1:4] = _skew(w)
-    return k
-
-
-def _to_body(R, p, x):
-    w, u = x[..., :3], x[..., 3:]
-    rt = np.swapaxes(R, -1, -2)
-    return np.concatenate([(rt @ w[..., None])[..., 0], (rt @ (u + _cross(w, p))[..., None])[..., 0]], -1)
+def _outer(a, b):
+    """Row-wise outer products (m, 6) x (m, 6) -> (m, 36)."""
+    return (a[:, :, None] * b[:, None, :]).reshape(len(a), -1)
 
 
 # ---- fast single-sample regressors ---------------------------------------------------------------
@@ -143,19 +113,23 @@ class ControllerDynamics:
         # Twists of v, va and x at once: [k, i] = sum over ancestors j of i of S_j x_k,j.
         V, vel_a, vel_x = np.einsum("ij,kj,jl->kil", self.anc_t, np.stack([v, va, x]), S)
         v_par = np.where(self.has_parent, V[self.parent_idx], 0.0)
-        Sdot = _cross_motion(v_par, S)
+        Sdot = _outer(v_par, S) @ _CROSS_MOTION  # dS_j/dt = V_parent(j) x S_j
         acc_a = self.gravity_acc + self.anc_t @ (S * aa[:, None] + Sdot * va[:, None])
-        # One change of frame for the body quantities and the screws X_i S_j.
-        world = np.concatenate([np.stack([V, vel_a, acc_a, vel_x], 1), np.broadcast_to(S, (n, n, 6))], 1)
-        body = _to_body(R[:, None], p[:, None], world)
-        vb, vab, ab, xb = body[:, 0], body[:, 1], body[:, 2], body[:, 3]
-        s_body = body[:, 4:] * self.anc_t[:, :, None]  # [i, j] = X_i S_j for ancestors j of i
-        # Y theta = I a + B(v) va, B(v) va = 1/2 [v x* I va + va x* I v - I (v x va)]  (regressors.py)
-        k = _inertia_times(np.stack([ab, vab, vb, _cross_motion(vb, vab), xb], 1))  # (n, 5, 6, 10)
-        xf = _cross_force_matrix(np.stack([vb, vab], 1))  # (n, 2, 6, 6)
-        y_p = k[:, 0] + 0.5 * (xf[:, 0] @ k[:, 1] + xf[:, 1] @ k[:, 2] - k[:, 3])
+        # Plucker transforms world (about O) -> body i: [w; u] -> [R^T w; R^T (u + w x p)].
+        rt = np.swapaxes(R, 1, 2)
+        X = np.zeros((n, 6, 6))
+        X[:, :3, :3] = rt
+        X[:, 3:, 3:] = rt
+        X[:, 3:, :3] = rt @ self._skew_neg(p)
+        world = np.concatenate([np.stack([V, vel_a, acc_a, vel_x], 2), np.broadcast_to(S.T, (n, 6, n))], 2)
+        body = X @ world  # (n, 6, 4 + n)
+        vb, vab, ab, xb = body[:, :, 0], body[:, :, 1], body[:, :, 2], body[:, :, 3]
+        s_body = np.swapaxes(body[:, :, 4:], 1, 2) * self.anc_t[:, :, None]  # [i, j] = X_i S_j, ancestors
+        # Body regressors: I a + B(v) va (passivity) and I x (momentum), each (n, 6, 10).
+        y_p = (ab @ _INERTIA + _outer(vb, vab) @ _BILINEAR).reshape(n, 6, 10)
+        y_m = (xb @ _INERTIA).reshape(n, 6, 10)
         out = np.zeros((2, n, 14 * n))
-        out[:, :, :10 * n] = np.einsum("ijk,bikl->bjil", s_body, np.stack([y_p, k[:, 4]])).reshape(2, n, 10 * n)
+        out[:, :, :10 * n] = np.einsum("ijk,bikl->bjil", s_body, np.stack([y_p, y_m])).reshape(2, n, 10 * n)
         idx, f0 = self.idx, 10 * n + 4 * self.idx
         out[0, idx, f0] = regressors.coulomb_shape(va, self.smoothing)
         out[0, idx, f0 + 1] = va
@@ -163,6 +137,15 @@ class ControllerDynamics:
         out[0, idx, f0 + 3] = 1.0
         out[1, idx, f0 + 2] = x
         return out[0], out[1]
+
+    @staticmethod
+    def _skew_neg(p):
+        """-[p]x for rows of p (so that R^T (-[p]x) w = R^T (w x p))."""
+        out = np.zeros((len(p), 3, 3))
+        out[:, 0, 1], out[:, 0, 2] = p[:, 2], -p[:, 1]
+        out[:, 1, 0], out[:, 1, 2] = -p[:, 2], p[:, 0]
+        out[:, 2, 0], out[:, 2, 1] = p[:, 1], -p[:, 0]
+        return out
 
     def gravity(self, q, theta):
         """g(q; theta) + beta (the passivity regressor at rest) (n,)."""
@@ -240,8 +223,13 @@ def armour_control(dyn: ControllerDynamics, gains: ArmourGains, q, v, q_d, qd_d,
     q, v = np.asarray(q, float), np.asarray(v, float)
     err = tracking_errors(gains.Kr, q, v, q_d, qd_d, qdd_d, dyn.robot.joint_params.continuous)
     wp, wm_r = dyn.regressors(q, v, err.qd_a, err.qdd_a, err.r)
-    tau_nom, _, w_bar = disturbance_bound(wp, theta0, theta_box)
-    V_bar = lyapunov_upper(wm_r, err.r, theta_box)
+    # [tau] and the hull of r^T M r in one interval product (same as disturbance_bound and
+    # lyapunov_upper, which the tests check separately).
+    n = len(q)
+    hull = matmul(np.vstack([wp, err.r @ wm_r]), theta_box)
+    tau_nom = wp @ theta0
+    w_bar = np.maximum(np.nextafter(np.maximum(hull.hi[:n] - tau_nom, tau_nom - hull.lo[:n]), np.inf), 0.0)
+    V_bar = 0.5 * float(hull.hi[n])
     h = gains.V_max - V_bar
     v_rob, lam = robust_input(err.r, w_bar, h, gains.alpha)
     return ArmourOutput(tau_nom + v_rob, tau_nom, v_rob, w_bar, V_bar, h, lam, err)
