@@ -214,9 +214,12 @@ class PlanningProblem:
         limit = self.planner.robot.joint_params.torque_limit
         centre = np.clip(np.zeros(self.n), self.k_lo, self.k_hi)
         lo, hi = self.k_lo.copy(), self.k_hi.copy()
+        group = max(1, int(self.planner.torque_group))
         for attempt in range(self.planner.torque_shrink_steps + 1):
-            q, v, va, aa = self.reach.state_boxes(lo, hi)
-            wp = reach.interval_passivity_regressor(self.planner.robot, q, v, va, aa)
+            # Hull of `group` consecutive intervals per box: the interval RNEA costs per call, not
+            # per box, and these boxes are dominated by the k range, not by the time span.
+            boxes = [_merge(x, group) for x in self.reach.state_boxes(lo, hi)]
+            wp = reach.interval_passivity_regressor(self.planner.robot, *boxes)
             sup, _, _ = reach.torque_bound(wp, theta0, theta_lo, theta_hi)
             ratio = (sup / limit).max()
             if ratio <= 1.0:
@@ -224,8 +227,9 @@ class PlanningProblem:
                 return True
             lo, hi = centre + 0.5 * (lo - centre), centre + 0.5 * (hi - centre)
         i, j = np.unravel_index(np.argmax(sup / limit), sup.shape)
+        t_box = self.reach.edges[min(i * group, len(self.reach.t_mid) - 1)]
         self._fail(f"torque limit of joint {j + 1} cannot be guaranteed (bound {sup[i, j]:.1f} N m > "
-                   f"{limit[j]:.1f} N m at t = {self.reach.t_mid[i]:.2f} s, robust term included)")
+                   f"{limit[j]:.1f} N m from t = {t_box:.2f} s, robust term included)")
         return False
 
     # -- collision pairs -------------------------------------------------------------------------
@@ -408,7 +412,8 @@ class SafePlanner:
     bound with ITS gains Kr; None means perfect tracking, for tests only).
     """
 
-    def __init__(self, robot, config, obstacles=(), payload=None, tracking=None, floor=True, torque_shrink_steps=3):
+    def __init__(self, robot, config, obstacles=(), payload=None, tracking=None, floor=True, torque_shrink_steps=3,
+                 torque_group=2):
         self.robot = robot
         self.config = config
         n = robot.n
@@ -421,6 +426,7 @@ class SafePlanner:
         self.floor_exempt = _floor_exempt(robot.tree, self.spheres)
         self.tracking = reach.TrackingBounds.coerce(tracking, n)
         self.torque_shrink_steps = torque_shrink_steps
+        self.torque_group = torque_group
 
     def problem(self, q0, v0, a0, theta0, theta_lo, theta_hi, mode=None):
         return PlanningProblem(self, q0, v0, a0, theta0, theta_lo, theta_hi, mode)
@@ -596,6 +602,17 @@ class SafePlanner:
     @property
     def n(self):
         return self.robot.n
+
+
+def _merge(box, group):
+    """Hull of consecutive groups of rows of an Interval (rows, n)."""
+    from .intervals import Interval
+
+    rows = box.lo.shape[0]
+    pad = (-rows) % group
+    lo = np.concatenate([box.lo, np.repeat(box.lo[-1:], pad, 0)]).reshape(-1, group, box.lo.shape[1])
+    hi = np.concatenate([box.hi, np.repeat(box.hi[-1:], pad, 0)]).reshape(-1, group, box.hi.shape[1])
+    return Interval(lo.min(1), hi.max(1))
 
 
 def _floor_exempt(tree, spheres):
