@@ -62,10 +62,10 @@ def run(quick: bool = False) -> dict:
     rng = np.random.default_rng(0)
     q, v = rng.normal(size=(2, robot.n))
     count = 300 if quick else 2000
-    t0 = time.perf_counter()
+    t0 = time.process_time()
     for _ in range(count):
         C.armour_control(dyn, gains, q, v, q + 0.01, v, v, theta0, box)
-    result["armour_law_us_per_step"] = (time.perf_counter() - t0) / count * 1e6
+    result["armour_law_cpu_us_per_step"] = (time.process_time() - t0) / count * 1e6
     if not quick:
         for kind in ("pid", "adaptive", "adaptive_robust"):
             result[f"{kind}_real_time_factor"], result[f"{kind}_cpu_real_time_factor"] = _loop_rtf(

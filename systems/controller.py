@@ -47,8 +47,12 @@ _BILINEAR = regressors.body_wrench_regressor(_E6[:, None].repeat(6, 1), _E6[None
                                              np.zeros((6, 6, 6))).reshape(36, 60)
 
 
+_CROSS3 = np.cross(np.eye(3)[:, None], np.eye(3)[None, :]).reshape(9, 3)
+
+
 def _cross(a, b):
-    return np.cross(a, b)
+    """Row-wise a x b for (m, 3) arrays (np.cross is slow on small arrays)."""
+    return (a[:, :, None] * b[:, None, :]).reshape(len(a), 9) @ _CROSS3
 
 
 def _outer(a, b):
@@ -84,6 +88,7 @@ class ControllerDynamics:
         self.idx = np.arange(n)
         self.x_pj = tree.X_parent_joint.copy()
         self.x_jc = tree.X_joint_child.copy()
+        self._eye4 = np.tile(np.eye(4), (n, 1, 1))
         self.serial = bool(np.all(self.parent == np.arange(n) - 1))  # a chain: cumulative product
 
     def _poses(self, q):
@@ -91,7 +96,7 @@ class ControllerDynamics:
         n = self.n
         s, c = np.sin(q), np.cos(q)
         # Homogeneous transform of body i in its carrier body: X_pj Rot(q_i) X_jc (batched).
-        rot = np.tile(np.eye(4), (n, 1, 1))
+        rot = self._eye4.copy()
         rot[:, :3, :3] += s[:, None, None] * self.k1 + (1 - c)[:, None, None] * self.k2
         G = self.x_pj @ rot @ self.x_jc
         if self.serial:
