@@ -28,6 +28,9 @@ from .bezier import QuinticBezier, restriction_matrix
 COLLISION_SOLVER_MARGIN_M = 1e-4  # the solver aims this far inside; verification asks >= 0
 
 
+_CAP_MESSAGE = "planner wall-time cap reached"
+
+
 class _WallTimeExceeded(Exception):
     """Raised from our callbacks to stop the solver at the wall-time cap (both Ipopt and SNOPT
     unwind cleanly; the best verified-feasible evaluated point is then used)."""
@@ -446,7 +449,7 @@ class SafePlanner:
         res.details["solver_constraints"] = prob.num_constraints
         res.max_torque_ratio = prob.torque_ratio
         if mode == "random":
-            k = self._random(prob, rng or np.random.default_rng())
+            k = self._random(prob, rng or np.random.default_rng(), t_start + self.config.max_solve_time_s)
             status, solver_status = "random", "sampled"
         else:
             k, status, solver_status = self._optimize(prob, k_init, t_start)
@@ -462,6 +465,12 @@ class SafePlanner:
             res.min_clearance_m = float(vals.min()) if len(vals) else float("inf")
             res.cost = prob.cost(k)[0] if mode != "random" else float("nan")
             res.cond = prob.cond(k)
+            # Over-approximated swept spheres per time interval (for display): every point of
+            # sphere s during interval i lies in the ball (centres[i, s], radii[i, s]).
+            centres, _ = reach.sphere_centres(self.robot.tree, self.spheres, prob.reach.q_mid(k), with_jacobian=False)
+            res.details["interval_edges_s"] = prob.reach.edges
+            res.details["sphere_centres"] = centres
+            res.details["sphere_radii"] = self.spheres.radius[None, :] + prob.spread
         res.solve_time_s = time.perf_counter() - t_start
         return res
 
@@ -481,11 +490,13 @@ class SafePlanner:
         return usable[0] if usable else cands[0]
 
     # -- random feasible k (ablation) ------------------------------------------------------------
-    def _random(self, prob, rng, tries=200):
+    def _random(self, prob, rng, deadline, tries=200):
         for _ in range(tries):
             k = rng.uniform(prob.k_lo, prob.k_hi)
             if prob.is_feasible(k):
                 return k
+            if time.perf_counter() > deadline:
+                break
         return None
 
     # -- optimization ----------------------------------------------------------------------------
@@ -504,7 +515,7 @@ class SafePlanner:
 
         def check_time():
             if time.perf_counter() > deadline:
-                raise _WallTimeExceeded
+                raise _WallTimeExceeded(_CAP_MESSAGE)
 
         def cost_eval(x):
             kk = key(x)
@@ -585,7 +596,7 @@ class SafePlanner:
         except _WallTimeExceeded:
             status = "wall_time_cap"
         except Exception as err:  # noqa: BLE001 -- solver failure: fall back on what was evaluated
-            status = "wall_time_cap" if "_WallTimeExceeded" in repr(err) else f"solver error: {str(err).splitlines()[0]}"
+            status = "wall_time_cap" if _CAP_MESSAGE in str(err) else f"solver error: {str(err).splitlines()[0]}"
         if status.startswith("solver error") and not record:
             return None, "solver_failed", status
         # Candidates: the solver's answer and every evaluated point; keep the best verified feasible.

@@ -313,3 +313,27 @@ def test_goal_mode_moves_toward_the_goal(robot, payload):
     planner, thetas = make_planner(robot, payload, [], cost="goal", goal_q_rad=goal.tolist())
     res = planner.plan(Q0, np.zeros(7), np.zeros(7), *thetas)
     assert res.ok and np.linalg.norm(res.q_end - goal) < 0.01
+
+
+def test_swept_spheres_of_a_plan_contain_the_spheres_along_the_tube(robot, payload):
+    planner, thetas = make_planner(robot, payload, [])
+    res = planner.plan(Q0, np.zeros(7), np.zeros(7), *thetas)
+    assert res.ok
+    edges, centres, radii = (res.details[k] for k in ("interval_edges_s", "sphere_centres", "sphere_radii"))
+    rng = np.random.default_rng(7)
+    t = rng.uniform(0, edges[-1], 2000)
+    idx = np.minimum(np.searchsorted(edges, t, side="right") - 1, len(edges) - 2)
+    q, _, _ = res.evaluate(t)
+    q = q + rng.uniform(-1, 1, q.shape) * planner.tracking.position
+    c, _ = reach.sphere_centres(robot.tree, planner.spheres, q, with_jacobian=False)
+    gap = np.linalg.norm(c - centres[idx], axis=-1) + planner.spheres.radius - radii[idx]
+    assert np.all(gap <= 0)
+
+
+def test_wall_time_cap_stops_the_solver_and_keeps_a_verified_point(robot, payload):
+    for solver in ("ipopt", "snopt"):
+        planner, thetas = make_planner(robot, payload, scene_obstacles(), solver=solver, max_solve_time_s=0.0)
+        res = planner.plan(Q0, np.zeros(7), np.zeros(7), *thetas)
+        assert res.solver_status == "wall_time_cap"
+        assert res.ok and res.status == "best_feasible"  # the warm start, verified feasible
+        assert planner.problem(Q0, np.zeros(7), np.zeros(7), *thetas).is_feasible(res.k)
