@@ -15,7 +15,8 @@ Signal path (everything from the scenario and the RobotModel; nothing hard-coded
 - Payload: a body welded at robot.extra["grasp_point"] on the end-effector link, dumbbell
   shaped (handle cylinder along the end-effector x, two head cylinders; visual + collision).
   `RealArm.set_payload(context, dumbbell | None)` grasps or releases it at run time by setting
-  the body's spatial inertia in the context (the geometry stays; a released payload is massless).
+  the body's spatial inertia in the context; a released payload is massless and loses its
+  collision role in the context (the shape stays the one the arm was built with; visual stays).
 - Torque sensor: tau_meas = scale * (tau_m + n) + offset, n uniform in +-(ratio |tau_m| + floor)
   per sample and joint (noise.distribution "none": n = 0); scale = 1, offset = 0 by default.
 
@@ -163,6 +164,8 @@ class RealArm:
     motor_torque_output: object  # OutputPort (n): saturated command (what the sensor measures)
     torque_sensor: object
     time_step: float
+    payload_collision: tuple = ()  # ((GeometryId, ProximityProperties), ...) of the dumbbell
+    robot_geometries: object = None  # GeometrySet of the arm + payload (no self-contact)
 
     @property
     def n(self):
@@ -178,6 +181,28 @@ class RealArm:
         ctx = self.plant_context(root_context)
         spatial = _dumbbell_spatial_inertia(dumbbell) if dumbbell is not None else SpatialInertia.Zero()
         self.payload_body.SetSpatialInertiaInBodyFrame(ctx, spatial)
+        self._set_payload_collision(root_context, dumbbell is not None)
+
+    def _set_payload_collision(self, root_context, present):
+        """A released dumbbell stops colliding (its proximity role leaves the context's model)."""
+        from pydrake.geometry import CollisionFilterDeclaration, Role
+
+        if not self.payload_collision:
+            return
+        sg_ctx = self.scene_graph.GetMyMutableContextFromRoot(root_context)
+        inspector = self.scene_graph.get_query_output_port().Eval(sg_ctx).inspector()
+        source = self.plant.get_source_id()
+        changed = False
+        for gid, props in self.payload_collision:
+            has = inspector.GetProximityProperties(gid) is not None
+            if present and not has:
+                self.scene_graph.AssignRole(sg_ctx, source, gid, props)
+                changed = True
+            elif not present and has:
+                self.scene_graph.RemoveRole(sg_ctx, source, gid, Role.kProximity)
+        if changed:  # a re-assigned role starts unfiltered: no contact with the arm, again
+            self.scene_graph.collision_filter_manager(sg_ctx).Apply(
+                CollisionFilterDeclaration().ExcludeWithin(self.robot_geometries))
 
     def set_state(self, root_context, q, v=None):
         ctx = self.plant_context(root_context)
@@ -233,7 +258,7 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
 
     dumbbell: "scenario" (the scenario's payload), a Dumbbell, or None (no payload at start).
     """
-    from pydrake.geometry import CollisionFilterDeclaration
+    from pydrake.geometry import CollisionFilterDeclaration, ProximityProperties
     from pydrake.math import RollPitchYaw
     from pydrake.multibody.tree import SpatialInertia
     from pydrake.math import RigidTransform
@@ -280,8 +305,11 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
     plant.Finalize()
     # The arm's own spheres overlap at the joints: no self-contact (obstacles and floor only).
     robot_bodies = [plant.get_body(i) for i in plant.GetBodyIndices(instance)] + [payload_body]
-    scene_graph.collision_filter_manager().Apply(
-        CollisionFilterDeclaration().ExcludeWithin(plant.CollectRegisteredGeometries(robot_bodies)))
+    robot_geometries = plant.CollectRegisteredGeometries(robot_bodies)
+    scene_graph.collision_filter_manager().Apply(CollisionFilterDeclaration().ExcludeWithin(robot_geometries))
+    inspector = scene_graph.model_inspector()
+    payload_collision = tuple((gid, ProximityProperties(inspector.GetProximityProperties(gid)))
+                              for gid in plant.GetCollisionGeometriesForBody(payload_body))
 
     sat = builder.AddSystem(Saturation(-jp.torque_limit, jp.torque_limit))
     sat.set_name("actuator_saturation")
@@ -320,4 +348,5 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
     return RealArm(robot=robot, plant=plant, scene_graph=scene_graph, instance=instance, payload_body=payload_body,
                    dumbbell=db, commanded_torque_input=sat.get_input_port(), state_output=state_out,
                    measured_torque_output=sensor.get_output_port(), applied_torque_output=applied_port,
-                   motor_torque_output=sat.get_output_port(), torque_sensor=sensor, time_step=h)
+                   motor_torque_output=sat.get_output_port(), torque_sensor=sensor, time_step=h,
+                   payload_collision=payload_collision, robot_geometries=robot_geometries)

@@ -199,3 +199,30 @@ def test_obstacles_and_floor_for_signed_distance(robot):
             if name.startswith("obstacle"):
                 dist[name] = min(dist.get(name, np.inf), pair.distance)
     assert dist["obstacle_0_on_payload"] < 0 < dist["obstacle_1_far"]
+
+
+def test_released_payload_stops_colliding(robot):
+    s = load_scenario(overrides={"payload": {"dumbbell": "8lb"}})
+    q0 = np.array(s.q0_rad)
+    kin = robot.forward_kinematics(q0[None])
+    grasp = kin.R[0, robot.end_effector] @ robot.extra["grasp_point"] + kin.p[0, robot.end_effector]
+    s = load_scenario(overrides={"payload": {"dumbbell": "8lb"},
+                                 "obstacles": [{"name": "at_grasp", "xyz_m": grasp.tolist(), "size_m": [0.03] * 3}]})
+    bell = scenario_dumbbell(s)
+    sim, arm, _ = _rig(s, robot, ControllerDynamics(robot).gravity(q0, true_theta(robot, bell)))
+    ctx = sim.get_mutable_context()
+    arm.set_state(ctx, q0)
+
+    def payload_pairs():
+        sg_ctx = arm.scene_graph.GetMyContextFromRoot(ctx)
+        query = arm.scene_graph.get_query_output_port().Eval(sg_ctx)
+        names = [(query.inspector().GetName(p.id_A), query.inspector().GetName(p.id_B))
+                 for p in query.ComputeSignedDistancePairwiseClosestPoints(0.5)]
+        return [n for n in names if any("dumbbell" in x for x in n)]
+
+    assert payload_pairs() and all(not ("dumbbell" in a and "dumbbell" in b) for a, b in payload_pairs())
+    arm.set_payload(ctx, None)
+    assert payload_pairs() == []
+    arm.set_payload(ctx, bell)
+    pairs = payload_pairs()
+    assert pairs and all("obstacle" in a or "obstacle" in b or "floor" in a or "floor" in b for a, b in pairs)
