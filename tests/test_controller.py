@@ -191,3 +191,26 @@ def test_parameter_box_contains_model(robot):
     theta0, box = C.parameter_box(robot, robot.theta_e, robot.theta_e - 0.1, robot.theta_e + 0.1)
     assert np.all(box.contains(robot.theta)) and np.all(box.contains(theta0))
     assert isinstance(box, Interval) and np.any(box.hi[10:] > box.lo[10:])
+
+
+def test_all_controllers_share_ports(robot):
+    from safesysid.scenario import load_scenario
+    from safesysid.systems.controllers import gains_from_scenario, make_controller
+
+    gains = gains_from_scenario(load_scenario(), robot.n)
+    n, p = robot.n, 14 * robot.n
+    expected = {"desired": 3 * n, "state": 2 * n, "theta0": p, "theta_lower": p, "theta_upper": p}
+    theta0, box = _box(robot, np.random.default_rng(6))
+    for kind in ("armour", "pid", "adaptive", "adaptive_robust"):
+        system = make_controller(kind, robot, gains, 0.001)
+        ports = {system.get_input_port(i).get_name(): system.get_input_port(i).size() for i in range(system.num_input_ports())}
+        assert ports == expected
+        assert system.GetOutputPort("torque").size() == n
+        ctx = system.CreateDefaultContext()
+        q = np.array([0.0, 0.26, 0.0, 2.0, 0.0, 0.9, 1.57])
+        for name, value in (("desired", np.concatenate([q, np.zeros(14)])), ("state", np.concatenate([q, np.zeros(7)])),
+                            ("theta0", theta0), ("theta_lower", box.lo), ("theta_upper", box.hi)):
+            system.GetInputPort(name).FixValue(ctx, value)
+        u = system.GetOutputPort("torque").Eval(ctx)
+        # At rest on the trajectory every law commands the nominal gravity + offset torque.
+        np.testing.assert_allclose(u, C.ControllerDynamics(robot).gravity(q, theta0), atol=1e-9)
