@@ -13,12 +13,12 @@ from safesysid.systems.inertial import NAMES, UNITS  # noqa: E402
 
 
 def plot_tracking(path, t, error, bound, torque_ratio):
-    """Per-joint |e| against the ultimate bound, and max |u|/limit."""
+    """Per-joint |e_i| / bound_i (1 = the certified ultimate bound), and max |u|/limit."""
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
-    ax1.plot(t, np.abs(error), lw=0.8)
-    ax1.plot(t, np.broadcast_to(np.max(bound), t.shape), "k--", label="ultimate bound")
-    ax1.set_ylabel("|q_d - q| [rad]")
-    ax1.legend(loc="upper right")
+    ax1.plot(t, np.abs(error) / np.asarray(bound), lw=0.8, label=[f"joint {k + 1}" for k in range(error.shape[1])])
+    ax1.axhline(1.0, color="k", ls="--", label="ultimate bound")
+    ax1.set_ylabel("|q_d - q| / bound")
+    ax1.legend(loc="upper right", fontsize=7, ncol=4)
     ax2.plot(t, torque_ratio, lw=0.8)
     ax2.axhline(1.0, color="k", ls="--")
     ax2.set_ylabel("max |u| / limit")

@@ -1,0 +1,277 @@
+"""Algorithm 2 as one Drake diagram: real arm <- ArmourController <- ExcitingPlanner, with the
+SysIdEstimator feeding (theta0, [theta]) back to both, refereed by the SafetyMonitor.
+
+Methods (paper Table III):
+  ours          exciting plans + identification
+  random        random feasible plans + identification (the ablation)
+  conservative  exciting plans, Table II interval throughout, no identification
+  wrong         no payload in the model, zero-width interval, no identification
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from safesysid.scenario import Scenario, robot_from_scenario
+from safesysid.systems.intervals import Interval
+
+IDENTIFYING = {"ours": True, "random": True, "conservative": False, "wrong": False}
+
+
+def prior(robot, scenario: Scenario, method):
+    """(theta0, [theta]) the controller and planner start from."""
+    from safesysid.systems.controller import parameter_box
+
+    ii = scenario.initial_interval
+    if method == "wrong":  # the bare end effector, no uncertainty anywhere
+        theta0 = robot.theta.copy()
+        return theta0, Interval(theta0, theta0)
+    ratio = scenario.noise.theta_r_ratio
+    return parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper), rest_ratio=ratio, friction_ratio=ratio)
+
+
+@dataclass
+class OnlineDiagram:
+    diagram: object
+    arm: object
+    controller: object
+    planner: object
+    estimator: object | None
+    monitor: object
+    loggers: dict
+    visualizer: object | None
+    meshcat: object | None
+    theta_prior: tuple
+    tracking: object
+    extras: dict = field(default_factory=dict)
+
+
+def _add_logger(builder, port, period, name):
+    from pydrake.systems.primitives import VectorLogSink
+
+    sink = builder.AddSystem(VectorLogSink(port.size(), period))
+    sink.set_name(f"log_{name}")
+    builder.Connect(port, sink.get_input_port())
+    return sink
+
+
+def _constant(builder, value, name):
+    from pydrake.systems.primitives import ConstantVectorSource
+
+    src = builder.AddSystem(ConstantVectorSource(np.asarray(value, float)))
+    src.set_name(name)
+    return src.get_output_port()
+
+
+def make_planner_system(robot, scenario, method, tracking, dumbbell, theta_prior, seed):
+    from safesysid.systems.planner import SafePlanner
+    from safesysid.systems.planner_system import ExcitingPlanner
+
+    mode = "random" if method == "random" else scenario.planner.cost
+    planner = SafePlanner(robot, scenario.planner, obstacles=scenario.obstacles, payload=dumbbell, tracking=tracking)
+    theta0, box = theta_prior
+    return ExcitingPlanner(planner, np.asarray(scenario.q0_rad, float), theta0, box.lo, box.hi, mode=mode, seed=seed)
+
+
+def identification_horizon_s(scenario):
+    """Plans start every t_p; the last one runs t_f to rest: (N - 1) t_p + t_f (7.5 s)."""
+    p = scenario.planner
+    return (p.num_plans - 1) * p.replan_period_s + p.duration_s
+
+
+def make_estimator_system(robot, scenario):
+    from safesysid.systems.sysid_system import SysIdEstimator
+
+    return SysIdEstimator(robot, scenario)
+
+
+def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> OnlineDiagram:
+    from pydrake.systems.framework import DiagramBuilder
+    from pydrake.systems.primitives import Multiplexer
+
+    from safesysid.systems.controller import tracking_bounds_for
+    from safesysid.systems.controllers import gains_from_scenario, make_controller
+    from safesysid.systems.real_arm import add_real_arm
+    from safesysid.systems.reachability import TrackingBounds
+    from safesysid.systems.safety_monitor import SafetyMonitor
+
+    method = method or scenario.method
+    robot = robot_from_scenario(scenario)
+    h = scenario.plant.time_step_s
+    builder = DiagramBuilder()
+    arm = add_real_arm(builder, scenario, robot=robot, seed=seed)
+    theta0, box = prior(robot, scenario, method)
+    gains = gains_from_scenario(scenario, robot.n)
+    controller = builder.AddSystem(make_controller(scenario.controller.kind, robot, gains, h))
+    controller.set_name("controller")
+    # The controller's certified bound (per-joint Kr) is what the planner must respect.
+    bounds = tracking_bounds_for(robot, gains.armour, box.lo)
+    tracking = TrackingBounds(position=bounds.position, velocity=bounds.velocity,
+                              ref_velocity=bounds.qd_a, ref_acceleration=bounds.qdd_a)
+    planner = builder.AddSystem(make_planner_system(robot, scenario, method, tracking, arm.dumbbell, (theta0, box),
+                                                    scenario.seed if seed is None else seed))
+    planner.set_name("planner")
+    desired = builder.AddSystem(Multiplexer([robot.n] * 3))
+    desired.set_name("desired_q_v_a")
+    for k, name in enumerate(("q_desired", "v_desired", "a_desired")):
+        builder.Connect(planner.GetOutputPort(name), desired.get_input_port(k))
+    estimator = None
+    if IDENTIFYING[method]:
+        estimator = builder.AddSystem(make_estimator_system(robot, scenario))
+        estimator.set_name("estimator")
+        builder.Connect(arm.state_output, estimator.GetInputPort("state"))
+        builder.Connect(arm.measured_torque_output, estimator.GetInputPort("measured_torque"))
+        theta_ports = [estimator.GetOutputPort(name) for name in ("theta0", "theta_lower", "theta_upper")]
+    else:
+        theta_ports = [_constant(builder, v, f"prior_{k}") for k, v in enumerate((theta0, box.lo, box.hi))]
+    for name, port in zip(("theta0", "theta_lower", "theta_upper"), theta_ports):
+        builder.Connect(port, controller.GetInputPort(name))
+        builder.Connect(port, planner.GetInputPort(name))
+    builder.Connect(desired.get_output_port(), controller.GetInputPort("desired"))
+    builder.Connect(arm.state_output, controller.GetInputPort("state"))
+    builder.Connect(controller.GetOutputPort("torque"), arm.commanded_torque_input)
+
+    monitor = builder.AddSystem(SafetyMonitor(arm.plant, arm.scene_graph, robot, period_s=h))
+    monitor.set_name("safety_monitor")
+    builder.Connect(arm.scene_graph.get_query_output_port(), monitor.query_port)
+    builder.Connect(arm.plant.get_state_output_port(arm.instance), monitor.state_port)
+    builder.Connect(arm.motor_torque_output, monitor.torque_port)
+
+    loggers = {
+        "state": _add_logger(builder, arm.state_output, h, "state"),
+        "measured_torque": _add_logger(builder, arm.measured_torque_output, h, "measured_torque"),
+        "command": _add_logger(builder, controller.GetOutputPort("torque"), h, "command"),
+        "desired": _add_logger(builder, desired.get_output_port(), h, "desired"),
+    }
+    visualizer = None
+    if meshcat is not None:
+        from safesysid.viz import add_visualizer
+
+        visualizer = add_visualizer(builder, arm.scene_graph, meshcat)
+    diagram = builder.Build()
+    diagram.set_name(f"safesysid_{method}")
+    return OnlineDiagram(diagram, arm, controller, planner, estimator, monitor, loggers, visualizer, meshcat,
+                         (theta0, box), tracking)
+
+
+def _log(sink, context):
+    data = sink.FindLog(context)
+    return data.sample_times().copy(), data.data().T.copy()
+
+
+def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat=False, write=True):
+    """Run Algorithm 2 on a scenario; write summary.json, log.csv, plots, replay.html."""
+    from pydrake.systems.analysis import Simulator
+
+    from safesysid import report, viz
+    from safesysid.joint_log import JointLog, write_joint_log
+    from safesysid.systems.inertial import NAMES
+
+    method = method or scenario.method
+    seed = scenario.seed if seed is None else seed
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    meshcat = viz.start_meshcat(live_meshcat) if write or live_meshcat else None
+    wall0 = time.perf_counter()
+    built = build_online(scenario, method, meshcat=meshcat, seed=seed)
+    arm, robot = built.arm, built.arm.robot
+    sim = Simulator(built.diagram)
+    ctx = sim.get_mutable_context()
+    arm.set_state(ctx, np.asarray(scenario.q0_rad, float))
+    if built.visualizer is not None:
+        built.visualizer.StartRecording()
+    sim.Initialize()
+    horizon = identification_horizon_s(scenario)
+    sim.AdvanceTo(horizon)
+    built.diagram.ForcedPublish(ctx)
+    wall = time.perf_counter() - wall0
+
+    t, state = _log(built.loggers["state"], ctx)
+    _, tau_meas = _log(built.loggers["measured_torque"], ctx)
+    _, command = _log(built.loggers["command"], ctx)
+    _, desired = _log(built.loggers["desired"], ctx)
+    n = robot.n
+    q, v = state[:, :n], state[:, n:]
+    error = desired[:, :n] - q
+    cont = robot.joint_params.continuous
+    error[:, cont] = np.angle(np.exp(1j * error[:, cont]))
+    safety = built.monitor.record.summary()
+    truth = arm.true_theta()[robot.ee_slice]
+    est = built.estimator
+    if est is not None:
+        theta_e0, lo, hi = est.final_estimate(robot.ee_slice)
+        history = est.history()
+        cond_y = history[-1]["cond_Y"] if history else float("nan")
+        update_times = [h["update_time_s"] for h in history]
+    else:
+        theta0, box = built.theta_prior
+        theta_e0, lo, hi = theta0[robot.ee_slice], box.lo[robot.ee_slice], box.hi[robot.ee_slice]
+        history, cond_y, update_times = [], float("nan"), []
+    contains = bool(np.all((lo <= truth) & (truth <= hi)))
+    plans = built.planner.records(built.planner.GetMyContextFromRoot(ctx))
+    solve_times = [p["solve_time_s"] for p in plans]
+    deadline = scenario.planner.replan_period_s
+    bound = np.asarray(built.tracking.position, float)
+    tracking_bound = float(np.max(bound))
+    max_err = float(np.abs(error).max())
+    worst_ratio = float(np.max(np.abs(error) / bound))  # per joint: Kr differs between joints
+    failure = None
+    if safety["collisions"] > 0:
+        failure = "collision"
+    elif safety["max_torque_ratio"] > 1.0 + 1e-9:
+        failure = "torque_limit"
+    elif safety["max_joint_limit_ratio"] > 1.0:
+        failure = "joint_limit"
+    elif safety["max_velocity_ratio"] > 1.0:
+        failure = "velocity_limit"
+    elif plans and not plans[0]["ok"]:
+        failure = "planner_infeasible"
+    elif worst_ratio > 1 + 1e-9:
+        failure = "tracking"
+    summary = {
+        "scenario": scenario.name, "method": method, "seed": seed,
+        "success": failure is None, "failure": failure,
+        "collisions": safety["collisions"], "min_clearance_m": safety["min_clearance_m"],
+        "max_torque_ratio": safety["max_torque_ratio"], "max_joint_limit_ratio": safety["max_joint_limit_ratio"],
+        "max_velocity_ratio": safety["max_velocity_ratio"],
+        "max_tracking_error_rad": max_err, "tracking_bound_rad": tracking_bound,
+        "max_tracking_error_ratio": worst_ratio, "tracking_bound_per_joint_rad": bound.tolist(),
+        "payload_true": {"theta": truth.tolist(), "dumbbell": arm.dumbbell.name if arm.dumbbell else None},
+        "estimate": {"nominal": np.asarray(theta_e0).tolist(), "lower": np.asarray(lo).tolist(), "upper": np.asarray(hi).tolist()},
+        "contains_truth": contains, "cond_Y": cond_y,
+        "planner": {"iterations": len(plans), "solve_time_s": solve_times, "deadline_s": deadline,
+                    "missed_deadlines": int(sum(t_ > deadline for t_ in solve_times)),
+                    "brakes": int(sum(p["braking"] for p in plans)), "solver": scenario.planner.solver if method != "random" else "random",
+                    "status": [p["status"] for p in plans], "cond_W": [p.get("cond") for p in plans]},
+        "sysid": {"updates": len(history), "update_time_s": update_times},
+        "wall_time_s": wall, "sim_time_s": float(horizon),
+    }
+    if not write:
+        return summary
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
+    extra = {f"qd{k + 1}": desired[:, k] for k in range(n)}
+    extra.update({f"vd{k + 1}": desired[:, n + k] for k in range(n)})
+    extra.update({f"ad{k + 1}": desired[:, 2 * n + k] for k in range(n)})
+    extra.update({f"u{k + 1}": command[:, k] for k in range(n)})
+    if history:
+        times = np.array([h["time_s"] for h in history])
+        idx = np.searchsorted(times, t, side="right") - 1
+        for key, name in (("nominal", ""), ("lower", "_lo"), ("upper", "_hi")):
+            vals = np.array([h[key] for h in history])
+            for k, pname in enumerate(NAMES):
+                extra[f"est_{pname}{name}"] = np.where(idx >= 0, vals[np.maximum(idx, 0), k], np.nan)
+    write_joint_log(out / "log.csv", JointLog(t, q, v, tau_meas), extra)
+    rec = built.monitor.record
+    report.plot_tracking(out / "tracking.png", t, error, built.tracking.position, np.max(np.abs(command) / robot.joint_params.torque_limit, 1))
+    report.plot_clearance(out / "clearance.png", np.array(rec.times), np.array(rec.clearance))
+    report.plot_intervals(out / "intervals.png", theta_e0, lo, hi, truth, title=f"{scenario.name} / {method}")
+    if history:
+        report.plot_estimate_history(out / "mass.png", [h["time_s"] for h in history], [h["nominal"] for h in history],
+                                     [h["lower"] for h in history], [h["upper"] for h in history], truth)
+    if built.visualizer is not None:
+        viz.save_replay(meshcat, built.visualizer, out / "replay.html")
+    return summary
