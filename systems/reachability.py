@@ -15,18 +15,22 @@ tracking error inside the bound and every theta in [theta]:
 2. Joint position/velocity limits. The restricted control points of q_d (and of qd_d) on every I_i
    are affine in q_end_j alone; requiring each inside the limits shrunk by the tracking bound is a
    set of 1-d linear inequalities in k_j, i.e. a box in k (exact hull property, no sampling).
-3. Collision. Sphere centre c_s(q) has |dc_s/dq_j| = |z_j x (c_s - o_j)| <= L_sj, the length of the
-   fixed chain from joint j's axis origin to the centre (triangle inequality along the links), so on
-   the joint box |c_s(q) - c_s(q_mid)| <= sum_j L_sj rho_ij =: spread_is (mean value theorem along
-   the segment inside the box). The constraint sd(c_s(q_mid_i(k)), obstacle) >= r_s + spread_is
-   keeps the whole sphere out of the obstacle on I_i; it is C1 in k outside the obstacle.
+3. Collision. Sphere centre c_s(q) has |dc_s/dq_j| = |z_j x (c_s - o_j)| (distance to axis j);
+   globally <= L_sj, the length of the fixed chain from joint j's axis to the centre (triangle
+   inequality along the links), and on a box around q_c <= its value at q_c plus the drift that
+   joints below j can cause (`local_spread`). By the mean value theorem along the segment inside
+   the joint box, |c_s(q) - c_s(q_mid)| <= sum_j L~_sj rho_ij =: spread_is. The constraint
+   sd(c_s(q_mid_i(k)), obstacle) >= r_s + spread_is keeps the whole sphere out of the obstacle on
+   I_i (sd is 1-Lipschitz); it is C1 in k outside the obstacle. The planner hands the solver a
+   soft-min per (sphere, obstacle) over the intervals, which is <= the true min, and verifies
+   every pair exactly.
 4. Torque. The commanded input is u = W_p(q, qd, qd_a, qdd_a) theta0 + v with |v_j| <= ||w_bar||_2
    and w_bar_i <= sum_k |W_p,ik| max(theta_hi - theta0, theta0 - theta_lo)_k (the controller's
    interval disturbance bound). An interval evaluation of the passivity regressor
    (interval RNEA in local frames, outward rounded) over the state box of I_i that covers every
    k of the allowed box and the tracking tube bounds sup|u_j| rigorously; the planner requires
-   it to be inside the torque limit for every interval (a check over the whole k box; if it
-   fails the k box is shrunk).
+   it to be inside the torque limit for every interval (a check over the whole k box, on hulls of
+   adjacent intervals; if it fails the k box is shrunk toward k = 0).
 """
 from __future__ import annotations
 
