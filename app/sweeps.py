@@ -1,0 +1,63 @@
+"""Randomized scenes for Monte-Carlo safety runs (issue 5): random start near a base pose,
+1-4 random boxes near the arm (never touching it at the start), random payload 0-8 lb."""
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+
+from safesysid.scenario import Obstacle, Scenario, robot_from_scenario
+
+PAYLOADS = ("none", "4lb", "5lb", "6lb", "7lb", "8lb")
+
+
+def _sphere_centres(robot, q):
+    from safesysid.systems.reachability import arm_spheres, sphere_centres
+
+    spheres = arm_spheres(robot)
+    centres, _ = sphere_centres(robot.tree, spheres, np.asarray(q, float)[None], with_jacobian=False)
+    return centres[0], spheres.radius
+
+
+def _clearance(points, radii, box: Obstacle):
+    from pydrake.math import RollPitchYaw
+
+    rot = RollPitchYaw(box.rpy_rad).ToRotationMatrix().matrix()
+    local = (points - np.asarray(box.xyz_m)) @ rot
+    half = np.asarray(box.size_m) / 2
+    outside = np.linalg.norm(np.maximum(np.abs(local) - half, 0.0), axis=1)
+    inside = np.minimum(np.max(np.abs(local) - half, axis=1), 0.0)
+    return float(np.min(outside + inside - radii))
+
+
+def random_scene(base: Scenario, rng, start_spread_rad=0.15, min_start_clearance_m=0.08, seed=None) -> Scenario:
+    """A copy of `base` with a random start, random boxes near the arm and a random payload."""
+    scene = copy.deepcopy(base)
+    robot = robot_from_scenario(base)
+    jp = robot.joint_params
+    q0 = np.asarray(base.q0_rad, float) + rng.uniform(-start_spread_rad, start_spread_rad, robot.n)
+    q0 = np.clip(q0, jp.position_lower + 0.3, jp.position_upper - 0.3)
+    scene.q0_rad = q0.tolist()
+    scene.payload.dumbbell = str(rng.choice(PAYLOADS))
+    points, radii = _sphere_centres(robot, q0)
+    # Dumbbell clearance is covered by the gripper spheres' margin plus min_start_clearance_m.
+    boxes = []
+    for attempt in range(200):
+        if len(boxes) >= rng.integers(1, 5):
+            break
+        anchor = points[rng.integers(len(points))]
+        direction = rng.normal(size=3)
+        direction[2] *= 0.3
+        direction /= np.linalg.norm(direction)
+        size = rng.uniform(0.05, 0.3, 3)
+        centre = anchor + direction * (np.max(size) / 2 + rng.uniform(0.12, 0.35))
+        if centre[2] - size[2] / 2 < 0.0:  # rest on or above the floor
+            centre[2] = size[2] / 2 + rng.uniform(0.0, 0.05)
+        box = Obstacle(name=f"box{len(boxes)}", xyz_m=centre.tolist(), rpy_rad=[0.0, 0.0, float(rng.uniform(-np.pi, np.pi))],
+                       size_m=size.tolist())
+        if _clearance(points, radii, box) >= min_start_clearance_m + 0.15:  # 0.15: dumbbell reach beyond the spheres
+            boxes.append(box)
+    scene.obstacles = boxes
+    scene.seed = int(rng.integers(1 << 30)) if seed is None else seed
+    scene.name = f"{base.name}_random"
+    return scene
