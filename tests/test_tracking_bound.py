@@ -30,8 +30,9 @@ def random_trajectory(s, rng):
     return q0, (QuinticBezier(q0, np.zeros(7), np.zeros(7), s.planner.duration_s), q_end)
 
 
-def run(s, robot, theta0, box, q0, trajectory, kind="armour", duration=None):
-    """Simulate; returns per-step ratios |e_i| / (eps/Kr_i), |r| / eps, |u_i| / limit_i."""
+def run(s, robot, theta0, box, q0, trajectory, kind="armour", duration=None, theta_true=None):
+    """Simulate; returns per-step ratios |e_i| / (eps/Kr_i), |r| / eps, |u_i| / limit_i (and the
+    true Lyapunov value 1/2 r^T M(q; theta_true) r / V_max when theta_true is given)."""
     loop = build_closed_loop(s, trajectory, theta0, box, kind=kind, robot=robot)
     logs = simulate_closed_loop(loop, q0, duration or s.planner.duration_s)
     x, d, u = logs["state"][1], logs["desired"][1], logs["torque"][1]
@@ -40,7 +41,11 @@ def run(s, robot, theta0, box, q0, trajectory, kind="armour", duration=None):
     e = C.wrap_error(d[:, :n] - x[:, :n], robot.joint_params.continuous)
     r = (d[:, n:2 * n] - x[:, n:]) + gains.Kr * e
     bounds = C.tracking_bounds(gains.Kr, gains.V_max, C.mass_matrix_lower_bound(n, box.lo))
-    return {"position": np.abs(e) / bounds.position, "r": np.linalg.norm(r, axis=1) / bounds.eps,
+    lyapunov = np.zeros(1)
+    if theta_true is not None:
+        m_true = robot.mass_matrix(x[:, :n], theta_true)
+        lyapunov = 0.5 * np.einsum("ki,kij,kj->k", r, m_true, r) / gains.V_max
+    return {"position": np.abs(e) / bounds.position, "r": np.linalg.norm(r, axis=1) / bounds.eps, "lyapunov": lyapunov,
             "velocity": np.abs(d[:, n:2 * n] - x[:, n:]) / bounds.velocity,
             "torque": np.abs(u) / robot.joint_params.torque_limit, "error": np.abs(e), "bounds": bounds}
 
@@ -61,14 +66,16 @@ def test_error_inside_ultimate_bound(robot, bell):
     s = load_scenario(overrides={"payload": {"dumbbell": bell}})
     theta_true = true_theta(robot, scenario_dumbbell(s))
     rng = np.random.default_rng(100 + PAYLOADS.index(bell))
-    worst = {"position": 0.0, "r": 0.0, "velocity": 0.0, "torque": 0.0}
+    worst = {"position": 0.0, "r": 0.0, "velocity": 0.0, "lyapunov": 0.0, "torque": 0.0}
     for _ in range(n_trials(1, 20)):
         theta0, box = interval_around_truth(robot, theta_true, rng)
         q0, trajectory = random_trajectory(s, rng)
-        out = run(s, robot, theta0, box, q0, trajectory)
+        out = run(s, robot, theta0, box, q0, trajectory, theta_true=theta_true)
         for key in worst:
             worst[key] = max(worst[key], float(out[key].max()))
-    print(f"{bell}: max |e|/bound {worst['position']:.3f}, |r|/eps {worst['r']:.3f}, |u|/limit {worst['torque']:.3f}")
+    print(f"{bell}: max |e|/bound {worst['position']:.3f}, |r|/eps {worst['r']:.3f}, "
+          f"V/V_max {worst['lyapunov']:.3f}, |u|/limit {worst['torque']:.3f}")
+    assert worst["lyapunov"] <= 1.0  # the barrier itself: V(true) <= V_max at every step
     assert worst["position"] <= 1.0 and worst["r"] <= 1.0 and worst["velocity"] <= 1.0
     assert worst["torque"] <= 1.0
 
@@ -81,9 +88,11 @@ def test_conservative_interval_with_8lb_holds(robot):
     rng = np.random.default_rng(8)
     for _ in range(n_trials(1, 20)):
         q0, trajectory = random_trajectory(s, rng)
-        out = run(s, robot, theta0, box, q0, trajectory)
-        print(f"conservative 8lb: max |e|/bound {out['position'].max():.3f}, |r|/eps {out['r'].max():.3f}")
+        out = run(s, robot, theta0, box, q0, trajectory, theta_true=true_theta(robot, scenario_dumbbell(s)))
+        print(f"conservative 8lb: max |e|/bound {out['position'].max():.3f}, |r|/eps {out['r'].max():.3f}, "
+              f"V/V_max {out['lyapunov'].max():.3f}")
         assert out["position"].max() <= 1.0 and out["r"].max() <= 1.0 and out["torque"].max() <= 1.0
+        assert out["lyapunov"].max() <= 1.0
         assert out["position"].max() > 0.05  # the payload is felt: the robust term is working
 
 
@@ -95,9 +104,10 @@ def test_wrong_model_leaves_the_bound(robot):
     box = Interval(theta0, theta0)
     assert not np.all(box.contains(true_theta(robot, scenario_dumbbell(s))))
     q0, trajectory = random_trajectory(s, np.random.default_rng(9))
-    out = run(s, robot, theta0, box, q0, trajectory)
-    print(f"wrong model 8lb: max |e|/bound {out['position'].max():.3f}, |r|/eps {out['r'].max():.3f}")
-    assert out["position"].max() > 1.0 and out["r"].max() > 1.0
+    out = run(s, robot, theta0, box, q0, trajectory, theta_true=true_theta(robot, scenario_dumbbell(s)))
+    print(f"wrong model 8lb: max |e|/bound {out['position'].max():.3f}, |r|/eps {out['r'].max():.3f}, "
+          f"V/V_max {out['lyapunov'].max():.3f}")
+    assert out["position"].max() > 1.0 and out["r"].max() > 1.0 and out["lyapunov"].max() > 1.0
 
 
 @pytest.mark.parametrize("kind", ["pid", "adaptive", "adaptive_robust"])
