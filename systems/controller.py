@@ -13,9 +13,13 @@ Why it works: with the true theta in [theta], w = tau(theta) - tau_nom has |w_i|
 along the closed loop  dV/dt <= r^T (w - v) - r^T dF <= alpha h  (dF = friction(qd_a) -
 friction(qd) is monotone in r, so dissipative), hence V(t) <= V_max whenever V(0) <= V_max.
 
+Friction in tau_nom is evaluated at (qd_a, qdd_a) as in RobotModel.passivity_regressor; that is
+safe because the Coulomb law Fc tanh(v/vs) and Fv v are monotone, so r^T dF >= 0 above.
+
 The per-sample regressors come from `ControllerDynamics`, an exact re-arrangement of
-systems/regressors.py for one sample that batches over bodies instead of looping (about 15x
-faster, so the controller runs at 1 kHz in real time); tests check it equals RobotModel's.
+systems/regressors.py for one sample (batched over bodies, bilinear maps as constant tensors):
+Wp and Wm together in ~0.3 ms instead of ~4 ms for the two vectorized calls at N = 1, which is
+what lets the loop run at 1 kHz in real time; tests check it equals RobotModel's to 1e-11.
 """
 from __future__ import annotations
 
@@ -45,8 +49,6 @@ _INERTIA = regressors.inertia_times(_E6).reshape(6, 60)  # K(x) = x @ _INERTIA  
 # B(v) va = 1/2 [v x* K(va) + va x* K(v) - K(v x va)]  (Christoffel form, regressors.py)
 _BILINEAR = regressors.body_wrench_regressor(_E6[:, None].repeat(6, 1), _E6[None, :].repeat(6, 0),
                                              np.zeros((6, 6, 6))).reshape(36, 60)
-
-
 _CROSS3 = np.cross(np.eye(3)[:, None], np.eye(3)[None, :]).reshape(9, 3)
 
 
