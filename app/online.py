@@ -186,7 +186,8 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
         built.visualizer.StartRecording()
     sim.Initialize()
     horizon = identification_horizon_s(scenario)
-    sim.AdvanceTo(horizon)
+    # One step past the horizon so the estimator's update due at exactly t = horizon is applied.
+    sim.AdvanceTo(horizon + scenario.plant.time_step_s)
     built.diagram.ForcedPublish(ctx)
     wall = time.perf_counter() - wall0
 
@@ -258,7 +259,7 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
     extra.update({f"ad{k + 1}": desired[:, 2 * n + k] for k in range(n)})
     extra.update({f"u{k + 1}": command[:, k] for k in range(n)})
     if history:
-        times = np.array([h["time_s"] for h in history])
+        times = np.array([h["t"] for h in history])
         idx = np.searchsorted(times, t, side="right") - 1
         for key, name in (("nominal", ""), ("lower", "_lo"), ("upper", "_hi")):
             vals = np.array([h[key] for h in history])
@@ -270,7 +271,7 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
     report.plot_clearance(out / "clearance.png", np.array(rec.times), np.array(rec.clearance))
     report.plot_intervals(out / "intervals.png", theta_e0, lo, hi, truth, title=f"{scenario.name} / {method}")
     if history:
-        report.plot_estimate_history(out / "mass.png", [h["time_s"] for h in history], [h["nominal"] for h in history],
+        report.plot_estimate_history(out / "mass.png", [h["t"] for h in history], [h["nominal"] for h in history],
                                      [h["lower"] for h in history], [h["upper"] for h in history], truth)
     if built.visualizer is not None:
         viz.save_replay(meshcat, built.visualizer, out / "replay.html")
