@@ -173,8 +173,9 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
 
     method = method or scenario.method
     seed = scenario.seed if seed is None else seed
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    if write:
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
     meshcat = viz.start_meshcat(live_meshcat) if write or live_meshcat else None
     wall0 = time.perf_counter()
     built = build_online(scenario, method, meshcat=meshcat, seed=seed)
