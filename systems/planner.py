@@ -474,20 +474,30 @@ class SafePlanner:
         res.solve_time_s = time.perf_counter() - t_start
         return res
 
-    def _initial_guess(self, prob, k_init):
-        """Warm start from k_init; a plan that does not move at all makes W_e rank deficient (cost
-        undefined), so fall back to alternating half-range moves, preferring a feasible guess."""
+    def _initial_guess(self, prob, k_init, rng=None):
+        """(start, fallback). Warm start from k_init; a plan that does not move at all makes W_e
+        rank deficient (cost undefined), so also try alternating half-range moves, preferring a
+        feasible guess. fallback: some verified-feasible k (any cost) or None."""
         pattern = 0.5 * np.where(np.arange(self.n) % 2 == 0, 1.0, -1.0)
         cands = ([] if k_init is None else [np.asarray(k_init, float)]) + [pattern, -pattern, np.zeros(self.n)]
         cands = [np.clip(c, prob.k_lo, prob.k_hi) for c in cands]
-        usable = []
+        usable, fallback = [], None
         for c in cands:
             val = prob.cost(c)[0] if prob.mode != "random" else 0.0
-            if np.isfinite(val) and val < 25.0:  # cond < 7e10: the gradient is meaningful
+            ok = np.isfinite(val) and val < 25.0  # cond < 7e10: the gradient is meaningful
+            feasible = prob.is_feasible(c)
+            if ok and feasible:
+                return c, c
+            if ok:
                 usable.append(c)
-                if prob.is_feasible(c):
-                    return c
-        return usable[0] if usable else cands[0]
+            if feasible and fallback is None:
+                fallback = c
+        rng = rng or np.random.default_rng(0)
+        for _ in range(20):  # a few random points of the box, for a feasible start
+            c = rng.uniform(prob.k_lo, prob.k_hi)
+            if prob.is_feasible(c):
+                return c, c
+        return (usable[0] if usable else cands[0]), fallback
 
     # -- random feasible k (ablation) ------------------------------------------------------------
     def _random(self, prob, rng, deadline, tries=200):
@@ -558,7 +568,7 @@ class SafePlanner:
         if prob.num_constraints:
             m = prob.num_constraints
             prog.AddConstraint(con_fn, np.full(m, COLLISION_SOLVER_MARGIN_M), np.full(m, np.inf), k)
-        k0 = self._initial_guess(prob, k_init)
+        k0, fallback = self._initial_guess(prob, k_init)
         prog.SetInitialGuess(k, k0)
         remaining = max(0.05, cfg.max_solve_time_s - (time.perf_counter() - t_start))
         options = SolverOptions()
@@ -604,6 +614,8 @@ class SafePlanner:
             if c is not None and slack is not None and slack >= 0:
                 cands.append((c, np.frombuffer(kk), "best_feasible"))
         cands.append((prob.cost(k0)[0], k0, "best_feasible"))
+        if fallback is not None:  # safe but maybe dull (e.g. holding still): better than braking
+            cands.append((np.inf, fallback, "best_feasible"))
         cands.sort(key=lambda item: item[0])
         for c, x, st in cands:
             if prob.is_feasible(x):

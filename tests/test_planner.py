@@ -247,7 +247,7 @@ def test_a_colliding_plan_is_rejected_and_the_planner_goes_around(robot, payload
         if np.all(sd >= need):
             break
     box = Obstacle(name="trap", xyz_m=centre.tolist(), rpy_rad=list(rpy), size_m=[0.1, 0.1, 0.1])
-    planner, thetas = make_planner(robot, payload, [box], cost="exciting", k_range_rad=k_range)
+    planner, thetas = make_planner(robot, payload, [box], cost="exciting", k_range_rad=k_range, max_solve_time_s=10.0)
     prob = planner.problem(Q0, np.zeros(n), np.zeros(n), theta0, lo, hi)
     scene = DrakeScene(robot, payload, [box])
     assert scene.min_obstacle_distance(q_end) < -0.01  # the nominal end pose really penetrates
