@@ -57,18 +57,6 @@ def _motion_cross(v, m):
     return np.concatenate([_cross(v[..., :3], m[..., :3]), _cross(v[..., :3], m[..., 3:]) + _cross(v[..., 3:], m[..., :3])], -1)
 
 
-def _force_cross(v, f):
-    return np.concatenate([_cross(v[..., :3], f[..., :3]) + _cross(v[..., 3:], f[..., 3:]), _cross(v[..., :3], f[..., 3:])], -1)
-
-
-def _inertia_times(x):
-    """K(x) as (..., 10, 6) (column c of the 6x10 map theta -> I(theta) x is [..., c, :])."""
-    out = np.zeros(x.shape[:-1] + (10, 6), x.dtype)
-    for c, r, comp, sign in reach._K_TABLE:
-        out[..., c, r] = sign * x[..., comp]
-    return out
-
-
 def _to_body(R, p, x):
     w, u = x[..., :3], x[..., 3:]
     rt = np.swapaxes(R, -1, -2)
@@ -117,13 +105,26 @@ def ee_standard_regressor(tree, body, q, v, a):
     e = body
     vb = _to_body(R[e], p[e], V[e])
     ab = _to_body(R[e], p[e], A[e])
-    kv = _inertia_times(vb)
-    y = _inertia_times(ab) + _force_cross(vb[:, None, :], kv)  # (N, 10, 6)
     anc = np.flatnonzero(tree.ancestors()[:, e])
-    sb = _to_body(R[e][:, None], p[e][:, None], S[:, anc])  # (N, k, 6)
+    sb = _to_body(R[e][:, None], p[e][:, None], S[:, anc])  # (N, k, 6) screws in the body frame
+    # s^T (I a + v x* I v) = K(a)^T s - K(v)^T (v x s)   ((v x*)^T = -(v x) on motion vectors)
+    vb_, ab_ = vb[:, None, :], ab[:, None, :]
     out = np.zeros((nsamp, n, 10), dtype)
-    out[:, anc] = sb @ np.swapaxes(y, -1, -2)
+    out[:, anc] = _inertia_transpose(sb, ab_) - _inertia_transpose(_motion_cross(vb_, sb), vb_)
     return out
+
+
+def _inertia_transpose(s, x):
+    """K(x)^T s (..., 10) = d (s^T I(theta) x) / d theta, I x = [I_rot w + h x u; m u + w x h]."""
+    sw, su = s[..., :3], s[..., 3:]
+    w, u = x[..., :3], x[..., 3:]
+    m = (su * u).sum(-1)
+    h = _cross(u, sw) + _cross(su, w)
+    p = sw * w  # Ixx, Iyy, Izz
+    xy = sw[..., 0] * w[..., 1] + sw[..., 1] * w[..., 0]
+    yz = sw[..., 1] * w[..., 2] + sw[..., 2] * w[..., 1]
+    xz = sw[..., 0] * w[..., 2] + sw[..., 2] * w[..., 0]
+    return np.concatenate([m[..., None], h, p, xy[..., None], yz[..., None], xz[..., None]], -1)
 
 
 def _times_const(a, b):
