@@ -57,6 +57,18 @@ def _motion_cross(v, m):
     return np.concatenate([_cross(v[..., :3], m[..., :3]), _cross(v[..., :3], m[..., 3:]) + _cross(v[..., 3:], m[..., :3])], -1)
 
 
+def _force_cross(v, f):
+    return np.concatenate([_cross(v[..., :3], f[..., :3]) + _cross(v[..., 3:], f[..., 3:]), _cross(v[..., :3], f[..., 3:])], -1)
+
+
+def _inertia_times(x):
+    """K(x) as (..., 10, 6) (column c of the 6x10 map theta -> I(theta) x is [..., c, :])."""
+    out = np.zeros(x.shape[:-1] + (10, 6), x.dtype)
+    for c, r, comp, sign in reach._K_TABLE:
+        out[..., c, r] = sign * x[..., comp]
+    return out
+
+
 def _to_body(R, p, x):
     w, u = x[..., :3], x[..., 3:]
     rt = np.swapaxes(R, -1, -2)
@@ -77,29 +89,30 @@ def ee_standard_regressor(tree, body, q, v, a):
     V = [None] * n
     A = [None] * n
     g = np.concatenate([np.zeros(3), -tree.gravity])
+    consts = _chain_constants(tree)
     for i in range(n):
         par = tree.parent[i]
-        xpj, xjc = tree.X_parent_joint[i], tree.X_joint_child[i]
+        rpj, tpj, rjc, tjc = consts[i]
         if par < 0:
-            r_f = np.broadcast_to(xpj[:3, :3], (nsamp, 3, 3)).astype(dtype)
-            p_f = np.broadcast_to(xpj[:3, 3], (nsamp, 3)).astype(dtype)
+            r_f = np.broadcast_to(rpj, (nsamp, 3, 3)).astype(dtype)
+            p_f = np.broadcast_to(tpj, (nsamp, 3)).astype(dtype)
             v_par = np.zeros((nsamp, 6), dtype)
             a_par = np.broadcast_to(g, (nsamp, 6)).astype(dtype)
         else:
-            r_f = _times_const(R[par], xpj[:3, :3])
-            p_f = p[par] + R[par] @ xpj[:3, 3]
+            r_f = _times_const(R[par], rpj)
+            p_f = p[par] + R[par] @ tpj
             v_par, a_par = V[par], A[par]
-        z = r_f @ tree.axis[i]
+        z = r_f[..., 2]  # the joint axis is the frame's z after the constant change of basis
         if tree.prismatic[i]:
             r_m, p_m = r_f, p_f + z * q[:, i, None]
             S[:, i] = np.concatenate([np.zeros_like(z), z], -1)
         else:
-            k = regressors_skew(tree.axis[i])
-            s, c = np.sin(q[:, i])[:, None, None], np.cos(q[:, i])[:, None, None]
-            r_m, p_m = r_f + s * _times_const(r_f, k) + (1 - c) * _times_const(r_f, k @ k), p_f
+            s, c = np.sin(q[:, i])[:, None], np.cos(q[:, i])[:, None]
+            x_, y_ = r_f[..., 0], r_f[..., 1]
+            r_m, p_m = np.stack([c * x_ + s * y_, c * y_ - s * x_, z], -1), p_f  # r_f @ Rz(q)
             S[:, i] = np.concatenate([z, _cross(p_f, z)], -1)
-        R[i] = _times_const(r_m, xjc[:3, :3])
-        p[i] = p_m + r_m @ xjc[:3, 3]
+        R[i] = _times_const(r_m, rjc)
+        p[i] = p_m + r_m @ tjc
         V[i] = v_par + S[:, i] * v[:, i, None]
         A[i] = a_par + S[:, i] * a[:, i, None] + _motion_cross(v_par, S[:, i]) * v[:, i, None]
     e = body
@@ -107,24 +120,32 @@ def ee_standard_regressor(tree, body, q, v, a):
     ab = _to_body(R[e], p[e], A[e])
     anc = np.flatnonzero(tree.ancestors()[:, e])
     sb = _to_body(R[e][:, None], p[e][:, None], S[:, anc])  # (N, k, 6) screws in the body frame
-    # s^T (I a + v x* I v) = K(a)^T s - K(v)^T (v x s)   ((v x*)^T = -(v x) on motion vectors)
-    vb_, ab_ = vb[:, None, :], ab[:, None, :]
+    y = _inertia_times(ab) + _force_cross(vb[:, None, :], _inertia_times(vb))  # (N, 10, 6): I a + v x* I v
     out = np.zeros((nsamp, n, 10), dtype)
-    out[:, anc] = _inertia_transpose(sb, ab_) - _inertia_transpose(_motion_cross(vb_, sb), vb_)
+    out[:, anc] = sb @ np.swapaxes(y, -1, -2)
     return out
 
 
-def _inertia_transpose(s, x):
-    """K(x)^T s (..., 10) = d (s^T I(theta) x) / d theta, I x = [I_rot w + h x u; m u + w x h]."""
-    sw, su = s[..., :3], s[..., 3:]
-    w, u = x[..., :3], x[..., 3:]
-    m = (su * u).sum(-1)
-    h = _cross(u, sw) + _cross(su, w)
-    p = sw * w  # Ixx, Iyy, Izz
-    xy = sw[..., 0] * w[..., 1] + sw[..., 1] * w[..., 0]
-    yz = sw[..., 1] * w[..., 2] + sw[..., 2] * w[..., 1]
-    xz = sw[..., 0] * w[..., 2] + sw[..., 2] * w[..., 0]
-    return np.concatenate([m[..., None], h, p, xy[..., None], yz[..., None], xz[..., None]], -1)
+_CHAIN = {}
+
+
+def _chain_constants(tree):
+    """Per joint (R_pj P, t_pj, P^T R_jc, P^T t_jc) with P a rotation taking z to the joint axis,
+    so the joint rotation is a rotation about z (column arithmetic instead of a 3x3 product)."""
+    key = id(tree)
+    if key not in _CHAIN or _CHAIN[key][0] is not tree:
+        out = []
+        for i in range(tree.n):
+            axis = np.asarray(tree.axis[i], float)
+            axis = axis / np.linalg.norm(axis)
+            helper = np.array([1.0, 0, 0]) if abs(axis[0]) < 0.9 else np.array([0, 1.0, 0])
+            x = np.cross(helper, axis)
+            x /= np.linalg.norm(x)
+            rot = np.stack([x, np.cross(axis, x), axis], 1)  # columns x, y, z = axis
+            xpj, xjc = tree.X_parent_joint[i], tree.X_joint_child[i]
+            out.append((xpj[:3, :3] @ rot, xpj[:3, 3].copy(), rot.T @ xjc[:3, :3], rot.T @ xjc[:3, 3]))
+        _CHAIN[key] = (tree, out)
+    return _CHAIN[key][1]
 
 
 def _times_const(a, b):
