@@ -459,6 +459,7 @@ class SafePlanner:
     def plan(self, q0, v0, a0, theta0, theta_lo, theta_hi, k_init=None, rng=None, mode=None):
         """One planning call -> PlanResult (ok False: keep the previous plan, which brakes)."""
         t_start = time.perf_counter()
+        cpu_start = time.process_time()
         mode = mode or self.config.cost
         prob = self.problem(q0, v0, a0, theta0, theta_lo, theta_hi, mode)
         res = PlanResult(ok=False, status="infeasible_start", solver=self.config.solver if mode != "random" else "random")
@@ -494,6 +495,7 @@ class SafePlanner:
             res.details["sphere_centres"] = centres
             res.details["sphere_radii"] = self.spheres.radius[None, :] + prob.spread
         res.solve_time_s = time.perf_counter() - t_start
+        res.details["cpu_time_s"] = time.process_time() - cpu_start
         return res
 
     def _initial_guess(self, prob, k_init, rng=None):
