@@ -48,8 +48,10 @@ it is significant, i.e. all of
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -71,6 +73,49 @@ DELAY_GRID_S = tuple(np.round(np.arange(0.0, MAX_DELAY_S + 1e-9, DELAY_STEP_S), 
 MAX_TILT = 0.2
 MAX_COMPLIANCE = 0.02  # rad/(N m)
 REGIME_QUANTILE = 0.75
+
+
+# ---- BLAS threads ---------------------------------------------------------------------------
+def _openblas_handles():
+    """(get, set) thread-count functions of the OpenBLAS libraries numpy/scipy load, if any."""
+    import ctypes
+
+    import numpy
+    import scipy
+
+    out = []
+    for pkg in (numpy, scipy):
+        libs = Path(pkg.__file__).resolve().parent.parent / f"{pkg.__name__}.libs"
+        for lib in sorted(libs.glob("*openblas*.so*")):
+            try:
+                handle = ctypes.CDLL(str(lib))
+            except OSError:
+                continue
+            for get, put in (("scipy_openblas_get_num_threads64_", "scipy_openblas_set_num_threads64_"),
+                             ("scipy_openblas_get_num_threads", "scipy_openblas_set_num_threads"),
+                             ("openblas_get_num_threads", "openblas_set_num_threads")):
+                if hasattr(handle, get) and hasattr(handle, put):
+                    out.append((getattr(handle, get), getattr(handle, put)))
+                    break
+    return out
+
+
+@contextlib.contextmanager
+def single_threaded_blas():
+    """Run with one OpenBLAS thread: the design matrices are tall and thin, and on a shared
+    machine a threaded GEMM of that shape measured ~500x slower (spinning threads)."""
+    try:
+        handles = _openblas_handles()
+        saved = [get() for get, _ in handles]
+        for _, put in handles:
+            put(1)
+    except Exception:  # no OpenBLAS found: nothing to do
+        handles, saved = [], []
+    try:
+        yield
+    finally:
+        for (_, put), n in zip(handles, saved):
+            put(n)
 
 
 # ---- per-log preparation --------------------------------------------------------------------
@@ -178,6 +223,7 @@ class Design:
     tau_hat_nominal: np.ndarray  # (R, n) nominal model torque (row form)
     source: str = ""
     row_segment: np.ndarray = None  # (R,) gap-free segment of each row
+    sample: dict = None  # sample-level model quantities for delays (see delayed_rows)
     residual_forms: dict = field(default_factory=dict)
     segments: list = field(default_factory=list)
 
@@ -228,6 +274,7 @@ def build_design(model, log, form, window_s=0.1, max_gap_s=None, columns=True):
         rows = np.arange(len(t))
         row_time = t
         feat = {"v": v, "a": a, "g": g}
+        sample_cols, sample_nominal, win = cols, tau_nom, None
     elif form == "momentum":
         win = _windows(t, segs, window_s)
         i0, i1 = win[:, 0], win[:, 1]
@@ -239,22 +286,22 @@ def build_design(model, log, form, window_s=0.1, max_gap_s=None, columns=True):
         ct = _cumtrapz(t, tau)
         y = (ct[i1] - ct[i0] - (pm[i1] - pm[i0]) + (cc[i1] - cc[i0])) / span
         tau_nom = ((pm[i1] - pm[i0]) - (cc[i1] - cc[i0])) / span
-        cols = {}
+        # Each column as a sample-level "antiderivative" C; the window row is (C[i1] - C[i0]) / span.
+        cum = {}
         if columns:
-            s3 = span[:, :, None]
             for name, c in std_cols.items():
-                ci = _cumtrapz(t, c)
-                cols[name] = (ci[i1] - ci[i0]) / s3
-            cols["torque_scale"] = _diag(tau_nom)
-            cols["armature"] = _diag((v[i1] - v[i0]) / span)
-            wm_e = Wm[:, :, model.ee_slice]
-            wc_e = _cumtrapz(t, Wc[:, :, model.ee_slice])
-            cols["payload"] = ((wm_e[i1] - wm_e[i0]) - (wc_e[i1] - wc_e[i0])) / s3
-            cols["time_delay"] = (-(tau[i1] - tau[i0]) / span)[:, :, None]
-            cols["time_delay@shift"] = np.zeros(y.shape + (0,))
+                cum[name] = _cumtrapz(t, c)
+            cum["torque_scale"] = _diag(pm - cc)
+            cum["armature"] = _diag(v)
+            cum["payload"] = Wm[:, :, model.ee_slice] - _cumtrapz(t, Wc[:, :, model.ee_slice])
+            cum["time_delay"] = -tau[:, :, None]
+            cum["time_delay@shift"] = np.zeros(tau.shape + (0,))
+        s3 = span[:, :, None]
+        cols = {name: (c[i1] - c[i0]) / s3 for name, c in cum.items()}
         rows = (i0 + i1) // 2
         row_time = 0.5 * (t[i0] + t[i1])
         feat = {"v": v[rows], "a": a_smooth[rows], "g": g[rows]}
+        sample_cols, sample_nominal = cum, pm - cc
         del ee
     else:
         raise ValueError(f"unknown residual form {form!r}")
@@ -266,28 +313,43 @@ def build_design(model, log, form, window_s=0.1, max_gap_s=None, columns=True):
     _, row_block = np.unique(blk, return_inverse=True)
     d = Design(form, y, cols, row_time, row_block, feat, tau_nom, log.source, segments=segs)
     d.row_segment = seg_id[rows]
+    d.sample = {"t": t, "segment": seg_id, "seg_bounds": np.array(segs, int).reshape(-1, 2),
+                "cols": sample_cols, "nominal": sample_nominal, "windows": win}
     return d
 
 
-def row_shift(design, delay):
-    """Linear interpolation of row quantities at row_time - delay inside each gap-free segment:
-    (i0, i1, w) with X_delayed = (1 - w) X[i0] + w X[i1]. Rows are smooth in time (samples of
-    model quantities, or window means), so this delays the model without touching the noise."""
-    t = design.row_time
-    seg = design.row_segment
-    i0 = np.empty(len(t), int)
-    i1 = np.empty(len(t), int)
-    w = np.empty(len(t))
-    for k in np.unique(seg):
-        rows = np.flatnonzero(seg == k)
-        tt = t[rows]
-        ts = np.clip(tt - delay, tt[0], tt[-1])
-        pos = np.clip(np.searchsorted(tt, ts, side="right") - 1, 0, len(tt) - 1)
-        nxt = np.minimum(pos + 1, len(tt) - 1)
-        span = tt[nxt] - tt[pos]
-        frac = np.where(span > 0, (ts - tt[pos]) / np.where(span > 0, span, 1), 0.0)
-        i0[rows], i1[rows], w[rows] = rows[pos], rows[nxt], frac
-    return i0, i1, w
+def _sample_shift(sample, idx, delay):
+    """Interpolation weights reading sample-level quantities at t[idx] - delay inside the
+    segment of each idx: X_delayed = (1 - w) X[j0] + w X[j1]. Only smooth model quantities are
+    interpolated (never the noisy measurement), so a delay does not average noise away."""
+    t, seg = sample["t"], sample["segment"][idx]
+    lo, hi = sample["seg_bounds"][seg, 0], sample["seg_bounds"][seg, 1]
+    ts = np.clip(t[idx] - delay, t[lo], t[hi])
+    j0 = np.clip(np.searchsorted(t, ts, side="right") - 1, lo, hi)
+    j1 = np.minimum(j0 + 1, hi)
+    span = t[j1] - t[j0]
+    w = np.where(span > 0, (ts - t[j0]) / np.where(span > 0, span, 1.0), 0.0)
+    return j0, j1, w
+
+
+def delayed_rows(design, groups, delay):
+    """(A (R, n, K), nominal (R, n)) of a design with the model side read `delay` earlier."""
+    smp = design.sample
+    nom = smp["nominal"]
+    A = (np.concatenate([smp["cols"][g] for g in groups], -1) if groups
+         else np.zeros(nom.shape + (0,)))
+
+    def at(idx):
+        j0, j1, w = _sample_shift(smp, idx, delay)
+        return ((1 - w)[:, None, None] * A[j0] + w[:, None, None] * A[j1],
+                (1 - w)[:, None] * nom[j0] + w[:, None] * nom[j1])
+
+    win = smp["windows"]
+    if win is None:
+        return at(np.arange(len(smp["t"])))
+    (a0, n0), (a1, n1) = at(win[:, 0]), at(win[:, 1])
+    span = (smp["t"][win[:, 1]] - smp["t"][win[:, 0]])[:, None]
+    return (a1 - a0) / span[:, :, None], (n1 - n0) / span
 
 
 def residual_forms(model, log):
@@ -389,44 +451,42 @@ class Problem:
         return np.concatenate([np.arange(self.offset[g], self.offset[g] + self.k[g]) for g in groups]) \
             if groups else np.zeros(0, int)
 
-    def _shifted(self, designs, delay):
-        """Flattened (A, y) of designs with the model side delayed by `delay`: every effect
-        column and the nominal torque are read at t - delay; the measurement stays."""
+    def _shifted(self, designs, delay, groups):
+        """Flattened (A, y) of designs with the model side delayed by `delay`: the columns of
+        `groups` and the nominal torque are read at t - delay; the measurement stays."""
+        groups = [g for g in groups if self.k[g]]
         As, ys = [], []
         for d in designs:
-            i0, i1, w = row_shift(d, delay)
-            A = np.concatenate([d.cols[g] for g in self.groups], -1)
-            A = (1 - w)[:, None, None] * A[i0] + w[:, None, None] * A[i1]
-            tn = d.tau_hat_nominal
-            tn_d = (1 - w)[:, None] * tn[i0] + w[:, None] * tn[i1]
-            As.append(A.reshape(-1, self.K))
-            ys.append((d.y + tn - tn_d).reshape(-1))
+            A, tn_d = delayed_rows(d, groups, delay)
+            As.append(A.reshape(A.shape[0] * A.shape[1], A.shape[-1]))
+            ys.append((d.y + d.tau_hat_nominal - tn_d).reshape(-1))
         return np.concatenate(As), np.concatenate(ys)
 
-    def _ys(self, delay):
-        """(G, b, yy) of the fit logs with the model delayed by `delay` on the grid (cached)."""
+    def _system(self, delay, groups):
+        """(G, b, yy) of the fit logs for `groups` (column order of index(groups)) with the
+        model delayed by `delay`. The full normal equations are formed once per delay (cached)
+        and then only indexed."""
         key = round(float(delay), 6)
+        idx = self.index(groups)
         if key == 0.0:
-            return self.G, self.b, self.yy
+            return self.G[np.ix_(idx, idx)], self.b[idx], self.yy
         if key not in self._cache:
-            A, y = self._shifted(self.fit, delay)
+            A, y = self._shifted(self.fit, delay, self.groups)
             self._cache[key] = (A.T @ A, A.T @ y, float(y @ y))
-        return self._cache[key]
+        G, b, yy = self._cache[key]
+        return G[np.ix_(idx, idx)], b[idx], yy
 
-    def _check_system(self, delay):
+    def _check_system(self, delay, groups):
         key = round(float(delay), 6)
         if key == 0.0:
-            return self.A_check, self.y_check
-        ck = ("check", key)
-        if ck not in self._cache:
-            self._cache[ck] = self._shifted(self.check, delay)
-        return self._cache[ck]
+            return self.A_check[:, self.index(groups)], self.y_check
+        return self._shifted(self.check, delay, groups)
 
-    def _fit_system(self, delay):
+    def _fit_system(self, delay, groups):
         key = round(float(delay), 6)
         if key == 0.0:
-            return self.A_fit, self.y_fit
-        return self._shifted(self.fit, delay)
+            return self.A_fit[:, self.index(groups)], self.y_fit
+        return self._shifted(self.fit, delay, groups)
 
     def solve(self, groups):
         """Constrained least squares on the fit logs for the union of `groups`.
@@ -456,12 +516,10 @@ class Problem:
     def _solve_linear(self, groups, delay, consistent=True):
         from scipy.optimize import lsq_linear
 
-        G_all, b_all, yy = self._ys(delay)
+        G, b, yy = self._system(delay, groups)
         idx = self.index(groups)
         if len(idx) == 0:
             return {}, yy
-        G = G_all[np.ix_(idx, idx)]
-        b = b_all[idx]
         s = np.sqrt(np.diag(G))
         s[s <= 1e-12 * max(s.max(), 1e-300)] = 1.0
         Gs = G / np.outer(s, s)
@@ -544,12 +602,10 @@ class Problem:
         return q
 
     def _residual(self, system, params):
-        A, y = system(params["time_delay@shift"][0] if "time_delay@shift" in params else 0.0)
-        r = y.copy()
-        for g, p in params.items():
-            if g != "time_delay@shift":
-                r -= A[:, self.index([g])] @ p
-        return r
+        groups = [g for g in params if g != "time_delay@shift"]
+        A, y = system(params["time_delay@shift"][0] if "time_delay@shift" in params else 0.0, groups)
+        p = np.concatenate([params[g] for g in groups]) if groups else np.zeros(0)
+        return y - A @ p
 
     def check_residual(self, params):
         return self._residual(self._check_system, params)
@@ -709,6 +765,11 @@ class Diagnosis:
 
 def diagnose(model, fit_logs, check_logs, effects=EFFECTS, form=None, max_effects=6):
     """Diagnose the gap between `model` and logs; returns a Diagnosis (result = contract JSON)."""
+    with single_threaded_blas():
+        return _diagnose(model, fit_logs, check_logs, effects, form, max_effects)
+
+
+def _diagnose(model, fit_logs, check_logs, effects, form, max_effects):
     form = form or choose_form(list(fit_logs) + list(check_logs))
     fit = [build_design(model, l, form) for l in fit_logs]
     check = [build_design(model, l, form) for l in check_logs]

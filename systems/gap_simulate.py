@@ -236,8 +236,13 @@ def case_plan(n_cases, rng, effects=EFFECTS):
 
 def run_self_check(model, n_cases, seed, progress=None):
     """Blind diagnosis of simulated cases; returns (cases, summary, confusion)."""
-    from .gap import diagnose
+    from .gap import diagnose, single_threaded_blas
 
+    with single_threaded_blas():
+        return _run_self_check(model, n_cases, seed, progress, diagnose)
+
+
+def _run_self_check(model, n_cases, seed, progress, diagnose):
     rng = np.random.default_rng(seed)
     plan = case_plan(n_cases, rng)
     cases = []
