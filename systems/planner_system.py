@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 from pydrake.common.value import AbstractValue
-from pydrake.systems.framework import BasicVector, EventStatus, LeafSystem
+from pydrake.systems.framework import EventStatus, LeafSystem
 
 
 @dataclasses.dataclass
