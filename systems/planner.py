@@ -610,12 +610,12 @@ class SafePlanner:
             options.SetOption(sid, "max_wall_time", float(remaining))
             options.SetOption(sid, "hessian_approximation", "limited-memory")
             # log cond is nonsmooth where the two smallest singular values cross, so the dual
-            # infeasibility may never vanish: stop once the objective stalls (5 iterations that are
-            # feasible and change the cost by < 0.1 %), a better cond by 0.1 % is not worth more time.
+            # infeasibility may never vanish: stop once the objective stalls (3 iterations that are
+            # feasible and change the cost by < 0.3 %): a slightly better cond is not worth more time.
             options.SetOption(sid, "tol", 1e-3)
             options.SetOption(sid, "acceptable_tol", 1e6)
-            options.SetOption(sid, "acceptable_iter", 5)
-            options.SetOption(sid, "acceptable_obj_change_tol", 1e-3)
+            options.SetOption(sid, "acceptable_iter", 3)
+            options.SetOption(sid, "acceptable_obj_change_tol", 3e-3)
             options.SetOption(sid, "constr_viol_tol", 1e-6)
             options.SetOption(sid, "acceptable_constr_viol_tol", 1e-6)
             options.SetOption(sid, "print_level", int(__import__("os").environ.get("SAFESYSID_IPOPT_PRINT", 0)))
