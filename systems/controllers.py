@@ -20,12 +20,15 @@ Gains come from ControllerGains (from the scenario via gains_from_scenario).
 """
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from .controller import ArmourGains, ControllerDynamics, armour_control, tracking_errors, wrap_error
 from .intervals import Interval
+
+_log = logging.getLogger(__name__)
 
 @dataclass
 class ControllerGains:
@@ -110,8 +113,21 @@ def make_armour_controller(robot, gains: ControllerGains):
             self.DeclareVectorOutputPort("diagnostics", BasicVector(5), self._calc_diag)
 
         def _calc_law(self, context, value):
-            q, v, q_d, qd_d, qdd_d, theta0, box = self._inputs(context)
-            value.set_value(armour_control(self.dyn, gains.armour, q, v, q_d, qd_d, qdd_d, theta0, box))
+            n = self.n
+            x, d = self.state.Eval(context), self.desired.Eval(context)
+            theta0 = self.theta0.Eval(context)
+            lo, hi = self.theta_lower.Eval(context), self.theta_upper.Eval(context)
+            args = (x[:n], x[n:], d[:n], d[n:2 * n], d[2 * n:])
+            if np.all(np.isfinite(theta0)) and np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(lo <= hi):
+                out = armour_control(self.dyn, gains.armour, *args, theta0, Interval(lo, hi))
+            else:
+                out = None
+            if out is None or not np.all(np.isfinite(out.u)):
+                # Bad parameter input (an estimator failure): never command NaN. Fall back to the
+                # model's nominal parameters, logged; the guarantee is void until inputs recover.
+                _log.warning("ArmourController at t=%.4f s: invalid theta inputs, nominal model used", context.get_time())
+                out = armour_control(self.dyn, gains.armour, *args, robot.theta, Interval(robot.theta))
+            value.set_value(out)
 
         def law(self, context):
             """ArmourOutput of the current step (u, tau_nom, v, w_bar, V_bar, h, lam, err)."""

@@ -214,3 +214,20 @@ def test_all_controllers_share_ports(robot):
         u = system.GetOutputPort("torque").Eval(ctx)
         # At rest on the trajectory every law commands the nominal gravity + offset torque.
         np.testing.assert_allclose(u, C.ControllerDynamics(robot).gravity(q, theta0), atol=1e-9)
+
+
+def test_armour_controller_never_commands_nan(robot, caplog):
+    from safesysid.scenario import load_scenario
+    from safesysid.systems.controllers import gains_from_scenario, make_controller
+
+    system = make_controller("armour", robot, gains_from_scenario(load_scenario(), robot.n), 0.001)
+    ctx = system.CreateDefaultContext()
+    q = np.array([0.0, 0.26, 0.0, 2.0, 0.0, 0.9, 1.57])
+    bad = robot.theta.copy()
+    bad[3] = np.nan
+    for name, value in (("desired", np.concatenate([q, np.zeros(14)])), ("state", np.concatenate([q + 0.01, np.zeros(7)])),
+                        ("theta0", bad), ("theta_lower", robot.theta), ("theta_upper", robot.theta)):
+        system.GetInputPort(name).FixValue(ctx, value)
+    with caplog.at_level("WARNING"):
+        u = system.GetOutputPort("torque").Eval(ctx)
+    assert np.all(np.isfinite(u)) and "invalid theta" in caplog.text
