@@ -39,10 +39,11 @@ equations, so each fit costs microseconds); the payload uses a log-Cholesky Gaus
 
 Selection is forward-greedy: the candidate with the largest held-out improvement is added while
 it is significant, i.e. all of
-  (1) held-out (check) mean-square residual drops by more than Z_BLOCK block standard errors
-      (blocks of BLOCK_S seconds, so autocorrelated residuals do not fake significance),
+  (1) held-out (check) squared residual drops by more than Z_BLOCK standard errors of its
+      random part (see `significance`; blocks of BLOCK_S seconds, so autocorrelated residuals
+      do not fake significance),
   (2) the drop exceeds MIN_RELATIVE of the current check mean square and MIN_NOISE_FRACTION of
-      the noise variance (estimated from first differences of the check residual): improvement
+      the noise variance (robust estimate from first differences of the check residual): improvement
       beyond what measurement noise explains,
   (3) BIC on the fit logs decreases.
 """
@@ -632,29 +633,38 @@ def n_params(params):
     return sum(len(p) for p in params.values())
 
 
-def noise_variance(r, block):
-    """White-noise variance from first differences inside blocks (smooth effects cancel)."""
-    same = block[1:] == block[:-1]
-    d = np.diff(r)[same]
-    return float(np.mean(d ** 2) / 2) if len(d) else float(np.mean(r ** 2))
+def noise_variance(r, block, joint):
+    """White-noise variance from first differences in time inside blocks, per joint (smooth
+    effects cancel), robust to sharp bursts (median absolute difference)."""
+    out = []
+    for j in np.unique(joint):
+        m = joint == j
+        d = np.diff(r[m])[block[m][1:] == block[m][:-1]]
+        if len(d):
+            out.append((1.4826 * np.median(np.abs(d))) ** 2 / 2)
+    return float(np.mean(out)) if out else float(np.mean(r ** 2))
 
 
 def significance(problem, r0, r1, sse0_fit, sse1_fit, k_added, joint=None):
-    """The significance rule of the module docstring. r0/r1: check residual vectors."""
+    """The significance rule of the module docstring. r0/r1: check residual vectors.
+
+    With c = r0 - r1 (the candidate's change of prediction), the held-out gain is
+    sum(r0^2 - r1^2) = sum(2 r1 c + c^2); only 2 r1 c is random (r1 estimates the noise), so its
+    standard error is taken from block sums of 2 r1 c (blocks absorb autocorrelation) and
+    z = gain / se. Effects acting in short bursts (Stribeck at reversals) are then judged by
+    how far each burst stands out of the noise, not by how many bursts a log happens to have."""
     sel = slice(None) if joint is None else (problem.check_joint == joint)
     r0, r1 = r0[sel], r1[sel]
     blocks = problem.check_block[sel]
-    n_rows = len(r0)
+    joints = problem.check_joint[sel]
     mse0 = float(np.mean(r0 ** 2))
     gain = r0 ** 2 - r1 ** 2
     delta = float(np.mean(gain))
-    per_block = np.bincount(blocks, weights=gain)
-    used = np.bincount(blocks) > 0
-    per_block = per_block[used]
-    nb = len(per_block)
-    se = float(np.sqrt(nb / max(nb - 1, 1) * np.sum((per_block - per_block.mean()) ** 2))) / n_rows if nb > 1 else np.inf
-    z = delta / se if se > 0 else (np.inf if delta > 0 else 0.0)
-    sigma2 = noise_variance(r0, blocks)
+    cross = np.bincount(blocks, weights=2 * r1 * (r0 - r1))
+    se = float(np.sqrt(np.sum(cross ** 2)))
+    total = float(np.sum(gain))
+    z = total / se if se > 0 else (np.inf if total > 1e-12 * max(np.sum(r0 ** 2), 1e-300) else 0.0)
+    sigma2 = noise_variance(r0, blocks, joints)
     m = problem.n_fit_rows
     bic = m * np.log(max(sse1_fit, 1e-300) / max(sse0_fit, 1e-300)) + k_added * np.log(m)
     ok = bool(z >= Z_BLOCK and delta >= MIN_RELATIVE * mse0 and delta >= MIN_NOISE_FRACTION * sigma2
@@ -791,9 +801,8 @@ def _diagnose(model, fit_logs, check_logs, effects, form, max_effects):
         sig = significance(prob, r0, r1, sse0_fit, sse, n_params(params))
         single[e] = {"params": params, "sse": sse, "rms": _rms(r1), "sig": sig}
 
-    # Forward-greedy selection with the significance rule.
-    selected, cur_params, cur_sse, cur_r = [], {}, sse0_fit, r0
-    steps = []
+    # Selection: the best pair (or single) first, exhaustively, then forward-greedy.
+    selected, cur_params, cur_sse, cur_r, steps = _best_small_set(prob, effects, single, r0, sse0_fit)
     while len(selected) < max_effects:
         best = None
         for e in effects:
@@ -810,6 +819,13 @@ def _diagnose(model, fit_logs, check_logs, effects, form, max_effects):
         e, cur_params, cur_sse, cur_r, sig = best
         selected.append(e)
         steps.append({"effect": e, "rms_check_after": _rms(cur_r), **sig})
+    # Most important first: the held-out loss when an effect is left out of the final set.
+    if len(selected) > 1:
+        loss = {}
+        for e in selected:
+            params, _ = fit_effects(prob, [x for x in selected if x != e])
+            loss[e] = float(np.mean(prob.check_residual(params) ** 2) - np.mean(cur_r ** 2))
+        selected.sort(key=lambda e: -loss[e])
 
     # Joints where each selected effect matters: removing it from the combined fit on that
     # joint must lose a significant amount on the check logs.
@@ -871,6 +887,48 @@ def _diagnose(model, fit_logs, check_logs, effects, form, max_effects):
     }
     corrected = corrected_parameters(model, selected, cur_params)
     return Diagnosis(result, form, fit, check, res_check0, res_check1, cur_params, corrected)
+
+
+def _best_small_set(prob, effects, single, r0, sse0_fit):
+    """Exhaustive search over sets of one or two effects (greedy alone can pick one effect
+    that mimics two, e.g. a torque scale for armature + delay on an arm with large nominal
+    armature, or miss two effects that only fit together, e.g. payload + base tilt, both
+    gravity-like). A set is admissible when each member is significant against the set without
+    it; the admissible set with the lowest held-out residual wins."""
+    fits = {(): ({}, sse0_fit, r0)}
+    for e in effects:
+        p = single[e]["params"]
+        fits[(e,)] = (p, single[e]["sse"], prob.check_residual(p))
+    admissible = [()]
+    for e in effects:
+        if single[e]["sig"]["significant"]:
+            admissible.append((e,))
+    for i, e in enumerate(effects):
+        for f in effects[i + 1:]:
+            params, sse = fit_effects(prob, [e, f])
+            r = prob.check_residual(params)
+            fits[(e, f)] = (params, sse, r)
+            ok = True
+            for keep in (e, f):
+                p0, s0, rr0 = fits[(keep,)]
+                sig = significance(prob, rr0, r, s0, sse, n_params(params) - n_params(p0))
+                ok &= sig["significant"]
+            if ok:
+                admissible.append((e, f))
+    best = min(admissible, key=lambda k: float(np.mean(fits[k][2] ** 2)))
+    params, sse, r = fits[best]
+    steps = []
+    prev = ()
+    order = sorted(best, key=lambda e: float(np.mean(fits[(e,)][2] ** 2)))
+    for e in order:
+        cur = tuple(x for x in best if x in prev + (e,))
+        cur = tuple(sorted(cur, key=best.index))
+        p1, s1, r1 = fits[cur]
+        p0, s0, rr0 = fits[prev]
+        sig = significance(prob, rr0, r1, s0, s1, n_params(p1) - n_params(p0))
+        steps.append({"effect": e, "rms_check_after": _rms(r1), "phase": "best pair", **sig})
+        prev = cur
+    return list(order), params, sse, r, steps
 
 
 def _reduction(before, after):
