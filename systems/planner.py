@@ -25,6 +25,7 @@ import numpy as np
 
 from . import reachability as reach
 from .bezier import QuinticBezier, restriction_matrix
+from .intervals import Interval, _up
 
 COLLISION_SOLVER_MARGIN_M = 1e-4  # the solver aims this far inside; verification asks >= 0
 
@@ -237,24 +238,48 @@ class PlanningProblem:
 
     # -- torque: rigorous check over the k box, shrinking it toward the centre when needed ----------
     def _torque_box(self, theta0, theta_lo, theta_hi):
+        """Largest k box (the allowed one, or shrunk toward k = 0 by halves) whose rigorous torque
+        bound fits the limits. Plain interval bound first; if that fails, all shrink levels at
+        once (one batched call) with the aa-vertex refinement of the robust term."""
         limit = self.planner.robot.joint_params.torque_limit
+        robot = self.planner.robot
         centre = np.clip(np.zeros(self.n), self.k_lo, self.k_hi)
-        lo, hi = self.k_lo.copy(), self.k_hi.copy()
         group = max(1, int(self.planner.torque_group))
-        for attempt in range(self.planner.torque_shrink_steps + 1):
-            # Hull of `group` consecutive intervals per box: the interval RNEA costs per call, not
-            # per box, and these boxes are dominated by the k range, not by the time span.
-            boxes = [_merge(x, group) for x in self.reach.state_boxes(lo, hi)]
-            wp = reach.interval_passivity_regressor(self.planner.robot, *boxes)
-            sup, _, _ = reach.torque_bound(wp, theta0, theta_lo, theta_hi)
-            ratio = (sup / limit).max()
-            if ratio <= 1.0:
-                self.k_lo, self.k_hi, self.torque_ratio = lo, hi, float(ratio)
+        coarse = 4  # the vertex refinement runs on hulls of `coarse` boxes (it costs more per box)
+
+        def boxes_for(scales, merge):
+            per = [[_merge(x, merge) for x in self.reach.state_boxes(centre + f * (self.k_lo - centre),
+                                                                      centre + f * (self.k_hi - centre))]
+                   for f in scales]
+            return [Interval(np.concatenate([p[c].lo for p in per]), np.concatenate([p[c].hi for p in per]))
+                    for c in range(4)], len(per[0][0].lo)
+
+        boxes, nb = boxes_for([1.0], group)
+        wp = reach.interval_passivity_regressor(robot, *boxes)
+        sup, _, _ = reach.torque_bound(wp, theta0, theta_lo, theta_hi)
+        if (sup / limit).max() <= 1.0:
+            self.torque_ratio = float((sup / limit).max())
+            return True
+        scales = [0.5 ** s for s in range(self.planner.torque_shrink_steps + 1)]
+        boxes, nb = boxes_for(scales, group)
+        wp = reach.interval_passivity_regressor(robot, *boxes)
+        _, nominal, robust = reach.torque_bound(wp, theta0, theta_lo, theta_hi)
+        big, nbig = boxes_for(scales, group * coarse)
+        wv, _ = reach.robust_bound_vertex(robot, *big, theta0, theta_lo, theta_hi, robot.ee_slice)
+        robust_v = _up(np.linalg.norm(wv, axis=1) * (1 + 1e-12))
+        fine = np.arange(len(robust))
+        owner = (fine // nb) * nbig + (fine % nb) // coarse  # coarse box containing each fine box
+        sup = _up(nominal + np.minimum(robust, robust_v[owner])[:, None])
+        ratio = (sup / limit).reshape(len(scales), nb, -1).max((1, 2))
+        for f, r in zip(scales, ratio):
+            if r <= 1.0:
+                self.k_lo, self.k_hi = centre + f * (self.k_lo - centre), centre + f * (self.k_hi - centre)
+                self.torque_ratio = float(r)
                 return True
-            lo, hi = centre + 0.5 * (lo - centre), centre + 0.5 * (hi - centre)
-        i, j = np.unravel_index(np.argmax(sup / limit), sup.shape)
+        last = sup.reshape(len(scales), nb, -1)[-1]
+        i, j = np.unravel_index(np.argmax(last / limit), last.shape)
         t_box = self.reach.edges[min(i * group, len(self.reach.t_mid) - 1)]
-        self._fail(f"torque limit of joint {j + 1} cannot be guaranteed (bound {sup[i, j]:.1f} N m > "
+        self._fail(f"torque limit of joint {j + 1} cannot be guaranteed (bound {last[i, j]:.1f} N m > "
                    f"{limit[j]:.1f} N m from t = {t_box:.2f} s, robust term included)")
         return False
 

@@ -568,7 +568,7 @@ def _force_to_parent(e, r, f):
     return _cat([_tmatvec(e, n_) + _cross(r, fp), fp])
 
 
-def interval_passivity_regressor(robot, q, v, va, aa):
+def interval_passivity_regressor(robot, q, v, va, aa, gravity=True):
     """Interval Wp (N, n, 14n) enclosing RobotModel.passivity_regressor over boxes q, v, va, aa
     (Intervals (N, n)). Local-frame RNEA: each body's velocity/acceleration from its parent's
     through one interval joint transform; the body wrench regressors carried back up the tree."""
@@ -589,7 +589,7 @@ def interval_passivity_regressor(robot, q, v, va, aa):
             w = rc.T @ ax
             s_local[i, :3] = w
             s_local[i, 3:] = np.cross(-rc.T @ tc, w)
-    g_world = np.concatenate([np.zeros(3), -tree.gravity])  # base "acceleration" (gravity trick)
+    g_world = np.concatenate([np.zeros(3), -tree.gravity if gravity else np.zeros(3)])  # base "acceleration"
     vel, vela, acc = [None] * n, [None] * n, [None] * n
     ys = [None] * n
     for i in range(n):
@@ -632,6 +632,54 @@ def interval_passivity_regressor(robot, q, v, va, aa):
     for off, x in ((0, sgn), (1, va), (2, aa), (3, _Box(np.ones((nsamp, n))))):
         lo[:, idx, base + off], hi[:, idx, base + off] = x.lo, x.hi
     return Interval(lo, hi)
+
+
+def robust_bound_vertex(robot, q, v, va, aa, theta0, theta_lo, theta_hi, block, full=None):
+    """Tighter w_bar (N, n) for the parameters in `block` (e.g. the end effector's 10).
+
+    W_p is affine in aa: W_p = A(q, v, va) + sum_j B_j(q) aa_j (B_j: the M(q) columns, no gravity,
+    no velocity). sum_k |W_p,ik| d_k is convex in aa, so its max over the aa box is at a vertex;
+    with interval A, B_j over the rest of the box, max over the 2^n aa vertices of
+    sum_k d_k mag(A_ik + sum_j B_j,ik aa_j) bounds it. Parameters outside `block` use the plain
+    sum_k mag(W_p,ik) d_k. Returns (w_bar (N, n), plain w_bar (N, n)) for comparison.
+    """
+    n = robot.n
+    nb = q.shape[0]
+    theta0 = np.asarray(theta0, float)
+    d = np.maximum(np.maximum(np.asarray(theta_hi, float) - theta0, theta0 - np.asarray(theta_lo, float)), 0.0)
+    zero = Interval(np.zeros((nb, n)))
+    a_part = interval_passivity_regressor(robot, q, v, va, zero)
+    # B_j: unit aa_j, no gravity, no velocity; batched over j.
+    rep = lambda x: Interval(np.tile(x.lo, (n, 1)), np.tile(x.hi, (n, 1)))  # noqa: E731
+    unit = np.repeat(np.eye(n), nb, axis=0)
+    zeros_nb = Interval(np.zeros((n * nb, n)))
+    b_all = interval_passivity_regressor(robot, rep(q), zeros_nb, zeros_nb, Interval(unit), gravity=False)
+    cols = np.zeros(a_part.lo.shape[-1], bool)
+    cols[block] = True
+    fr = 10 * n + 4 * np.arange(n)
+    # Friction columns are not affine in aa through B (their aa column is aa itself): keep them
+    # out of B (unit aa puts 1 in the Ia column, which A does not have) and bound them plainly.
+    cols[fr] = cols[fr + 1] = cols[fr + 2] = cols[fr + 3] = False
+    a_lo, a_hi = a_part.lo[..., cols], a_part.hi[..., cols]  # (N, n, p)
+    b_lo = b_all.lo[..., cols].reshape(n, nb, n, -1)  # (j, N, n, p)
+    b_hi = b_all.hi[..., cols].reshape(n, nb, n, -1)
+    dk = d[cols]
+    best = np.zeros((nb, n))
+    for sigma in range(2 ** n):
+        pick = [(sigma >> j) & 1 for j in range(n)]
+        lo, hi = a_lo.copy(), a_hi.copy()
+        for j in range(n):
+            x = aa.hi[:, j] if pick[j] else aa.lo[:, j]  # (N,)
+            p1, p2 = b_lo[j] * x[:, None, None], b_hi[j] * x[:, None, None]
+            lo += np.minimum(p1, p2)
+            hi += np.maximum(p1, p2)
+        mag = np.maximum(np.abs(lo), np.abs(hi))
+        best = np.maximum(best, mag @ dk)
+    best = _up(best * (1 + 64 * np.finfo(float).eps) + 1e-12)  # the float sums above
+    full = interval_passivity_regressor(robot, q, v, va, aa) if full is None else full
+    rest = full.mag[..., ~cols] @ d[~cols]
+    plain = full.mag @ d
+    return _up(np.minimum(plain, best + rest)), plain
 
 
 def torque_bound(wp, theta0, theta_lo, theta_hi):

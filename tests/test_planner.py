@@ -337,3 +337,27 @@ def test_wall_time_cap_stops_the_solver_and_keeps_a_verified_point(robot, payloa
         assert res.solver_status == "wall_time_cap"
         assert res.ok and res.status == "best_feasible"  # the warm start, verified feasible
         assert planner.problem(Q0, np.zeros(7), np.zeros(7), *thetas).is_feasible(res.k)
+
+
+def test_table_ii_prior_plans_with_the_refined_torque_bound_and_stays_within_limits(robot, payload):
+    """With the paper's wide Table II end-effector interval the plain interval bound rejects every
+    k; the aa-vertex refinement admits a shrunk box, and the ARMOUR command stays within limits."""
+    from safesysid.scenario import InitialInterval
+
+    ii = InitialInterval()
+    theta0, box = ctl.parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper))
+    thetas = (theta0, box.lo, box.hi)
+    planner = P.SafePlanner(robot, Planner(num_cost_samples=32), [], payload, ctl.tracking_bounds_for(robot, GAINS, box.lo))
+    orig = planner.problem
+
+    def keep(*args, **kw):
+        planner._last_problem = orig(*args, **kw)
+        return planner._last_problem
+
+    planner.problem = keep
+    res = planner.plan(Q0, np.zeros(7), np.zeros(7), *thetas)
+    assert res.ok, res.reason
+    assert np.all(res.k_box[1] < 1.0)  # the box had to shrink
+    st = check_plan_densely(robot, planner, thetas, res.k, DrakeScene(robot, payload, []), np.random.default_rng(8),
+                            samples=n_trials(150, 1500))
+    assert st["torque_samples"] > 100
