@@ -776,6 +776,7 @@ class IncrementalEstimator:
         self.num_samples = 0
         self.prior = None if prior is None else (np.asarray(prior[0], float), np.asarray(prior[1], float))
         nominal = robot.theta_e if prior_nominal is None else np.asarray(prior_nominal, float)
+        self.prior_nominal = nominal.copy()  # published before the first update (need not be consistent)
         self.eta = inertial.theta_to_log_cholesky(nominal) if inertial.is_physically_consistent(nominal) \
             else np.zeros(10)
         self.estimate: Estimate | None = None
@@ -919,7 +920,7 @@ class IncrementalEstimator:
         if prev is not None and prev.case != "prior":
             prev.message = message
             return prev
-        theta_e = inertial.log_cholesky_to_theta(self.eta)
+        theta_e = self.prior_nominal.copy()
         lo, hi = self.prior if self.prior is not None else (np.full(10, -np.inf), np.full(10, np.inf))
         t_lo, t_hi = self._robot_box()
         t_lo[self.robot.ee_slice], t_hi[self.robot.ee_slice] = lo, hi
