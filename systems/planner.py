@@ -265,7 +265,7 @@ class PlanningProblem:
         wp = reach.interval_passivity_regressor(robot, *boxes)
         _, nominal, robust = reach.torque_bound(wp, theta0, theta_lo, theta_hi)
         big, nbig = boxes_for(scales, group * coarse)
-        wv, _ = reach.robust_bound_vertex(robot, *big, theta0, theta_lo, theta_hi, robot.ee_slice)
+        wv, _ = reach.robust_bound_vertex(robot, *big, theta0, theta_lo, theta_hi, robot.ee_slice, b_rows=nbig)
         robust_v = _up(np.linalg.norm(wv, axis=1) * (1 + 1e-12))
         fine = np.arange(len(robust))
         owner = (fine // nb) * nbig + (fine % nb) // coarse  # coarse box containing each fine box
@@ -492,6 +492,7 @@ class SafePlanner:
         if not prob.feasible_start:
             res.reason = prob.reason
             res.solve_time_s = time.perf_counter() - t_start
+            res.details["cpu_time_s"] = time.process_time() - cpu_start
             return res
         res.k_box = (prob.k_lo.copy(), prob.k_hi.copy())
         res.num_collision_constraints = prob.num_pairs

@@ -634,48 +634,52 @@ def interval_passivity_regressor(robot, q, v, va, aa, gravity=True):
     return Interval(lo, hi)
 
 
-def robust_bound_vertex(robot, q, v, va, aa, theta0, theta_lo, theta_hi, block, full=None):
+def robust_bound_vertex(robot, q, v, va, aa, theta0, theta_lo, theta_hi, block, full=None, b_rows=1):
     """Tighter w_bar (N, n) for the parameters in `block` (e.g. the end effector's 10).
 
     W_p is affine in aa: W_p = A(q, v, va) + sum_j B_j(q) aa_j (B_j: the M(q) columns, no gravity,
     no velocity). sum_k |W_p,ik| d_k is convex in aa, so its max over the aa box is at a vertex;
-    with interval A, B_j over the rest of the box, max over the 2^n aa vertices of
+    with interval A, B_j over the rest of the box, the max over the 2^n aa vertices of
     sum_k d_k mag(A_ik + sum_j B_j,ik aa_j) bounds it. Parameters outside `block` use the plain
-    sum_k mag(W_p,ik) d_k. Returns (w_bar (N, n), plain w_bar (N, n)) for comparison.
+    sum_k mag(W_p,ik) d_k. B_j depends on q only: it is evaluated on hulls of `b_rows`
+    consecutive q boxes (cheap, q moves little). Returns (w_bar (N, n), plain w_bar (N, n)).
     """
     n = robot.n
     nb = q.shape[0]
     theta0 = np.asarray(theta0, float)
     d = np.maximum(np.maximum(np.asarray(theta_hi, float) - theta0, theta0 - np.asarray(theta_lo, float)), 0.0)
-    zero = Interval(np.zeros((nb, n)))
-    a_part = interval_passivity_regressor(robot, q, v, va, zero)
-    # B_j: unit aa_j, no gravity, no velocity; batched over j.
-    rep = lambda x: Interval(np.tile(x.lo, (n, 1)), np.tile(x.hi, (n, 1)))  # noqa: E731
-    unit = np.repeat(np.eye(n), nb, axis=0)
-    zeros_nb = Interval(np.zeros((n * nb, n)))
-    b_all = interval_passivity_regressor(robot, rep(q), zeros_nb, zeros_nb, Interval(unit), gravity=False)
+    a_part = interval_passivity_regressor(robot, q, v, va, Interval(np.zeros((nb, n))))
+    # B_j: unit aa_j, no gravity, no velocity, on the q hulls; batched over j.
+    ng = -(-nb // b_rows)
+    pad = ng * b_rows - nb
+    qlo = np.concatenate([q.lo, np.repeat(q.lo[-1:], pad, 0)]).reshape(ng, b_rows, n).min(1)
+    qhi = np.concatenate([q.hi, np.repeat(q.hi[-1:], pad, 0)]).reshape(ng, b_rows, n).max(1)
+    zeros = Interval(np.zeros((n * ng, n)))
+    b_all = interval_passivity_regressor(robot, Interval(np.tile(qlo, (n, 1)), np.tile(qhi, (n, 1))), zeros, zeros,
+                                         Interval(np.repeat(np.eye(n), ng, axis=0)), gravity=False)
     cols = np.zeros(a_part.lo.shape[-1], bool)
     cols[block] = True
     fr = 10 * n + 4 * np.arange(n)
-    # Friction columns are not affine in aa through B (their aa column is aa itself): keep them
-    # out of B (unit aa puts 1 in the Ia column, which A does not have) and bound them plainly.
-    cols[fr] = cols[fr + 1] = cols[fr + 2] = cols[fr + 3] = False
+    cols[fr] = cols[fr + 1] = cols[fr + 2] = cols[fr + 3] = False  # friction: bounded plainly
+    owner = np.arange(nb) // b_rows
     a_lo, a_hi = a_part.lo[..., cols], a_part.hi[..., cols]  # (N, n, p)
-    b_lo = b_all.lo[..., cols].reshape(n, nb, n, -1)  # (j, N, n, p)
-    b_hi = b_all.hi[..., cols].reshape(n, nb, n, -1)
-    dk = d[cols]
-    best = np.zeros((nb, n))
-    for sigma in range(2 ** n):
-        pick = [(sigma >> j) & 1 for j in range(n)]
-        lo, hi = a_lo.copy(), a_hi.copy()
-        for j in range(n):
-            x = aa.hi[:, j] if pick[j] else aa.lo[:, j]  # (N,)
+    b_lo = b_all.lo[..., cols].reshape(n, ng, n, -1)[:, owner]  # (j, N, n, p)
+    b_hi = b_all.hi[..., cols].reshape(n, ng, n, -1)[:, owner]
+    # Every vertex at once: the sums over j for all 2^n choices of aa_j in {lo, hi}, by doubling.
+    lo, hi = a_lo[None], a_hi[None]
+    scale = np.maximum(np.abs(a_lo), np.abs(a_hi))
+    for j in range(n):
+        opts_lo, opts_hi = [], []
+        for x in (aa.lo[:, j], aa.hi[:, j]):
             p1, p2 = b_lo[j] * x[:, None, None], b_hi[j] * x[:, None, None]
-            lo += np.minimum(p1, p2)
-            hi += np.maximum(p1, p2)
-        mag = np.maximum(np.abs(lo), np.abs(hi))
-        best = np.maximum(best, mag @ dk)
-    best = _up(best * (1 + 64 * np.finfo(float).eps) + 1e-12)  # the float sums above
+            opts_lo.append(np.minimum(p1, p2))
+            opts_hi.append(np.maximum(p1, p2))
+        lo = np.concatenate([lo + opts_lo[0], lo + opts_lo[1]])
+        hi = np.concatenate([hi + opts_hi[0], hi + opts_hi[1]])
+        scale = scale + np.maximum(np.maximum(np.abs(b_lo[j]), np.abs(b_hi[j])) * np.maximum(np.abs(aa.lo[:, j]), np.abs(aa.hi[:, j]))[:, None, None], 0)
+    err = 4 * (n + 2) * np.finfo(float).eps * scale  # rounding of the sums above
+    mag = np.maximum(np.abs(lo), np.abs(hi)) + err[None]
+    best = _up((mag @ d[cols]).max(0) * (1 + 32 * np.finfo(float).eps))
     full = interval_passivity_regressor(robot, q, v, va, aa) if full is None else full
     rest = full.mag[..., ~cols] @ d[~cols]
     plain = full.mag @ d
