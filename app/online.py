@@ -49,6 +49,10 @@ class OnlineDiagram:
     tracking: object
     extras: dict = field(default_factory=dict)
 
+    @property
+    def planner_results(self):
+        return self.extras["planner_results"]
+
 
 def _add_logger(builder, port, period, name):
     from pydrake.systems.primitives import VectorLogSink
@@ -67,12 +71,29 @@ def _constant(builder, value, name):
     return src.get_output_port()
 
 
+class RecordingPlanner:
+    """Proxy that keeps every PlanResult (the LeafSystem keeps only the current plan)."""
+
+    def __init__(self, planner):
+        self.inner = planner
+        self.results = []
+
+    def plan(self, *args, **kwargs):
+        result = self.inner.plan(*args, **kwargs)
+        self.results.append(result)
+        return result
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+
 def make_planner_system(robot, scenario, method, tracking, dumbbell, theta_prior, seed):
     from safesysid.systems.planner import SafePlanner
     from safesysid.systems.planner_system import ExcitingPlanner
 
     mode = "random" if method == "random" else scenario.planner.cost
-    planner = SafePlanner(robot, scenario.planner, obstacles=scenario.obstacles, payload=dumbbell, tracking=tracking)
+    planner = RecordingPlanner(SafePlanner(robot, scenario.planner, obstacles=scenario.obstacles, payload=dumbbell,
+                                           tracking=tracking))
     theta0, box = theta_prior
     return ExcitingPlanner(planner, np.asarray(scenario.q0_rad, float), theta0, box.lo, box.hi, mode=mode, seed=seed)
 
@@ -155,7 +176,7 @@ def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> On
     diagram = builder.Build()
     diagram.set_name(f"safesysid_{method}")
     return OnlineDiagram(diagram, arm, controller, planner, estimator, monitor, loggers, visualizer, meshcat,
-                         (theta0, box), tracking)
+                         (theta0, box), tracking, {"planner_results": planner._planner.results})
 
 
 def _log(sink, context):
@@ -275,5 +296,20 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
         report.plot_estimate_history(out / "mass.png", [h["t"] for h in history], [h["nominal"] for h in history],
                                      [h["lower"] for h in history], [h["upper"] for h in history], truth)
     if built.visualizer is not None:
+        draw_plans(meshcat, robot, built.planner_results)
         viz.save_replay(meshcat, built.visualizer, out / "replay.html")
     return summary
+
+
+def draw_plans(meshcat, robot, results):
+    """Each accepted plan's gripper-centre path, and its certified swept spheres (toggle)."""
+    from safesysid import viz
+
+    grasp = robot.extra["grasp_point"]
+    for index, res in enumerate(r for r in results if r.ok):
+        q, _, _ = res.evaluate(np.linspace(0.0, res.trajectory.duration, 150))
+        kin = robot.forward_kinematics(q)
+        ee = robot.end_effector
+        viz.draw_plan(meshcat, kin.p[:, ee] + kin.R[:, ee] @ grasp, index)
+        if "sphere_centres" in res.details:
+            viz.draw_swept_spheres(meshcat, res.details["sphere_centres"], res.details["sphere_radii"], index)
