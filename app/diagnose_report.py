@@ -138,6 +138,12 @@ def write_report(out, diagnosis, model_path, fit_paths, check_paths, plots, wall
         lines += ["", "Nominal residual RMS by form (per check log): "]
         for log, forms in gap["residual_forms"].items():
             lines.append(f"- `{Path(log).name}`: " + ", ".join(f"{k} {v:.3f}" for k, v in forms.items()))
+    lines += ["", "`velocity_plateau`: logged velocity pinned at its maximum with ~zero acceleration "
+              "(a saturated or clipped velocity signal; no effect of the library can follow it).", ""]
+    lines += ["", "Where the residual left after the combined correction lies (share of its square):", "",
+              "| regime | share after | share of samples |", "|---|---|---|"]
+    for k, v in comb.get("regimes_after", {}).items():
+        lines.append(f"| {k} | {100 * v:.1f}% | {100 * gap['where']['regime_sample_share'][k]:.1f}% |")
     lines += ["", "## Effects", "",
               f"Cause: **{', '.join(res['cause']) if res['cause'] else 'no significant effect'}**", "",
               "| effect | significant | joints | held-out RMS alone [N·m] | reduction alone | parameters |",

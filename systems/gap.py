@@ -706,6 +706,9 @@ def regimes(designs, residuals):
         "high_acceleration": np.abs(a) >= np.quantile(np.abs(a), REGIME_QUANTILE, axis=0),
         "high_speed": np.abs(v) >= np.quantile(np.abs(v), REGIME_QUANTILE, axis=0),
         "high_gravity_load": np.abs(g) >= np.quantile(np.abs(g), REGIME_QUANTILE, axis=0),
+        # Logged velocity pinned at its largest value with ~zero acceleration: a saturated
+        # velocity (limit or estimator clipping) the model cannot follow.
+        "velocity_plateau": (np.abs(v) >= 0.98 * vmax) & (np.abs(a) <= 0.1 * np.abs(a).max(0)),
     }
     share = {k: float(r2[m].sum() / total) for k, m in masks.items()}
     samples = {k: float(m.mean()) for k, m in masks.items()}
@@ -881,6 +884,7 @@ def _diagnose(model, fit_logs, check_logs, effects, form, max_effects):
                      "rms_check_per_joint_after": [float(x) for x in per_joint1],
                      "rms_check_per_log_after": [_rms(r) for r in res_check1],
                      "rms_fit_after": _rms(prob.fit_residual(cur_params)),
+                     "regimes_after": regimes(check, res_check1)[0],
                      "selection": steps},
         "significance_rule": {"z_block": Z_BLOCK, "block_s": BLOCK_S, "min_relative": MIN_RELATIVE,
                               "min_noise_fraction": MIN_NOISE_FRACTION, "information_criterion": "BIC on fit logs"},
