@@ -234,6 +234,11 @@ def _validate(s: Scenario, where):
         need(resolve_path(text, Path(where).parent).is_file(), field, f"file {text!r} not found")
     if s.robot.model:
         need(resolve_path(s.robot.model, Path(where).parent).is_file(), "robot.model", f"file {s.robot.model!r} not found")
+    if s.payload.dumbbell.lower() != "none":
+        from safesysid.systems.payload import load_dumbbells
+
+        names = list(load_dumbbells(resolve_path(s.payload.dumbbells_file, Path(where).parent)))
+        need(s.payload.dumbbell in names, "payload.dumbbell", f"{s.payload.dumbbell!r} is not one of none, {', '.join(names)}")
 
 
 def load_scenario(path=None, text=None, overrides=None) -> Scenario:

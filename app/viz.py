@@ -13,9 +13,18 @@ SWEPT_PATH = "planner/swept"
 
 def start_meshcat(live):
     """Drake's Meshcat (a local server; works offline). Prints the URL when shown live."""
+    import logging
+
     from pydrake.geometry import Meshcat
 
-    meshcat = Meshcat()
+    drake_log = logging.getLogger("drake")
+    level = drake_log.level
+    if not live:  # recording only: no "listening at" banner
+        drake_log.setLevel(logging.WARNING)
+    try:
+        meshcat = Meshcat()
+    finally:
+        drake_log.setLevel(level)
     if live:
         print(f"Meshcat: {meshcat.web_url()}", flush=True)
     return meshcat
