@@ -239,8 +239,9 @@ class PlanningProblem:
     # -- torque: rigorous check over the k box, shrinking it toward the centre when needed ----------
     def _torque_box(self, theta0, theta_lo, theta_hi):
         """Largest k box (the allowed one, or shrunk toward k = 0 by halves) whose rigorous torque
-        bound fits the limits. Plain interval bound first; if that fails, all shrink levels at
-        once (one batched call) with the aa-vertex refinement of the robust term."""
+        bound fits the limits: plain interval bound on the whole box; if that fails, on all shrink
+        levels at once (one batched call); if all fail, again with the aa-vertex refinement of the
+        robust term (tighter, costlier)."""
         limit = self.planner.robot.joint_params.torque_limit
         robot = self.planner.robot
         centre = np.clip(np.zeros(self.n), self.k_lo, self.k_hi)
@@ -260,10 +261,16 @@ class PlanningProblem:
         if (sup / limit).max() <= 1.0:
             self.torque_ratio = float((sup / limit).max())
             return True
-        scales = [0.5 ** s for s in range(self.planner.torque_shrink_steps + 1)]
+        scales = [0.5 ** s for s in range(1, self.planner.torque_shrink_steps + 1)]
         boxes, nb = boxes_for(scales, group)
         wp = reach.interval_passivity_regressor(robot, *boxes)
-        _, nominal, robust = reach.torque_bound(wp, theta0, theta_lo, theta_hi)
+        sup, nominal, robust = reach.torque_bound(wp, theta0, theta_lo, theta_hi)
+        ratio = (sup / limit).reshape(len(scales), nb, -1).max((1, 2))
+        for f, r in zip(scales, ratio):  # the plain bound admits a shrunk box: take the largest
+            if r <= 1.0:
+                self.k_lo, self.k_hi = centre + f * (self.k_lo - centre), centre + f * (self.k_hi - centre)
+                self.torque_ratio = float(r)
+                return True
         big, nbig = boxes_for(scales, group * coarse)
         wv, _ = reach.robust_bound_vertex(robot, *big, theta0, theta_lo, theta_hi, robot.ee_slice, b_rows=nbig)
         robust_v = _up(np.linalg.norm(wv, axis=1) * (1 + 1e-12))
