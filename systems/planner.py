@@ -44,12 +44,6 @@ SOFTMIN_SHARPNESS_PER_M = 2000.0  # soft-min of a group <= its true min (gap <= 
 # ---------------------------------------------------------------------------------------------
 
 
-def _skew(v):
-    z = np.zeros(v.shape[:-1], v.dtype)
-    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1), np.stack([v[..., 2], z, -v[..., 0]], -1),
-                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
-
-
 def _cross(a, b):
     return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
                      a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], -1)
@@ -153,12 +147,6 @@ def _chain_constants(tree):
 def _times_const(a, b):
     """Batched (..., 3, 3) @ constant (3, 3) as one BLAS call."""
     return (a.reshape(-1, 3) @ b).reshape(a.shape)
-
-
-def regressors_skew(axis):
-    from .regressors import skew
-
-    return skew(np.asarray(axis, float))
 
 
 # ---------------------------------------------------------------------------------------------
