@@ -45,7 +45,8 @@ def plot_intervals(path, nominal, lower, upper, truth=None, title=""):
     """The 10 end-effector intervals with nominal (and truth), like the paper's Fig. 5."""
     fig, axes = plt.subplots(2, 5, figsize=(13, 5))
     for k, ax in enumerate(axes.ravel()):
-        ax.errorbar([0], [nominal[k]], yerr=[[nominal[k] - lower[k]], [upper[k] - nominal[k]]], fmt="o", capsize=8)
+        ax.errorbar([0], [0.5 * (lower[k] + upper[k])], yerr=[[0.5 * (upper[k] - lower[k])]], fmt="none", capsize=8)
+        ax.plot([0], [nominal[k]], "o", color="C0")
         if truth is not None:
             ax.plot([0], [truth[k]], "r*", ms=12, label="truth")
         ax.set_title(f"{NAMES[k]} [{UNITS[k]}]", fontsize=9)
