@@ -173,6 +173,16 @@ def _scale_effect(name, eff, factor, cap):
     return e
 
 
+def _effect_rms(model, name, eff, trajs, times, clean):
+    """Per-joint RMS of what the effect changes in the residual of the nominal model."""
+    if name == "joint_elasticity":  # acts through the logged angle: the nominal model sees it there
+        contrib = [model.inverse_dynamics(*true_torque(model, tr, t, {name: eff})[:3]) - c[3]
+                   for tr, t, c in zip(trajs, times, clean)]
+    else:
+        contrib = [true_torque(model, tr, t, {name: eff})[3] - c[3] for tr, t, c in zip(trajs, times, clean)]
+    return np.sqrt(np.mean(np.concatenate(contrib) ** 2, 0))
+
+
 def make_case(model, rng, injected, with_acceleration, n_fit=2, n_check=1, duration_s=10.0):
     """Fit and check logs with the `injected` effects withheld from `model`.
 
@@ -192,19 +202,16 @@ def make_case(model, rng, injected, with_acceleration, n_fit=2, n_check=1, durat
     for name in injected:
         joints = np.sort(rng.choice(n, size=rng.integers(1, 4), replace=False)) if name in PER_JOINT else np.arange(n)
         eff, cap = _unit_effect(name, model, rng, joints)
-        contrib = np.concatenate([true_torque(model, tr, t, {name: eff})[3] - c[3]
-                                  for tr, t, c in zip(trajs, times, clean)])
-        if name == "joint_elasticity":  # acts through the logged angle: the nominal model sees it there
-            contrib = np.concatenate([model.inverse_dynamics(*true_torque(model, tr, t, {name: eff})[:3]) - c[3]
-                                      for tr, t, c in zip(trajs, times, clean)])
-        rms = np.sqrt(np.mean(contrib ** 2, 0))
+        rms = _effect_rms(model, name, eff, trajs, times, clean)
         acts = rms >= 0.2 * rms.max() if rms.max() > 0 else np.zeros(n, bool)
         snr = rng.uniform(*SNR_RANGE)
         target = snr * np.sqrt(np.mean(noise_rms[acts] ** 2))
         achieved = np.sqrt(np.mean(rms[acts] ** 2))
         eff = _scale_effect(name, eff, target / achieved if achieved > 0 else 1.0, cap)
         effects[name] = eff
+        final = np.sqrt(np.mean(_effect_rms(model, name, eff, trajs, times, clean)[acts] ** 2))
         truth[name] = {"joints": [int(j) + 1 for j in np.flatnonzero(acts)], "snr_target": float(snr),
+                       "snr": float(final / np.sqrt(np.mean(noise_rms[acts] ** 2))),  # after the physical caps
                        "params": {k: (np.asarray(v).tolist() if not isinstance(v, (float, int)) else v)
                                   for k, v in eff.items()}}
     logs = []
@@ -275,7 +282,9 @@ def summarize(cases):
             "cases_with_false_effect": sum(bool(c["false"]) for c in cases),
             "cases_with_false_effect_rate": sum(bool(c["false"]) for c in cases) / len(cases) if cases else 0.0,
             "null_cases": len(nulls), "null_correct": sum(not c["named"] for c in nulls),
-            "exact_cases": sum(not c["missed"] and not c["false"] for c in cases)}
+            "exact_cases": sum(not c["missed"] and not c["false"] for c in cases),
+            "missed": [{"case": c["case"], "effect": e, "snr": c["truth"]["effects"][e]["snr"]}
+                       for c in cases for e in c["missed"]]}
 
 
 def confusion(cases, effects=EFFECTS):

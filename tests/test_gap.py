@@ -139,8 +139,9 @@ def test_self_check_blind_confusion(kinova):
     Small sample in CI; the full >= 40 cases with SAFESYSID_FULL=1."""
     cases, summary, table = gs.run_self_check(kinova, n_trials(6, 40), seed=11)
     assert summary["null_correct"] == summary["null_cases"]
-    assert summary["injected_named_rate"] >= 0.9
-    assert summary["cases_with_false_effect_rate"] <= (0.2 if len(cases) < 20 else 0.1)
+    small = len(cases) < 20
+    assert summary["injected_named_rate"] >= (0.75 if small else 0.9)
+    assert summary["cases_with_false_effect_rate"] <= (0.2 if small else 0.1)
     assert sum(table["none"].values()) == summary["null_cases"]
 
 
