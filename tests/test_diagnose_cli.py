@@ -123,3 +123,24 @@ def test_self_check_cli(tmp_path, capsys):
     assert res["cases"][0]["injected"] == [] and res["cases"][0]["named"] == []
     assert "injected \\ named" in (out / "confusion.md").read_text()
     assert "injected effects named" in capsys.readouterr().out
+
+
+def test_scenario_yaml_as_model(tmp_path, capsys):
+    """MODEL may be a scenario YAML: its robot (the project's Kinova Gen3) is diagnosed."""
+    scenario = tmp_path / "s.yaml"
+    scenario.write_text("name: diag\n")
+    model = load_robot()
+    rng = np.random.default_rng(5)
+    paths = []
+    for k in range(2):
+        traj = gs.random_trajectory(model, rng)
+        t = gs.sample_times(rng, 6.0)
+        q, v, a, tau = gs.true_torque(model, traj, t, {"torque_offset": {"delta": np.r_[0, 2.0, 0, 0, 0, 0, 0]}})
+        tau = tau + 0.2 * rng.uniform(-1, 1, tau.shape)
+        paths.append(write_joint_log(tmp_path / f"k{k}.csv", JointLog(t, q, v, tau, a)))
+    out = tmp_path / "out"
+    assert main(["diagnose", "--model", str(scenario), "--fit", str(paths[0]), "--check", str(paths[1]),
+                 "--out", str(out)]) == 0
+    res = json.loads((out / "diagnosis.json").read_text())
+    assert res["cause"] == ["torque_offset"]
+    assert next(e for e in res["effects"] if e["name"] == "torque_offset")["joints"] == [2]
