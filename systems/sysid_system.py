@@ -1,0 +1,115 @@
+"""SysIdEstimator: Algorithm 1 as a Drake LeafSystem, refreshed every t_p as in Algorithm 2.
+
+Thin wrapper: the math is in estimator.py. Inputs: `state` (q, v; the plant's state port, 2n)
+and `measured_torque` (n). Outputs (whole robot, 14n each): `theta0` (θ_r nominal with the
+identified θ_e), `theta_lower`, `theta_upper` (θ_r box with [θ_e]); plus `update_info`
+[updates, last update wall time s, cond(Y), consistent (1/0)].
+
+Samples are stored at the sampling period (the plant rate) by a periodic discrete update; on
+the samples that reach a multiple of t_p the new data are handed to the incremental estimator
+(old segments are not recomputed) and the outputs (discrete state) are refreshed. The sample
+buffer and the estimator live in this system object (not in the Context): one simulation per
+instance at a time; an initialization event resets them.
+"""
+from __future__ import annotations
+
+import numpy as np
+from pydrake.systems.framework import BasicVector, EventStatus, LeafSystem
+
+from .estimator import EstimatorError, EstimatorSettings, IncrementalEstimator
+
+
+class SysIdEstimator(LeafSystem):
+    def __init__(self, robot, scenario=None, settings: EstimatorSettings | None = None, sample_period_s=None,
+                 update_period_s=None, prior=None, prior_nominal=None):
+        super().__init__()
+        if scenario is not None:
+            settings = settings or EstimatorSettings.from_scenario(scenario)
+            sample_period_s = sample_period_s or scenario.plant.time_step_s
+            update_period_s = update_period_s or scenario.planner.replan_period_s
+            ii = scenario.initial_interval
+            prior = prior if prior is not None else (np.array(ii.lower, float), np.array(ii.upper, float))
+            prior_nominal = prior_nominal if prior_nominal is not None else np.array(ii.nominal, float)
+        self.robot = robot
+        self.settings = settings or EstimatorSettings()
+        self.sample_period_s = float(sample_period_s or 1e-3)
+        self.update_period_s = float(update_period_s or 1.5)
+        self.prior = prior
+        self.prior_nominal = prior_nominal
+        n = robot.n
+        self.n = n
+        self.DeclareVectorInputPort("state", 2 * n)
+        self.DeclareVectorInputPort("measured_torque", n)
+        self._reset()
+        first = self._estimator.prior_estimate()
+        self._groups = {
+            "theta0": self.DeclareDiscreteState(BasicVector(first.theta)),
+            "theta_lower": self.DeclareDiscreteState(BasicVector(np.nan_to_num(first.theta_lower, neginf=-1e30))),
+            "theta_upper": self.DeclareDiscreteState(BasicVector(np.nan_to_num(first.theta_upper, posinf=1e30))),
+            "update_info": self.DeclareDiscreteState(BasicVector(np.array([0.0, 0.0, np.inf, 1.0]))),
+        }
+        for name, index in self._groups.items():
+            self.DeclareStateOutputPort(name, index)
+        self.DeclareInitializationDiscreteUpdateEvent(self._on_initialize)
+        self.DeclarePeriodicDiscreteUpdateEvent(self.sample_period_s, 0.0, self._on_sample)
+
+    # -- state kept outside the Context ------------------------------------------------------------
+    def _reset(self):
+        self._estimator = IncrementalEstimator(self.robot, self.settings, self.prior, self.prior_nominal)
+        self._buffer = []
+        self._next_update = self.update_period_s
+        self._history = []
+
+    def _write(self, discrete_state, est):
+        groups = self._groups
+        discrete_state.get_mutable_vector(groups["theta0"]).SetFromVector(est.theta)
+        discrete_state.get_mutable_vector(groups["theta_lower"]).SetFromVector(np.nan_to_num(est.theta_lower, neginf=-1e30))
+        discrete_state.get_mutable_vector(groups["theta_upper"]).SetFromVector(np.nan_to_num(est.theta_upper, posinf=1e30))
+        info = [len(self._history), est.update_time_s, est.cond_Y, float(est.consistent)]
+        discrete_state.get_mutable_vector(groups["update_info"]).SetFromVector(np.array(info, float))
+
+    def _on_initialize(self, context, discrete_state):
+        self._reset()
+        self._write(discrete_state, self._estimator.prior_estimate())
+        return EventStatus.Succeeded()
+
+    def _on_sample(self, context, discrete_state):
+        t = context.get_time()
+        x = self.get_input_port(0).Eval(context)
+        tau = self.get_input_port(1).Eval(context)
+        n = self.n
+        self._buffer.append(np.concatenate([[t], x[:n], x[n:2 * n], tau]))
+        if t + 1e-9 < self._next_update:
+            return EventStatus.DidNothing()
+        self._next_update += self.update_period_s
+        data = np.array(self._buffer)
+        self._buffer = []
+        try:
+            self._estimator.add(data[:, 0], data[:, 1:1 + n], data[:, 1 + n:1 + 2 * n], data[:, 1 + 2 * n:])
+            est = self._estimator.update()
+        except EstimatorError as err:  # not enough data yet (or bad samples): keep the outputs
+            self._history.append({"t": t, "skipped": str(err)})
+            return EventStatus.DidNothing()
+        self._history.append({"t": t, "update_time_s": est.update_time_s, "cond_Y": est.cond_Y, "case": est.case,
+                              "consistent": est.consistent, "nominal": est.theta_e.tolist(),
+                              "lower": est.lower.tolist(), "upper": est.upper.tolist(), "message": est.message})
+        self._write(discrete_state, est)
+        return EventStatus.Succeeded()
+
+    # -- results for reports -----------------------------------------------------------------------
+    @property
+    def estimator(self):
+        return self._estimator
+
+    @property
+    def update_times_s(self):
+        return [h["update_time_s"] for h in self.history()]
+
+    def history(self):
+        """One dict per completed update (t, update_time_s, cond_Y, case, consistent, θ_e box)."""
+        return [h for h in self._history if "skipped" not in h]
+
+    def final_estimate(self, ee_slice=None):
+        """(θ_e0, lower, upper) of the last update, or the prior before the first one."""
+        est = self._estimator.estimate or self._estimator.prior_estimate()
+        return est.theta_e.copy(), est.lower.copy(), est.upper.copy()

@@ -1,0 +1,126 @@
+"""SysIdEstimator in a Drake diagram with a MultibodyPlant (continuous, integrated by Drake)."""
+import numpy as np
+import pytest
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder, LeafSystem
+from pydrake.systems.primitives import MatrixGain
+
+from safesysid.scenario import load_scenario
+from safesysid.systems.estimator import EstimatorSettings
+from safesysid.systems.robot_model import load_robot, make_plant
+from safesysid.systems.sysid_system import SysIdEstimator
+
+
+class ComputedTorque(LeafSystem):
+    """τ = inverse dynamics of the plant at a_d + Kp(q_d − q) + Kd(v_d − v), q_d a sum of sines
+    (an exciting open-ended motion; gains in acceleration units so the loop is not stiff)."""
+
+    def __init__(self, plant, q0):
+        super().__init__()
+        self.plant = plant
+        self.ctx = plant.CreateDefaultContext()
+        n = plant.num_velocities()
+        self.q0 = np.asarray(q0, float)
+        self.n = n
+        self.DeclareVectorInputPort("state", 2 * n)
+        self.DeclareVectorOutputPort("torque", n, self._calc)
+
+    def desired(self, t):
+        w = 1.3 * (1 + 0.3 * np.arange(1, self.n + 1))
+        phase = w * t + np.arange(1, self.n + 1)
+        return self.q0 + 0.4 * np.sin(phase), 0.4 * w * np.cos(phase), -0.4 * w * w * np.sin(phase)
+
+    def _calc(self, context, output):
+        from pydrake.multibody.tree import MultibodyForces
+
+        x = self.get_input_port(0).Eval(context)
+        n = self.n
+        self.plant.SetPositionsAndVelocities(self.ctx, x)
+        qd, vd, ad = self.desired(context.get_time())
+        a = ad + 100.0 * (qd - x[:n]) + 20.0 * (vd - x[n:])
+        forces = MultibodyForces(self.plant)
+        self.plant.CalcForceElementsContribution(self.ctx, forces)
+        output.SetFromVector(self.plant.CalcInverseDynamics(self.ctx, a, forces))
+
+
+@pytest.fixture(scope="module")
+def rigid_robot():
+    """The RobotModel of the bare URDF plant: no friction, no armature (what Drake simulates)."""
+    robot = load_robot()
+    theta = robot.theta.copy()
+    theta[10 * robot.n:] = 0.0
+    return robot.with_theta(theta)
+
+
+def build(robot, update_period_s=1.0, duration_s=3.0):
+    builder = DiagramBuilder()
+    # No SceneGraph: no contact between links (rigid-body dynamics only, as the model assumes).
+    plant, _, _ = make_plant(robot.source, 0.0)
+    if not plant.is_finalized():
+        plant.Finalize()
+    builder.AddSystem(plant)
+    scenario = load_scenario()
+    settings = EstimatorSettings.from_scenario(scenario)
+    est = builder.AddSystem(SysIdEstimator(robot, settings=settings, sample_period_s=1e-3,
+                                           update_period_s=update_period_s,
+                                           prior=(np.array(scenario.initial_interval.lower), np.array(scenario.initial_interval.upper)),
+                                           prior_nominal=np.array(scenario.initial_interval.nominal)))
+    q0 = np.array([0.0, 0.3, 0.0, 1.5, 0.0, 0.8, 0.0])
+    ctrl = builder.AddSystem(ComputedTorque(plant, q0))
+    builder.Connect(plant.get_state_output_port(), ctrl.get_input_port(0))
+    # Actuators may not be in joint order: u = Bᵀ τ (B a permutation for this arm).
+    to_actuators = builder.AddSystem(MatrixGain(plant.MakeActuationMatrix().T))
+    builder.Connect(ctrl.get_output_port(0), to_actuators.get_input_port(0))
+    builder.Connect(to_actuators.get_output_port(0), plant.get_actuation_input_port())
+    builder.Connect(plant.get_state_output_port(), est.GetInputPort("state"))
+    builder.Connect(ctrl.get_output_port(0), est.GetInputPort("measured_torque"))
+    diagram = builder.Build()
+    sim = Simulator(diagram)
+    ctx = sim.get_mutable_context()
+    plant.SetPositions(plant.GetMyMutableContextFromRoot(ctx), ctrl.desired(0.0)[0])
+    plant.SetVelocities(plant.GetMyMutableContextFromRoot(ctx), ctrl.desired(0.0)[1])
+    sim.get_mutable_integrator().set_target_accuracy(1e-6)
+    return sim, diagram, plant, est
+
+
+def test_model_matches_plant(rigid_robot):
+    builder = DiagramBuilder()
+    plant, _, _ = make_plant(rigid_robot.source, 0.0, builder=builder)
+    plant.Finalize()
+    ctx = plant.CreateDefaultContext()
+    q = np.array([0.1, 0.4, -0.3, 1.2, 0.5, 0.7, -0.2])
+    plant.SetPositions(ctx, q)
+    assert np.allclose(plant.CalcMassMatrix(ctx), rigid_robot.mass_matrix(q)[0], atol=1e-10)
+
+
+def test_estimator_system_in_a_diagram(rigid_robot):
+    sim, diagram, plant, est = build(rigid_robot, update_period_s=1.0)
+    ctx = sim.get_mutable_context()
+    est_ctx = est.GetMyContextFromRoot(ctx)
+    sim.Initialize()
+    n, ee = rigid_robot.n, rigid_robot.ee_slice
+    prior_lo = est.GetOutputPort("theta_lower").Eval(est_ctx)
+    assert prior_lo.shape == (14 * n,)
+    assert prior_lo[ee][0] == pytest.approx(1.2)  # Table II prior before the first update
+    sim.AdvanceTo(3.0005)  # the event at t = 3 s is handled when time moves past it
+    info = est.GetOutputPort("update_info").Eval(est_ctx)
+    assert info[0] == 3 and info[3] == 1.0  # three updates at t = 1, 2, 3 s, consistent
+    theta0 = est.GetOutputPort("theta0").Eval(est_ctx)
+    lo = est.GetOutputPort("theta_lower").Eval(est_ctx)
+    hi = est.GetOutputPort("theta_upper").Eval(est_ctx)
+    truth = rigid_robot.theta_e
+    assert np.all(lo[ee] <= truth) and np.all(truth <= hi[ee])
+    assert abs(theta0[ee][0] - truth[0]) <= 0.02 * truth[0]
+    assert hi[ee][0] - lo[ee][0] < 1.0  # much tighter than the 4 kg prior
+    rest = rigid_robot.rest_mask()
+    assert np.allclose(theta0[rest], rigid_robot.theta[rest])
+    hist = est.history()
+    assert [round(h["t"], 6) for h in hist] == [1.0, 2.0, 3.0]
+    assert all(h["update_time_s"] > 0 for h in hist)
+    assert len(est.update_times_s) == 3
+    th_e0, lo_e, hi_e = est.final_estimate(ee)
+    assert np.allclose(lo_e, lo[ee])
+    # A re-initialised simulation starts from the prior again.
+    ctx.SetTime(0.0)
+    sim.Initialize()
+    assert est.GetOutputPort("update_info").Eval(est_ctx)[0] == 0
