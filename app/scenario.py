@@ -118,6 +118,8 @@ class Estimator:
     integration: str = "trapezoid"  # trapezoid | euler (paper)
     solver: str = "ipopt"  # ipopt | snopt
     max_gap_s: float = 0.05  # a segment never spans a time step longer than this
+    set_membership: str = "mass"  # LP refinement of [θ_e]: none | mass | all (estimator.py)
+    point_estimate: str = "map"  # θ0: map (θ_r marginalised) | paper (plain least squares)
 
 
 @dc.dataclass
@@ -155,6 +157,8 @@ _CHOICES = {
     "planner.solver": ("ipopt", "snopt"),
     "estimator.solver": ("ipopt", "snopt"),
     "estimator.integration": ("trapezoid", "euler"),
+    "estimator.set_membership": ("none", "mass", "all"),
+    "estimator.point_estimate": ("map", "paper"),
     "noise.distribution": ("uniform", "none"),
     "controller.kind": ("armour", "pid", "adaptive", "adaptive_robust"),
 }

@@ -83,7 +83,8 @@ class EstimatorSettings:
                    integration=s.estimator.integration, solver=s.estimator.solver,
                    torque_ratio=s.noise.declared_torque_ratio, torque_floor_Nm=s.noise.declared_torque_floor_Nm,
                    theta_r_ratio=s.noise.theta_r_ratio,
-                   set_membership=getattr(s.estimator, "set_membership", "mass"))
+                   set_membership=getattr(s.estimator, "set_membership", "mass"),
+                   point_estimate=getattr(s.estimator, "point_estimate", "map"))
 
 
 # ---------------------------------------------------------------------------------------------
