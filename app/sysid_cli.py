@@ -1,0 +1,146 @@
+"""`safesysid sysid LOG.csv --scenario S.yaml --out DIR`: Algorithm 1 offline on a joint log.
+
+The log is replayed as Algorithm 2 sees it online: the estimator gets the data chunk by chunk
+and updates every planner.replan_period_s (intervals intersected from the scenario's
+initial_interval on). Writes DIR/estimate.json and DIR/intervals.png (each of the 10 intervals
+with θ0, the prior nominal and the truth when the scenario names the payload, like the paper's
+Fig. 5) and DIR/history.png (the intervals over the updates).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+
+from safesysid.cli import BadInput
+from safesysid.joint_log import read_joint_log
+from safesysid.scenario import ScenarioError, load_scenario, resolve_path, robot_from_scenario, scenario_dir
+from safesysid.systems import inertial
+from safesysid.systems.estimator import EstimatorError, EstimatorSettings, IncrementalEstimator
+
+
+def payload_truth(scenario, robot):
+    """θ_e of the end effector + the scenario's dumbbell, or None when it names none."""
+    from safesysid.systems.payload import load_dumbbells, payload_theta_in_end_effector
+
+    name = scenario.payload.dumbbell
+    if name == "none":
+        return None
+    path = resolve_path(scenario.payload.dumbbells_file, scenario_dir(scenario))
+    dumbbells = load_dumbbells(path)
+    if name not in dumbbells:
+        raise ScenarioError(f"{scenario.source}: payload.dumbbell: {name!r} is not in {path} ({', '.join(dumbbells)})")
+    return robot.theta_e + payload_theta_in_end_effector(dumbbells[name], robot.extra["grasp_point"])
+
+
+def run_sysid(log, robot, settings, period_s, prior=None, prior_nominal=None):
+    """Replay a JointLog through the incremental estimator; returns (estimator, history)."""
+    est = IncrementalEstimator(robot, settings, prior, prior_nominal)
+    history = []
+    t = log.t
+    edges = list(np.arange(t[0] + period_s, t[-1], period_s)) + [t[-1]]
+    start = 0
+    for edge in edges:
+        stop = int(np.searchsorted(t, edge, side="right"))
+        if stop > start:
+            est.add(t[start:stop], log.q[start:stop], log.v[start:stop], log.tau[start:stop])
+            start = stop
+        try:
+            e = est.update()
+        except EstimatorError:
+            continue  # not one segment yet: wait for more data
+        history.append({"t": float(t[stop - 1]), "nominal": e.theta_e.tolist(), "lower": e.lower.tolist(),
+                        "upper": e.upper.tolist(), "case": e.case, "consistent": e.consistent,
+                        "cond_Y": float(e.cond_Y), "update_time_s": e.update_time_s, "message": e.message})
+    return est, history
+
+
+def plot_intervals(path, est, prior_nominal, truth, title):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 5, figsize=(14, 5.5))
+    for k, ax in enumerate(axes.ravel()):
+        lo, hi, nom = est.lower[k], est.upper[k], est.theta_e[k]
+        ax.fill_between([-0.3, 0.3], [lo, lo], [hi, hi], color="tab:blue", alpha=0.25, label="[θ_e]")
+        ax.plot([0], [nom], "o", color="tab:blue", label="θ0 (estimate)")
+        ax.plot([0.15], [prior_nominal[k]], "s", color="gray", label="prior nominal")
+        if truth is not None:
+            ax.plot([-0.15], [truth[k]], "r*", ms=11, label="truth")
+        ax.set_xlim(-0.5, 0.5)
+        ax.set_xticks([])
+        ax.set_title(f"{inertial.NAMES[k]} [{inertial.UNITS[k]}]", fontsize=9)
+        ax.tick_params(labelsize=8)
+    axes[0, 0].legend(fontsize=7, loc="best")
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_history(path, history, truth):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    times = np.array([h["t"] for h in history])
+    lo, hi, nom = (np.array([h[k] for h in history]) for k in ("lower", "upper", "nominal"))
+    fig, axes = plt.subplots(2, 5, figsize=(14, 5.5), sharex=True)
+    for k, ax in enumerate(axes.ravel()):
+        ax.fill_between(times, lo[:, k], hi[:, k], step="post", alpha=0.3)
+        ax.step(times, nom[:, k], where="post")
+        if truth is not None:
+            ax.axhline(truth[k], color="r", ls="--", lw=0.8)
+        ax.set_title(f"{inertial.NAMES[k]} [{inertial.UNITS[k]}]", fontsize=9)
+        ax.tick_params(labelsize=8)
+    for ax in axes[1]:
+        ax.set_xlabel("t [s]", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def cmd_sysid(args):
+    scenario = load_scenario(args.scenario) if args.scenario else load_scenario()
+    robot = robot_from_scenario(scenario)
+    log = read_joint_log(args.log, robot.n)
+    settings = EstimatorSettings.from_scenario(scenario)
+    ii = scenario.initial_interval
+    prior = (np.array(ii.lower, float), np.array(ii.upper, float))
+    prior_nominal = np.array(ii.nominal, float)
+    truth = payload_truth(scenario, robot)
+    try:
+        est, history = run_sysid(log, robot, settings, scenario.planner.replan_period_s, prior, prior_nominal)
+    except EstimatorError as err:
+        raise BadInput(f"{args.log}: {err}") from err
+    if not history:
+        span = float(log.t[-1] - log.t[0])
+        raise BadInput(f"{args.log}: too little data: {len(log)} samples over {span:.3g} s do not make two gap-free "
+                       f"segments of estimator.horizon_s = {settings.horizon_s} s (gaps > {settings.max_gap_s} s split them)")
+    final = est.estimate
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    doc = final.to_json()
+    doc.update({
+        "log": str(Path(args.log).resolve()), "scenario": scenario.source, "samples": int(len(log)),
+        "estimate": {"nominal": doc["nominal"], "lower": doc["lower"], "upper": doc["upper"]},
+        "prior": {"nominal": prior_nominal.tolist(), "lower": prior[0].tolist(), "upper": prior[1].tolist()},
+        "truth": None if truth is None else {"theta": truth.tolist(), "dumbbell": scenario.payload.dumbbell},
+        "contains_truth": None if truth is None else final.contains(truth),
+        "mass_error_rel": None if truth is None else float((final.theta_e[0] - truth[0]) / truth[0]),
+        "settings": dataclasses.asdict(settings), "update_period_s": scenario.planner.replan_period_s,
+        "sysid": {"updates": len(history), "update_time_s": [h["update_time_s"] for h in history]},
+        "history": history, "messages": est.messages,
+    })
+    (out / "estimate.json").write_text(json.dumps(doc, indent=2, default=float))
+    title = f"{Path(args.log).name}: {len(history)} updates, cond(Y) = {final.cond_Y:.3g}, case {final.case}"
+    plot_intervals(out / "intervals.png", final, prior_nominal, truth, title)
+    plot_history(out / "history.png", history, truth)
+    verdict = "" if truth is None else f", truth inside: {final.contains(truth)}"
+    print(f"m = {final.theta_e[0]:.4g} kg in [{final.lower[0]:.4g}, {final.upper[0]:.4g}]{verdict}; wrote {out / 'estimate.json'}")
+    return 0
