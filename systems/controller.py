@@ -280,10 +280,28 @@ class TrackingBounds:
     """
 
     eps: float
-    position: np.ndarray
-    velocity: np.ndarray
-    qd_a: np.ndarray
-    qdd_a: np.ndarray
+    position: np.ndarray  # |q - q_d|
+    velocity: np.ndarray  # |qd - qd_d|
+    qd_a: np.ndarray  # |qd_a - qd_d|
+    qdd_a: np.ndarray  # |qdd_a - qdd_d|
+
+    @classmethod
+    def from_ultimate_bound(cls, V_max, sigma_min, Kr, n):
+        """Bounds of n joints (Kr scalar or per joint) from V_max and sigma_min."""
+        return tracking_bounds(np.broadcast_to(np.asarray(Kr, float), (n,)), V_max, sigma_min)
+
+    @classmethod
+    def zero(cls, n):
+        """Perfect tracking (tests only)."""
+        return cls(0.0, np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n))
+
+    @classmethod
+    def coerce(cls, bounds, n):
+        """None -> zero(n); otherwise the same bounds with every field an (n,) array."""
+        if bounds is None:
+            return cls.zero(n)
+        full = lambda x: np.broadcast_to(np.asarray(x, float), (n,)).copy()  # noqa: E731
+        return cls(float(bounds.eps), full(bounds.position), full(bounds.velocity), full(bounds.qd_a), full(bounds.qdd_a))
 
 
 def tracking_bounds(Kr, V_max, sigma_min):

@@ -25,6 +25,7 @@ import numpy as np
 
 from . import reachability as reach
 from .bezier import QuinticBezier, restriction_matrix
+from .controller import TrackingBounds
 from .intervals import Interval, _up
 
 COLLISION_SOLVER_MARGIN_M = 1e-4  # the solver aims this far inside; verification asks >= 0
@@ -454,8 +455,8 @@ class SafePlanner:
     config: scenario `Planner` record (duration_s, num_time_intervals, num_cost_samples, cost,
     goal_q_rad, solver, max_solve_time_s, max_iterations, k_center_rad, k_range_rad, floor_z_m).
     obstacles: scenario Obstacle records or a reachability.Boxes. payload: Dumbbell or None.
-    tracking: reachability.TrackingBounds or controller.TrackingBounds (the controller's ultimate
-    bound with ITS gains Kr; None means perfect tracking, for tests only).
+    tracking: controller.TrackingBounds (the controller's ultimate bound with ITS gains Kr; None
+    means perfect tracking, for tests only).
     """
 
     def __init__(self, robot, config, obstacles=(), payload=None, tracking=None, floor=True, torque_shrink_steps=3,
@@ -470,7 +471,7 @@ class SafePlanner:
         self.lipschitz = reach.sphere_lipschitz(robot.tree, self.spheres)
         self.floor_z = float(config.floor_z_m) if floor else None
         self.floor_exempt = _floor_exempt(robot.tree, self.spheres)
-        self.tracking = reach.TrackingBounds.coerce(tracking, n)
+        self.tracking = TrackingBounds.coerce(tracking, n)
         self.torque_shrink_steps = torque_shrink_steps
         self.torque_group = torque_group
 

@@ -2,7 +2,7 @@
 
 Pure math for the planner (systems/planner.py). A plan is the quintic Bézier of systems/bezier.py
 from the current (q0, qd0, qdd0) to q_end = q0 + k_c + k_r * k, k in [-1, 1]^n, tracked by the
-robust passivity controller whose ultimate bound gives the TrackingBounds below. [0, t_f] is
+robust passivity controller whose ultimate bound gives controller.TrackingBounds. [0, t_f] is
 split into intervals I_i; every statement holds for EVERY t in I_i (continuous time), every
 tracking error inside the bound and every theta in [theta]:
 
@@ -39,50 +39,8 @@ import numpy as np
 
 from . import regressors
 from .bezier import QuinticBezier, restriction_matrix
+from .controller import TrackingBounds  # the controller's certified bounds (position, velocity, qd_a, qdd_a)
 from .intervals import Interval, _down, _up
-
-# ---------------------------------------------------------------------------------------------
-# Tracking bounds
-# ---------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class TrackingBounds:
-    """Per-joint bounds inside the controller's ultimate bound (radians, rad/s, rad/s^2).
-
-    position: |q - q_d|, velocity: |qd - qd_d|, ref_velocity: |qd_a - qd_d|,
-    ref_acceleration: |qdd_a - qdd_d|.
-    """
-
-    position: np.ndarray
-    velocity: np.ndarray
-    ref_velocity: np.ndarray
-    ref_acceleration: np.ndarray
-
-    @classmethod
-    def from_ultimate_bound(cls, V_max, sigma_min, Kr, n=7):
-        """eps = sqrt(2 V_max / sigma_min): |e| <= eps/Kr, |de| <= 2 eps, |qd_a - qd_d| <= eps,
-        |qdd_a - qdd_d| <= 2 Kr eps (sigma_min: a true lower bound of sigma_min(M) over q and [theta],
-        e.g. min armature since M = M_rigid + diag(Ia) with M_rigid PSD)."""
-        kr = np.broadcast_to(np.asarray(Kr, float), (n,)).copy()
-        eps = np.sqrt(2.0 * V_max / sigma_min)
-        return cls(eps / kr, np.full(n, 2 * eps), np.full(n, eps), 2 * kr * eps)
-
-    @classmethod
-    def zero(cls, n):
-        z = np.zeros(n)
-        return cls(z, z.copy(), z.copy(), z.copy())
-
-    @classmethod
-    def coerce(cls, bounds, n):
-        """Accept ours or systems/controller.TrackingBounds (fields position, velocity, qd_a, qdd_a)."""
-        if bounds is None:
-            return cls.zero(n)
-        if isinstance(bounds, cls):
-            return bounds
-        full = lambda x: np.broadcast_to(np.asarray(x, float), (n,)).copy()  # noqa: E731
-        return cls(full(bounds.position), full(bounds.velocity), full(bounds.qd_a), full(bounds.qdd_a))
-
 
 # ---------------------------------------------------------------------------------------------
 # Collision geometry: spheres on bodies, oriented boxes
@@ -363,7 +321,7 @@ class PlanReach:
         qd, vd, ad = hulls
         b = self.bounds
         pad = lambda x, r: Interval(_down(_down(x.lo - r) - 1e-12 * np.abs(x.lo)), _up(_up(x.hi + r) + 1e-12 * np.abs(x.hi)))  # noqa: E731
-        return pad(qd, b.position), pad(vd, b.velocity), pad(vd, b.ref_velocity), pad(ad, b.ref_acceleration)
+        return pad(qd, b.position), pad(vd, b.velocity), pad(vd, b.qd_a), pad(ad, b.qdd_a)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -148,8 +148,8 @@ def test_state_boxes_contain_every_k_time_and_tracking_error(robot):
         k = rng.uniform(k_lo, k_hi)
         q, v, a = r.bezier.evaluate(t, r.q_end(k))
         u = lambda: rng.uniform(-1, 1, q.shape)  # noqa: E731
-        for box, x in ((qb, q + u() * b.position), (vb, v + u() * b.velocity), (vab, v + u() * b.ref_velocity),
-                       (aab, a + u() * b.ref_acceleration)):
+        for box, x in ((qb, q + u() * b.position), (vb, v + u() * b.velocity), (vab, v + u() * b.qd_a),
+                       (aab, a + u() * b.qdd_a)):
             assert np.all(box.lo[idx] <= x) and np.all(x <= box.hi[idx])
 
 
