@@ -25,7 +25,9 @@ int W_e dt = [Wm_e] - int Wc_e dt, int tau_dot dt = d tau). Effects and their ph
   payload            W_e(q, v, a) dtheta_e (10 params)       theta_e0 + dtheta_e physically
                                                              consistent (log-Cholesky), dm >= 0
   time_delay         two laws, the better fit is kept:
-                     pure delay: model side (nominal + all   tau_meas(t) = tau_true(t - d), 0 <= d <= 0.2 s
+                     pure delay: model side (nominal + all   tau_meas(t) = tau_true(t - d), |d| <= 0.2 s
+                     d < 0: torque leads the motion (actuation delay: the sensor sees the motor
+                     torque before it reaches the joint); d > 0: the measurement lags
                      effect rows) read d earlier, grid to    (only smooth model rows are interpolated,
                      5 ms                                    never the noisy measurement)
                      first-order lag: -d dtau_meas/dt        tau_meas + d dtau_meas/dt = tau_true (exact)
@@ -70,7 +72,7 @@ MIN_NOISE_FRACTION = 0.05
 MAX_DELAY_S = 0.2
 DELAY_STEP_S = 0.02
 DELAY_FINE_S = 0.005
-DELAY_GRID_S = tuple(np.round(np.arange(0.0, MAX_DELAY_S + 1e-9, DELAY_STEP_S), 6))
+DELAY_GRID_S = tuple(np.round(np.arange(-MAX_DELAY_S, MAX_DELAY_S + 1e-9, DELAY_STEP_S), 6))
 MAX_TILT = 0.2
 MAX_COMPLIANCE = 0.02  # rad/(N m)
 REGIME_QUANTILE = 0.75
@@ -396,7 +398,7 @@ def group_bounds(model, group, k):
     if name == "torque_scale":
         return np.full(k, -0.5), np.full(k, 1.0)
     if name == "time_delay":
-        return np.zeros(k), np.full(k, MAX_DELAY_S)
+        return np.full(k, -MAX_DELAY_S), np.full(k, MAX_DELAY_S)
     if name == "base_tilt":
         return np.full(k, -MAX_TILT), np.full(k, MAX_TILT)
     if name == "joint_elasticity":
@@ -493,8 +495,8 @@ class Problem:
         """Constrained least squares on the fit logs for the union of `groups`.
 
         A time delay is a 1-D search: the model side (nominal torque and every effect row) is
-        read d earlier, on a coarse grid (DELAY_STEP_S) refined to DELAY_FINE_S around the best
-        point; only smooth model rows are interpolated, never the noisy measurement.
+        read d earlier, on a DELAY_FINE_S grid around the first-order (lag-law) estimate; only
+        smooth model rows are interpolated, never the noisy measurement.
         Returns (params dict group -> array, fit SSE)."""
         if "time_delay@shift" not in groups:
             return self._solve_linear(groups, 0.0)
@@ -503,12 +505,13 @@ class Problem:
         def sse(d):
             return self._solve_linear(others, d, consistent=False)[1]
 
-        coarse = {float(d): sse(d) for d in DELAY_GRID_S}
-        d0 = min(coarse, key=coarse.get)
-        fine = np.round(np.arange(d0 - DELAY_STEP_S + DELAY_FINE_S, d0 + DELAY_STEP_S, DELAY_FINE_S), 6)
-        fine = {float(d): sse(d) for d in fine if 0.0 <= d <= MAX_DELAY_S}
-        coarse.update(fine)
-        best = min(coarse, key=coarse.get)
+        # The first-order lag law (linear, at d = 0) says where the delay is; the exact shift is
+        # then searched on a DELAY_FINE_S grid around it (normal equations cached per delay).
+        lag = self._solve_linear(others + ["time_delay"], 0.0, consistent=False)[0]["time_delay"][0]
+        centre = DELAY_FINE_S * round(float(lag) / DELAY_FINE_S)
+        grid = np.round(centre + DELAY_FINE_S * np.arange(-6, 7), 6)
+        errs = {float(d): sse(d) for d in grid if abs(d) <= MAX_DELAY_S}
+        best = min(errs, key=errs.get)
         params, err = self._solve_linear(others, best)
         params = dict(params)
         params["time_delay@shift"] = np.array([best])
