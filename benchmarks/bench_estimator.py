@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -75,6 +76,15 @@ def run(quick: bool = False) -> dict:
 
     inc_s = min(timed_incremental() for _ in range(repeat))
     _, (inc_add_s, inc_result) = _best(incremental, 1)
+
+    def variant(**kw):
+        e = est_mod.IncrementalEstimator(robot, replace(settings, **kw))
+        e.add(t, q, v, tau)
+        return e.update()
+
+    lp_all_s, lp_all = _best(lambda: variant(set_membership="all"), 2)
+    paper_s, paper = _best(lambda: variant(point_estimate="paper", set_membership="none"), 2)
+    snopt_s, _ = _best(lambda: variant(solver="snopt"), 2)
     return {
         "samples": int(len(t)),
         "segments": int(result.num_segments),
@@ -92,6 +102,12 @@ def run(quick: bool = False) -> dict:
         "cond_Y": result.cond_Y,
         "mass_halfwidth_kg": float(0.5 * (result.upper[0] - result.lower[0])),
         "incremental_case": inc_result.case,
+        "full_update_lp_all_s": lp_all_s,
+        "mass_halfwidth_lp_all_kg": float(0.5 * lp_all.widths[0]),
+        "widths_lp_all": [float(w) for w in lp_all.widths],
+        "full_update_paper_only_s": paper_s,
+        "mass_halfwidth_paper_only_kg": float(0.5 * paper.widths[0]),
+        "full_update_snopt_s": snopt_s,
     }
 
 

@@ -303,3 +303,21 @@ def test_bad_input_is_rejected(robot):
     short.add(t[:50], q[:50], v[:50], tau[:50])  # 0.05 s: not one 0.1 s segment
     with pytest.raises(E.EstimatorError, match="too little data"):
         short.update()
+
+
+def test_table_v_observation_matrix_tends_to_dt_times_w(robot):
+    """Table V's construction: with h = 1 sample, Y ≈ Δt·W (end-effector columns)."""
+    from safesysid.benchmarks.table_v import observation_matrix
+    from safesysid.systems import regressors
+
+    rng = np.random.default_rng(81)
+    t, q, v, a = E.fourier_trajectory(rng, robot, 0.5, 1000.0, period_s=1.0, centre=CENTRE)
+    ee = [robot.end_effector]
+    wm = regressors.momentum_regressor(robot.tree, q, v, bodies=ee)
+    wc = regressors.momentum_rate_regressor(robot.tree, q, v, bodies=ee)
+    y1 = observation_matrix(wm, wc, 1e-3, 1).reshape(-1, robot.n, 10)
+    w = regressors.standard_regressor(robot.tree, q, v, a, bodies=ee)
+    w_mid = 0.5 * (w[:-1] + w[1:])
+    assert np.abs(y1 - 1e-3 * w_mid).max() < 1e-3 * 1e-3 * np.abs(w).max()
+    y50 = observation_matrix(wm, wc, 1e-3, 50)
+    assert y50.shape == (10 * robot.n, 10)
