@@ -50,10 +50,11 @@ _INERTIA = regressors.inertia_times(_E6).reshape(6, 60)  # K(x) = x @ _INERTIA  
 _BILINEAR = regressors.body_wrench_regressor(_E6[:, None].repeat(6, 1), _E6[None, :].repeat(6, 0),
                                              np.zeros((6, 6, 6))).reshape(36, 60)
 _CROSS3 = np.cross(np.eye(3)[:, None], np.eye(3)[None, :]).reshape(9, 3)
+_SKEW = regressors.skew(np.eye(3)).reshape(3, 9)  # [p]x = p @ _SKEW (as 3 x 3; linear in p)
 
 
 def _cross(a, b):
-    """Row-wise a x b for (m, 3) arrays (np.cross is slow on small arrays)."""
+    """Row-wise a x b for (m, 3) arrays (np.cross's overhead dominates at one sample)."""
     return (a[:, :, None] * b[:, None, :]).reshape(len(a), 9) @ _CROSS3
 
 
@@ -127,7 +128,7 @@ class ControllerDynamics:
         X = np.zeros((n, 6, 6))
         X[:, :3, :3] = rt
         X[:, 3:, 3:] = rt
-        X[:, 3:, :3] = rt @ self._skew_neg(p)
+        X[:, 3:, :3] = rt @ -(p @ _SKEW).reshape(n, 3, 3)  # R^T (w x p) = R^T (-[p]x) w
         world = np.concatenate([np.stack([V, vel_a, acc_a, vel_x], 2), np.broadcast_to(S.T, (n, 6, n))], 2)
         body = X @ world  # (n, 6, 4 + n)
         vb, vab, ab, xb = body[:, :, 0], body[:, :, 1], body[:, :, 2], body[:, :, 3]
@@ -144,15 +145,6 @@ class ControllerDynamics:
         out[0, idx, f0 + 3] = 1.0
         out[1, idx, f0 + 2] = x
         return out[0], out[1]
-
-    @staticmethod
-    def _skew_neg(p):
-        """-[p]x for rows of p (so that R^T (-[p]x) w = R^T (w x p))."""
-        out = np.zeros((len(p), 3, 3))
-        out[:, 0, 1], out[:, 0, 2] = p[:, 2], -p[:, 1]
-        out[:, 1, 0], out[:, 1, 2] = -p[:, 2], p[:, 0]
-        out[:, 2, 0], out[:, 2, 1] = p[:, 1], -p[:, 0]
-        return out
 
     def gravity(self, q, theta):
         """g(q; theta) + beta (the passivity regressor at rest) (n,)."""

@@ -24,6 +24,7 @@ from functools import lru_cache
 import numpy as np
 
 from . import reachability as reach
+from . import regressors
 from .bezier import QuinticBezier, restriction_matrix
 from .controller import TrackingBounds
 from .intervals import Interval, _up
@@ -43,30 +44,33 @@ SOFTMIN_SHARPNESS_PER_M = 2000.0  # soft-min of a group <= its true min (gap <= 
 # ---------------------------------------------------------------------------------------------
 # End-effector regressor W_e(q, qd, qdd), complex-step safe (all arithmetic analytic)
 # ---------------------------------------------------------------------------------------------
+# Own pass because regressors.forward_kinematics fills float buffers (the imaginary part would be
+# lost). K(x) and x x* are regressors.py's, as exact gathers (reach.signed_selection): any dtype,
+# and no BLAS call (a threaded one on the shared cores costs ~10 ms here).
+_K_MAP = reach.signed_selection(regressors.inertia_times(np.eye(6)))
+_FORCE_CROSS_MAP = reach.signed_selection(regressors.cross_force_matrix(np.eye(6)))
+
+
+def _linear(x, selection, shape):
+    """The linear map of `selection` applied to x (..., 6) -> (..., *shape)."""
+    comp, sign = selection
+    return (x[..., comp] * sign).reshape(x.shape[:-1] + shape)
 
 
 def _cross(a, b):
+    """a x b over the last axis, any dtype (np.cross's overhead: ~3 ms per W_e call here)."""
     return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
                      a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], -1)
 
 
 def _motion_cross(v, m):
-    return np.concatenate([_cross(v[..., :3], m[..., :3]), _cross(v[..., :3], m[..., 3:]) + _cross(v[..., 3:], m[..., :3])], -1)
-
-
-def _force_cross(v, f):
-    return np.concatenate([_cross(v[..., :3], f[..., :3]) + _cross(v[..., 3:], f[..., 3:]), _cross(v[..., :3], f[..., 3:])], -1)
-
-
-def _inertia_times(x):
-    """K(x) as (..., 10, 6) (column c of the 6x10 map theta -> I(theta) x is [..., c, :])."""
-    out = np.zeros(x.shape[:-1] + (10, 6), x.dtype)
-    for c, r, comp, sign in reach._K_TABLE:
-        out[..., c, r] = sign * x[..., comp]
-    return out
+    """regressors.cross_motion on _cross."""
+    w, u = v[..., :3], v[..., 3:]
+    return np.concatenate([_cross(w, m[..., :3]), _cross(w, m[..., 3:]) + _cross(u, m[..., :3])], -1)
 
 
 def _to_body(R, p, x):
+    """regressors._to_body on _cross."""
     w, u = x[..., :3], x[..., 3:]
     rt = np.swapaxes(R, -1, -2)
     return np.concatenate([(rt @ w[..., None])[..., 0], (rt @ (u + _cross(w, p))[..., None])[..., 0]], -1)
@@ -96,7 +100,7 @@ def ee_standard_regressor(tree, body, q, v, a):
             v_par = np.zeros((nsamp, 6), dtype)
             a_par = np.broadcast_to(g, (nsamp, 6)).astype(dtype)
         else:
-            r_f = _times_const(R[par], rpj)
+            r_f = regressors._times_const(R[par], rpj)
             p_f = p[par] + R[par] @ tpj
             v_par, a_par = V[par], A[par]
         z = r_f[..., 2]  # the joint axis is the frame's z after the constant change of basis
@@ -108,7 +112,7 @@ def ee_standard_regressor(tree, body, q, v, a):
             x_, y_ = r_f[..., 0], r_f[..., 1]
             r_m, p_m = np.stack([c * x_ + s * y_, c * y_ - s * x_, z], -1), p_f  # r_f @ Rz(q)
             S[:, i] = np.concatenate([z, _cross(p_f, z)], -1)
-        R[i] = _times_const(r_m, rjc)
+        R[i] = regressors._times_const(r_m, rjc)
         p[i] = p_m + r_m @ tjc
         V[i] = v_par + S[:, i] * v[:, i, None]
         A[i] = a_par + S[:, i] * a[:, i, None] + _motion_cross(v_par, S[:, i]) * v[:, i, None]
@@ -117,9 +121,9 @@ def ee_standard_regressor(tree, body, q, v, a):
     ab = _to_body(R[e], p[e], A[e])
     anc = np.flatnonzero(tree.ancestors()[:, e])
     sb = _to_body(R[e][:, None], p[e][:, None], S[:, anc])  # (N, k, 6) screws in the body frame
-    y = _inertia_times(ab) + _force_cross(vb[:, None, :], _inertia_times(vb))  # (N, 10, 6): I a + v x* I v
+    y = _linear(ab, _K_MAP, (6, 10)) + _linear(vb, _FORCE_CROSS_MAP, (6, 6)) @ _linear(vb, _K_MAP, (6, 10))  # I a + v x* I v
     out = np.zeros((nsamp, n, 10), dtype)
-    out[:, anc] = sb @ np.swapaxes(y, -1, -2)
+    out[:, anc] = sb @ y
     return out
 
 
@@ -134,20 +138,11 @@ def _chain_constants(tree):
         out = []
         for i in range(tree.n):
             axis = np.asarray(tree.axis[i], float)
-            axis = axis / np.linalg.norm(axis)
-            helper = np.array([1.0, 0, 0]) if abs(axis[0]) < 0.9 else np.array([0, 1.0, 0])
-            x = np.cross(helper, axis)
-            x /= np.linalg.norm(x)
-            rot = np.stack([x, np.cross(axis, x), axis], 1)  # columns x, y, z = axis
+            rot = regressors._z_to(axis / np.linalg.norm(axis))  # columns x, y, z = axis
             xpj, xjc = tree.X_parent_joint[i], tree.X_joint_child[i]
             out.append((xpj[:3, :3] @ rot, xpj[:3, 3].copy(), rot.T @ xjc[:3, :3], rot.T @ xjc[:3, 3]))
         _CHAIN[key] = (tree, out)
     return _CHAIN[key][1]
-
-
-def _times_const(a, b):
-    """Batched (..., 3, 3) @ constant (3, 3) as one BLAS call."""
-    return (a.reshape(-1, 3) @ b).reshape(a.shape)
 
 
 # ---------------------------------------------------------------------------------------------

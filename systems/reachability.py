@@ -440,25 +440,26 @@ def _cat(items):
     return _Box(np.concatenate([x.lo for x in items], -1), np.concatenate([x.hi for x in items], -1))
 
 
-# Columns of K(x) (I(theta) x = K(x) theta) as wrenches: (column, row, component of x, sign).
-_K_TABLE = [(0, 3, 3, 1), (0, 4, 4, 1), (0, 5, 5, 1),
-            (1, 1, 5, -1), (1, 2, 4, 1), (1, 4, 2, 1), (1, 5, 1, -1),
-            (2, 0, 5, 1), (2, 2, 3, -1), (2, 3, 2, -1), (2, 5, 0, 1),
-            (3, 0, 4, -1), (3, 1, 3, 1), (3, 3, 1, 1), (3, 4, 0, -1),
-            (4, 0, 0, 1), (5, 1, 1, 1), (6, 2, 2, 1),
-            (7, 0, 1, 1), (7, 1, 0, 1), (8, 1, 2, 1), (8, 2, 1, 1), (9, 0, 2, 1), (9, 2, 0, 1)]
+def signed_selection(tensor):
+    """(comp, sign) such that x @ tensor.reshape(k, -1) == x[..., comp] * sign, for a constant
+    linear map (k, ...) whose every output entry is +-one input component or 0 (K(x), x x*):
+    a gather instead of a product, exact, any dtype, interval-friendly."""
+    flat = np.asarray(tensor, float).reshape(len(tensor), -1)
+    if not (np.all(np.isin(flat, (-1.0, 0.0, 1.0))) and np.all((flat != 0).sum(0) <= 1)):
+        raise ValueError("not a signed selection")
+    return np.abs(flat).argmax(0), flat.sum(0)
+
+
+# K(x) of regressors.inertia_times, transposed to (..., 10, 6): column c of the 6x10 regressor is [..., c, :].
+_K_COMP, _K_SIGN = signed_selection(np.swapaxes(regressors.inertia_times(np.eye(6)), 1, 2))
 
 
 def _inertia_times(x):
-    """Interval K(x) stored as (..., 10, 6): column c of the 6x10 regressor is [..., c, :]."""
+    """Interval K(x) stored as (..., 10, 6) (exact: every entry is +-one component of x)."""
+    lo, hi = x.lo[..., _K_COMP], x.hi[..., _K_COMP]
     shape = x.shape[:-1] + (10, 6)
-    lo, hi = np.zeros(shape), np.zeros(shape)
-    for c, r, comp, sign in _K_TABLE:
-        if sign > 0:
-            lo[..., c, r], hi[..., c, r] = x.lo[..., comp], x.hi[..., comp]
-        else:
-            lo[..., c, r], hi[..., c, r] = -x.hi[..., comp], -x.lo[..., comp]
-    return _Box(lo, hi)
+    return _Box(np.where(_K_SIGN > 0, lo, np.where(_K_SIGN < 0, -hi, 0.0)).reshape(shape),
+                np.where(_K_SIGN > 0, hi, np.where(_K_SIGN < 0, -lo, 0.0)).reshape(shape))
 
 
 def _body_wrench_regressor(v, va, a):
