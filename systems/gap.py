@@ -32,7 +32,8 @@ int W_e dt = [Wm_e] - int Wc_e dt, int tau_dot dt = d tau). Effects and their ph
                      5 ms                                    never the noisy measurement)
                      first-order lag: -d dtau_meas/dt        tau_meas + d dtau_meas/dt = tau_true (exact)
   base_tilt          G(q; g_x) x + G(q; g_y) y               gravity gains horizontal parts (x, y)|g|
-  joint_elasticity   -(d tau_rigid/dq_j) tau_j c_j           link angle q - tau/k, c = 1/k >= 0
+  joint_elasticity   -(d tau_rigid/dq_j) tau_s,j c_j         link angle q - tau_s/k, c = 1/k >= 0, tau_s =
+                                                             tau_meas - nominal friction (transmitted)
                                                              (quasi-static deflection under load; tau_j
                                                              from neighbouring samples, no shared noise)
 Fits are bounded linear least squares (scipy lsq_linear on the Cholesky factor of the normal
@@ -258,7 +259,10 @@ def build_design(model, log, form, window_s=0.1, max_gap_s=None, columns=True):
         tau0 = regressors.standard_regressor(tree, q, v, a_el) @ theta_b
         dtdq = np.stack([(regressors.standard_regressor(tree, q + h * np.eye(n)[j], v, a_el) @ theta_b - tau0) / h
                          for j in range(n)], -1)
-        std_cols["joint_elasticity"] = -dtdq * _neighbour_mean(tau, segs)[:, None, :]
+        # Torque through the transmission: measured minus the nominal joint friction.
+        jp = model.joint_params
+        fric = jp.coulomb * sgn + jp.viscous * v + jp.offset
+        std_cols["joint_elasticity"] = -dtdq * (_neighbour_mean(tau, segs) - fric)[:, None, :]
     ee = [model.end_effector]
     if form == "inverse_dynamics":
         a = log.a
@@ -754,9 +758,11 @@ def effect_params(model, effect, params, group_used):
         return {"delay_s": float(p[0]),
                 "law": "pure delay tau(t - d)" if group_used.endswith("@shift") else "first-order lag tau + d dtau/dt"}
     if effect == "base_tilt":
+        # Base rotated by RollPitchYaw(roll, pitch, 0): gravity in the base frame is
+        # |g| [sin p, -cos p sin r, -cos p cos r] (real_arm's convention).
         gx, gy = float(p[0]), float(p[1])
-        roll = float(-np.arcsin(np.clip(gy, -1, 1)))
-        pitch = float(np.arcsin(np.clip(gx / max(np.cos(roll), 1e-9), -1, 1)))
+        pitch = float(np.arcsin(np.clip(gx, -1, 1)))
+        roll = float(-np.arcsin(np.clip(gy / max(np.cos(pitch), 1e-9), -1, 1)))
         return {"gravity_xy_over_g": [gx, gy], "roll_rad": roll, "pitch_rad": pitch}
     if effect == "joint_elasticity":
         return {"compliance_rad_per_Nm": lst(p), "stiffness_Nm_rad": [float(1 / c) if c > 1e-12 else None for c in p]}
@@ -977,8 +983,10 @@ def corrected_parameters(model, selected, params):
             other[e] = effect_params(model, e, params, g)
             if e == "torque_scale":
                 plant_effects["torque_sensor_scale"] = other[e]["scale"]
-            elif e == "time_delay":
-                plant_effects["time_delay_s"] = other[e]["delay_s"]
+            elif e == "time_delay" and other[e]["delay_s"] < 0:
+                # real_arm's time_delay_s is an actuation delay (torque leads motion); a
+                # measurement lag (d > 0) has no plant counterpart and stays in `other`.
+                plant_effects["time_delay_s"] = -other[e]["delay_s"]
             elif e == "base_tilt":
                 plant_effects["base_tilt_rad"] = [other[e]["roll_rad"], other[e]["pitch_rad"]]
             elif e == "joint_elasticity":

@@ -75,8 +75,8 @@ def sample_times(rng, duration_s):
 def _tilted_model(model, roll, pitch):
     g = np.linalg.norm(model.tree.gravity)
     cr, sr, cp, sp = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch)
-    # Gravity in the base frame for a base rotated by Rx(roll) Ry(pitch): -g (row 3 of R)^T.
-    gb = g * np.array([sp * cr, -sr, -cr * cp])
+    # Gravity in the base frame for a base rotated by RollPitchYaw(roll, pitch, 0) (real_arm).
+    gb = g * np.array([sp, -cp * sr, -cp * cr])
     return dataclasses.replace(model, tree=dataclasses.replace(model.tree, gravity=gb))
 
 
@@ -98,6 +98,8 @@ def true_torque(model, traj, t, effects):
     if "payload" in effects:
         m = m.with_end_effector_theta(m.theta_e + effects["payload"]["theta"])
     tau = m.inverse_dynamics(q, v, a)
+    jp = model.joint_params
+    transmitted = tau - (jp.coulomb * np.sign(v) + jp.viscous * v + jp.offset)  # link-side torque
     e = effects
     if "coulomb_friction" in e:
         tau = tau + e["coulomb_friction"]["delta"] * np.sign(v)
@@ -115,8 +117,8 @@ def true_torque(model, traj, t, effects):
         tau = tau + e["torque_offset"]["delta"]
     q_log, v_log, a_log = traj(t)
     if "joint_elasticity" in e:
-        # Encoders on the motor side: logged angle = link angle + deflection tau / k.
-        q_log = q_log + tau * e["joint_elasticity"]["compliance"]
+        # Encoders on the motor side: logged angle = link angle + deflection tau_s / k.
+        q_log = q_log + transmitted * e["joint_elasticity"]["compliance"]
     return q_log, v_log, a_log, tau
 
 
@@ -310,3 +312,106 @@ def confusion_markdown(table):
             for r in labels if any(table[r].values())]
     key = "Columns: " + ", ".join(f"{short[e]} = {e}" for e in labels)
     return "\n".join([head, sep, *rows, "", key])
+
+
+# ---- logs from the simulated real arm (systems/real_arm.py, Drake) ---------------------------
+REAL_ARM_EFFECTS = {  # diagnosis vocabulary -> scenario.plant.effects field (real_arm's law)
+    "torque_offset": "torque_sensor_offset_Nm",
+    "torque_scale": "torque_sensor_scale",
+    "time_delay": "time_delay_s",
+    "base_tilt": "base_tilt_rad",
+    "joint_elasticity": "joint_stiffness_Nm_rad",
+}
+
+
+def real_arm_log(effects, seed, duration_s=10.0, rate_hz=RATE_HZ, noise_ratio=0.01, kp=400.0, kd=40.0):
+    """One log of the Drake-simulated real arm (discrete MultibodyPlant, 1 kHz, its own friction,
+    sensor and effect laws) tracking a random smooth trajectory with computed torque + PD on the
+    nominal model. `effects`: {scenario.plant.effects field: value}. No acceleration column
+    (the real arm has no acceleration sensor): the diagnosis uses the momentum form."""
+    from pydrake.systems.analysis import Simulator
+    from pydrake.systems.framework import BasicVector, DiagramBuilder, LeafSystem
+    from pydrake.systems.primitives import VectorLogSink
+
+    from safesysid.joint_log import JointLog
+    from safesysid.scenario import load_scenario
+
+    from .real_arm import add_real_arm
+    from .robot_model import load_robot
+
+    overrides = {"payload": {"dumbbell": "none"}, "seed": int(seed),
+                 "noise": {"torque_ratio": noise_ratio, "torque_floor_Nm": 0.05},
+                 "plant": {"time_step_s": 0.001, "effects": {k: (v.tolist() if isinstance(v, np.ndarray) else v)
+                                                              for k, v in effects.items()}}}
+    scenario = load_scenario(overrides=overrides)
+    robot = load_robot(coulomb_smoothing=scenario.robot.coulomb_smoothing_rad_s)
+    rng = np.random.default_rng(seed)
+    traj = random_trajectory(robot, rng)
+    n = robot.n
+    builder = DiagramBuilder()
+    arm = add_real_arm(builder, scenario, robot, dumbbell=None, seed=seed)
+
+    class ComputedTorque(LeafSystem):
+        def __init__(self):
+            super().__init__()
+            self.state = self.DeclareVectorInputPort("state", 2 * n)
+            self.DeclareVectorOutputPort("u", BasicVector(n), self._calc)
+
+        def _calc(self, context, out):
+            x = self.state.Eval(context)
+            qd, vd, ad = traj(np.array([context.get_time()]))
+            u = robot.inverse_dynamics(qd, vd, ad)[0] + kp * (qd[0] - x[:n]) + kd * (vd[0] - x[n:])
+            out.SetFromVector(u)
+
+    ctrl = builder.AddSystem(ComputedTorque())
+    builder.Connect(arm.state_output, ctrl.state)
+    builder.Connect(ctrl.get_output_port(), arm.commanded_torque_input)
+    log_x = builder.AddSystem(VectorLogSink(2 * n, 1.0 / rate_hz))
+    log_u = builder.AddSystem(VectorLogSink(n, 1.0 / rate_hz))
+    builder.Connect(arm.state_output, log_x.get_input_port())
+    builder.Connect(arm.measured_torque_output, log_u.get_input_port())
+    diagram = builder.Build()
+    sim = Simulator(diagram)
+    ctx = sim.get_mutable_context()
+    q0, v0, _ = traj(np.array([0.0]))
+    arm.set_state(ctx, q0[0], v0[0])
+    sim.AdvanceTo(duration_s)
+    lx = log_x.FindLog(ctx)
+    lu = log_u.FindLog(ctx)
+    t = lx.sample_times()
+    x = lx.data().T
+    tau = lu.data().T
+    keep = t > 0.2  # skip the start-up transient
+    g0 = rng.uniform(0.3, 0.7) * duration_s
+    keep &= (t < g0) | (t > g0 + GAP_S)
+    return JointLog(t[keep], x[keep, :n], x[keep, n:], tau[keep], None, {}, "real_arm"), robot
+
+
+def run_real_arm_check(seed=0, progress=None, duration_s=6.0, only=None):
+    """Blind diagnosis of real-arm logs: no effect, then each effect real_arm implements.
+    Returns a list of {injected, named, ...}. Slow (Drake simulation, ~10 s per log)."""
+    from .gap import diagnose, single_threaded_blas
+
+    cases = [({}, [])]
+    cases.append(({"torque_sensor_offset_Nm": [0.0, 1.5, 0.0, -1.0, 0.0, 0.0, 0.0]}, ["torque_offset"]))
+    cases.append(({"torque_sensor_scale": [1.0, 1.0, 1.0, 1.08, 1.0, 1.0, 1.0]}, ["torque_scale"]))
+    cases.append(({"time_delay_s": 0.01}, ["time_delay"]))
+    cases.append(({"base_tilt_rad": [0.03, 0.0]}, ["base_tilt"]))
+    cases.append(({"joint_stiffness_Nm_rad": [1e6, 300.0, 1e6, 300.0, 1e6, 1e6, 1e6]}, ["joint_elasticity"]))
+    out = []
+    with single_threaded_blas():
+        for k, (eff, inj) in enumerate(cases):
+            if only is not None and k not in only:
+                continue
+            logs = []
+            for j in range(3):
+                log, robot = real_arm_log(eff, seed=1000 * seed + 10 * k + j, duration_s=duration_s)
+                logs.append(log)
+            d = diagnose(robot, logs[:2], logs[2:])
+            named = d.result["cause"]
+            out.append({"injected": inj, "named": named, "effects": eff,
+                        "rms_check": d.result["gap"]["rms_check"],
+                        "rms_check_after": d.result["combined"]["rms_check_after"]})
+            if progress:
+                progress(out[-1])
+    return out
