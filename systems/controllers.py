@@ -84,12 +84,25 @@ def _base_class():
             self.theta_upper = self.DeclareVectorInputPort("theta_upper", p)
             self.torque_output = self.DeclareVectorOutputPort("torque", BasicVector(n), self._calc_torque)
 
-        def _inputs(self, context):
+        def _raw_inputs(self, context):
+            """(q, v, q_d, qd_d, qdd_d, theta0, theta_lower, theta_upper), unchecked."""
             n = self.n
             x = self.state.Eval(context)
             d = self.desired.Eval(context)
-            box = Interval(self.theta_lower.Eval(context), self.theta_upper.Eval(context))
-            return x[:n], x[n:], d[:n], d[n:2 * n], d[2 * n:], self.theta0.Eval(context), box
+            return (x[:n], x[n:], d[:n], d[n:2 * n], d[2 * n:], self.theta0.Eval(context),
+                    self.theta_lower.Eval(context), self.theta_upper.Eval(context))
+
+        def _inputs(self, context):
+            *signals, lo, hi = self._raw_inputs(context)
+            return (*signals, Interval(lo, hi))
+
+        def _declare_step_cache(self, name, calc):
+            """A cache entry holding any Python object, recomputed when an input changes."""
+            from pydrake.common.value import AbstractValue
+            from pydrake.systems.framework import ValueProducer
+
+            return self.DeclareCacheEntry(name, ValueProducer(allocate=lambda: AbstractValue.Make(object()), calc=calc),
+                                          {self.all_input_ports_ticket()})
 
         def _calc_torque(self, context, output):
             output.SetFromVector(self._torque(context, *self._inputs(context)))
@@ -103,21 +116,12 @@ def make_armour_controller(robot, gains: ControllerGains):
     class ArmourController(ControllerBase):
         def __init__(self):
             super().__init__(robot, gains)
-            from pydrake.common.value import AbstractValue
-            from pydrake.systems.framework import ValueProducer
-
             # One evaluation of the law per step, shared by the torque and diagnostics outputs.
-            self._law = self.DeclareCacheEntry(
-                "law", ValueProducer(allocate=lambda: AbstractValue.Make(object()), calc=self._calc_law),
-                {self.all_input_ports_ticket()})
+            self._law = self._declare_step_cache("law", self._calc_law)
             self.DeclareVectorOutputPort("diagnostics", BasicVector(5), self._calc_diag)
 
         def _calc_law(self, context, value):
-            n = self.n
-            x, d = self.state.Eval(context), self.desired.Eval(context)
-            theta0 = self.theta0.Eval(context)
-            lo, hi = self.theta_lower.Eval(context), self.theta_upper.Eval(context)
-            args = (x[:n], x[n:], d[:n], d[n:2 * n], d[2 * n:])
+            *args, theta0, lo, hi = self._raw_inputs(context)
             if np.all(np.isfinite(theta0)) and np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(lo <= hi):
                 out = armour_control(self.dyn, gains.armour, *args, theta0, Interval(lo, hi))
             else:
@@ -176,17 +180,11 @@ def make_adaptive_controller(robot, gains: ControllerGains, time_step, robust=Fa
 
     class AdaptiveController(ControllerBase):
         def __init__(self):
-            from pydrake.common.value import AbstractValue
-            from pydrake.systems.framework import ValueProducer
-
             super().__init__(robot, gains)
             self._delta = self.DeclareDiscreteState(10)  # theta_hat_e - theta0_e
             self.DeclarePeriodicDiscreteUpdateEvent(time_step, 0.0, self._update)
             # Errors and regressor depend on the inputs only: shared by output and update.
-            self._regressor = self.DeclareCacheEntry(
-                "errors_and_regressor", ValueProducer(allocate=lambda: AbstractValue.Make(object()),
-                                                      calc=self._calc_regressor),
-                {self.all_input_ports_ticket()})
+            self._regressor = self._declare_step_cache("errors_and_regressor", self._calc_regressor)
 
         def _calc_regressor(self, context, value):
             q, v, q_d, qd_d, qdd_d, _, _ = self._inputs(context)

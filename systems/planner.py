@@ -232,12 +232,23 @@ class PlanningProblem:
         group = max(1, int(self.planner.torque_group))
         coarse = 4  # the vertex refinement runs on hulls of `coarse` boxes (it costs more per box)
 
+        def shrunk(f):
+            return centre + f * (self.k_lo - centre), centre + f * (self.k_hi - centre)
+
         def boxes_for(scales, merge):
-            per = [[_merge(x, merge) for x in self.reach.state_boxes(centre + f * (self.k_lo - centre),
-                                                                      centre + f * (self.k_hi - centre))]
-                   for f in scales]
+            per = [[reach.merge_rows(x, merge) for x in self.reach.state_boxes(*shrunk(f))] for f in scales]
             return [Interval(np.concatenate([p[c].lo for p in per]), np.concatenate([p[c].hi for p in per]))
                     for c in range(4)], len(per[0][0].lo)
+
+        def take_largest_fit(sup):
+            """Adopt the largest shrink level whose bound fits the limits (False if none does)."""
+            ratio = (sup / limit).reshape(len(scales), nb, -1).max((1, 2))
+            for f, r in zip(scales, ratio):
+                if r <= 1.0:
+                    self.k_lo, self.k_hi = shrunk(f)
+                    self.torque_ratio = float(r)
+                    return True
+            return False
 
         boxes, nb = boxes_for([1.0], group)
         wp = reach.interval_passivity_regressor(robot, *boxes)
@@ -249,24 +260,16 @@ class PlanningProblem:
         boxes, nb = boxes_for(scales, group)
         wp = reach.interval_passivity_regressor(robot, *boxes)
         sup, nominal, robust = reach.torque_bound(wp, theta0, theta_lo, theta_hi)
-        ratio = (sup / limit).reshape(len(scales), nb, -1).max((1, 2))
-        for f, r in zip(scales, ratio):  # the plain bound admits a shrunk box: take the largest
-            if r <= 1.0:
-                self.k_lo, self.k_hi = centre + f * (self.k_lo - centre), centre + f * (self.k_hi - centre)
-                self.torque_ratio = float(r)
-                return True
+        if take_largest_fit(sup):  # the plain bound admits a shrunk box
+            return True
         big, nbig = boxes_for(scales, group * coarse)
         wv, _ = reach.robust_bound_vertex(robot, *big, theta0, theta_lo, theta_hi, robot.ee_slice, b_rows=nbig)
-        robust_v = _up(np.linalg.norm(wv, axis=1) * (1 + 1e-12))
+        robust_v = reach.robust_term(wv)
         fine = np.arange(len(robust))
         owner = (fine // nb) * nbig + (fine % nb) // coarse  # coarse box containing each fine box
         sup = _up(nominal + np.minimum(robust, robust_v[owner])[:, None])
-        ratio = (sup / limit).reshape(len(scales), nb, -1).max((1, 2))
-        for f, r in zip(scales, ratio):
-            if r <= 1.0:
-                self.k_lo, self.k_hi = centre + f * (self.k_lo - centre), centre + f * (self.k_hi - centre)
-                self.torque_ratio = float(r)
-                return True
+        if take_largest_fit(sup):
+            return True
         last = sup.reshape(len(scales), nb, -1)[-1]
         i, j = np.unravel_index(np.argmax(last / limit), last.shape)
         t_box = self.reach.edges[min(i * group, len(self.reach.t_mid) - 1)]
@@ -289,22 +292,20 @@ class PlanningProblem:
         need = spheres.radius[None, :] + self.spread  # required clearance of the centre
         nint, m = self.spread.shape
         ii, ss = np.meshgrid(np.arange(nint), np.arange(m), indexing="ij")
-        pairs_i, pairs_s, pairs_o = [], [], []
+        clearances = []  # (centre signed distance (nint, m), obstacle index; -1: the floor)
         boxes = pl.boxes
         for o in range(len(boxes)):
             sd, _ = reach.box_signed_distance(c.reshape(-1, 3), np.broadcast_to(boxes.centre[o], (nint * m, 3)),
                                               np.broadcast_to(boxes.rotation[o], (nint * m, 3, 3)),
                                               np.broadcast_to(boxes.half_size[o], (nint * m, 3)))
-            sd = sd.reshape(nint, m)
+            clearances.append((sd.reshape(nint, m), o))
+        if pl.floor_z is not None:
+            clearances.append((np.where(pl.floor_exempt[None, :], np.inf, c[..., 2] - pl.floor_z), -1))
+        pairs_i, pairs_s, pairs_o = [], [], []
+        for sd, o in clearances:
             self._check_start(sd, need, k_motion, o)
             keep = sd - k_motion - need < 1e-3
             pairs_i.append(ii[keep]), pairs_s.append(ss[keep]), pairs_o.append(np.full(keep.sum(), o))
-        if pl.floor_z is not None:
-            sd = c[..., 2] - pl.floor_z
-            sd = np.where(pl.floor_exempt[None, :], np.inf, sd)
-            self._check_start(sd, need, k_motion, -1)
-            keep = sd - k_motion - need < 1e-3
-            pairs_i.append(ii[keep]), pairs_s.append(ss[keep]), pairs_o.append(np.full(keep.sum(), -1))
         self.pair_i = np.concatenate(pairs_i) if pairs_i else np.zeros(0, int)
         self.pair_s = np.concatenate(pairs_s) if pairs_s else np.zeros(0, int)
         self.pair_o = np.concatenate(pairs_o) if pairs_o else np.zeros(0, int)
@@ -670,17 +671,6 @@ class SafePlanner:
     @property
     def n(self):
         return self.robot.n
-
-
-def _merge(box, group):
-    """Hull of consecutive groups of rows of an Interval (rows, n)."""
-    from .intervals import Interval
-
-    rows = box.lo.shape[0]
-    pad = (-rows) % group
-    lo = np.concatenate([box.lo, np.repeat(box.lo[-1:], pad, 0)]).reshape(-1, group, box.lo.shape[1])
-    hi = np.concatenate([box.hi, np.repeat(box.hi[-1:], pad, 0)]).reshape(-1, group, box.hi.shape[1])
-    return Interval(lo.min(1), hi.max(1))
 
 
 def _floor_exempt(tree, spheres):

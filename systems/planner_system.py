@@ -16,6 +16,8 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import EventStatus, LeafSystem
 
+from .trajectory_source import at_rest
+
 
 @dataclasses.dataclass
 class PlannerState:
@@ -33,7 +35,6 @@ class ExcitingPlanner(LeafSystem):
         self._planner = planner
         cfg = planner.config
         n = planner.robot.n
-        self._n = n
         self._q0 = np.asarray(q0, float).copy()
         self._defaults = [np.asarray(x, float).copy() for x in (theta0, theta_lower, theta_upper)]
         self._num_plans = int(cfg.num_plans if num_plans is None else num_plans)
@@ -66,8 +67,7 @@ class ExcitingPlanner(LeafSystem):
 
     def _desired_at(self, st: PlannerState, t):
         if st.plan is None:
-            z = np.zeros(self._n)
-            return self._q0.copy(), z, z.copy()
+            return at_rest(self._q0)
         q, v, a = st.plan.evaluate([t - st.t_start])
         return q[0], v[0], a[0]
 

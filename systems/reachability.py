@@ -341,27 +341,14 @@ def _upr(x):
     return x + (np.abs(x) * _REL + 1e-300)
 
 
-class _Box:
-    """Minimal outward-rounded interval arrays for the RNEA below (no validation: faster than
-    intervals.Interval, same rounding rules; sums add the k*eps*sum|x| accumulation bound)."""
-
-    __slots__ = ("lo", "hi")
+class _Box(Interval):
+    """intervals.Interval for the RNEA below with cheaper outward rounding and no validation
+    (measured: * 210 us vs 560 us, + 115 vs 355 us on (64, 10, 6)); sums add the k*eps*sum|x|
+    accumulation bound. mid, mag, shape are Interval's."""
 
     def __init__(self, lo, hi=None):
         self.lo = np.asarray(lo, float)
         self.hi = self.lo if hi is None else np.asarray(hi, float)
-
-    @property
-    def shape(self):
-        return self.lo.shape
-
-    @property
-    def mag(self):
-        return np.maximum(np.abs(self.lo), np.abs(self.hi))
-
-    @property
-    def mid(self):
-        return 0.5 * (self.lo + self.hi)
 
     @property
     def rad(self):
@@ -401,14 +388,11 @@ class _Box:
         return _Box(_dn(self.lo.sum(axis) - err), _upr(self.hi.sum(axis) + err))
 
 
-def _I(lo, hi=None):
-    return _Box(lo, hi)
-
-
 def _stack(items, axis=-1):
     return _Box(np.stack([x.lo for x in items], axis), np.stack([x.hi for x in items], axis))
 
 
+# Interval twins of regressors.py's cross products (same formulas on _Box; exact per component).
 def _cross(a, b):
     """Interval cross product over the last axis (length 3)."""
     ax, ay, az = a[..., 0], a[..., 1], a[..., 2]
@@ -555,12 +539,12 @@ def interval_passivity_regressor(robot, q, v, va, aa, gravity=True):
         par = tree.parent[i]
         ei, ri = e[:, i], r[:, i]
         if par < 0:
-            v_par = _I(np.zeros((nsamp, 6)))
+            v_par = _Box(np.zeros((nsamp, 6)))
             va_par = v_par
-            a_par = _I(np.broadcast_to(g_world, (nsamp, 6)))
+            a_par = _Box(np.broadcast_to(g_world, (nsamp, 6)))
         else:
             v_par, va_par, a_par = vel[par], vela[par], acc[par]
-        si = _I(s_local[i])[None]
+        si = _Box(s_local[i])[None]
         vp_c = _to_child(ei, ri, v_par)
         vel[i] = vp_c + si * v[:, i, None]
         vela[i] = _to_child(ei, ri, va_par) + si * va[:, i, None]
@@ -609,12 +593,10 @@ def robust_bound_vertex(robot, q, v, va, aa, theta0, theta_lo, theta_hi, block, 
     d = np.maximum(np.maximum(np.asarray(theta_hi, float) - theta0, theta0 - np.asarray(theta_lo, float)), 0.0)
     a_part = interval_passivity_regressor(robot, q, v, va, Interval(np.zeros((nb, n))))
     # B_j: unit aa_j, no gravity, no velocity, on the q hulls; batched over j.
-    ng = -(-nb // b_rows)
-    pad = ng * b_rows - nb
-    qlo = np.concatenate([q.lo, np.repeat(q.lo[-1:], pad, 0)]).reshape(ng, b_rows, n).min(1)
-    qhi = np.concatenate([q.hi, np.repeat(q.hi[-1:], pad, 0)]).reshape(ng, b_rows, n).max(1)
+    q_hull = merge_rows(q, b_rows)
+    ng = q_hull.shape[0]
     zeros = Interval(np.zeros((n * ng, n)))
-    b_all = interval_passivity_regressor(robot, Interval(np.tile(qlo, (n, 1)), np.tile(qhi, (n, 1))), zeros, zeros,
+    b_all = interval_passivity_regressor(robot, Interval(np.tile(q_hull.lo, (n, 1)), np.tile(q_hull.hi, (n, 1))), zeros, zeros,
                                          Interval(np.repeat(np.eye(n), ng, axis=0)), gravity=False)
     cols = np.zeros(a_part.lo.shape[-1], bool)
     cols[block] = True
@@ -659,5 +641,20 @@ def torque_bound(wp, theta0, theta_lo, theta_hi):
     err = 8 * np.finfo(float).eps * (wp.mag @ np.abs(theta0))
     nominal = _up(np.abs(mid) + rad + err)
     wbar = _up((wp.mag @ d) * (1 + 1e-12))
-    robust = _up(np.linalg.norm(wbar, axis=-1) * (1 + 1e-12))
+    robust = robust_term(wbar)
     return _up(nominal + robust[:, None]), nominal, robust
+
+
+def robust_term(w_bar):
+    """Rounded-up ||w_bar||_2 over the last axis: the bound of the controller's |v_j|."""
+    return _up(np.linalg.norm(w_bar, axis=-1) * (1 + 1e-12))
+
+
+def merge_rows(box, group):
+    """Hull of consecutive groups of `group` rows of an Interval (rows, n) (the last group padded
+    with the last row)."""
+    rows = box.lo.shape[0]
+    pad = (-rows) % group
+    lo = np.concatenate([box.lo, np.repeat(box.lo[-1:], pad, 0)]).reshape(-1, group, box.lo.shape[1])
+    hi = np.concatenate([box.hi, np.repeat(box.hi[-1:], pad, 0)]).reshape(-1, group, box.hi.shape[1])
+    return Interval(lo.min(1), hi.max(1))

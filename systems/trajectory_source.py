@@ -15,6 +15,12 @@ from .bezier import DEGREE, QuinticBezier, _monomial_of_bernstein
 _POWERS = np.arange(DEGREE + 1)
 
 
+def at_rest(q):
+    """(q, qd, qdd) holding still at q (fresh arrays)."""
+    q = np.array(q, float)
+    return q, np.zeros_like(q), np.zeros_like(q)
+
+
 @dataclass(frozen=True)
 class Piece:
     t_start: float
@@ -34,8 +40,7 @@ class Piece:
         """(q, qd, qdd) at absolute time t; at rest at q_end after the duration."""
         s = (t - self.t_start) / self.curve.duration
         if s >= 1.0:
-            q_end = np.broadcast_to(np.asarray(self.q_end, float), self._c0.shape[1:]).copy()
-            return q_end, np.zeros_like(q_end), np.zeros_like(q_end)
+            return at_rest(np.broadcast_to(np.asarray(self.q_end, float), self._c0.shape[1:]))
         pw = max(s, 0.0) ** _POWERS
         return pw @ self._c0, pw[:-1] @ self._c1, pw[:-2] @ self._c2
 
@@ -51,8 +56,7 @@ def evaluate_pieces(pieces, t):
         else:
             break
     if t < active.t_start:
-        q0 = np.asarray(active.curve.q0, float)
-        return q0, np.zeros_like(q0), np.zeros_like(q0)
+        return at_rest(active.curve.q0)
     return active.evaluate(t)
 
 
