@@ -453,6 +453,7 @@ class Problem:
         self.check_joint = np.tile(np.arange(n), len(self.y_check) // n)
         self.n_fit_rows = len(self.y_fit)
         self._cache = {}
+        self.min_delay = 0.5 * float(np.median(np.concatenate([np.diff(d.sample["t"]) for d in fit])))
 
     def index(self, groups):
         return np.concatenate([np.arange(self.offset[g], self.offset[g] + self.k[g]) for g in groups]) \
@@ -652,6 +653,21 @@ def noise_variance(r, block, joint):
     return float(np.mean(out)) if out else float(np.mean(r ** 2))
 
 
+def resolvable(problem, params):
+    """A delay shorter than half the logs' sample period is below what the logs resolve (and
+    of the order of a simulator's own step): never reported as a cause."""
+    d = _delay_of(params)
+    return d is None or abs(d) >= problem.min_delay
+
+
+def _delay_of(params):
+    if "time_delay@shift" in params:
+        return float(params["time_delay@shift"][0])
+    if "time_delay" in params:
+        return float(params["time_delay"][0])
+    return None
+
+
 def significance(problem, r0, r1, sse0_fit, sse1_fit, k_added, joint=None):
     """The significance rule of the module docstring. r0/r1: check residual vectors.
 
@@ -811,6 +827,7 @@ def _diagnose(model, fit_logs, check_logs, effects, form, max_effects):
         params, sse = fit_effects(prob, [e])
         r1 = prob.check_residual(params)
         sig = significance(prob, r0, r1, sse0_fit, sse, n_params(params))
+        sig["significant"] &= resolvable(prob, params)
         single[e] = {"params": params, "sse": sse, "rms": _rms(r1), "sig": sig}
 
     # Selection: the best pair (or single) first, exhaustively, then forward-greedy.
@@ -824,6 +841,7 @@ def _diagnose(model, fit_logs, check_logs, effects, form, max_effects):
             r1 = prob.check_residual(params)
             k_added = n_params(params) - n_params(cur_params)
             sig = significance(prob, cur_r, r1, cur_sse, sse, k_added)
+            sig["significant"] &= resolvable(prob, params)
             if sig["significant"] and (best is None or sig["delta_mse"] > best[4]["delta_mse"]):
                 best = (e, params, sse, r1, sig)
         if best is None:
@@ -925,7 +943,7 @@ def _best_small_set(prob, effects, single, r0, sse0_fit):
             for keep in (e, f):
                 p0, s0, rr0 = fits[(keep,)]
                 sig = significance(prob, rr0, r, s0, sse, n_params(params) - n_params(p0))
-                ok &= sig["significant"]
+                ok &= sig["significant"] and resolvable(prob, params)
             if ok:
                 admissible.append((e, f))
     best = min(admissible, key=lambda k: float(np.mean(fits[k][2] ** 2)))
