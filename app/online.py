@@ -117,7 +117,6 @@ def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> On
     from safesysid.systems.controller import tracking_bounds_for
     from safesysid.systems.controllers import gains_from_scenario, make_controller
     from safesysid.systems.real_arm import add_real_arm
-    from safesysid.systems.reachability import TrackingBounds
     from safesysid.systems.safety_monitor import SafetyMonitor
 
     method = method or scenario.method
@@ -131,8 +130,7 @@ def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> On
     controller.set_name("controller")
     # The controller's certified bound (per-joint Kr) is what the planner must respect.
     bounds = tracking_bounds_for(robot, gains.armour, box.lo)
-    tracking = TrackingBounds(position=bounds.position, velocity=bounds.velocity,
-                              ref_velocity=bounds.qd_a, ref_acceleration=bounds.qdd_a)
+    tracking = bounds  # controller.TrackingBounds: the planner takes it as is
     planner = builder.AddSystem(make_planner_system(robot, scenario, method, tracking, arm.dumbbell, (theta0, box),
                                                     scenario.seed if seed is None else seed))
     planner.set_name("planner")
