@@ -330,7 +330,7 @@ def real_arm_log(effects, seed, duration_s=10.0, rate_hz=RATE_HZ, noise_ratio=0.
     nominal model. `effects`: {scenario.plant.effects field: value}. No acceleration column
     (the real arm has no acceleration sensor): the diagnosis uses the momentum form."""
     from pydrake.systems.analysis import Simulator
-    from pydrake.systems.framework import BasicVector, DiagramBuilder, LeafSystem
+    from pydrake.systems.framework import DiagramBuilder, LeafSystem
     from pydrake.systems.primitives import VectorLogSink
 
     from safesysid.joint_log import JointLog
@@ -351,17 +351,24 @@ def real_arm_log(effects, seed, duration_s=10.0, rate_hz=RATE_HZ, noise_ratio=0.
     builder = DiagramBuilder()
     arm = add_real_arm(builder, scenario, robot, dumbbell=None, seed=seed)
 
+    h = scenario.plant.time_step_s
+
     class ComputedTorque(LeafSystem):
+        """Computed torque + PD, sampled every plant step and held (no direct feedthrough, so
+        the loop through real_arm's series-elastic encoders stays causal)."""
+
         def __init__(self):
             super().__init__()
             self.state = self.DeclareVectorInputPort("state", 2 * n)
-            self.DeclareVectorOutputPort("u", BasicVector(n), self._calc)
+            u_index = self.DeclareDiscreteState(n)
+            self.DeclarePeriodicDiscreteUpdateEvent(h, 0.0, self._update)
+            self.DeclareStateOutputPort("u", u_index)
 
-        def _calc(self, context, out):
+        def _update(self, context, discrete_state):
             x = self.state.Eval(context)
-            qd, vd, ad = traj(np.array([context.get_time()]))
+            qd, vd, ad = traj(np.array([context.get_time() + h]))
             u = robot.inverse_dynamics(qd, vd, ad)[0] + kp * (qd[0] - x[:n]) + kd * (vd[0] - x[n:])
-            out.SetFromVector(u)
+            discrete_state.get_mutable_vector().SetFromVector(u)
 
     ctrl = builder.AddSystem(ComputedTorque())
     builder.Connect(arm.state_output, ctrl.state)

@@ -163,3 +163,14 @@ def test_reference_gen3_urdf_and_real_logs_leave_one_run_out():
         before.append(r["gap"]["rms_check"])
         after.append(r["combined"]["rms_check_after"])
     assert 1 - np.mean(after) / np.mean(before) > 0.78
+
+
+def test_real_arm_logs_cross_check():
+    """Logs of the Drake-simulated real arm (systems/real_arm.py: discrete plant, its own
+    friction, sensor and effect laws): no effect -> no cause; a torque-sensor offset -> named
+    first. Slow (Drake simulation): only with SAFESYSID_FULL=1."""
+    if n_trials(0, 1) == 0:
+        pytest.skip("real-arm cross-check runs with SAFESYSID_FULL=1")
+    cases = gs.run_real_arm_check(seed=0, duration_s=6.0, only=[0, 1])
+    assert cases[0]["named"] == []
+    assert cases[1]["named"][0] == "torque_offset"
