@@ -12,8 +12,12 @@ How a log is made (fast and deterministic given the seed):
   * noise: bounded uniform on the torque, +-level * (torque range of the joint), level drawn in
     [0.5 %, 3 %].
 Effect sizes are drawn as a signal-to-noise ratio: the effect's torque RMS on the joints it
-acts on is SNR times the noise RMS there (SNR in [1, 4]), capped by physical limits (delay
-<= 50 ms, tilt <= 0.05 rad, compliance <= 0.003 rad/(N m), scale within +-15 %, payload <= 5 kg ...). Logs are written with or without the acceleration columns.
+acts on is SNR times the noise RMS there (SNR in [1, 4]), capped by physical limits; when a
+cap keeps an effect below 0.8x the noise RMS the joints are redrawn (up to 10 times), so every
+case is inside the range the check is about. Caps: delay <= 50 ms, tilt <= 0.05 rad,
+compliance <= 0.003 rad/(N m), scale within +-15 %, payload <= 5 kg, Coulomb / Stribeck /
+viscous / armature / offset increments <= 10 N m / 20 N m / 30 N m s/rad / 5 kg m^2 / 10 N m. Logs are written with or without the
+acceleration columns.
 """
 from __future__ import annotations
 
@@ -29,6 +33,8 @@ GAP_S = 0.5
 SNR_RANGE = (1.0, 4.0)
 NOISE_LEVEL_RANGE = (0.005, 0.03)
 STRIBECK_VS = (0.03, 0.05, 0.08, 0.15)
+MAX_DRAWS = 10
+MIN_SNR_AFTER_CAP = 0.8
 
 
 @dataclasses.dataclass
@@ -202,18 +208,23 @@ def make_case(model, rng, injected, with_acceleration, n_fit=2, n_check=1, durat
     noise_rms = noise_amp / np.sqrt(3.0)
     effects, truth = {}, {}
     for name in injected:
-        joints = np.sort(rng.choice(n, size=rng.integers(1, 4), replace=False)) if name in PER_JOINT else np.arange(n)
-        eff, cap = _unit_effect(name, model, rng, joints)
-        rms = _effect_rms(model, name, eff, trajs, times, clean)
-        acts = rms >= 0.2 * rms.max() if rms.max() > 0 else np.zeros(n, bool)
         snr = rng.uniform(*SNR_RANGE)
-        target = snr * np.sqrt(np.mean(noise_rms[acts] ** 2))
-        achieved = np.sqrt(np.mean(rms[acts] ** 2))
-        eff = _scale_effect(name, eff, target / achieved if achieved > 0 else 1.0, cap)
+        for _attempt in range(MAX_DRAWS):
+            # Joints and shape are redrawn when the physical cap keeps the effect far below the
+            # drawn SNR (e.g. a stiff joint on an axis whose torque hardly depends on its angle).
+            joints = np.sort(rng.choice(n, size=rng.integers(1, 4), replace=False)) if name in PER_JOINT else np.arange(n)
+            eff, cap = _unit_effect(name, model, rng, joints)
+            rms = _effect_rms(model, name, eff, trajs, times, clean)
+            acts = rms >= 0.2 * rms.max() if rms.max() > 0 else np.zeros(n, bool)
+            noise_acts = np.sqrt(np.mean(noise_rms[acts] ** 2)) if acts.any() else 1.0
+            achieved = np.sqrt(np.mean(rms[acts] ** 2)) if acts.any() else 0.0
+            eff = _scale_effect(name, eff, snr * noise_acts / achieved if achieved > 0 else 1.0, cap)
+            final = np.sqrt(np.mean(_effect_rms(model, name, eff, trajs, times, clean)[acts] ** 2)) if acts.any() else 0.0
+            if final >= MIN_SNR_AFTER_CAP * noise_acts:
+                break
         effects[name] = eff
-        final = np.sqrt(np.mean(_effect_rms(model, name, eff, trajs, times, clean)[acts] ** 2))
         truth[name] = {"joints": [int(j) + 1 for j in np.flatnonzero(acts)], "snr_target": float(snr),
-                       "snr": float(final / np.sqrt(np.mean(noise_rms[acts] ** 2))),  # after the physical caps
+                       "snr": float(final / noise_acts),  # after the physical caps
                        "params": {k: (np.asarray(v).tolist() if not isinstance(v, (float, int)) else v)
                                   for k, v in eff.items()}}
     logs = []
@@ -290,16 +301,22 @@ def summarize(cases):
 
 
 def confusion(cases, effects=EFFECTS):
-    """counts[injected][named]: per case, every injected effect (or 'none') against every named
-    effect (or 'none')."""
+    """counts[injected][named]. Per case and injected effect: its own column when named, else
+    'none' (missed); every falsely named effect is counted in the row of each injected effect
+    of that case (or the 'none' row for a null case). A null case naming nothing counts
+    [none][none]. A second injected effect that is named is not a confusion, so it is not
+    counted in the other effect's row."""
     labels = list(effects) + ["none"]
     table = {r: {c: 0 for c in labels} for r in labels}
     for c in cases:
         rows = c["injected"] or ["none"]
-        cols = c["named"] or ["none"]
         for r in rows:
-            for k in cols:
-                table[r][k] += 1
+            if r != "none":
+                table[r][r if r in c["named"] else "none"] += 1
+            for f in c["false"]:
+                table[r][f] += 1
+            if r == "none" and not c["false"]:
+                table["none"]["none"] += 1
     return table
 
 
