@@ -65,6 +65,7 @@ def read_joint_log(path, n_joints=None) -> JointLog:
         if col not in header:
             raise LogError(f"{path}: row 1: missing column '{col}'")
     has_a = all(f"a{k}" in header for k in range(1, n + 1))
+    known = {"t", *need, *([f"a{k}" for k in range(1, n + 1)] if has_a else [])}  # the columns we read
     if len(rows) < 2:
         raise LogError(f"{path}: no data rows")
     data = np.empty((len(rows) - 1, len(header)))
@@ -75,11 +76,14 @@ def read_joint_log(path, n_joints=None) -> JointLog:
             try:
                 data[r - 2, c] = float(cell)
             except ValueError:
-                raise LogError(f"{path}: row {r}, column '{header[c]}': not a number ({cell!r})") from None
-    bad = ~np.isfinite(data)
+                if header[c] in known:
+                    raise LogError(f"{path}: row {r}, column '{header[c]}': not a number ({cell!r})") from None
+                data[r - 2, c] = np.nan  # an extra column we do not read
+    used = [k for k, h in enumerate(header) if h in known]  # extra columns are not ours to judge
+    bad = ~np.isfinite(data[:, used])
     if bad.any():
         r, c = np.argwhere(bad)[0]
-        raise LogError(f"{path}: row {r + 2}, column '{header[c]}': NaN or inf")
+        raise LogError(f"{path}: row {r + 2}, column '{header[used[c]]}': NaN or inf")
     col = {h: data[:, k] for k, h in enumerate(header)}
     t = col["t"]
     step = np.diff(t)
@@ -87,7 +91,6 @@ def read_joint_log(path, n_joints=None) -> JointLog:
         r = int(np.flatnonzero(step <= 0)[0]) + 3
         raise LogError(f"{path}: row {r}, column 't': time is not strictly increasing")
     stack = lambda p: np.stack([col[f"{p}{k}"] for k in range(1, n + 1)], 1)  # noqa: E731
-    known = {"t", *need, *([f"a{k}" for k in range(1, n + 1)] if has_a else [])}
     extra = {h: col[h] for h in header if h not in known}
     return JointLog(t, stack("q"), stack("v"), stack("tau"), stack("a") if has_a else None, extra, str(path))
 

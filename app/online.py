@@ -208,7 +208,6 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
     horizon = identification_horizon_s(scenario)
     # One step past the horizon so the estimator's update due at exactly t = horizon is applied.
     sim.AdvanceTo(horizon + scenario.plant.time_step_s)
-    built.diagram.ForcedPublish(ctx)
     wall = time.perf_counter() - wall0
 
     t, state = _log(built.loggers["state"], ctx)
@@ -278,13 +277,15 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
     extra.update({f"vd{k + 1}": desired[:, n + k] for k in range(n)})
     extra.update({f"ad{k + 1}": desired[:, 2 * n + k] for k in range(n)})
     extra.update({f"u{k + 1}": command[:, k] for k in range(n)})
-    if history:
-        times = np.array([h["t"] for h in history])
-        idx = np.searchsorted(times, t, side="right") - 1
-        for key, name in (("nominal", ""), ("lower", "_lo"), ("upper", "_hi")):
-            vals = np.array([h[key] for h in history])
-            for k, pname in enumerate(NAMES):
-                extra[f"est_{pname}{name}"] = np.where(idx >= 0, vals[np.maximum(idx, 0), k], np.nan)
+    # The end-effector estimate in force at each sample: the prior until the first update.
+    theta0, box = built.theta_prior
+    first = [theta0[robot.ee_slice], box.lo[robot.ee_slice], box.hi[robot.ee_slice]]
+    times = np.array([h["t"] for h in history])
+    idx = np.searchsorted(times, t, side="right") - 1
+    for j, (key, name) in enumerate((("nominal", ""), ("lower", "_lo"), ("upper", "_hi"))):
+        vals = np.array([first[j]] + [h[key] for h in history])
+        for k, pname in enumerate(NAMES):
+            extra[f"est_{pname}{name}"] = vals[idx + 1, k]
     write_joint_log(out / "log.csv", JointLog(t, q, v, tau_meas), extra)
     rec = built.monitor.record
     report.plot_tracking(out / "tracking.png", t, error, built.tracking.position, np.max(np.abs(command) / robot.joint_params.torque_limit, 1))

@@ -43,3 +43,10 @@ def test_joint_count_must_match_the_model(tmp_path):
     path = write_joint_log(tmp_path / "log.csv", make_log())
     with pytest.raises(LogError, match="the model has 7"):
         read_joint_log(path, 7)
+
+
+def test_extra_columns_are_not_judged(tmp_path):
+    """Contract: readers ignore columns they do not know, even NaN or text in them."""
+    log = make_log()
+    path = write_joint_log(tmp_path / "log.csv", log, {"note": np.full(5, np.nan)})
+    assert np.allclose(read_joint_log(path, 3).q, log.q)

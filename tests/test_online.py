@@ -36,6 +36,15 @@ def test_quickstart_outputs(quickstart, tmp_path):
     assert summary["planner"]["iterations"] >= 1 and summary["sysid"]["updates"] >= 4
     est = summary["estimate"]
     assert est["upper"][0] - est["lower"][0] < 4.0  # tightened from Table II's [1.2, 5.2]
+    # The run's log is a valid joint log: Algorithm 1 offline on it contains the truth too.
+    from safesysid.cli import main
+
+    assert main(["sysid", str(tmp_path / "log.csv"), "--scenario", str(SCENARIOS_DIR / "quickstart.yaml"),
+                 "--out", str(tmp_path / "sysid")]) == 0
+    offline = json.loads((tmp_path / "sysid" / "estimate.json").read_text())
+    truth = np.array(summary["payload_true"]["theta"])
+    lower, upper = np.array(offline["lower"]), np.array(offline["upper"])
+    assert np.all((lower <= truth) & (truth <= upper))
 
 
 @pytest.mark.parametrize("index", range(n_trials(2, 100)))
