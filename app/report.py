@@ -12,6 +12,13 @@ import numpy as np  # noqa: E402
 from safesysid.systems.inertial import NAMES, UNITS  # noqa: E402
 
 
+def _save(fig, path):
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
 def plot_tracking(path, t, error, bound, torque_ratio):
     """Per-joint |e_i| / bound_i (1 = the certified ultimate bound), and max |u|/limit."""
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
@@ -23,10 +30,7 @@ def plot_tracking(path, t, error, bound, torque_ratio):
     ax2.axhline(1.0, color="k", ls="--")
     ax2.set_ylabel("max |u| / limit")
     ax2.set_xlabel("t [s]")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return _save(fig, path)
 
 
 def plot_clearance(path, t, clearance):
@@ -35,10 +39,7 @@ def plot_clearance(path, t, clearance):
     ax.axhline(0.0, color="r", ls="--")
     ax.set_xlabel("t [s]")
     ax.set_ylabel("min signed distance [m]")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return _save(fig, path)
 
 
 def plot_intervals(path, nominal, lower, upper, truth=None, title=""):
@@ -54,10 +55,7 @@ def plot_intervals(path, nominal, lower, upper, truth=None, title=""):
     if truth is not None:
         axes[0, 0].legend(fontsize=8)
     fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return _save(fig, path)
 
 
 def plot_estimate_history(path, times, nominal, lower, upper, truth=None, index=0):
@@ -70,10 +68,7 @@ def plot_estimate_history(path, times, nominal, lower, upper, truth=None, index=
     ax.set_xlabel("t [s]")
     ax.set_ylabel(f"{NAMES[index]} [{UNITS[index]}]")
     ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return _save(fig, path)
 
 
 def markdown_table(rows, columns):

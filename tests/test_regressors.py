@@ -33,6 +33,24 @@ def rel_err(a, b):
     return np.abs(a - b).max() / max(np.abs(b).max(), 1e-12)
 
 
+def set_state(plant, ctx, robot, theta, q, v):
+    set_bodies(plant, ctx, robot, theta)
+    plant.SetPositions(ctx, q)
+    plant.SetVelocities(ctx, v)
+
+
+def mass_rate(plant, ctx, q, v, h=1e-6):
+    """Mdot along v by central differences; leaves the context at (q, v)."""
+    def mass(qq):
+        plant.SetPositions(ctx, qq)
+        return plant.CalcMassMatrix(ctx)
+
+    m_dot = (mass(q + h * v) - mass(q - h * v)) / (2 * h)
+    plant.SetPositions(ctx, q)
+    plant.SetVelocities(ctx, v)
+    return m_dot
+
+
 def states(rng, n, count=5):
     for _ in range(count):
         yield rng.uniform(-2, 2, n), rng.normal(size=n), rng.normal(size=n)
@@ -43,9 +61,7 @@ def test_standard_regressor_matches_inverse_dynamics(gen3):
     rng = np.random.default_rng(0)
     for q, v, a in states(rng, robot.n):
         theta = random_theta(rng, robot.n)
-        set_bodies(plant, ctx, robot, theta)
-        plant.SetPositions(ctx, q)
-        plant.SetVelocities(ctx, v)
+        set_state(plant, ctx, robot, theta, q, v)
         forces = MultibodyForces(plant)
         plant.CalcForceElementsContribution(ctx, forces)
         tau = plant.CalcInverseDynamics(ctx, a, forces)
@@ -58,8 +74,7 @@ def test_momentum_and_mass_matrix(gen3):
     rng = np.random.default_rng(1)
     for q, v, _ in states(rng, robot.n):
         theta = random_theta(rng, robot.n)
-        set_bodies(plant, ctx, robot, theta)
-        plant.SetPositions(ctx, q)
+        set_state(plant, ctx, robot, theta, q, v)
         m = plant.CalcMassMatrix(ctx)
         assert rel_err(regressors.momentum_regressor(robot.tree, q, v)[0] @ theta, m @ v) < RTOL
         full = robot.with_theta(np.concatenate([theta, robot.theta[70:]]))
@@ -70,18 +85,10 @@ def test_momentum_rate_is_coriolis_transpose_minus_gravity(gen3):
     """Wc theta = C^T v - g, with C^T v = Mdot v - C v and Mdot from central differences."""
     robot, plant, ctx = gen3
     rng = np.random.default_rng(2)
-    h = 1e-6
     for q, v, _ in states(rng, robot.n):
         theta = random_theta(rng, robot.n)
         set_bodies(plant, ctx, robot, theta)
-
-        def mass(qq):
-            plant.SetPositions(ctx, qq)
-            return plant.CalcMassMatrix(ctx)
-
-        m_dot = (mass(q + h * v) - mass(q - h * v)) / (2 * h)
-        plant.SetPositions(ctx, q)
-        plant.SetVelocities(ctx, v)
+        m_dot = mass_rate(plant, ctx, q, v)
         expected = m_dot @ v - plant.CalcBiasTerm(ctx) + plant.CalcGravityGeneralizedForces(ctx)
         got = regressors.momentum_rate_regressor(robot.tree, q, v)[0] @ theta
         assert rel_err(got, expected) < 1e-7  # limited by the finite difference of M
@@ -97,15 +104,7 @@ def test_passivity_regressor_is_christoffel_consistent(gen3):
     zero = np.zeros(robot.n)
     g = regressors.passivity_regressor(robot.tree, q, zero, zero, zero)[0] @ theta
     c = np.stack([regressors.passivity_regressor(robot.tree, q, v, e, zero)[0] @ theta - g for e in np.eye(robot.n)], 1)
-    h = 1e-6
-
-    def mass(qq):
-        plant.SetPositions(ctx, qq)
-        return plant.CalcMassMatrix(ctx)
-
-    m_dot = (mass(q + h * v) - mass(q - h * v)) / (2 * h)
-    plant.SetPositions(ctx, q)
-    plant.SetVelocities(ctx, v)
+    m_dot = mass_rate(plant, ctx, q, v)
     assert rel_err(c @ v, plant.CalcBiasTerm(ctx)) < RTOL
     assert np.abs(m_dot - c - c.T).max() < 1e-7 * np.abs(m_dot).max() + 1e-9
 
