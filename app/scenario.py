@@ -111,7 +111,6 @@ class Planner:
     solver: str = "ipopt"  # ipopt | snopt
     max_solve_time_s: float = 1.2  # wall cap inside t_p
     max_iterations: int = 100
-    Kr: float = 5.0  # tracking gain assumed by the planner's error bound
     floor_z_m: float = 0.0  # floor plane height (an obstacle)
 
 
