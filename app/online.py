@@ -128,9 +128,9 @@ def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> On
     gains = gains_from_scenario(scenario, robot.n)
     controller = builder.AddSystem(make_controller(scenario.controller.kind, robot, gains, h))
     controller.set_name("controller")
-    # The controller's certified bound (per-joint Kr) is what the planner must respect.
-    bounds = tracking_bounds_for(robot, gains.armour, box.lo)
-    tracking = bounds  # controller.TrackingBounds: the planner takes it as is
+    # The controller's certified bound (per-joint Kr; sigma_min from the armature lower bounds,
+    # which identification never changes) is the tube the planner must respect.
+    tracking = tracking_bounds_for(robot, gains.armour, box.lo)
     planner = builder.AddSystem(make_planner_system(robot, scenario, method, tracking, arm.dumbbell, (theta0, box),
                                                     scenario.seed if seed is None else seed))
     planner.set_name("planner")
