@@ -910,12 +910,15 @@ class IncrementalEstimator:
                 self.messages.append(message)
             else:
                 new_lo, new_hi = cand_lo, cand_hi
-        self.eta = sol.eta
+        self.eta = sol.eta  # the consistent least-squares solution stays the warm start
+        # Publish the nominal clipped into the interval: the truth is inside it, so per parameter
+        # the projection is never farther from the truth (it matters for barely excited inertias).
+        theta_e = np.clip(sol.theta, new_lo, new_hi)
         theta = robot.theta.copy()
-        theta[robot.ee_slice] = sol.theta
+        theta[robot.ee_slice] = theta_e
         t_lo, t_hi = self._robot_box()
         t_lo[robot.ee_slice], t_hi[robot.ee_slice] = new_lo, new_hi
-        est = Estimate(theta_e=sol.theta, lower=new_lo, upper=new_hi, theta=theta, theta_lower=t_lo, theta_upper=t_hi,
+        est = Estimate(theta_e=theta_e, lower=new_lo, upper=new_hi, theta=theta, theta_lower=t_lo, theta_upper=t_hi,
                        eta=sol.eta, theta_ls=centre, update_lower=lo, update_upper=hi,
                        radius_torque=hull["rad_torque"], radius_theta_r=hull["rad_theta_r"],
                        radius_quadrature=hull["rad_quad"], radius_rounding=hull["rad_round"], case=case,
