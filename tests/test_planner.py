@@ -10,8 +10,9 @@ from safesysid.systems import controller as ctl
 from safesysid.systems import planner as P
 from safesysid.systems import reachability as reach
 from safesysid.systems.intervals import Interval
-from safesysid.systems.payload import load_dumbbells, payload_theta_in_end_effector
+from safesysid.systems.payload import load_dumbbells
 from safesysid.systems.robot_model import MODELS_DIR, load_robot
+from safesysid.benchmarks.bench_planner import parameter_box as theta_box  # one definition of the test prior
 
 Q0 = np.array([0.0, 0.26, 0.0, 2.0, 0.0, 0.9, 1.57])
 GAINS = ctl.ArmourGains(Kr=np.array([5.0] * 4 + [7.0] * 3), alpha=20.0, V_max=0.02)
@@ -25,15 +26,6 @@ def robot():
 @pytest.fixture(scope="module")
 def payload():
     return load_dumbbells(MODELS_DIR / "dumbbells.yaml")["4lb"]
-
-
-def theta_box(robot, payload, ee_ratio=0.2):
-    theta0 = robot.theta.copy()
-    sl = robot.ee_slice
-    theta0[sl] = robot.theta_e + payload_theta_in_end_effector(payload, robot.extra["grasp_point"])
-    rel = 0.05 * np.abs(theta0)
-    rel[sl] = ee_ratio * np.abs(theta0[sl])
-    return theta0, theta0 - rel, theta0 + rel
 
 
 def scene_obstacles():
