@@ -138,8 +138,20 @@ def write_report(out, diagnosis, model_path, fit_paths, check_paths, plots, wall
         lines += ["", "Nominal residual RMS by form (per check log): "]
         for log, forms in gap["residual_forms"].items():
             lines.append(f"- `{Path(log).name}`: " + ", ".join(f"{k} {v:.3f}" for k, v in forms.items()))
-    lines += ["", "`velocity_plateau`: logged velocity pinned at its maximum with ~zero acceleration "
-              "(a saturated or clipped velocity signal; no effect of the library can follow it).", ""]
+    sat = gap.get("velocity_saturation")
+    if sat and sat["spans"]:
+        wo = comb["without_saturated"]
+        lines += ["", f"Velocity saturation: joints ran pinned at their top speed on "
+                  f"{100 * sat['element_share']:.1f}% of the held-out joint samples, which carry "
+                  f"{100 * sat['residual_share']:.1f}% of the nominal residual². There the drive does not "
+                  "deliver the logged torque (it swings while velocity and acceleration stay flat), so no "
+                  "model of the arm can follow it: these samples are left out of fitting and selection. "
+                  f"On the other samples: {wo['rms_check']:.3f} → {wo['rms_check_after']:.3f} N·m "
+                  f"({100 * wo['reduction']:.1f}% reduction; all samples {100 * comb['reduction']:.1f}%).", "",
+                  "| log | joint | from [s] | to [s] | speed [rad/s] |", "|---|---|---|---|---|"]
+        for sp in sat["spans"]:
+            lines.append(f"| `{Path(sp['log']).name}` | {sp['joint']} | {sp['t_start']:.2f} | {sp['t_end']:.2f} "
+                         f"| {sp['speed_rad_s']:.3f} |")
     lines += ["", "Where the residual left after the combined correction lies (share of its square):", "",
               "| regime | share after | share of samples |", "|---|---|---|"]
     for k, v in comb.get("regimes_after", {}).items():

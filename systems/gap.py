@@ -80,6 +80,9 @@ DELAY_FINE_S = 0.005
 MAX_TILT = 0.2
 MAX_COMPLIANCE = 0.02  # rad/(N m)
 REGIME_QUANTILE = 0.75
+SATURATION_BAND = 0.02  # rad/s: |v| pinned inside this band ...
+SATURATION_MIN_S = 0.2  # ... for at least this long ...
+SATURATION_LEVEL = 0.97  # ... at the joint's top speed over all logs (fraction of max |v|)
 
 
 # ---- BLAS threads ---------------------------------------------------------------------------
@@ -230,13 +233,48 @@ class Design:
     tau_hat_nominal: np.ndarray  # (R, n) nominal model torque (row form)
     source: str = ""
     row_segment: np.ndarray = None  # (R,) gap-free segment of each row
+    row_saturated: np.ndarray = None  # (R, n) joint speed-saturated inside the row (see velocity_saturation)
     sample: dict = None  # sample-level model quantities for delays (see delayed_rows)
     residual_forms: dict = field(default_factory=dict)
     segments: list = field(default_factory=list)
 
 
-def build_design(model, log, form, window_s=0.1, max_gap_s=None, columns=True):
-    """Residual rows and every effect's columns for one JointLog (see module docstring)."""
+def velocity_saturation(logs, segs_of=None):
+    """(N, n) masks per log: joint j's velocity pinned at its top speed, i.e. |v_j| stays inside
+    a SATURATION_BAND band for >= SATURATION_MIN_S (gap-free, one sign) at >= SATURATION_LEVEL
+    of the largest |v_j| over all logs. A drive at its speed limit does not deliver the logged
+    torque command: on the real Gen3 logs the torque swings by 35 N m while v stays at
+    1.73 rad/s and the acceleration at zero. Such samples obey no model of the arm; they are
+    left out of fitting and selection and reported apart."""
+    vmax = np.max([np.abs(l.v).max(0) for l in logs], axis=0)
+    masks = []
+    for l in logs:
+        mask = np.zeros(l.v.shape, bool)
+        for s0, s1 in segments(l.t):
+            for j in range(l.v.shape[1]):
+                v = l.v[s0:s1 + 1, j]
+                av = np.abs(v)
+                cand = av >= SATURATION_LEVEL * vmax[j]
+                i, N = 0, len(v)
+                while i < N:
+                    if not cand[i]:
+                        i += 1
+                        continue
+                    k, lo, hi = i, av[i], av[i]
+                    while (k + 1 < N and cand[k + 1] and np.sign(v[k + 1]) == np.sign(v[i])
+                           and max(hi, av[k + 1]) - min(lo, av[k + 1]) <= SATURATION_BAND):
+                        k += 1
+                        lo, hi = min(lo, av[k]), max(hi, av[k])
+                    if l.t[s0 + k] - l.t[s0 + i] >= SATURATION_MIN_S:
+                        mask[s0 + i:s0 + k + 1, j] = True
+                    i = k + 1
+        masks.append(mask)
+    return masks
+
+
+def build_design(model, log, form, window_s=0.1, max_gap_s=None, columns=True, saturated=None):
+    """Residual rows and every effect's columns for one JointLog (see module docstring).
+    `saturated`: (N, n) sample mask of velocity_saturation (default: none)."""
     n = model.n
     t, q, v, tau = log.t, log.q, log.v, log.tau
     nb = 10 * n
@@ -323,6 +361,12 @@ def build_design(model, log, form, window_s=0.1, max_gap_s=None, columns=True):
     _, row_block = np.unique(blk, return_inverse=True)
     d = Design(form, y, cols, row_time, row_block, feat, tau_nom, log.source, segments=segs)
     d.row_segment = seg_id[rows]
+    sat = np.zeros(v.shape, bool) if saturated is None else np.asarray(saturated, bool)
+    if win is None:
+        d.row_saturated = sat[rows]
+    else:  # a window is saturated when any of its samples is
+        csum = np.concatenate([np.zeros((1, n), int), np.cumsum(sat, 0)])
+        d.row_saturated = (csum[win[:, 1] + 1] - csum[win[:, 0]]) > 0
     d.sample = {"t": t, "segment": seg_id, "seg_bounds": np.array(segs, int).reshape(-1, 2),
                 "cols": sample_cols, "nominal": sample_nominal, "windows": win}
     return d
@@ -432,19 +476,22 @@ class Problem:
             start += self.k[g]
         self.K = start
 
-        def flat(d):
-            A = np.concatenate([d.cols[g] for g in self.groups], -1)
-            return A.reshape(-1, self.K), d.y.reshape(-1)
+        def flat(ds):
+            A = np.concatenate([np.concatenate([d.cols[g] for g in self.groups], -1).reshape(-1, self.K)
+                                for d in ds])
+            return A, np.concatenate([d.y.reshape(-1) for d in ds])
 
-        fa = [flat(d) for d in fit]
-        self.A_fit = np.concatenate([a for a, _ in fa])
-        self.y_fit = np.concatenate([y for _, y in fa])
+        # Rows where a joint is speed-saturated obey no model (velocity_saturation): fitting and
+        # selection use the valid elements only; reports also give the all-sample residual.
+        self.fit_valid = np.concatenate([~d.row_saturated.reshape(-1) for d in fit])
+        self.check_valid = np.concatenate([~d.row_saturated.reshape(-1) for d in check])
+        A_fit, y_fit = flat(fit)
+        self.A_fit, self.y_fit = A_fit[self.fit_valid], y_fit[self.fit_valid]
         self.G = self.A_fit.T @ self.A_fit
         self.b = self.A_fit.T @ self.y_fit
         self.yy = float(self.y_fit @ self.y_fit)
-        ca = [flat(d) for d in check]
-        self.A_check = np.concatenate([a for a, _ in ca])
-        self.y_check = np.concatenate([y for _, y in ca])
+        self.A_check_all, self.y_check_all = flat(check)
+        self.A_check, self.y_check = self.A_check_all[self.check_valid], self.y_check_all[self.check_valid]
         n = fit[0].y.shape[1]
         self.n = n
         # Row-major flattening: element (row, joint); blocks numbered across check logs.
@@ -452,8 +499,8 @@ class Problem:
         for d in check:
             blocks.append(np.repeat(d.row_block + base, n))
             base += d.row_block.max() + 1
-        self.check_block = np.concatenate(blocks)
-        self.check_joint = np.tile(np.arange(n), len(self.y_check) // n)
+        self.check_block = np.concatenate(blocks)[self.check_valid]
+        self.check_joint = np.tile(np.arange(n), len(self.y_check_all) // n)[self.check_valid]
         self.n_fit_rows = len(self.y_fit)
         self._cache = {}
         tau_check = np.concatenate([d.y + d.tau_hat_nominal for d in check])
@@ -484,22 +531,25 @@ class Problem:
         if key == 0.0:
             return self.G[np.ix_(idx, idx)], self.b[idx], self.yy
         if key not in self._cache:
-            A, y = self._shifted(self.fit, delay, self.groups)
+            A, y = self._fit_system(delay, self.groups)
             self._cache[key] = (A.T @ A, A.T @ y, float(y @ y))
         G, b, yy = self._cache[key]
         return G[np.ix_(idx, idx)], b[idx], yy
 
-    def _check_system(self, delay, groups):
+    def _check_system(self, delay, groups, valid_only=True):
         key = round(float(delay), 6)
         if key == 0.0:
-            return self.A_check[:, self.index(groups)], self.y_check
-        return self._shifted(self.check, delay, groups)
+            A, y = (self.A_check, self.y_check) if valid_only else (self.A_check_all, self.y_check_all)
+            return A[:, self.index(groups)], y
+        A, y = self._shifted(self.check, delay, groups)
+        return (A[self.check_valid], y[self.check_valid]) if valid_only else (A, y)
 
     def _fit_system(self, delay, groups):
         key = round(float(delay), 6)
         if key == 0.0:
             return self.A_fit[:, self.index(groups)], self.y_fit
-        return self._shifted(self.fit, delay, groups)
+        A, y = self._shifted(self.fit, delay, groups)
+        return A[self.fit_valid], y[self.fit_valid]
 
     def solve(self, groups):
         """Constrained least squares on the fit logs for the union of `groups`.
@@ -622,7 +672,12 @@ class Problem:
         return y - A @ p
 
     def check_residual(self, params):
+        """Check residual on the valid (not speed-saturated) elements, flattened."""
         return self._residual(self._check_system, params)
+
+    def check_residual_all(self, params):
+        """Check residual on every element (R_total * n), flattened row-major."""
+        return self._residual(lambda d, g: self._check_system(d, g, valid_only=False), params)
 
     def fit_residual(self, params):
         return self._residual(self._fit_system, params)
@@ -737,9 +792,8 @@ def regimes(designs, residuals):
         "high_acceleration": np.abs(a) >= np.quantile(np.abs(a), REGIME_QUANTILE, axis=0),
         "high_speed": np.abs(v) >= np.quantile(np.abs(v), REGIME_QUANTILE, axis=0),
         "high_gravity_load": np.abs(g) >= np.quantile(np.abs(g), REGIME_QUANTILE, axis=0),
-        # Logged velocity pinned at its largest value with ~zero acceleration: a saturated
-        # velocity (limit or estimator clipping) the model cannot follow.
-        "velocity_plateau": (np.abs(v) >= 0.98 * vmax) & (np.abs(a) <= 0.1 * np.abs(a).max(0)),
+        # Joint at its speed limit (velocity_saturation): the logged torque is not delivered.
+        "velocity_saturation": np.concatenate([d.row_saturated for d in designs]),
     }
     share = {k: float(r2[m].sum() / total) for k, m in masks.items()}
     samples = {k: float(m.mean()) for k, m in masks.items()}
@@ -817,14 +871,15 @@ def diagnose(model, fit_logs, check_logs, effects=EFFECTS, form=None, max_effect
 
 def _diagnose(model, fit_logs, check_logs, effects, form, max_effects):
     form = form or choose_form(list(fit_logs) + list(check_logs))
-    fit = [build_design(model, l, form) for l in fit_logs]
-    check = [build_design(model, l, form) for l in check_logs]
+    saturated = velocity_saturation(list(fit_logs) + list(check_logs))
+    fit = [build_design(model, l, form, saturated=m) for l, m in zip(fit_logs, saturated)]
+    check = [build_design(model, l, form, saturated=m) for l, m in zip(check_logs, saturated[len(fit_logs):])]
     prob = Problem(model, fit, check)
     n = model.n
-    r0 = prob.y_check
+    r0 = prob.y_check  # selection works on the valid (not speed-saturated) elements
     sse0_fit = prob.yy
     rms_fit = float(np.sqrt(np.mean(prob.y_fit ** 2)))
-    rms_check = _rms(r0)
+    rms_check = _rms(prob.y_check_all)  # reported numbers: every element
     res_check0 = [d.y for d in check]
     per_joint0 = _rms(np.concatenate(res_check0), axis=0)
     share, samples, windows = regimes(check, res_check0)
@@ -836,7 +891,7 @@ def _diagnose(model, fit_logs, check_logs, effects, form, max_effects):
         r1 = prob.check_residual(params)
         sig = significance(prob, r0, r1, sse0_fit, sse, n_params(params))
         sig["significant"] &= resolvable(prob, params)
-        single[e] = {"params": params, "sse": sse, "rms": _rms(r1), "sig": sig}
+        single[e] = {"params": params, "sse": sse, "rms": _rms(prob.check_residual_all(params)), "sig": sig}
 
     # Selection: the best pair (or single) first, exhaustively, then forward-greedy.
     selected, cur_params, cur_sse, cur_r, steps = _best_small_set(prob, effects, single, r0, sse0_fit)
@@ -900,7 +955,7 @@ def _diagnose(model, fit_logs, check_logs, effects, form, max_effects):
         entries.append(entry)
     entries.sort(key=lambda x: (not x["significant"], x.get("selection_step", 0), -x["reduction"]))
 
-    r_after = cur_r
+    r_after = prob.check_residual_all(cur_params)
     per_joint1 = _rms(r_after.reshape(-1, n), axis=0)
     split = np.cumsum([len(d.y) for d in check])[:-1]
     res_check1 = np.split(r_after.reshape(-1, n), split)
@@ -911,7 +966,8 @@ def _diagnose(model, fit_logs, check_logs, effects, form, max_effects):
                 "where": {"joints": where_joints, "regimes": share, "regime_sample_share": samples,
                           "time_windows": windows},
                 "residual_form": form,
-                "rms_check_per_log": [_rms(r) for r in res_check0]},
+                "rms_check_per_log": [_rms(r) for r in res_check0],
+                "velocity_saturation": _saturation_summary(check, res_check0)},
         "effects": entries,
         "cause": list(selected),
         "combined": {"effects": list(selected), "rms_check_after": rms_after,
@@ -920,6 +976,8 @@ def _diagnose(model, fit_logs, check_logs, effects, form, max_effects):
                      "rms_check_per_log_after": [_rms(r) for r in res_check1],
                      "rms_fit_after": _rms(prob.fit_residual(cur_params)),
                      "regimes_after": regimes(check, res_check1)[0],
+                     "without_saturated": {"rms_check": _rms(r0), "rms_check_after": _rms(cur_r),
+                                           "reduction": _reduction(_rms(r0), _rms(cur_r))},
                      "selection": steps},
         "significance_rule": {"z_block": Z_BLOCK, "block_s": BLOCK_S, "min_relative": MIN_RELATIVE,
                               "min_effect_ratio": MIN_EFFECT_RATIO,
@@ -969,6 +1027,22 @@ def _best_small_set(prob, effects, single, r0, sse0_fit):
         steps.append({"effect": e, "rms_check_after": _rms(r1), "phase": "best pair", **sig})
         prev = cur
     return list(order), params, sse, r, steps
+
+
+def _saturation_summary(designs, residuals):
+    """Where joints ran at their speed limit in the check logs and the residual share there."""
+    sat = np.concatenate([d.row_saturated for d in designs])
+    r2 = np.concatenate(residuals) ** 2
+    spans = []
+    for d in designs:
+        for j in range(sat.shape[1]):
+            m = np.concatenate([[False], d.row_saturated[:, j], [False]]).astype(int)
+            for i0, i1 in zip(np.flatnonzero(np.diff(m) == 1), np.flatnonzero(np.diff(m) == -1) - 1):
+                spans.append({"log": d.source, "joint": j + 1, "t_start": float(d.row_time[i0]),
+                              "t_end": float(d.row_time[i1]),
+                              "speed_rad_s": float(np.abs(d.features["v"][i0:i1 + 1, j]).mean())})
+    return {"element_share": float(sat.mean()), "per_joint_share": [float(x) for x in sat.mean(0)],
+            "residual_share": float(r2[sat].sum() / (r2.sum() or 1.0)), "spans": spans}
 
 
 def _reduction(before, after):
