@@ -109,6 +109,12 @@ def _print_summary(d, out):
           f"({100 * r['combined']['reduction']:.1f}% less); cause: {', '.join(r['cause']) or 'no significant effect'}")
     print("per joint before: " + " ".join(f"{x:.2f}" for x in r["gap"]["rms_check_per_joint"]))
     print("per joint after:  " + " ".join(f"{x:.2f}" for x in r["combined"]["rms_check_per_joint_after"]))
+    sat = r["gap"]["velocity_saturation"]
+    if sat["spans"]:
+        wo = r["combined"]["without_saturated"]
+        print(f"speed-saturated (drive at its limit, torque not delivered): {100 * sat['element_share']:.1f}% of "
+              f"samples, {100 * sat['residual_share']:.1f}% of the residual^2; without them "
+              f"{wo['rms_check']:.3f} -> {wo['rms_check_after']:.3f} N·m ({100 * wo['reduction']:.1f}% less)")
     print(f"wrote {out}/diagnosis.json, report.md, corrected_params.yaml")
 
 

@@ -63,9 +63,13 @@ def write_plots(out, diagnosis):
         ax = axes[j, 0]
         ax.plot(c0.row_time, d.check_residual_before[0][:, j], lw=0.6, c="0.5", label="nominal")
         ax.plot(c0.row_time, d.check_residual_after[0][:, j], lw=0.6, c="tab:blue", label="corrected")
+        if c0.row_saturated[:, j].any():
+            ax.fill_between(c0.row_time, 0, 1, where=c0.row_saturated[:, j], color="tab:orange", alpha=0.25,
+                            transform=ax.get_xaxis_transform(), label="speed-saturated")
         ax.set_ylabel(f"j{j + 1} [N·m]", fontsize=8)
         ax.tick_params(labelsize=7)
-    axes[0, 0].legend(fontsize=7, loc="upper right")
+    handles = {h.get_label(): h for ax in axes[:, 0] for h in ax.get_legend_handles_labels()[0]}
+    axes[0, 0].legend(handles.values(), handles.keys(), fontsize=7, loc="upper right")
     axes[-1, 0].set_xlabel("time [s]")
     fig.suptitle(f"Residual before/after, {Path(c0.source).name or 'check log 1'}", fontsize=10)
     fig.tight_layout()

@@ -17,6 +17,10 @@ int W_e dt = [Wm_e] - int Wc_e dt, int tau_dot dt = d tau). Effects and their ph
   coulomb_friction   dFc_j sgn(v_j)                          Fc0 + dFc >= 0
   viscous_friction   dFv_j v_j                               Fv0 + dFv >= 0
   stribeck_friction  Fs_j sgn(v_j) exp(-(v_j/vs)^2)          Fs >= 0, vs from a grid (shared)
+  load_friction      mu_j |tau_j| sgn(v_j)                   0 <= mu <= MAX_LOAD_FRICTION; friction that
+                                                             grows with the transmitted torque (gear
+                                                             teeth, harmonic drives); tau_j from
+                                                             neighbouring samples (no shared noise)
   armature           dIa_j a_j                               Ia0 + dIa >= 0
   torque_offset      b_j                                     sensor offset
   torque_scale       (s_j - 1) tau_nominal_j                 tau_meas = s tau_true (first order in the
@@ -65,10 +69,10 @@ import numpy as np
 
 from . import inertial, regressors
 
-EFFECTS = ("coulomb_friction", "viscous_friction", "stribeck_friction", "armature", "torque_offset",
-           "torque_scale", "payload", "time_delay", "base_tilt", "joint_elasticity")
-PER_JOINT = ("coulomb_friction", "viscous_friction", "stribeck_friction", "armature", "torque_offset",
-             "torque_scale", "joint_elasticity")
+EFFECTS = ("coulomb_friction", "viscous_friction", "stribeck_friction", "load_friction", "armature",
+           "torque_offset", "torque_scale", "payload", "time_delay", "base_tilt", "joint_elasticity")
+PER_JOINT = ("coulomb_friction", "viscous_friction", "stribeck_friction", "load_friction", "armature",
+             "torque_offset", "torque_scale", "joint_elasticity")
 STRIBECK_VELOCITIES = tuple(round(0.02 * 1.5 ** k, 4) for k in range(7))  # rad/s grid for vs (0.02..0.23)
 BLOCK_S = 0.5
 Z_BLOCK = 3.0
@@ -79,6 +83,7 @@ MAX_DELAY_S = 0.2
 DELAY_FINE_S = 0.005
 MAX_TILT = 0.2
 MAX_COMPLIANCE = 0.02  # rad/(N m)
+MAX_LOAD_FRICTION = 0.5  # friction torque per unit transmitted torque
 REGIME_QUANTILE = 0.75
 SATURATION_BAND = 0.02  # rad/s: |v| pinned inside this band ...
 SATURATION_MIN_S = 0.2  # ... for at least this long ...
@@ -291,6 +296,8 @@ def build_design(model, log, form, window_s=0.1, max_gap_s=None, columns=True, s
         std_cols["viscous_friction"] = _diag(v)
         for vs in STRIBECK_VELOCITIES:
             std_cols[f"stribeck_friction@{vs}"] = _diag(sgn * np.exp(-(v / vs) ** 2))
+        tau_nb = _neighbour_mean(tau, segs)
+        std_cols["load_friction"] = _diag(np.abs(tau_nb) * sgn)
         std_cols["torque_offset"] = _diag(np.ones_like(v))
         std_cols["base_tilt"] = np.stack([_gravity(tree, theta_b, q, [gnorm, 0, 0]),
                                           _gravity(tree, theta_b, q, [0, gnorm, 0])], -1)
@@ -303,7 +310,7 @@ def build_design(model, log, form, window_s=0.1, max_gap_s=None, columns=True, s
         # Torque through the transmission: measured minus the nominal joint friction.
         jp = model.joint_params
         fric = jp.coulomb * sgn + jp.viscous * v + jp.offset
-        std_cols["joint_elasticity"] = -dtdq * (_neighbour_mean(tau, segs) - fric)[:, None, :]
+        std_cols["joint_elasticity"] = -dtdq * (tau_nb - fric)[:, None, :]
     ee = [model.end_effector]
     if form == "inverse_dynamics":
         a = log.a
@@ -454,6 +461,8 @@ def group_bounds(model, group, k):
         return np.full(k, -MAX_TILT), np.full(k, MAX_TILT)
     if name == "joint_elasticity":
         return np.zeros(k), np.full(k, MAX_COMPLIANCE)
+    if name == "load_friction":
+        return np.zeros(k), np.full(k, MAX_LOAD_FRICTION)
     if name == "payload":
         lo = np.full(k, -inf)
         lo[0] = 0.0  # added mass >= 0
@@ -822,6 +831,8 @@ def effect_params(model, effect, params, group_used):
         return {"delta_Fv_Nms_rad": lst(p), "Fv_Nms_rad": lst(jp.viscous + p)}
     if effect == "stribeck_friction":
         return {"Fs_Nm": lst(p), "vs_rad_s": float(group_used.split("@")[1])}
+    if effect == "load_friction":
+        return {"mu": lst(p)}
     if effect == "armature":
         return {"delta_Ia_kgm2": lst(p), "Ia_kgm2": lst(jp.armature + p)}
     if effect == "torque_offset":

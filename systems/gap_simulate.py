@@ -15,7 +15,7 @@ Effect sizes are drawn as a signal-to-noise ratio: the effect's torque RMS on th
 acts on is SNR times the noise RMS there (SNR in [1, 4]), capped by physical limits; when a
 cap keeps an effect below 0.8x the noise RMS the joints are redrawn (up to 10 times), so every
 case is inside the range the check is about. Caps: delay <= 50 ms, tilt <= 0.05 rad,
-compliance <= 0.003 rad/(N m), scale within +-15 %, payload <= 5 kg, Coulomb / Stribeck /
+compliance <= 0.003 rad/(N m), load friction mu <= 0.3, scale within +-15 %, payload <= 5 kg, Coulomb / Stribeck /
 viscous / armature / offset increments <= 10 N m / 20 N m / 30 N m s/rad / 5 kg m^2 / 10 N m. Logs are written with or without the
 acceleration columns.
 """
@@ -116,6 +116,9 @@ def true_torque(model, traj, t, effects):
         tau = tau + s["delta"] * np.sign(v) * np.exp(-(v / s["vs"]) ** 2)
     if "armature" in e:
         tau = tau + e["armature"]["delta"] * a
+    if "load_friction" in e:
+        # tau = tau0 + mu |tau| sgn(v), solved exactly (tau keeps the sign of tau0 for mu < 1).
+        tau = tau / (1.0 - e["load_friction"]["mu"] * np.sign(v) * np.sign(tau))
     # Sensor: scale and offset on the measured torque.
     if "torque_scale" in e:
         tau = tau * e["torque_scale"]["scale"]
@@ -142,6 +145,8 @@ def _unit_effect(name, model, rng, joints):
         return {"delta": mask * rng.uniform(0.5, 1.5, n), "vs": float(rng.choice(STRIBECK_VS))}, 20.0
     if name == "armature":
         return {"delta": mask * rng.uniform(0.5, 1.5, n)}, 5.0
+    if name == "load_friction":
+        return {"mu": mask * rng.uniform(0.5, 1.5, n) * 0.03}, 0.3
     if name == "torque_offset":
         return {"delta": mask * sign * rng.uniform(0.5, 1.5, n)}, 10.0
     if name == "torque_scale":
@@ -175,6 +180,8 @@ def _scale_effect(name, eff, factor, cap):
         e["roll_pitch_rad"] = v * min(1.0, cap / np.abs(v).max())
     elif name == "joint_elasticity":
         e["compliance"] = np.minimum(e["compliance"] * factor, cap)
+    elif name == "load_friction":
+        e["mu"] = np.minimum(e["mu"] * factor, cap)
     else:
         d = e["delta"] * factor
         e["delta"] = np.clip(d, -cap, cap)

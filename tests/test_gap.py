@@ -231,3 +231,15 @@ def test_speed_saturated_samples_are_found_and_left_out(two_link, monkeypatch):
     blind = gap.diagnose(two_link, logs[:2], logs[2:]).result
     fv_blind = next(e for e in blind["effects"] if e["name"] == "viscous_friction")["params"]["Fv_Nms_rad"]
     assert abs(fv_blind[0] - truth[0]) > 0.05 * truth[0]
+
+
+def test_load_dependent_friction_is_named_and_recovered(two_link):
+    """Friction growing with the transmitted torque (mu |tau| sgn v, simulated in its exact
+    implicit form) on joint 1: named alone, on joint 1, with mu recovered."""
+    logs = _logs(two_link, 31, {"load_friction": {"mu": np.array([0.1, 0.0])}}, n=3, noise=0.1)
+    d = gap.diagnose(two_link, logs[:2], logs[2:])
+    assert d.result["cause"] == ["load_friction"]
+    lf = next(e for e in d.result["effects"] if e["name"] == "load_friction")
+    assert lf["joints"] == [1]
+    assert lf["params"]["mu"][0] == pytest.approx(0.1, abs=0.01)
+    assert d.corrected["other"]["load_friction"]["mu"][0] == pytest.approx(lf["params"]["mu"][0])
