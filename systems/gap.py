@@ -244,11 +244,11 @@ class Design:
     segments: list = field(default_factory=list)
 
 
-def velocity_saturation(logs, segs_of=None):
+def velocity_saturation(logs):
     """(N, n) masks per log: joint j's velocity pinned at its top speed, i.e. |v_j| stays inside
     a SATURATION_BAND band for >= SATURATION_MIN_S (gap-free, one sign) at >= SATURATION_LEVEL
     of the largest |v_j| over all logs. A drive at its speed limit does not deliver the logged
-    torque command: on the real Gen3 logs the torque swings by 35 N m while v stays at
+    torque command: on the real Gen3 logs the torque swings by 36 N m while v stays at
     1.73 rad/s and the acceleration at zero. Such samples obey no model of the arm; they are
     left out of fitting and selection and reported apart."""
     vmax = np.max([np.abs(l.v).max(0) for l in logs], axis=0)
