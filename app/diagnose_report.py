@@ -169,13 +169,15 @@ def write_report(out, diagnosis, model_path, fit_paths, check_paths, plots, wall
                      f"{e['rms_check_after']:.3f} | {100 * e['reduction']:.1f}% | {_params_text(e['params'])} |")
     lines += ["", "Selection (best set of one or two effects by exhaustive search, then forward-greedy; "
               "each step refits all selected effects on the fit logs and is scored on the check logs):", "",
-              "| step | effect | held-out RMS after [N·m] | z (block) | relative MSE drop | BIC change |",
-              "|---|---|---|---|---|---|"]
+              "| step | effect | held-out RMS after [N·m] | z (block) | p (block ranks) | relative MSE drop | BIC change |",
+              "|---|---|---|---|---|---|---|"]
     for k, s in enumerate(comb["selection"], 1):
-        lines.append(f"| {k} | {s['effect']} | {s['rms_check_after']:.3f} | {s['z']:.1f} | {100 * s['relative']:.1f}% | {s['bic_change']:.0f} |")
+        lines.append(f"| {k} | {s['effect']} | {s['rms_check_after']:.3f} | {s['z']:.1f} | {s['p_blocks']:.1e} "
+                     f"| {100 * s['relative']:.1f}% | {s['bic_change']:.0f} |")
     rule = res["significance_rule"]
     lines += ["", f"Significance: held-out squared-residual drop > {rule['z_block']} standard errors of its random part "
-              f"(block sums over {rule['block_s']} s), > {100 * rule['min_relative']:.0f}% of the current MSE and "
+              f"(block sums over {rule['block_s']} s) or consistent over blocks (Wilcoxon signed-rank of the block "
+              f"gains, p ≤ {rule['p_blocks']:.2g}, ≥ {rule['min_blocks']} blocks), > {100 * rule['min_relative']:.0f}% of the current MSE and "
               f"> {100 * rule['min_noise_fraction']:.0f}% of the noise variance (robust, first differences), and BIC on "
               "the fit logs decreases. The final set is ordered by the held-out loss when each effect is left out.", "",
               "## Combined", "",

@@ -28,13 +28,14 @@ int W_e dt = [Wm_e] - int Wc_e dt, int tau_dot dt = d tau). Effects and their ph
                                                              would let it soak up any residual)
   payload            W_e(q, v, a) dtheta_e (10 params)       theta_e0 + dtheta_e physically
                                                              consistent (log-Cholesky), dm >= 0
-  time_delay         two laws, the better fit is kept:
-                     pure delay: model side (nominal + all   tau_meas(t) = tau_true(t - d), |d| <= 0.2 s
+  time_delay         two laws, the better fit is kept; both act on the model side (nominal + all
+                     effect rows), never on the noisy measurement; d on a 5 ms grid, refined by a parabola:
+                     pure delay: model read d earlier        tau_meas(t) = tau_true(t - d), |d| <= 0.2 s
                      d < 0: torque leads the motion (actuation delay: the sensor sees the motor
                      torque before it reaches the joint); d > 0: the measurement lags
-                     effect rows) read d earlier, grid to    (only smooth model rows are interpolated,
-                     5 ms                                    never the noisy measurement)
-                     first-order lag: -d dtau_meas/dt        tau_meas + d dtau_meas/dt = tau_true (exact)
+                     first-order lag: model low-passed       tau_meas + d dtau_meas/dt = tau_true,
+                     (exact for piecewise-linear samples)    0 < d <= 0.2 s (a filtered torque signal)
+                     The grid is centred on the linear estimate from -d dtau_meas/dt (Savitzky-Golay).
   base_tilt          G(q; g_x) x + G(q; g_y) y               gravity gains horizontal parts (x, y)|g|
   joint_elasticity   -(d tau_rigid/dq_j) tau_s,j c_j         link angle q - tau_s/k, c = 1/k >= 0, tau_s =
                                                              tau_meas - nominal friction (transmitted)
@@ -48,7 +49,11 @@ Selection is forward-greedy: the candidate with the largest held-out improvement
 it is significant, i.e. all of
   (1) held-out (check) squared residual drops by more than Z_BLOCK standard errors of its
       random part (see `significance`; blocks of BLOCK_S seconds, so autocorrelated residuals
-      do not fake significance),
+      do not fake significance), or the drop is consistent across blocks: a Wilcoxon
+      signed-rank test of the per-block gains at the same 3-sigma level (P_BLOCKS). The first
+      credits effects acting in bursts; the second effects that improve nearly every block
+      while the residual left is heavy-tailed (real logs with unmodelled transients, whose
+      few large blocks inflate the standard error),
   (2) the drop exceeds MIN_RELATIVE of the current check mean square and MIN_NOISE_FRACTION of
       the noise variance (robust estimate from first differences of the check residual): improvement
       beyond what measurement noise explains,
@@ -74,8 +79,11 @@ EFFECTS = ("coulomb_friction", "viscous_friction", "stribeck_friction", "load_fr
 PER_JOINT = ("coulomb_friction", "viscous_friction", "stribeck_friction", "load_friction", "armature",
              "torque_offset", "torque_scale", "joint_elasticity")
 STRIBECK_VELOCITIES = tuple(round(0.02 * 1.5 ** k, 4) for k in range(7))  # rad/s grid for vs (0.02..0.23)
+TIME_LAWS = {"time_delay@shift": "shift", "time_delay@lag": "lag"}  # model-side time laws (grid-searched d)
 BLOCK_S = 0.5
 Z_BLOCK = 3.0
+P_BLOCKS = 0.00135  # one-sided p of the block signed-rank test: the same 3-sigma level as Z_BLOCK
+MIN_BLOCKS = 12  # fewer blocks cannot reach P_BLOCKS reliably: the rank test then abstains
 MIN_RELATIVE = 0.01
 MIN_NOISE_FRACTION = 0.05
 MIN_EFFECT_RATIO = 0.0025  # effect RMS / measured torque RMS on its most affected joint
@@ -239,7 +247,7 @@ class Design:
     source: str = ""
     row_segment: np.ndarray = None  # (R,) gap-free segment of each row
     row_saturated: np.ndarray = None  # (R, n) joint speed-saturated inside the row (see velocity_saturation)
-    sample: dict = None  # sample-level model quantities for delays (see delayed_rows)
+    sample: dict = None  # sample-level model quantities for time laws (see model_side_rows)
     residual_forms: dict = field(default_factory=dict)
     segments: list = field(default_factory=list)
 
@@ -381,27 +389,54 @@ def build_design(model, log, form, window_s=0.1, max_gap_s=None, columns=True, s
 
 def _sample_shift(sample, idx, delay):
     """Interpolation weights reading sample-level quantities at t[idx] - delay inside the
-    segment of each idx: X_delayed = (1 - w) X[j0] + w X[j1]. Only smooth model quantities are
-    interpolated (never the noisy measurement), so a delay does not average noise away."""
+    segment of each idx: X_delayed = (1 - w) X[j0] + w X[j1]; beyond a segment's ends the end
+    interval is extended linearly (w < 0 or > 1; clipping there would bias whole momentum
+    windows at every segment start). Only smooth model quantities are interpolated (never the
+    noisy measurement), so a delay does not average noise away."""
     t, seg = sample["t"], sample["segment"][idx]
     lo, hi = sample["seg_bounds"][seg, 0], sample["seg_bounds"][seg, 1]
-    ts = np.clip(t[idx] - delay, t[lo], t[hi])
-    j0 = np.clip(np.searchsorted(t, ts, side="right") - 1, lo, hi)
+    ts = t[idx] - delay
+    j0 = np.clip(np.searchsorted(t, ts, side="right") - 1, lo, np.maximum(hi - 1, lo))
     j1 = np.minimum(j0 + 1, hi)
     span = t[j1] - t[j0]
     w = np.where(span > 0, (ts - t[j0]) / np.where(span > 0, span, 1.0), 0.0)
     return j0, j1, w
 
 
-def delayed_rows(design, groups, delay):
-    """(A (R, n, K), nominal (R, n)) of a design with the model side read `delay` earlier."""
+def first_order_lag(t, x, seg_bounds, d):
+    """y with d y' = x - y along t, per gap-free segment, exact for x linear between samples;
+    each segment starts in the steady ramp (y = x - d x'). Works on (N, ...) arrays."""
+    y = np.empty_like(x)
+    for s0, s1 in seg_bounds:
+        if s1 == s0:
+            y[s0] = x[s0]
+            continue
+        y[s0] = x[s0] - d * (x[s0 + 1] - x[s0]) / (t[s0 + 1] - t[s0])
+        for k in range(s0 + 1, s1 + 1):
+            dt = t[k] - t[k - 1]
+            alpha = np.exp(-dt / d)
+            y[k] = x[k] + alpha * (y[k - 1] - x[k - 1]) - (x[k] - x[k - 1]) * (d / dt) * (1 - alpha)
+    return y
+
+
+def model_side_rows(design, groups, transform):
+    """(A (R, n, K), nominal (R, n)) of a design with a time law applied to the model side:
+    transform = ("shift", d): read d earlier; ("lag", d): first-order low-pass with time constant d.
+    Sample-level quantities are transformed, then formed into rows (window differences in the
+    momentum form: the lag commutes with the integral the samples hold)."""
+    law, d = transform
     smp = design.sample
     nom = smp["nominal"]
     A = (np.concatenate([smp["cols"][g] for g in groups], -1) if groups
          else np.zeros(nom.shape + (0,)))
+    if law == "lag":
+        t, bounds = smp["t"], smp["seg_bounds"]
+        A, nom = first_order_lag(t, A, bounds, d), first_order_lag(t, nom, bounds, d)
 
     def at(idx):
-        j0, j1, w = _sample_shift(smp, idx, delay)
+        if law == "lag":
+            return A[idx], nom[idx]
+        j0, j1, w = _sample_shift(smp, idx, d)
         return ((1 - w)[:, None, None] * A[j0] + w[:, None, None] * A[j1],
                 (1 - w)[:, None] * nom[j0] + w[:, None] * nom[j1])
 
@@ -436,8 +471,8 @@ def effect_groups(effect):
     """Column groups that realise an effect (Stribeck: one per grid velocity, alternatives)."""
     if effect == "stribeck_friction":
         return [f"stribeck_friction@{vs}" for vs in STRIBECK_VELOCITIES]
-    if effect == "time_delay":  # first-order lag of the measurement, or a pure delay
-        return ["time_delay", "time_delay@shift"]
+    if effect == "time_delay":  # a pure delay or a first-order lag (see TIME_LAWS)
+        return list(TIME_LAWS)
     return [effect]
 
 
@@ -520,76 +555,83 @@ class Problem:
         return np.concatenate([np.arange(self.offset[g], self.offset[g] + self.k[g]) for g in groups]) \
             if groups else np.zeros(0, int)
 
-    def _shifted(self, designs, delay, groups):
-        """Flattened (A, y) of designs with the model side delayed by `delay`: the columns of
-        `groups` and the nominal torque are read at t - delay; the measurement stays."""
+    def _transformed(self, designs, transform, groups):
+        """Flattened (A, y) of designs with a time law on the model side (model_side_rows): the
+        columns of `groups` and the nominal torque move; the measurement stays."""
         groups = [g for g in groups if self.k[g]]
         As, ys = [], []
         for d in designs:
-            A, tn_d = delayed_rows(d, groups, delay)
+            A, tn_d = model_side_rows(d, groups, transform)
             As.append(A.reshape(A.shape[0] * A.shape[1], A.shape[-1]))
             ys.append((d.y + d.tau_hat_nominal - tn_d).reshape(-1))
         return np.concatenate(As), np.concatenate(ys)
 
-    def _system(self, delay, groups):
-        """(G, b, yy) of the fit logs for `groups` (column order of index(groups)) with the
-        model delayed by `delay`. The full normal equations are formed once per delay (cached)
-        and then only indexed."""
-        key = round(float(delay), 6)
+    def _system(self, transform, groups):
+        """(G, b, yy) of the fit logs for `groups` (column order of index(groups)) with a model
+        side time law (None: none). The full normal equations are formed once per law and d
+        (cached) and then only indexed."""
         idx = self.index(groups)
-        if key == 0.0:
+        if transform is None:
             return self.G[np.ix_(idx, idx)], self.b[idx], self.yy
-        if key not in self._cache:
-            A, y = self._fit_system(delay, self.groups)
-            self._cache[key] = (A.T @ A, A.T @ y, float(y @ y))
-        G, b, yy = self._cache[key]
+        if transform not in self._cache:
+            A, y = self._fit_system(transform, self.groups)
+            self._cache[transform] = (A.T @ A, A.T @ y, float(y @ y))
+        G, b, yy = self._cache[transform]
         return G[np.ix_(idx, idx)], b[idx], yy
 
-    def _check_system(self, delay, groups, valid_only=True):
-        key = round(float(delay), 6)
-        if key == 0.0:
+    def _check_system(self, transform, groups, valid_only=True):
+        if transform is None:
             A, y = (self.A_check, self.y_check) if valid_only else (self.A_check_all, self.y_check_all)
             return A[:, self.index(groups)], y
-        A, y = self._shifted(self.check, delay, groups)
+        A, y = self._transformed(self.check, transform, groups)
         return (A[self.check_valid], y[self.check_valid]) if valid_only else (A, y)
 
-    def _fit_system(self, delay, groups):
-        key = round(float(delay), 6)
-        if key == 0.0:
+    def _fit_system(self, transform, groups):
+        if transform is None:
             return self.A_fit[:, self.index(groups)], self.y_fit
-        A, y = self._shifted(self.fit, delay, groups)
+        A, y = self._transformed(self.fit, transform, groups)
         return A[self.fit_valid], y[self.fit_valid]
 
     def solve(self, groups):
         """Constrained least squares on the fit logs for the union of `groups`.
 
-        A time delay is a 1-D search: the model side (nominal torque and every effect row) is
-        read d earlier, on a DELAY_FINE_S grid around the first-order (lag-law) estimate; only
-        smooth model rows are interpolated, never the noisy measurement.
+        A time law (TIME_LAWS: pure delay or first-order lag of the model side) is a 1-D search
+        on a DELAY_FINE_S grid around the linear estimate of the lag law (-d dtau_meas/dt, which
+        only says where to look); only smooth model rows move, never the noisy measurement.
         Returns (params dict group -> array, fit SSE)."""
-        if "time_delay@shift" not in groups:
-            return self._solve_linear(groups, 0.0)
-        others = [g for g in groups if g != "time_delay@shift"]
-
-        def sse(d):
-            return self._solve_linear(others, d, consistent=False)[1]
-
-        # The first-order lag law (linear, at d = 0) says where the delay is; the exact shift is
-        # then searched on a DELAY_FINE_S grid around it (normal equations cached per delay).
-        lag = self._solve_linear(others + ["time_delay"], 0.0, consistent=False)[0]["time_delay"][0]
-        centre = DELAY_FINE_S * round(float(lag) / DELAY_FINE_S)
+        timed = [g for g in groups if g in TIME_LAWS]
+        if not timed:
+            return self._solve_linear(groups, None)
+        (time_group,) = timed
+        law = TIME_LAWS[time_group]
+        others = [g for g in groups if g != time_group]
+        estimate = self._solve_linear(others + ["time_delay"], None, consistent=False)[0]["time_delay"][0]
+        centre = DELAY_FINE_S * round(float(estimate) / DELAY_FINE_S)
         grid = np.round(centre + DELAY_FINE_S * np.arange(-6, 7), 6)
-        errs = {float(d): sse(d) for d in grid if abs(d) <= MAX_DELAY_S}
+        lowest = -MAX_DELAY_S if law == "shift" else DELAY_FINE_S  # a lag has d > 0
+        grid = np.unique(np.clip(grid, lowest, MAX_DELAY_S))
+        errs = {float(d): self._solve_linear(others, (law, float(d)), consistent=False)[1] for d in grid}
         best = min(errs, key=errs.get)
-        params, err = self._solve_linear(others, best)
+        # Between grid points: the vertex of the parabola through the best point and its
+        # neighbours (SSE is smooth in d), kept when it fits better.
+        i = int(np.searchsorted(grid, best))
+        if 0 < i < len(grid) - 1:
+            (d0, d1, d2) = grid[i - 1:i + 2]
+            e0, e1, e2 = errs[float(d0)], errs[float(d1)], errs[float(d2)]
+            curvature = e0 - 2 * e1 + e2
+            if curvature > 0:
+                vertex = float(np.round(d1 + 0.5 * DELAY_FINE_S * (e0 - e2) / curvature, 6))
+                errs[vertex] = self._solve_linear(others, (law, vertex), consistent=False)[1]
+                best = min(errs, key=errs.get)
+        params, err = self._solve_linear(others, (law, best))
         params = dict(params)
-        params["time_delay@shift"] = np.array([best])
+        params[time_group] = np.array([best])
         return {g: params[g] for g in groups}, err
 
-    def _solve_linear(self, groups, delay, consistent=True):
+    def _solve_linear(self, groups, transform, consistent=True):
         from scipy.optimize import lsq_linear
 
-        G, b, yy = self._system(delay, groups)
+        G, b, yy = self._system(transform, groups)
         idx = self.index(groups)
         if len(idx) == 0:
             return {}, yy
@@ -675,8 +717,9 @@ class Problem:
         return q
 
     def _residual(self, system, params):
-        groups = [g for g in params if g != "time_delay@shift"]
-        A, y = system(params["time_delay@shift"][0] if "time_delay@shift" in params else 0.0, groups)
+        groups = [g for g in params if g not in TIME_LAWS]
+        timed = [g for g in params if g in TIME_LAWS]
+        A, y = system((TIME_LAWS[timed[0]], float(params[timed[0]][0])) if timed else None, groups)
         p = np.concatenate([params[g] for g in groups]) if groups else np.zeros(0)
         return y - A @ p
 
@@ -730,8 +773,9 @@ def resolvable(problem, params):
 
 
 def _delay_of(params):
-    if "time_delay@shift" in params:
-        return float(params["time_delay@shift"][0])
+    for g in TIME_LAWS:
+        if g in params:
+            return float(params[g][0])
     if "time_delay" in params:
         return float(params["time_delay"][0])
     return None
@@ -756,16 +800,28 @@ def significance(problem, r0, r1, sse0_fit, sse1_fit, k_added, joint=None):
     se = float(np.sqrt(np.sum(cross ** 2)))
     total = float(np.sum(gain))
     z = total / se if se > 0 else (np.inf if total > 1e-12 * max(np.sum(r0 ** 2), 1e-300) else 0.0)
+    p_blocks = _signed_rank_p(np.bincount(blocks, weights=gain)[np.bincount(blocks) > 0])
     sigma2 = noise_variance(r0, blocks, joints)
     change = r0 - r1
     relevance = max(float(np.sqrt(np.mean(change[joints == j] ** 2)) / max(problem.tau_rms_check[j], 1e-12))
                     for j in np.unique(joints))
     m = problem.n_fit_rows
     bic = m * np.log(max(sse1_fit, 1e-300) / max(sse0_fit, 1e-300)) + k_added * np.log(m)
-    ok = bool(z >= Z_BLOCK and delta >= MIN_RELATIVE * mse0 and delta >= MIN_NOISE_FRACTION * sigma2
+    ok = bool((z >= Z_BLOCK or p_blocks <= P_BLOCKS) and delta >= MIN_RELATIVE * mse0 and delta >= MIN_NOISE_FRACTION * sigma2
               and relevance >= MIN_EFFECT_RATIO and (joint is not None or bic < 0))
-    return {"significant": ok, "z": float(z), "delta_mse": delta, "relative": delta / mse0 if mse0 > 0 else 0.0,
+    return {"significant": ok, "z": float(z), "p_blocks": p_blocks, "delta_mse": delta, "relative": delta / mse0 if mse0 > 0 else 0.0,
             "noise_variance": sigma2, "bic_change": float(bic), "relevance": relevance}
+
+
+def _signed_rank_p(block_gain):
+    """One-sided p of the Wilcoxon signed-rank test that block gains are positive (1 when there
+    are fewer than MIN_BLOCKS blocks or no nonzero gain)."""
+    from scipy.stats import wilcoxon
+
+    g = block_gain[block_gain != 0]
+    if len(block_gain) < MIN_BLOCKS or len(g) == 0:
+        return 1.0
+    return float(wilcoxon(g, alternative="greater").pvalue)
 
 
 # ---- the diagnosis --------------------------------------------------------------------------
@@ -845,7 +901,8 @@ def effect_params(model, effect, params, group_used):
                 "com_m": lst(p[1:4] / m) if m > 1e-9 else [0.0, 0.0, 0.0]}
     if effect == "time_delay":
         return {"delay_s": float(p[0]),
-                "law": "pure delay tau(t - d)" if group_used.endswith("@shift") else "first-order lag tau + d dtau/dt"}
+                "law": "pure delay tau(t - d)" if group_used.endswith("@shift")
+                else "first-order lag: tau_meas + d dtau_meas/dt = tau"}
     if effect == "base_tilt":
         # Base rotated by RollPitchYaw(roll, pitch, 0): gravity in the base frame is
         # |g| [sin p, -cos p sin r, -cos p cos r] (real_arm's convention).
@@ -990,7 +1047,8 @@ def _diagnose(model, fit_logs, check_logs, effects, form, max_effects):
                      "without_saturated": {"rms_check": _rms(r0), "rms_check_after": _rms(cur_r),
                                            "reduction": _reduction(_rms(r0), _rms(cur_r))},
                      "selection": steps},
-        "significance_rule": {"z_block": Z_BLOCK, "block_s": BLOCK_S, "min_relative": MIN_RELATIVE,
+        "significance_rule": {"z_block": Z_BLOCK, "p_blocks": P_BLOCKS, "min_blocks": MIN_BLOCKS,
+                              "block_s": BLOCK_S, "min_relative": MIN_RELATIVE,
                               "min_effect_ratio": MIN_EFFECT_RATIO,
                               "min_noise_fraction": MIN_NOISE_FRACTION, "information_criterion": "BIC on fit logs"},
     }

@@ -120,6 +120,28 @@ def test_time_delay_and_tilt_are_recovered(kinova):
     assert bt["roll_rad"] == pytest.approx(0.02, abs=0.003) and bt["pitch_rad"] == pytest.approx(-0.01, abs=0.003)
 
 
+def test_both_time_laws_are_told_apart_in_both_forms(kinova):
+    """A pure delay (momentum form: its windows start at every segment start, where a clipped
+    shift once biased whole windows) and a first-order lag of the torque signal (exact
+    low-pass of the clean torque, time constant 40 ms) are each named alone, with their own law
+    and d."""
+    logs = _logs(kinova, 12, {"time_delay": {"delay_s": 0.012}}, with_a=False, n=3, noise=0.3)
+    d = gap.diagnose(kinova, logs[:2], logs[2:])
+    assert d.result["cause"] == ["time_delay"]
+    td = next(e for e in d.result["effects"] if e["name"] == "time_delay")["params"]
+    assert td["law"].startswith("pure delay") and td["delay_s"] == pytest.approx(0.012, abs=0.002)
+    rng = np.random.default_rng(13)
+    lagged = []
+    for log in _logs(kinova, 13, {}, n=3):
+        bounds = np.array(gap.segments(log.t))
+        tau = gap.first_order_lag(log.t, log.tau, bounds, 0.04) + 0.3 * rng.uniform(-1, 1, log.tau.shape)
+        lagged.append(JointLog(log.t, log.q, log.v, tau, log.a, {}, "sim"))
+    d = gap.diagnose(kinova, lagged[:2], lagged[2:])
+    assert d.result["cause"] == ["time_delay"]
+    td = next(e for e in d.result["effects"] if e["name"] == "time_delay")["params"]
+    assert td["law"].startswith("first-order lag") and td["delay_s"] == pytest.approx(0.04, abs=0.004)
+
+
 def test_where_ranks_the_joint_and_regime_of_the_gap(two_link):
     """Stribeck friction on joint 2 only: joint 2 ranks first and the residual concentrates
     near zero velocity; viscous friction concentrates at high speed."""
@@ -162,13 +184,14 @@ def test_reference_gen3_urdf_and_real_logs_leave_one_run_out():
     for held in range(n_trials(1, 3)):
         d = gap.diagnose(model, [l for k, l in enumerate(logs) if k != held], [logs[held]])
         r = d.result
-        assert {"viscous_friction", "armature"} <= set(r["cause"][:3])
+        assert {"viscous_friction", "armature", "time_delay"} <= set(r["cause"][:3])
+        assert next(e for e in r["effects"] if e["name"] == "time_delay")["params"]["law"].startswith("first-order")
         before.append(r["gap"]["rms_check"])
         after.append(r["combined"]["rms_check_after"])
         before_unsat.append(r["combined"]["without_saturated"]["rms_check"])
         after_unsat.append(r["combined"]["without_saturated"]["rms_check_after"])
-    assert 1 - np.mean(after) / np.mean(before) > 0.8
-    assert 1 - np.mean(after_unsat) / np.mean(before_unsat) > 0.85
+    assert 1 - np.mean(after) / np.mean(before) > 0.85  # per held-out run, all samples
+    assert 1 - np.mean(after_unsat) / np.mean(before_unsat) > 0.87
 
 
 def test_real_arm_logs_cross_check():
