@@ -546,7 +546,8 @@ class Problem:
         self.check_block = np.concatenate(blocks)[self.check_valid]
         self.check_joint = np.tile(np.arange(n), len(self.y_check_all) // n)[self.check_valid]
         self.n_fit_rows = len(self.y_fit)
-        self._cache = {}
+        self._cache = {}  # time law -> fit normal equations
+        self._check_rows = {}  # time law -> check rows of every group (scored many times)
         tau_check = np.concatenate([d.y + d.tau_hat_nominal for d in check])
         self.tau_rms_check = np.sqrt(np.mean(tau_check ** 2, 0))
         self.min_delay = 0.5 * float(np.median(np.concatenate([np.diff(d.sample["t"]) for d in fit])))
@@ -583,7 +584,10 @@ class Problem:
         if transform is None:
             A, y = (self.A_check, self.y_check) if valid_only else (self.A_check_all, self.y_check_all)
             return A[:, self.index(groups)], y
-        A, y = self._transformed(self.check, transform, groups)
+        if transform not in self._check_rows:
+            self._check_rows[transform] = self._transformed(self.check, transform, self.groups)
+        A, y = self._check_rows[transform]
+        A = A[:, self.index(groups)]
         return (A[self.check_valid], y[self.check_valid]) if valid_only else (A, y)
 
     def _fit_system(self, transform, groups):
@@ -620,7 +624,7 @@ class Problem:
             e0, e1, e2 = errs[float(d0)], errs[float(d1)], errs[float(d2)]
             curvature = e0 - 2 * e1 + e2
             if curvature > 0:
-                vertex = float(np.round(d1 + 0.5 * DELAY_FINE_S * (e0 - e2) / curvature, 6))
+                vertex = float(np.round(d1 + 0.5 * DELAY_FINE_S * (e0 - e2) / curvature, 3))  # 1 ms: reused
                 errs[vertex] = self._solve_linear(others, (law, vertex), consistent=False)[1]
                 best = min(errs, key=errs.get)
         params, err = self._solve_linear(others, (law, best))
