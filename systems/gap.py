@@ -403,19 +403,32 @@ def _sample_shift(sample, idx, delay):
     return j0, j1, w
 
 
-def first_order_lag(t, x, seg_bounds, d):
+def first_order_lag(t, x, seg_bounds, d, chunk=50.0):
     """y with d y' = x - y along t, per gap-free segment, exact for x linear between samples;
-    each segment starts in the steady ramp (y = x - d x'). Works on (N, ...) arrays."""
+    each segment starts in the steady ramp (y = x - d x'). Works on (N, ...) arrays.
+
+    Step k: y_k = a_k y_(k-1) + u_k, a_k = exp(-dt_k / d). Unrolled from an anchor sample p,
+    y_j = exp(-(t_j - t_p)/d) (y_p + sum_(p<i<=j) u_i exp((t_i - t_p)/d)): a cumulative sum,
+    re-anchored every `chunk` time constants so the exponentials stay far from overflow."""
     y = np.empty_like(x)
     for s0, s1 in seg_bounds:
-        if s1 == s0:
-            y[s0] = x[s0]
+        tt, xx = t[s0:s1 + 1], x[s0:s1 + 1]
+        if len(tt) == 1:
+            y[s0] = xx[0]
             continue
-        y[s0] = x[s0] - d * (x[s0 + 1] - x[s0]) / (t[s0 + 1] - t[s0])
-        for k in range(s0 + 1, s1 + 1):
-            dt = t[k] - t[k - 1]
-            alpha = np.exp(-dt / d)
-            y[k] = x[k] + alpha * (y[k - 1] - x[k - 1]) - (x[k] - x[k - 1]) * (d / dt) * (1 - alpha)
+        col = (-1,) + (1,) * (x.ndim - 1)
+        dt = np.diff(tt).reshape(col)
+        a = np.exp(-dt / d)
+        dx = np.diff(xx, axis=0)
+        u = xx[1:] - a * xx[:-1] - dx * (d / dt) * (1 - a)
+        ys = y[s0:s1 + 1]
+        ys[0] = xx[0] - d * dx[0] / dt[0]
+        k = 1
+        while k < len(tt):
+            m = min(max(int(np.searchsorted(tt, tt[k - 1] + chunk * d, side="right")), k + 1), len(tt))
+            grow = ((tt[k:m] - tt[k - 1]) / d).reshape(col)
+            ys[k:m] = np.exp(-grow) * (ys[k - 1] + np.cumsum(u[k - 1:m - 1] * np.exp(grow), axis=0))
+            k = m
     return y
 
 
@@ -427,8 +440,11 @@ def model_side_rows(design, groups, transform):
     law, d = transform
     smp = design.sample
     nom = smp["nominal"]
-    A = (np.concatenate([smp["cols"][g] for g in groups], -1) if groups
-         else np.zeros(nom.shape + (0,)))
+    key = ("columns",) + tuple(groups)
+    if key not in smp:  # the same column sets come back for every trial d
+        smp[key] = (np.concatenate([smp["cols"][g] for g in groups], -1) if groups
+                    else np.zeros(nom.shape + (0,)))
+    A = smp[key]
     if law == "lag":
         t, bounds = smp["t"], smp["seg_bounds"]
         A, nom = first_order_lag(t, A, bounds, d), first_order_lag(t, nom, bounds, d)

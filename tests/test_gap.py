@@ -266,3 +266,22 @@ def test_load_dependent_friction_is_named_and_recovered(two_link):
     assert lf["joints"] == [1]
     assert lf["params"]["mu"][0] == pytest.approx(0.1, abs=0.01)
     assert d.corrected["other"]["load_friction"]["mu"][0] == pytest.approx(lf["params"]["mu"][0])
+
+
+def test_first_order_lag_is_exact_for_piecewise_linear_input():
+    """d y' = x - y on jittered samples with a gap: a ramp is followed exactly at lag d x'
+    (steady start), and a change of slope at t_c decays as exp(-(t - t_c)/d) (analytic)."""
+    rng = np.random.default_rng(0)
+    t = np.cumsum(rng.uniform(0.009, 0.011, 3000))
+    t[1500:] += 0.5
+    bounds = np.array(gap.segments(t))
+    d, s1, s2 = 0.07, 2.0, -1.0
+    for t0, t1 in (t[bounds[0]], t[bounds[1]]):
+        seg = (t >= t0) & (t <= t1)
+        tc = t[seg][200]
+        x = np.where(t <= tc, s1 * (t - t0), s1 * (tc - t0) + s2 * (t - tc))[:, None]
+        y = gap.first_order_lag(t, x, bounds, d)[seg, 0]
+        ts = t[seg]
+        expected = np.where(ts <= tc, x[seg, 0] - d * s1,
+                            x[seg, 0] - d * s2 - d * (s1 - s2) * np.exp(-(ts - tc) / d))
+        assert np.abs(y - expected).max() < 1e-9
