@@ -36,6 +36,9 @@ int W_e dt = [Wm_e] - int Wc_e dt, int tau_dot dt = d tau). Effects and their ph
                      first-order lag: model low-passed       tau_meas + d dtau_meas/dt = tau_true,
                      (exact for piecewise-linear samples)    0 < d <= 0.2 s (a filtered torque signal)
                      The grid is centred on the linear estimate from -d dtau_meas/dt (Savitzky-Golay).
+                     A lag has a state: where its history is unknown (a segment start) or the
+                     logged torque was not what the joint received (after a speed-saturated span)
+                     the lagged model restarts from the measured torque (restarted_lag).
   base_tilt          G(q; g_x) x + G(q; g_y) y               gravity gains horizontal parts (x, y)|g|
   joint_elasticity   -(d tau_rigid/dq_j) tau_s,j c_j         link angle q - tau_s/k, c = 1/k >= 0, tau_s =
                                                              tau_meas - nominal friction (transmitted)
@@ -383,8 +386,24 @@ def build_design(model, log, form, window_s=0.1, max_gap_s=None, columns=True, s
         csum = np.concatenate([np.zeros((1, n), int), np.cumsum(sat, 0)])
         d.row_saturated = (csum[win[:, 1] + 1] - csum[win[:, 0]]) > 0
     d.sample = {"t": t, "segment": seg_id, "seg_bounds": np.array(segs, int).reshape(-1, 2),
-                "cols": sample_cols, "nominal": sample_nominal, "windows": win}
+                "cols": sample_cols, "nominal": sample_nominal, "windows": win,
+                "measured": tau, "restarts": lag_restarts(segs, sat),
+                "antiderivative": win is not None}
     return d
+
+
+def lag_restarts(segs, saturated):
+    """Per joint, the samples where a lag's state is unknown and is taken from the measured
+    torque instead: every segment start (the history before a log or a gap is not logged) and
+    the first sample after a speed-saturated span (there the logged torque is not what the
+    joint received, so the filter state the model carries is wrong). [array of indices] * n."""
+    n = saturated.shape[1]
+    starts = [s0 for s0, _ in segs]
+    out = []
+    for j in range(n):
+        after = np.flatnonzero(saturated[:-1, j] & ~saturated[1:, j]) + 1
+        out.append(np.unique(np.concatenate([starts, after])).astype(int))
+    return out
 
 
 def _sample_shift(sample, idx, delay):
@@ -432,6 +451,37 @@ def first_order_lag(t, x, seg_bounds, d, chunk=50.0):
     return y
 
 
+def restarted_lag(smp, x, lagged, d, anchor):
+    """The lag `lagged` = first_order_lag(x) restarted at smp["restarts"]: from each restart s
+    of joint j on, the lagged output starts at anchor[s, j] (the measured torque for the
+    nominal, 0 for effect columns, so the prediction there is the measurement) instead of the
+    steady-start chain. Both chains obey d y' + y = x on the piece, so they differ by the free
+    response (y_anchor - y_plain)(s) exp(-(t - s)/d).
+
+    Momentum form (smp["antiderivative"]): x and lagged are antiderivatives X, Z (the lagged
+    output is y = (X - Z)/d) and the free response enters integrated, d dy (1 - exp(-(t - s)/d)),
+    carried across later restarts so window differences stay integrals of the restarted y."""
+    t = smp["t"]
+    out = lagged.copy()
+    anchor = np.broadcast_to(np.asarray(anchor, float).reshape(np.shape(anchor) + (1,) * (x.ndim - np.ndim(anchor))),
+                             x.shape)
+    integrated = smp["antiderivative"]
+    for j, starts in enumerate(smp["restarts"]):
+        ends = np.append(starts[1:], len(t))
+        offset = 0.0
+        for s, e in zip(starts, ends):
+            y_plain = (x[s, j] - lagged[s, j]) / d if integrated else lagged[s, j]
+            jump = anchor[s, j] - y_plain
+            decay = np.exp(-(t[s:e] - t[s]) / d).reshape((-1,) + (1,) * (x.ndim - 2))
+            if integrated:
+                out[s:e, j] += offset + d * jump * (1.0 - decay)
+                if e < len(t):
+                    offset = offset + d * jump * (1.0 - np.exp(-(t[e] - t[s]) / d))
+            else:
+                out[s:e, j] += jump * decay
+    return out
+
+
 def model_side_rows(design, groups, transform):
     """(A (R, n, K), nominal (R, n)) of a design with a time law applied to the model side:
     transform = ("shift", d): read d earlier; ("lag", d): first-order low-pass with time constant d.
@@ -447,7 +497,8 @@ def model_side_rows(design, groups, transform):
     A = smp[key]
     if law == "lag":
         t, bounds = smp["t"], smp["seg_bounds"]
-        A, nom = first_order_lag(t, A, bounds, d), first_order_lag(t, nom, bounds, d)
+        A = restarted_lag(smp, A, first_order_lag(t, A, bounds, d), d, 0.0)
+        nom = restarted_lag(smp, nom, first_order_lag(t, nom, bounds, d), d, smp["measured"])
 
     def at(idx):
         if law == "lag":
