@@ -29,7 +29,7 @@ int W_e dt = [Wm_e] - int Wc_e dt, int tau_dot dt = d tau). Effects and their ph
   payload            W_e(q, v, a) dtheta_e (10 params)       theta_e0 + dtheta_e physically
                                                              consistent (log-Cholesky), dm >= 0
   time_delay         two laws, the better fit is kept; both act on the model side (nominal + all
-                     effect rows), never on the noisy measurement; d on a 5 ms grid, refined by a parabola:
+                     effect rows), never on the noisy measurement; d on a 5 ms grid (walked on to an interior minimum), refined by a parabola:
                      pure delay: model read d earlier        tau_meas(t) = tau_true(t - d), |d| <= 0.2 s
                      d < 0: torque leads the motion (actuation delay: the sensor sees the motor
                      torque before it reaches the joint); d > 0: the measurement lags
@@ -668,7 +668,8 @@ class Problem:
 
         A time law (TIME_LAWS: pure delay or first-order lag of the model side) is a 1-D search
         on a DELAY_FINE_S grid around the linear estimate of the lag law (-d dtau_meas/dt, which
-        only says where to look); only smooth model rows move, never the noisy measurement.
+        only says where to look), extended while the best d sits at an end of the grid; only
+        smooth model rows move, never the noisy measurement.
         Returns (params dict group -> array, fit SSE)."""
         timed = [g for g in groups if g in TIME_LAWS]
         if not timed:
@@ -678,11 +679,26 @@ class Problem:
         others = [g for g in groups if g != time_group]
         estimate = self._solve_linear(others + ["time_delay"], None, consistent=False)[0]["time_delay"][0]
         centre = DELAY_FINE_S * round(float(estimate) / DELAY_FINE_S)
-        grid = np.round(centre + DELAY_FINE_S * np.arange(-6, 7), 6)
         lowest = -MAX_DELAY_S if law == "shift" else DELAY_FINE_S  # a lag has d > 0
-        grid = np.unique(np.clip(grid, lowest, MAX_DELAY_S))
-        errs = {float(d): self._solve_linear(others, (law, float(d)), consistent=False)[1] for d in grid}
-        best = min(errs, key=errs.get)
+        errs = {}
+
+        def scan(ds):
+            for d in np.unique(np.clip(np.round(ds, 6), lowest, MAX_DELAY_S)):
+                if float(d) not in errs:
+                    errs[float(d)] = self._solve_linear(others, (law, float(d)), consistent=False)[1]
+
+        steps = DELAY_FINE_S * np.arange(1, 7)
+        scan(centre + np.r_[-steps[::-1], 0.0, steps])
+        # The linear estimate only says where to look: walk on while the best is at an end.
+        while True:
+            grid = np.array(sorted(errs))
+            best = min(errs, key=errs.get)
+            if best == grid[-1] and best < MAX_DELAY_S:
+                scan(best + steps)
+            elif best == grid[0] and best > lowest:
+                scan(best - steps)
+            else:
+                break
         # Between grid points: the vertex of the parabola through the best point and its
         # neighbours (SSE is smooth in d), kept when it fits better.
         i = int(np.searchsorted(grid, best))
