@@ -65,6 +65,7 @@ class PlantEffects:
     torque_sensor_offset_Nm: List[float] = dc.field(default_factory=list)
     torque_sensor_scale: List[float] = dc.field(default_factory=list)
     time_delay_s: float = 0.0
+    torque_sensor_lag_s: float = 0.0  # first-order low-pass of the torque sensor signal
     base_tilt_rad: List[float] = dc.field(default_factory=lambda: [0.0, 0.0])
     joint_stiffness_Nm_rad: List[float] = dc.field(default_factory=list)
 
@@ -233,6 +234,8 @@ def _validate(s: Scenario, where):
     need(np.all(np.array(ii.lower) <= np.array(ii.nominal)) and np.all(np.array(ii.nominal) <= np.array(ii.upper)),
          "initial_interval", "needs lower <= nominal <= upper")
     need(s.plant.time_step_s > 0, "plant.time_step_s", "must be > 0")
+    need(s.plant.effects.time_delay_s >= 0, "plant.effects.time_delay_s", "must be >= 0")
+    need(s.plant.effects.torque_sensor_lag_s >= 0, "plant.effects.torque_sensor_lag_s", "must be >= 0")
     need(s.estimator.horizon_s > 0, "estimator.horizon_s", "must be > 0")
     need(0 < s.planner.replan_period_s <= s.planner.duration_s, "planner.replan_period_s", "must be in (0, duration_s]")
     need(s.noise.torque_ratio >= 0 and s.noise.declared_torque_ratio >= 0, "noise", "ratios must be >= 0")

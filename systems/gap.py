@@ -1240,9 +1240,11 @@ def corrected_parameters(model, selected, params):
             other[e] = effect_params(model, e, params, g)
             if e == "torque_scale":
                 plant_effects["torque_sensor_scale"] = other[e]["scale"]
+            elif e == "time_delay" and g == "time_delay@lag":
+                plant_effects["torque_sensor_lag_s"] = other[e]["delay_s"]  # a filtered torque signal
             elif e == "time_delay" and other[e]["delay_s"] < 0:
-                # real_arm's time_delay_s is an actuation delay (torque leads motion); a
-                # measurement lag (d > 0) has no plant counterpart and stays in `other`.
+                # real_arm's time_delay_s is an actuation delay (torque leads motion); a pure
+                # measurement delay (d > 0) has no plant counterpart and stays in `other`.
                 plant_effects["time_delay_s"] = -other[e]["delay_s"]
             elif e == "base_tilt":
                 plant_effects["base_tilt_rad"] = [other[e]["roll_rad"], other[e]["pitch_rad"]]

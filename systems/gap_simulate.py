@@ -342,7 +342,7 @@ def confusion_markdown(table):
 REAL_ARM_EFFECTS = {  # diagnosis vocabulary -> scenario.plant.effects field (real_arm's law)
     "torque_offset": "torque_sensor_offset_Nm",
     "torque_scale": "torque_sensor_scale",
-    "time_delay": "time_delay_s",
+    "time_delay": "time_delay_s",  # or torque_sensor_lag_s (a first-order lag of the sensor)
     "base_tilt": "base_tilt_rad",
     "joint_elasticity": "joint_stiffness_Nm_rad",
 }
@@ -429,6 +429,7 @@ def run_real_arm_check(seed=0, progress=None, duration_s=6.0, only=None):
     cases.append(({"time_delay_s": 0.01}, ["time_delay"]))
     cases.append(({"base_tilt_rad": [0.03, 0.0]}, ["base_tilt"]))
     cases.append(({"joint_stiffness_Nm_rad": [1e6, 300.0, 1e6, 300.0, 1e6, 1e6, 1e6]}, ["joint_elasticity"]))
+    cases.append(({"torque_sensor_lag_s": 0.05}, ["time_delay"]))  # filtered torque signal (real Gen3 logs)
     out = []
     with single_threaded_blas():
         for k, (eff, inj) in enumerate(cases):
@@ -442,7 +443,8 @@ def run_real_arm_check(seed=0, progress=None, duration_s=6.0, only=None):
             named = d.result["cause"]
             out.append({"injected": inj, "named": named, "effects": eff,
                         "rms_check": d.result["gap"]["rms_check"],
-                        "rms_check_after": d.result["combined"]["rms_check_after"]})
+                        "rms_check_after": d.result["combined"]["rms_check_after"],
+                        "plant_effects": d.corrected["plant_effects"]})
             if progress:
                 progress(out[-1])
     return out

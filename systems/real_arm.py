@@ -22,6 +22,8 @@ Signal path (everything from the scenario and the RobotModel; nothing hard-coded
 
 Unmodelled effects (scenario.plant.effects, each off by default):
 - torque_sensor_offset_Nm / torque_sensor_scale: per joint, on the measured torque only.
+- torque_sensor_lag_s: the sensor signal is low-passed (first order, time constant d), as a
+  filtered torque signal is logged (safesysid diagnose finds d ~ 0.1 s on the real Gen3 logs).
 - time_delay_s: the motor torque reaches the joint d seconds late (rounded to whole steps); the
   sensor reports the motor torque when it is produced, so logs show torque leading motion by d.
 - base_tilt_rad [roll, pitch]: the base is tilted in the world, i.e. gravity in the base frame is
@@ -105,13 +107,15 @@ def _make_friction_system(n, coulomb, viscous, offset, smoothing, stiffness):
     return JointFriction(), (SeriesElasticEncoders() if stiffness is not None else None)
 
 
-def _make_torque_sensor(n, time_step, ratio, floor, scale, offset, seed, noisy):
+def _make_torque_sensor(n, time_step, ratio, floor, scale, offset, seed, noisy, lag_s=0.0):
     from pydrake.systems.framework import BasicVector
 
     LeafSystem = _leaf_system()
 
     class TorqueSensor(LeafSystem):
-        """scale * (tau + n) + offset, n uniform inside +-(ratio |tau| + floor), one draw per step."""
+        """scale * (tau + n) + offset, n uniform inside +-(ratio |tau| + floor), one draw per step;
+        with lag_s > 0 the signal is first low-passed, lag_s y' + y = raw, exact for a torque held
+        over each step: y_k = a y_(k-1) + (1 - a) raw_k, a = exp(-h / lag_s), starting steady."""
 
         def __init__(self):
             super().__init__()
@@ -119,6 +123,28 @@ def _make_torque_sensor(n, time_step, ratio, floor, scale, offset, seed, noisy):
             self.DeclareVectorOutputPort("measured_torque", BasicVector(n), self._calc)
             self._rng = np.random.default_rng(seed)
             self._unit = np.empty((0, n))
+            self._keep = np.exp(-time_step / lag_s) if lag_s > 0 else 0.0
+            if lag_s > 0:
+                self._filtered = self.DeclareDiscreteState(n)
+                self.DeclareInitializationDiscreteUpdateEvent(self._start)
+                self.DeclarePeriodicDiscreteUpdateEvent(time_step, 0.0, self._step)
+
+        def _raw(self, context):
+            tau = self.torque.Eval(context)
+            if noisy:
+                step = int(round(context.get_time() / time_step))
+                tau = tau + self.unit_noise(step) * (ratio * np.abs(tau) + floor)
+            return scale * tau + offset
+
+        def _lagged(self, context):
+            previous = context.get_discrete_state(self._filtered).get_value()
+            return self._keep * previous + (1.0 - self._keep) * self._raw(context)
+
+        def _start(self, context, state):
+            state.get_mutable_vector(self._filtered).SetFromVector(self._raw(context))
+
+        def _step(self, context, state):
+            state.get_mutable_vector(self._filtered).SetFromVector(self._lagged(context))
 
         def unit_noise(self, step):
             # Deterministic per (seed, step): a table of U(-1, 1) extended on demand.
@@ -127,11 +153,7 @@ def _make_torque_sensor(n, time_step, ratio, floor, scale, offset, seed, noisy):
             return self._unit[step]
 
         def _calc(self, context, output):
-            tau = self.torque.Eval(context)
-            if noisy:
-                step = int(round(context.get_time() / time_step))
-                tau = tau + self.unit_noise(step) * (ratio * np.abs(tau) + floor)
-            output.SetFromVector(scale * tau + offset)
+            output.SetFromVector(self._lagged(context) if self._keep else self._raw(context))
 
     return TorqueSensor()
 
@@ -341,7 +363,7 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
         n, h, noise.torque_ratio, noise.torque_floor_Nm,
         _per_joint(eff.torque_sensor_scale, n, 1.0, "torque_sensor_scale"),
         _per_joint(eff.torque_sensor_offset_Nm, n, 0.0, "torque_sensor_offset_Nm"),
-        scenario.seed if seed is None else seed, noise.distribution == "uniform")
+        scenario.seed if seed is None else seed, noise.distribution == "uniform", eff.torque_sensor_lag_s)
     builder.AddSystem(sensor)
     sensor.set_name("torque_sensor")
     builder.Connect(sat.get_output_port(), sensor.torque)

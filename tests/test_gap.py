@@ -190,8 +190,8 @@ def test_reference_gen3_urdf_and_real_logs_leave_one_run_out():
         after.append(r["combined"]["rms_check_after"])
         before_unsat.append(r["combined"]["without_saturated"]["rms_check"])
         after_unsat.append(r["combined"]["without_saturated"]["rms_check_after"])
-    assert 1 - np.mean(after) / np.mean(before) > 0.85  # per held-out run, all samples
-    assert 1 - np.mean(after_unsat) / np.mean(before_unsat) > 0.87
+    assert 1 - np.mean(after) / np.mean(before) > 0.86  # per held-out run, all samples
+    assert 1 - np.mean(after_unsat) / np.mean(before_unsat) > 0.88
 
 
 def test_real_arm_logs_cross_check():
@@ -203,6 +203,17 @@ def test_real_arm_logs_cross_check():
     cases = gs.run_real_arm_check(seed=0, duration_s=6.0, only=[0, 1])
     assert cases[0]["named"] == []
     assert cases[1]["named"][0] == "torque_offset"
+
+
+def test_real_arm_sensor_lag_is_found_and_fed_back():
+    """A first-order lag of the simulated real arm's torque sensor (Drake, 1 kHz, its own
+    discrete filter law): diagnosed blind as time_delay with the first-order law, and written
+    back as the plant effect that reproduces it (torque_sensor_lag_s)."""
+    (case,) = gs.run_real_arm_check(seed=0, duration_s=4.0, only=[6])
+    assert case["effects"] == {"torque_sensor_lag_s": 0.05}
+    assert case["named"][0] == "time_delay"
+    assert case["plant_effects"]["torque_sensor_lag_s"] == pytest.approx(0.05, rel=0.1)
+    assert case["rms_check_after"] < 0.5 * case["rms_check"]
 
 
 def _pin_at_top_speed(log, joint, limit, junk_Nm, rng):

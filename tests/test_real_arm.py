@@ -146,6 +146,33 @@ def test_sensor_offset_scale_and_delay(robot):
     assert np.abs(_log(sim, logs["state"])[-1, :7] - q0).max() > 1e-6
 
 
+def test_lagged_torque_sensor(robot):
+    """torque_sensor_lag_s low-passes the (noisy) sensor signal: it starts steady and follows
+    y_k = a y_(k-1) + (1 - a) raw_k, a = exp(-h/d), raw the same run's unlagged reading; the
+    motion is unchanged (a sensor effect only)."""
+    d = 0.04
+    s = load_scenario(overrides={"noise": {"torque_ratio": 0.02, "torque_floor_Nm": 0.05}, "payload": {"dumbbell": "none"},
+                                 "plant": {"effects": {"torque_sensor_lag_s": d}}})
+    plain = load_scenario(overrides={"noise": {"torque_ratio": 0.02, "torque_floor_Nm": 0.05}, "payload": {"dumbbell": "none"}})
+    q0 = np.array(s.q0_rad)
+    hold = ControllerDynamics(robot).gravity(q0, robot.theta)
+    runs = {}
+    for name, scen in (("lag", s), ("plain", plain)):
+        sim, arm, logs = _rig(scen, robot, hold)
+        arm.set_state(sim.get_mutable_context(), q0)
+        sim.AdvanceTo(0.1)
+        runs[name] = {k: _log(sim, logs[k]) for k in ("measured", "state")}
+    raw, lagged = runs["plain"]["measured"], runs["lag"]["measured"]
+    a = np.exp(-s.plant.time_step_s / d)
+    expected = np.empty_like(raw)
+    expected[0] = raw[0]
+    for k in range(1, len(raw)):
+        expected[k] = a * expected[k - 1] + (1 - a) * raw[k]
+    np.testing.assert_allclose(lagged, expected, rtol=1e-12, atol=1e-12)
+    assert np.abs(lagged - raw).max() > 0.01  # the noise is filtered (not vacuous)
+    np.testing.assert_array_equal(runs["lag"]["state"], runs["plain"]["state"])
+
+
 def test_base_tilt_changes_gravity(robot):
     s = load_scenario(overrides={"noise": {"distribution": "none"}, "payload": {"dumbbell": "none"},
                                  "plant": {"effects": {"base_tilt_rad": [0.05, 0.0]}}})
