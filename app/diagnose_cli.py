@@ -149,12 +149,14 @@ def self_check(args):
             f"- false effects: {summary['false_effects']} of {summary['named_effects']} named; cases with a false "
             f"effect {summary['cases_with_false_effect']}/{summary['cases']} ({100 * summary['cases_with_false_effect_rate']:.0f}%)",
             f"- null cases answered 'no significant effect': {summary['null_correct']}/{summary['null_cases']}",
+            f"- time law (pure delay / first-order lag) right where a delay was named: "
+            f"{summary['time_law_correct']}/{summary['time_law_named']}",
             "- missed (effect, achieved SNR after physical caps): "
             + (", ".join(f"case {m['case']} {m['effect']} {m['snr']:.2f}" for m in summary["missed"]) or "none"),
             f"- wall time {summary['wall_time_s']:.0f} s", ""]
     (out / "confusion.md").write_text("\n".join(text))
     print(md)
-    print("\n".join(text[-6:]))
+    print("\n".join(line for line in text if line.startswith("- ")))
     print(f"wrote {out}/self_check.json, confusion.md")
     return 0
 

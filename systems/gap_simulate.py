@@ -6,7 +6,9 @@ How a log is made (fast and deterministic given the seed):
     100 Hz with one 0.5 s gap (samples removed), like the real logs;
   * torque: the RobotModel's exact inverse dynamics (same regressor as the diagnoser's nominal)
     with the withheld effects applied in their physical form, not in the diagnoser's linearised
-    columns: delay evaluates the dynamics at t - d, base tilt rotates the gravity vector, joint
+    columns: delay evaluates the dynamics at t - d (or, in half the delay cases, the logged torque
+    is a first-order lag of the torque, d tau_meas' + tau_meas = tau, as the real Gen3 logs'
+    filtered torque signal), base tilt rotates the gravity vector, joint
     elasticity logs the motor-side angle q_link + tau / k, payload changes the end-effector
     inertia (physically consistent), scale and offset act on the torque sensor;
   * noise: bounded uniform on the torque, +-level * (torque range of the joint), level drawn in
@@ -14,7 +16,7 @@ How a log is made (fast and deterministic given the seed):
 Effect sizes are drawn as a signal-to-noise ratio: the effect's torque RMS on the joints it
 acts on is SNR times the noise RMS there (SNR in [1, 4]), capped by physical limits; when a
 cap keeps an effect below 0.8x the noise RMS the joints are redrawn (up to 10 times), so every
-case is inside the range the check is about. Caps: delay <= 50 ms, tilt <= 0.05 rad,
+case is inside the range the check is about. Caps: delay <= 50 ms, lag <= 150 ms, tilt <= 0.05 rad,
 compliance <= 0.003 rad/(N m), load friction mu <= 0.3, scale within +-15 %, payload <= 5 kg, Coulomb / Stribeck /
 viscous / armature / offset increments <= 10 N m / 20 N m / 30 N m s/rad / 5 kg m^2 / 10 N m. Logs are written with or without the
 acceleration columns.
@@ -26,7 +28,7 @@ import dataclasses
 import numpy as np
 
 from . import inertial
-from .gap import EFFECTS, PER_JOINT
+from .gap import EFFECTS, PER_JOINT, first_order_lag, segments
 
 RATE_HZ = 100.0
 GAP_S = 0.5
@@ -96,8 +98,9 @@ def payload_theta(model, mass, rng):
 
 def true_torque(model, traj, t, effects):
     """Joint torque the 'real' arm measures (before noise) and the logged q offset."""
-    d = effects.get("time_delay", {}).get("delay_s", 0.0)
-    q, v, a = traj(t - d)
+    timing = effects.get("time_delay", {})
+    lag = timing.get("delay_s", 0.0) if timing.get("law") == "lag" else 0.0
+    q, v, a = traj(t - (0.0 if lag else timing.get("delay_s", 0.0)))
     m = model
     if "base_tilt" in effects:
         m = _tilted_model(m, *effects["base_tilt"]["roll_pitch_rad"])
@@ -124,6 +127,8 @@ def true_torque(model, traj, t, effects):
         tau = tau * e["torque_scale"]["scale"]
     if "torque_offset" in e:
         tau = tau + e["torque_offset"]["delta"]
+    if lag:  # the logged torque signal is low-passed (steady at each segment start)
+        tau = first_order_lag(t, tau, np.array(segments(t)), lag)
     q_log, v_log, a_log = traj(t)
     if "joint_elasticity" in e:
         # Encoders on the motor side: logged angle = link angle + deflection tau_s / k.
@@ -153,8 +158,8 @@ def _unit_effect(name, model, rng, joints):
         return {"scale": 1.0 + mask * sign * rng.uniform(0.02, 0.04, n)}, 0.15
     if name == "payload":
         return {"mass_kg": 1.0, "theta": payload_theta(model, 1.0, rng)}, 5.0
-    if name == "time_delay":
-        return {"delay_s": 0.01}, 0.05
+    if name == "time_delay":  # a pure delay or a first-order lag of the torque signal
+        return ({"delay_s": 0.01, "law": "lag"}, 0.15) if rng.random() < 0.5 else ({"delay_s": 0.01}, 0.05)
     if name == "base_tilt":
         ang = rng.uniform(-1, 1, 2)
         return {"roll_pitch_rad": 0.01 * ang / np.abs(ang).max()}, 0.05
@@ -284,6 +289,10 @@ def _run_self_check(model, n_cases, seed, progress, diagnose):
                       "rms_check": d.result["gap"]["rms_check"],
                       "rms_check_after": d.result["combined"]["rms_check_after"],
                       "joints_named": {e["name"]: e["joints"] for e in d.result["effects"] if e["significant"]}})
+        if "time_delay" in inj and "time_delay" in named:  # the right time law?
+            params = next(e["params"] for e in d.result["effects"] if e["name"] == "time_delay")
+            cases[-1]["time_law"] = {"injected": truth["effects"]["time_delay"]["params"].get("law", "shift"),
+                                     "named": "lag" if params["law"].startswith("first-order") else "shift"}
         if progress:
             progress(cases[-1])
     return cases, summarize(cases), confusion(cases)
@@ -303,6 +312,8 @@ def summarize(cases):
             "cases_with_false_effect_rate": sum(bool(c["false"]) for c in cases) / len(cases) if cases else 0.0,
             "null_cases": len(nulls), "null_correct": sum(not c["named"] for c in nulls),
             "exact_cases": sum(not c["missed"] and not c["false"] for c in cases),
+            "time_law_named": sum("time_law" in c for c in cases),
+            "time_law_correct": sum(c["time_law"]["injected"] == c["time_law"]["named"] for c in cases if "time_law" in c),
             "missed": [{"case": c["case"], "effect": e, "snr": c["truth"]["effects"][e]["snr"]}
                        for c in cases for e in c["missed"]]}
 

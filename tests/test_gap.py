@@ -165,6 +165,7 @@ def test_self_check_blind_confusion(kinova):
     assert summary["injected_named_rate"] >= (0.75 if small else 0.9)
     assert summary["cases_with_false_effect_rate"] <= (0.2 if small else 0.1)
     assert sum(table["none"].values()) == summary["null_cases"]
+    assert summary["time_law_correct"] >= 0.75 * summary["time_law_named"]  # pure delay vs first-order lag
 
 
 def test_reference_gen3_urdf_and_real_logs_leave_one_run_out():
