@@ -509,7 +509,7 @@ def model_side_rows(design, groups, transform):
 
     win = smp["windows"]
     if win is None:
-        return at(np.arange(len(smp["t"])))
+        return (A, nom) if law == "lag" else at(np.arange(len(smp["t"])))
     (a0, n0), (a1, n1) = at(win[:, 0]), at(win[:, 1])
     span = (smp["t"][win[:, 1]] - smp["t"][win[:, 0]])[:, None]
     return (a1 - a0) / span[:, :, None], (n1 - n0) / span
