@@ -29,7 +29,8 @@ int W_e dt = [Wm_e] - int Wc_e dt, int tau_dot dt = d tau). Effects and their ph
   payload            W_e(q, v, a) dtheta_e (10 params)       theta_e0 + dtheta_e physically
                                                              consistent (log-Cholesky), dm >= 0
   time_delay         two laws, the better fit is kept; both act on the model side (nominal + all
-                     effect rows), never on the noisy measurement; d on a 5 ms grid (walked on to an interior minimum), refined by a parabola:
+                     effect rows), never on the noisy measurement; d on a 5 ms grid (walked on to
+                     an interior minimum), refined by a parabola:
                      pure delay: model read d earlier        tau_meas(t) = tau_true(t - d), |d| <= 0.2 s
                      d < 0: torque leads the motion (actuation delay: the sensor sees the motor
                      torque before it reaches the joint); d > 0: the measurement lags
@@ -463,8 +464,7 @@ def restarted_lag(smp, x, lagged, d, anchor):
     carried across later restarts so window differences stay integrals of the restarted y."""
     t = smp["t"]
     out = lagged.copy()
-    anchor = np.broadcast_to(np.asarray(anchor, float).reshape(np.shape(anchor) + (1,) * (x.ndim - np.ndim(anchor))),
-                             x.shape)
+    anchor = np.broadcast_to(np.asarray(anchor, float), x.shape[:2])  # (N, n): one value per sample and joint
     integrated = smp["antiderivative"]
     for j, starts in enumerate(smp["restarts"]):
         ends = np.append(starts[1:], len(t))
