@@ -54,6 +54,8 @@ def build_parser():
     p.add_argument("--fit", nargs="+", default=[], help="logs to fit effects on")
     p.add_argument("--check", nargs="+", default=[], help="held-out logs to score on")
     p.add_argument("--out", default="out/diagnose")
+    p.add_argument("--leave-one-out", action="store_true",
+                   help="hold each log (--fit and --check) out once, fit on the others; pooled held-out report")
     p.add_argument("--self-check", action="store_true", help="blind test on simulated logs with withheld effects")
     p.add_argument("--cases", type=int, default=40, help="self-check: number of blind cases")
     p.add_argument("--seed", type=int, default=0)

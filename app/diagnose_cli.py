@@ -2,6 +2,7 @@
 and how much of the gap goes away on held-out logs (systems/gap.py does the math).
 
     safesysid diagnose --model MODEL --fit A.csv [B.csv ...] --check C.csv [...] --out DIR
+    safesysid diagnose --model MODEL --leave-one-out --fit A.csv B.csv [C.csv ...] --out DIR
     safesysid diagnose --self-check [--cases 40] [--seed 0] [--model MODEL] --out DIR
 """
 from __future__ import annotations
@@ -161,6 +162,27 @@ def self_check(args):
     return 0
 
 
+def leave_one_out(model, paths, out, model_path):
+    """Each log held out once (fit on the others): a diagnosis folder per fold, and the pooled
+    held-out numbers in DIR/leave_one_out.json and DIR/report.md."""
+    from safesysid.systems import gap
+
+    from .diagnose_report import write_leave_one_out_report
+
+    out = Path(out)
+    dirs = [out / f"fold{k + 1}_{Path(p).stem}" for k, p in enumerate(paths)]
+    folds = [run_diagnosis(model, paths[:k] + paths[k + 1:], [paths[k]], d, model_path) for k, d in enumerate(dirs)]
+    pooled = gap.pool_held_out(folds)
+    (out / "leave_one_out.json").write_text(json.dumps(_clean(pooled), indent=2))
+    write_leave_one_out_report(out, pooled, model_path, dirs)
+    p, m = pooled["pooled"], pooled["mean_over_folds"]
+    print(f"held-out RMS pooled over {len(paths)} folds {p['rms_before']:.3f} -> {p['rms_after']:.3f} N·m "
+          f"({100 * p['reduction']:.1f}% less; mean over folds {100 * m['reduction']:.1f}%); named in every fold: "
+          f"{', '.join(pooled['named_in_every_fold']) or 'none'}")
+    print(f"wrote {out}/leave_one_out.json, report.md and one folder per fold")
+    return 0
+
+
 def cmd_diagnose(args):
     from safesysid.cli import BadInput
 
@@ -168,6 +190,11 @@ def cmd_diagnose(args):
         return self_check(args)
     if not args.model:
         raise BadInput("--model: required (URDF/SDF of a fixed-base arm or a scenario YAML)")
+    if args.leave_one_out:
+        paths = list(args.fit) + list(args.check)
+        if len(paths) < 2:
+            raise BadInput("--leave-one-out: give at least two logs (--fit A.csv B.csv ...)")
+        return leave_one_out(load_model(args.model), paths, args.out, args.model)
     if not args.fit:
         raise BadInput("--fit: at least one log is required")
     fit, check = list(args.fit), list(args.check)

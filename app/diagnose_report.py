@@ -194,3 +194,36 @@ def write_report(out, diagnosis, model_path, fit_paths, check_paths, plots, wall
                   "`diagnosed_effects` and `plant_effects`).", ""]
     lines += ["## Plots", ""] + [f"![{k}]({v})" for k, v in plots.items()] + [""]
     Path(out, "report.md").write_text("\n".join(lines))
+
+
+def write_leave_one_out_report(out, pooled, model_path, fold_dirs):
+    """report.md of a leave-one-log-out diagnosis: held-out RMS pooled over the folds per joint
+    (all samples and without speed-saturated ones), the mean over folds, each fold, and the
+    effects named in every fold."""
+    p, u, m = pooled["pooled"], pooled["pooled_unsaturated"], pooled["mean_over_folds"]
+    lines = ["# Sim-to-real gap diagnosis, leave one log out", "",
+             f"- model: `{model_path}`",
+             f"- each of {len(pooled['folds'])} logs held out once, effects fitted on the others "
+             "(fold reports linked below)", "",
+             "## Held-out RMS pooled over the folds [N·m]", "",
+             "| joint | before | after | reduction | before, unsaturated | after, unsaturated | reduction |",
+             "|---|---|---|---|---|---|---|"]
+    rows = list(zip(p["rms_before_per_joint"], p["rms_after_per_joint"], p["reduction_per_joint"],
+                    u["rms_before_per_joint"], u["rms_after_per_joint"], u["reduction_per_joint"]))
+    for j, (b, a, r, bu, au, ru) in enumerate(rows, start=1):
+        lines.append(f"| {j} | {b:.2f} | {a:.2f} | {100 * r:.1f}% | {bu:.2f} | {au:.2f} | {100 * ru:.1f}% |")
+    lines += [f"| all | {p['rms_before']:.2f} | {p['rms_after']:.2f} | **{100 * p['reduction']:.1f}%** "
+              f"| {u['rms_before']:.2f} | {u['rms_after']:.2f} | **{100 * u['reduction']:.1f}%** |", "",
+              f"Mean over folds (a per-log reduction): {m['rms_before']:.3f} → {m['rms_after']:.3f} N·m "
+              f"(**{100 * m['reduction']:.1f}%**). Speed-saturated joint samples (drive at its limit, left out "
+              f"of fitting): {100 * pooled['saturated_share']:.1f}%.", "",
+              "Effects named in every fold: **" + (", ".join(pooled["named_in_every_fold"]) or "none") + "**; "
+              "in some folds only: " + (", ".join(pooled["named_in_some_fold"]) or "none") + ".", "",
+              "## Folds", "",
+              "| held-out log | before [N·m] | after [N·m] | reduction | unsaturated reduction | cause | report |",
+              "|---|---|---|---|---|---|---|"]
+    for f, d in zip(pooled["folds"], fold_dirs):
+        lines.append(f"| {', '.join(Path(c).name for c in f['check'])} | {f['rms_before']:.3f} | {f['rms_after']:.3f} "
+                     f"| {100 * f['reduction']:.1f}% | {100 * f['without_saturated']['reduction']:.1f}% "
+                     f"| {', '.join(f['cause']) or 'none'} | [{Path(d).name}]({Path(d).name}/report.md) |")
+    Path(out, "report.md").write_text("\n".join(lines + [""]))

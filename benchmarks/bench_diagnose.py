@@ -47,43 +47,12 @@ def real_leave_one_out():
     if not (REAL / "run1.csv").is_file() or not REFERENCE_URDF.is_file():
         return {"skipped": f"{REAL} or {REFERENCE_URDF} not available"}
     model = load_robot(REFERENCE_URDF)
-    runs = [REAL / f"run{k}.csv" for k in (1, 2, 3)]
-    logs = [read_joint_log(p, model.n) for p in runs]
-    folds, before, after, saturated = [], [], [], []
-    for held in range(3):
-        t0 = time.perf_counter()
-        d = gap.diagnose(model, [l for k, l in enumerate(logs) if k != held], [logs[held]])
-        wall = time.perf_counter() - t0
-        r = d.result
-        before.append(d.check_residual_before[0])
-        after.append(d.check_residual_after[0])
-        saturated.append(d.check_designs[0].row_saturated)
-        folds.append({"check": runs[held].name, "rms_before": r["gap"]["rms_check"],
-                      "rms_after": r["combined"]["rms_check_after"], "reduction": r["combined"]["reduction"],
-                      "without_saturated": r["combined"]["without_saturated"],
-                      "saturated_share": r["gap"]["velocity_saturation"]["element_share"],
-                      "cause": r["cause"], "rms_before_per_joint": r["gap"]["rms_check_per_joint"],
-                      "rms_after_per_joint": r["combined"]["rms_check_per_joint_after"],
-                      "worst_regimes": sorted(r["gap"]["where"]["regimes"].items(), key=lambda x: -x[1])[:2],
-                      "wall_time_s": wall})
-    before, after, saturated = (np.concatenate(x) for x in (before, after, saturated))
-    valid = ~saturated
-    rms = gap._rms
-    per_joint = {"before": [rms(before[:, j]) for j in range(model.n)],
-                 "after": [rms(after[:, j]) for j in range(model.n)],
-                 "before_unsaturated": [rms(before[valid[:, j], j]) for j in range(model.n)],
-                 "after_unsaturated": [rms(after[valid[:, j], j]) for j in range(model.n)]}
-    mean_before = float(np.mean([f["rms_before"] for f in folds]))
-    mean_after = float(np.mean([f["rms_after"] for f in folds]))
-    return {"folds": folds, "per_joint_pooled": per_joint,
-            "pooled_rms_before": rms(before), "pooled_rms_after": rms(after),
-            "pooled_reduction": 1 - rms(after) / rms(before),
-            "pooled_unsaturated_rms_before": rms(before[valid]), "pooled_unsaturated_rms_after": rms(after[valid]),
-            "pooled_unsaturated_reduction": 1 - rms(after[valid]) / rms(before[valid]),
-            "saturated_share": float(saturated.mean()),
-            "mean_fold_rms_before": mean_before, "mean_fold_rms_after": mean_after,
-            "mean_fold_reduction": 1 - mean_after / mean_before,
-            "target_reduction": 0.85, "reference_cva_rms_after": 1.9}
+    logs = [read_joint_log(REAL / f"run{k}.csv", model.n) for k in (1, 2, 3)]
+    folds, out = gap.leave_one_out(model, logs)
+    for f, d in zip(out["folds"], folds):
+        f["worst_regimes"] = sorted(d.result["gap"]["where"]["regimes"].items(), key=lambda x: -x[1])[:2]
+    out.update(target_reduction=0.85, reference_cva_rms_after=1.9)
+    return out
 
 
 def run(quick: bool = False) -> dict:

@@ -1143,6 +1143,56 @@ def _diagnose(model, fit_logs, check_logs, effects, form, max_effects):
     return Diagnosis(result, form, fit, check, res_check0, res_check1, cur_params, corrected)
 
 
+def leave_one_out(model, logs, **kwargs):
+    """Each log held out once, the effects fitted on the others: (fold Diagnoses, pooled)."""
+    import time
+
+    folds = []
+    for held in range(len(logs)):
+        t0 = time.perf_counter()
+        folds.append(diagnose(model, [l for k, l in enumerate(logs) if k != held], [logs[held]], **kwargs))
+        folds[-1].result["wall_time_s"] = time.perf_counter() - t0
+    return folds, pool_held_out(folds)
+
+
+def pool_held_out(folds):
+    """Held-out numbers over folds that each check one log: RMS before/after pooled over all
+    held-out samples (per joint and overall, all samples and without speed-saturated ones), the
+    mean over folds (a per-run reduction), per fold, and the effects named in every fold."""
+    before = np.concatenate([r for d in folds for r in d.check_residual_before])
+    after = np.concatenate([r for d in folds for r in d.check_residual_after])
+    valid = ~np.concatenate([c.row_saturated for d in folds for c in d.check_designs])
+
+    def pooled(mask):
+        b = [_rms(before[mask[:, j], j]) for j in range(before.shape[1])]
+        a = [_rms(after[mask[:, j], j]) for j in range(before.shape[1])]
+        rb, ra = _rms(before[mask]), _rms(after[mask])
+        return {"rms_before": rb, "rms_after": ra, "reduction": _reduction(rb, ra),
+                "rms_before_per_joint": b, "rms_after_per_joint": a,
+                "reduction_per_joint": [_reduction(x, y) for x, y in zip(b, a)]}
+
+    per_fold = [{"check": [c.source for c in d.check_designs], "rms_before": d.result["gap"]["rms_check"],
+                 "rms_after": d.result["combined"]["rms_check_after"], "reduction": d.result["combined"]["reduction"],
+                 "without_saturated": d.result["combined"]["without_saturated"], "cause": d.result["cause"],
+                 "rms_before_per_joint": d.result["gap"]["rms_check_per_joint"],
+                 "rms_after_per_joint": d.result["combined"]["rms_check_per_joint_after"],
+                 "wall_time_s": d.result.get("wall_time_s")}
+                for d in folds]
+    mean_before = float(np.mean([f["rms_before"] for f in per_fold]))
+    mean_after = float(np.mean([f["rms_after"] for f in per_fold]))
+    causes = [set(f["cause"]) for f in per_fold]
+    order = [e for f in per_fold for e in f["cause"]]
+    every = set.intersection(*causes) if causes else set()
+    some = set.union(*causes) if causes else set()
+    return {"pooled": pooled(np.ones_like(valid)), "pooled_unsaturated": pooled(valid),
+            "saturated_share": float(1.0 - valid.mean()),
+            "mean_over_folds": {"rms_before": mean_before, "rms_after": mean_after,
+                                "reduction": _reduction(mean_before, mean_after)},
+            "folds": per_fold,
+            "named_in_every_fold": sorted(every, key=order.index),
+            "named_in_some_fold": sorted(some - every, key=order.index)}
+
+
 def _best_small_set(prob, effects, single, r0, sse0_fit):
     """Exhaustive search over sets of one or two effects (greedy alone can pick one effect
     that mimics two, e.g. a torque scale for armature + delay on an arm with large nominal

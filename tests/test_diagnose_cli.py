@@ -79,6 +79,30 @@ def test_corrected_model_closes_the_gap(case):
     assert d.result["cause"] == []
 
 
+def test_leave_one_out_pools_the_folds(case, capsys):
+    """--leave-one-out: each log held out once; a diagnosis folder per fold and the pooled
+    held-out numbers (pooled over every held-out row, the mean over folds, the effects named in
+    every fold) agreeing with the folds' own diagnosis.json."""
+    root, urdf, paths = case
+    out = root / "loo"
+    assert main(["diagnose", "--model", str(urdf), "--leave-one-out", "--fit", *map(str, paths), "--out", str(out)]) == 0
+    res = json.loads((out / "leave_one_out.json").read_text())
+    folds = [json.loads((out / f"fold{k + 1}_log{k}" / "diagnosis.json").read_text()) for k in range(3)]
+    assert [f["check"] for f in res["folds"]] == [[str(p)] for p in paths]
+    for f, d in zip(res["folds"], folds):
+        assert f["rms_before"] == pytest.approx(d["gap"]["rms_check"])
+        assert f["rms_after"] == pytest.approx(d["combined"]["rms_check_after"])
+        assert f["cause"] == d["cause"] == ["viscous_friction"]
+    before = [f["rms_before"] for f in res["folds"]]
+    assert min(before) <= res["pooled"]["rms_before"] <= max(before)
+    assert res["mean_over_folds"]["rms_before"] == pytest.approx(np.mean(before))
+    assert res["pooled"]["reduction"] > 0.5 and res["pooled"]["reduction_per_joint"][0] > 0.5
+    assert res["named_in_every_fold"] == ["viscous_friction"] and res["named_in_some_fold"] == []
+    report = (out / "report.md").read_text()
+    assert "fold1_log0/report.md" in report and f"{100 * res['pooled']['reduction']:.1f}%" in report
+    assert "pooled over 3 folds" in capsys.readouterr().out
+
+
 def _one_line_exit_2(argv, capsys, needle):
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -113,6 +137,7 @@ def test_bad_input_is_one_line_exit_2(case, tmp_path, capsys):
                      capsys, "broken.urdf")
     # No model.
     _one_line_exit_2(["diagnose", "--fit", str(a), "--check", str(c)], capsys, "--model")
+    _one_line_exit_2(base[:3] + ["--leave-one-out", "--fit", str(a)], capsys, "--leave-one-out")
 
 
 def test_self_check_cli(tmp_path, capsys):
