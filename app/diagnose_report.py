@@ -183,9 +183,8 @@ def write_report(out, diagnosis, model_path, fit_paths, check_paths, plots, wall
               "## Combined", "",
               f"Effects {', '.join(comb['effects']) or '(none)'}: held-out RMS **{gap['rms_check']:.3f} → "
               f"{comb['rms_check_after']:.3f} N·m** (reduction {100 * comb['reduction']:.1f}%).", ""]
-    lag = next((e for e in res["effects"] if e["name"] == "time_delay" and e["significant"]
-                and e["params"]["law"].startswith("first-order")), None)
-    if lag:
+    if any(e["name"] == "time_delay" and e["significant"] and e["params"]["law"].startswith("first-order")
+           for e in res["effects"]):
         lines += ["The first-order lag has a state: at each segment start and after each speed-saturated span "
                   "(where its history is unknown) the lagged model restarts from the measured torque.", ""]
     if params_file:
