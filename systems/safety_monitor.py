@@ -4,6 +4,10 @@ At every plant step it records the smallest signed distance between any robot ge
 anchored environment geometry (obstacles, floor) from Drake's QueryObject, and the ratios of
 |q| to the position limits, |v| to the velocity limits and |u| to the torque limits. It knows
 nothing of the planner's spheres or over-approximations, so it can catch them being wrong.
+
+Torque is read twice: the controller's command (before the actuator saturation: this is what
+the planner's torque bound certifies, and it may exceed the limit) and the motor torque after
+saturation (what reaches the joints, never above the limit).
 """
 from __future__ import annotations
 
@@ -21,7 +25,8 @@ class SafetyRecord:
     clearance: list = field(default_factory=list)  # min signed distance [m]
     joint_ratio: list = field(default_factory=list)  # max over joints of limit usage (1 = at limit)
     velocity_ratio: list = field(default_factory=list)
-    torque_ratio: list = field(default_factory=list)
+    torque_ratio: list = field(default_factory=list)  # motor torque (after saturation)
+    commanded_ratio: list = field(default_factory=list)  # controller command (before saturation)
     closest_pair: list = field(default_factory=list)
 
     def summary(self):
@@ -33,6 +38,7 @@ class SafetyRecord:
             "max_joint_limit_ratio": float(arr(self.joint_ratio).max()),
             "max_velocity_ratio": float(arr(self.velocity_ratio).max()),
             "max_torque_ratio": float(arr(self.torque_ratio).max()),
+            "max_commanded_torque_ratio": float(arr(self.commanded_ratio).max()),
         }
 
 
@@ -46,7 +52,8 @@ def limit_ratio(x, lower, upper):
 
 
 class SafetyMonitor(LeafSystem):
-    """Inputs: geometry query, plant state (q, v), applied torque. Records every `period_s`."""
+    """Inputs: geometry query, plant state (q, v), applied (motor) torque, commanded torque.
+    Records every `period_s`."""
 
     def __init__(self, plant, scene_graph, robot, period_s, max_distance_m=0.5):
         super().__init__()
@@ -59,6 +66,7 @@ class SafetyMonitor(LeafSystem):
         self.query_port = self.DeclareAbstractInputPort("query", AbstractValue.Make(QueryObject()))
         self.state_port = self.DeclareVectorInputPort("state", 2 * n)
         self.torque_port = self.DeclareVectorInputPort("applied_torque", n)
+        self.command_port = self.DeclareVectorInputPort("commanded_torque", n)
         self.DeclarePeriodicPublishEvent(period_s, 0.0, self._publish)
         self.DeclareForcedPublishEvent(self._publish)
 
@@ -87,3 +95,4 @@ class SafetyMonitor(LeafSystem):
         rec.joint_ratio.append(float(limit_ratio(x[:n], jp.position_lower, jp.position_upper)))
         rec.velocity_ratio.append(float(np.max(np.abs(x[n:]) / jp.velocity_limit)))
         rec.torque_ratio.append(float(np.max(np.abs(u) / jp.torque_limit)))
+        rec.commanded_ratio.append(float(np.max(np.abs(self.command_port.Eval(context)) / jp.torque_limit)))

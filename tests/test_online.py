@@ -18,7 +18,7 @@ def quickstart():
 
 def assert_safe(summary):
     assert summary["collisions"] == 0 and summary["min_clearance_m"] >= 0.0
-    assert summary["max_torque_ratio"] <= 1.0 + 1e-9
+    assert summary["max_commanded_torque_ratio"] <= 1.0 + 1e-9
     assert summary["max_joint_limit_ratio"] <= 1.0 and summary["max_velocity_ratio"] <= 1.0
     assert summary["max_tracking_error_ratio"] <= 1.0 + 1e-9
     assert summary["contains_truth"]
@@ -76,3 +76,34 @@ def test_wrong_model_leaves_the_tracking_bound(quickstart):
     scene.payload.dumbbell = "8lb"
     summary = run_online(scene, None, method="wrong", write=False)
     assert summary["max_tracking_error_ratio"] > 1.0 and not summary["contains_truth"]
+
+
+def test_a_command_beyond_the_torque_limit_is_a_failure(quickstart, monkeypatch):
+    """The referee reads the controller's command BEFORE the actuator saturation: a controller
+    that commands 1.2x the limit on joint 7 for 20 ms fails on torque_limit, although the torque
+    that reaches the joint (saturated) never exceeds the limit."""
+    from safesysid.systems import controllers
+
+    make = controllers.make_controller
+
+    def overdriven(kind, robot, gains, time_step):
+        ctrl = make(kind, robot, gains, time_step)
+        law = ctrl._torque
+        spike = np.zeros(robot.n)
+        spike[-1] = 1.2 * robot.joint_params.torque_limit[-1]
+
+        def torque(context, *args):
+            u = law(context, *args)
+            return u + spike if 1.0 <= context.get_time() < 1.02 else u
+
+        ctrl._torque = torque
+        return ctrl
+
+    monkeypatch.setattr(controllers, "make_controller", overdriven)
+    scene = load_scenario(SCENARIOS_DIR / "quickstart.yaml")
+    scene.planner.num_plans = 1  # one plan, 3 s: enough to see the spike
+    summary = run_online(scene, None, method="ours", write=False)
+    print({k: summary.get(k) for k in ("failure", "max_torque_ratio", "max_commanded_torque_ratio")})
+    assert summary["max_torque_ratio"] <= 1.0 + 1e-9  # the saturated torque hides it ...
+    assert summary["max_commanded_torque_ratio"] > 1.1  # ... the command does not
+    assert summary["failure"] == "torque_limit" and not summary["success"]

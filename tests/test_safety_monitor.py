@@ -10,7 +10,7 @@ from safesysid.systems.robot_model import load_robot, make_plant
 from safesysid.systems.safety_monitor import SafetyMonitor, limit_ratio
 
 
-def run_with_box(box_center):
+def run_with_box(box_center, command=None):
     robot = load_robot()
     builder = DiagramBuilder()
     plant, sg, _ = make_plant(robot.source, time_step=0.001, builder=builder)
@@ -22,6 +22,8 @@ def run_with_box(box_center):
     builder.Connect(sg.get_query_output_port(), monitor.query_port)
     builder.Connect(plant.get_state_output_port(), monitor.state_port)
     builder.Connect(zero.get_output_port(), monitor.torque_port)
+    commanded = builder.AddSystem(ConstantVectorSource(np.zeros(robot.n) if command is None else command))
+    builder.Connect(commanded.get_output_port(), monitor.command_port)
     diagram = builder.Build()
     sim = Simulator(diagram)
     ctx = plant.GetMyContextFromRoot(sim.get_mutable_context())
@@ -46,3 +48,13 @@ def test_limit_ratio():
     lower = np.array([-np.inf, -2.0])
     upper = np.array([np.inf, 2.0])
     assert np.allclose(limit_ratio(np.array([[5.0, 1.0], [0, -2.0]]), lower, upper), [0.5, 1.0])
+
+
+def test_the_command_before_saturation_is_judged():
+    """A command beyond the limit is recorded as such even when the torque applied is zero."""
+    robot = load_robot()
+    command = np.zeros(robot.n)
+    command[6] = -1.5 * robot.joint_params.torque_limit[6]
+    record, _, _ = run_with_box([2.0, 0.0, 0.0], command)
+    summary = record.summary()
+    assert summary["max_commanded_torque_ratio"] == 1.5 and summary["max_torque_ratio"] == 0.0
