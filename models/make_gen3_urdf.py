@@ -1,9 +1,18 @@
-"""Writes kinova_gen3.urdf: the Kinova Gen3 7-DoF arm for this project.
+"""Writes kinova_gen3.urdf and kinova_gen3_spheres.yaml: the Kinova Gen3 7-DoF arm for this project.
 
-Kinematic and inertial figures are the public Gen3 (V12) values; visuals are primitive
-capsules; collision geometry is the ARMOUR sphere set (offsets from joint frames, radii).
+Kinematic and inertial figures are the public Gen3 (V12) values. Each link's shape is a
+primitive capsule from its origin to the next joint; the end effector is a bracelet (a short
+capsule) and the gripper (a box). These shapes are both the visual and the collision geometry
+of the URDF: the real arm's shape, which the referee (SafetyMonitor) measures.
 The last link is the end effector: bracelet + Robotiq 2F-85 (fingers fixed) lumped into one
 rigid body of 1.28 kg, its frame the joint-7 child frame (tool along -z).
+
+The planner over-approximates the arm with spheres (ARMOUR); they live in their own file,
+kinova_gen3_spheres.yaml (named by `planner_spheres` in kinova_gen3_params.yaml), spheres on
+each link's own frame that cover that link's shapes by construction (covering rule below) with
+COVER_SLACK_M to spare; tests/test_collision_geometry.py checks the enclosure on the shapes as
+Drake poses them. The base is fixed to the world: its spheres are constant constraints, so the
+planner refuses to start when an obstacle is within them.
 Run `python models/make_gen3_urdf.py` after editing the figures below.
 """
 from pathlib import Path
@@ -37,14 +46,15 @@ LINKS = [
 BRACELET = (0.5006, (-0.000281, -0.011402, -0.029798), (0.000587, 0.000369, 0.000609, 3e-6, 3e-6, 0.000118))
 # Robotiq 2F-85 + coupling, fingers fixed: solid cylinder below the flange (z = -0.0615).
 GRIPPER_MASS, GRIPPER_RADIUS, GRIPPER_LENGTH, FLANGE_Z = 0.7794, 0.042, 0.13, -0.0615
-# ARMOUR collision spheres (offset in the joint's child frame, radius).
-SPHERES = {
-    "half_arm_1_link": [((0, -y, -0.01), 0.06) for y in (0.05, 0.11, 0.17, 0.24, 0.30, 0.36)] + [((0, -0.43, -0.01), 0.07)],
-    "forearm_link": [((0, -0.07, 0), 0.07)] + [((0, -y, 0), 0.06) for y in (0.14, 0.21, 0.28, 0.32)],
-    "spherical_wrist_2_link": [((0, -0.07, 0), 0.05), ((0, -0.14, 0), 0.05)],
-    "end_effector_link": [((x, -0.06, -0.055), 0.02) for x in (-0.03, 0.0, 0.03)]
-    + [((0, 0, -z), 0.05) for z in (0.10, 0.15, 0.20)],
-}
+# Link shapes: capsule radius [m] per link in LINKS (the capsule runs to the next joint origin).
+CAPSULE_RADIUS = [0.045, 0.045, 0.045, 0.045, 0.045, 0.04, 0.04]
+BRACELET_RADIUS = 0.04  # capsule from the end-effector origin to the flange
+GRIPPER_BOX = (0.085, 0.06, GRIPPER_LENGTH)  # below the flange, centred on the tool axis
+# Planner spheres: radius per covered shape (the ARMOUR radii: 6 cm on the arm, 5 cm on the wrist).
+SPHERE_RADIUS = [0.06, 0.06, 0.06, 0.06, 0.06, 0.05, 0.05]
+BRACELET_SPHERE_RADIUS = 0.05
+GRIPPER_SPHERE_RADIUS = 0.06
+COVER_SLACK_M = 0.001  # spheres are placed as if this much smaller (room for rounding)
 COLORS = ["0.55 0.55 0.6 1", "0.8 0.8 0.82 1"]
 
 
@@ -68,18 +78,85 @@ def end_effector_inertia():
     return m, c, shift(i1, m1, c1 - c) + shift(i2, m2, c2 - c)
 
 
-def _capsule_to(vec, radius, color):
-    """Visual capsule from the link origin to `vec` (the next joint origin)."""
+def _shape(name, origin, geometry, material):
+    """The same shape as visual and collision geometry (the referee measures what is shown)."""
+    visual = f'    <visual><origin {origin}/><geometry>{geometry}</geometry>{material}</visual>\n'
+    return visual + f'    <collision name="{name}"><origin {origin}/><geometry>{geometry}</geometry></collision>\n'
+
+
+def _capsule_length(vec, radius):
+    """Length of the cylinder part of a capsule spanning the segment 0 -> vec (caps included)."""
+    return max(np.linalg.norm(vec) - 2 * radius, 1e-3)
+
+
+def _capsule_to(name, vec, radius, color):
+    """Capsule from the link origin to `vec` (the next joint origin)."""
     vec = np.asarray(vec, float)
-    length = np.linalg.norm(vec)
-    z = vec / length
+    z = vec / np.linalg.norm(vec)
     # rpy that rotates +z onto the direction (roll about x, then pitch about y).
     roll = np.arctan2(-z[1], z[2])
     pitch = np.arcsin(np.clip(z[0], -1, 1))
     mid = vec / 2
-    return (f'    <visual><origin xyz="{mid[0]:.6g} {mid[1]:.6g} {mid[2]:.6g}" rpy="{roll:.6g} {pitch:.6g} 0"/>'
-            f'<geometry><capsule radius="{radius}" length="{max(length - 2 * radius, 1e-3):.6g}"/></geometry>'
-            f'<material name="c{color}"><color rgba="{COLORS[color]}"/></material></visual>\n')
+    return _shape(name, f'xyz="{mid[0]:.9g} {mid[1]:.9g} {mid[2]:.9g}" rpy="{roll:.17g} {pitch:.17g} 0"',
+                  f'<capsule radius="{radius}" length="{_capsule_length(vec, radius):.9g}"/>',
+                  f'<material name="c{color}"><color rgba="{COLORS[color]}"/></material>')
+
+
+def _gripper_centre():
+    return np.array([0.0, 0.0, FLANGE_Z - GRIPPER_LENGTH / 2])
+
+
+# ---- planner spheres: covering rules ----------------------------------------------------------
+def capsule_spheres(vec, capsule_radius, sphere_radius):
+    """Spheres of `sphere_radius` on the axis of the capsule 0 -> vec that contain it.
+
+    A point of the capsule lies within capsule_radius of its axis segment (between the cap
+    centres); with centres on that segment at most 2 sqrt(R^2 - a^2) apart (R = sphere radius
+    minus the slack, a = capsule radius) and one at each cap centre, every such point is within
+    R of a centre: |p - c|^2 <= a^2 + (spacing / 2)^2 <= R^2.
+    """
+    vec = np.asarray(vec, float)
+    axis = vec / np.linalg.norm(vec)
+    half = _capsule_length(vec, capsule_radius) / 2
+    mid = vec / 2
+    reach = sphere_radius - COVER_SLACK_M
+    if half + capsule_radius <= reach:  # one sphere at the middle holds it all
+        return [(mid, sphere_radius)]
+    spacing = 2 * np.sqrt(reach**2 - capsule_radius**2)
+    count = int(np.ceil(2 * half / spacing)) + 1
+    return [(mid + axis * s, sphere_radius) for s in np.linspace(-half, half, count)]
+
+
+def box_spheres(centre, size, sphere_radius):
+    """Spheres on the z axis of a box (size x, y, z) that contain it: each covers a slab of the
+    box of half-height sqrt(R^2 - d^2), d the half-diagonal of the cross-section."""
+    d = np.hypot(size[0] / 2, size[1] / 2)
+    reach = sphere_radius - COVER_SLACK_M
+    count = int(np.ceil(size[2] / (2 * np.sqrt(reach**2 - d**2))))
+    slab = size[2] / count
+    return [(np.asarray(centre) + [0, 0, -size[2] / 2 + slab * (k + 0.5)], sphere_radius) for k in range(count)]
+
+
+def link_spheres():
+    """{link: [(centre in the link frame, radius), ...]} covering every link's shapes."""
+    out = {}
+    for k, (name, *_rest) in enumerate(LINKS):
+        out[name] = capsule_spheres(JOINTS[k][1], CAPSULE_RADIUS[k], SPHERE_RADIUS[k])
+    out["end_effector_link"] = (capsule_spheres((0, 0, FLANGE_Z), BRACELET_RADIUS, BRACELET_SPHERE_RADIUS)
+                                + box_spheres(_gripper_centre(), GRIPPER_BOX, GRIPPER_SPHERE_RADIUS))
+    return out
+
+
+def spheres_yaml():
+    lines = ["# Generated by make_gen3_urdf.py; edit that file.",
+             "# The planner's collision spheres (ARMOUR over-approximation of the arm), per link: centre in",
+             "# the link frame [m], radius [m]. Only the planner reads this file; the referee measures the",
+             "# link shapes of kinova_gen3.urdf, and tests/test_collision_geometry.py checks these spheres",
+             "# contain them.", "links:"]
+    for link, spheres in link_spheres().items():
+        lines.append(f"  {link}:")
+        lines += [f"    - {{centre_m: [{c[0]:.5f}, {c[1]:.5f}, {c[2]:.5f}], radius_m: {r}}}" for c, r in spheres]
+    return "\n".join(lines) + "\n"
 
 
 def _inertial(mass, com, inertia):
@@ -88,25 +165,20 @@ def _inertial(mass, com, inertia):
             f'<inertia ixx="{i[0, 0]:.9g}" iyy="{i[1, 1]:.9g}" izz="{i[2, 2]:.9g}" ixy="{i[0, 1]:.9g}" ixz="{i[0, 2]:.9g}" iyz="{i[1, 2]:.9g}"/></inertial>\n')
 
 
-def _spheres(link):
-    return "".join(f'    <collision name="{link}_sphere_{k}"><origin xyz="{o[0]} {o[1]} {o[2]}"/><geometry><sphere radius="{r}"/></geometry></collision>\n'
-                   for k, (o, r) in enumerate(SPHERES.get(link, [])))
-
-
 def urdf():
     out = ['<?xml version="1.0"?>\n<!-- Generated by make_gen3_urdf.py; edit that file. -->\n<robot name="kinova_gen3">\n']
     names = [l[0] for l in LINKS] + ["end_effector_link"]
     for k, (name, mass, com, inertia) in enumerate(LINKS):
-        nxt = JOINTS[k][1]
         out.append(f'  <link name="{name}">\n' + _inertial(mass, com, inertia)
-                   + _capsule_to(nxt, 0.045 if k < 5 else 0.04, k % 2) + _spheres(name) + "  </link>\n")
+                   + _capsule_to(f"{name}_capsule", JOINTS[k][1], CAPSULE_RADIUS[k], k % 2) + "  </link>\n")
     m, c, i = end_effector_inertia()
-    flange = (0, 0, FLANGE_Z)
-    grip = (0, 0, FLANGE_Z - GRIPPER_LENGTH)
-    out.append('  <link name="end_effector_link">\n' + _inertial(m, c, i) + _capsule_to(flange, 0.04, 1)
-               + f'    <visual><origin xyz="0 0 {(FLANGE_Z + grip[2]) / 2:.6g}"/><geometry><box size="0.085 0.06 {GRIPPER_LENGTH}"/></geometry>'
-               + '<material name="grip"><color rgba="0.15 0.15 0.15 1"/></material></visual>\n'
-               + _spheres("end_effector_link") + "  </link>\n")
+    grip = _gripper_centre()
+    box = " ".join(f"{x:.9g}" for x in GRIPPER_BOX)
+    out.append('  <link name="end_effector_link">\n' + _inertial(m, c, i)
+               + _capsule_to("end_effector_link_bracelet", (0, 0, FLANGE_Z), BRACELET_RADIUS, 1)
+               + _shape("end_effector_link_gripper", f'xyz="0 0 {grip[2]:.9g}"', f'<box size="{box}"/>',
+                        '<material name="grip"><color rgba="0.15 0.15 0.15 1"/></material>')
+               + "  </link>\n")
     for k, (jname, xyz, rpy, continuous, lim) in enumerate(JOINTS):
         kind = "continuous" if continuous else "revolute"
         effort, speed = PARAMS["torque_limit_Nm"][k], PARAMS["velocity_limit_rad_s"][k]
@@ -121,4 +193,6 @@ def urdf():
 if __name__ == "__main__":
     path = Path(__file__).with_name("kinova_gen3.urdf")
     path.write_text(urdf())
-    print("wrote", path, "end effector mass", end_effector_inertia()[0])
+    spheres = Path(__file__).with_name("kinova_gen3_spheres.yaml")
+    spheres.write_text(spheres_yaml())
+    print("wrote", path, "and", spheres, "end effector mass", end_effector_inertia()[0])

@@ -65,38 +65,59 @@ class Spheres:
 
 
 def arm_spheres(robot):
-    """The collision spheres of the robot's model file (its collision geometry), per tree body."""
-    from pydrake.geometry import Sphere
-    from pydrake.multibody.tree import BodyIndex
+    """The planner's collision spheres of the arm, per tree body (-1: fixed to the world).
+
+    They come from the sphere file named by `planner_spheres` in the robot's parameter file
+    (path relative to the model file's folder): {links: {link: [{centre_m, radius_m}, ...]}},
+    centres in the link frame. Never from the model's collision geometry: that is the arm's real
+    shape, which the referee measures independently (tests check the spheres contain it).
+    """
+    import yaml
+    from pathlib import Path
 
     from .robot_model import ModelError, make_plant
 
-    plant, sg, _ = make_plant(robot.source, scene_graph=True)
+    doc = robot.extra.get("params_doc") or {}
+    if not doc.get("planner_spheres"):
+        raise ModelError(f"{robot.source}: the robot's parameter file names no planner_spheres file "
+                         "(the planner over-approximates the arm with spheres)")
+    path = Path(robot.source).parent / doc["planner_spheres"]
+    try:
+        links = yaml.safe_load(path.read_text())["links"]
+    except (OSError, yaml.YAMLError, KeyError, TypeError) as err:
+        raise ModelError(f"{path}: cannot read the planner spheres ({err})") from err
+    plant, _, _ = make_plant(robot.source)
     plant.Finalize()
     ctx = plant.CreateDefaultContext()
-    inspector = sg.model_inspector()
-    tree_index = {name: i for i, name in enumerate(robot.body_names)}
-    inboard = {plant.get_joint(j).child_body().index(): plant.get_joint(j) for j in plant.GetJointIndices()}
     body, centre, radius, names = [], [], [], []
-    for b in range(plant.num_bodies()):
-        drake_body = plant.get_body(BodyIndex(b))
-        # Carrier: the nearest tree body at or above this one (bodies welded to it ride along).
-        carrier = drake_body
-        while carrier.name() not in tree_index and carrier.index() in inboard:
-            carrier = inboard[carrier.index()].parent_body()
-        idx = tree_index.get(carrier.name(), -1)
+    for link, spheres in links.items():
+        if not plant.HasBodyNamed(link):
+            raise ModelError(f"{path}: links.{link}: no such link in {robot.source}")
+        drake_body = plant.GetBodyByName(link)
+        idx = carrier_index(plant, drake_body, robot.body_names)
+        carrier = plant.world_body() if idx < 0 else plant.GetBodyByName(robot.body_names[idx])
         x_cb = plant.CalcRelativeTransform(ctx, carrier.body_frame(), drake_body.body_frame())
-        for gid in plant.GetCollisionGeometriesForBody(drake_body):
-            shape = inspector.GetShape(gid)
-            if not isinstance(shape, Sphere):
-                raise ModelError(f"{robot.source}: collision geometry {inspector.GetName(gid)!r} is not a sphere "
-                                 "(the planner over-approximates the arm with spheres)")
-            x_bg = inspector.GetPoseInFrame(gid)
+        for k, sphere in enumerate(spheres):
+            try:
+                c, r = np.asarray(sphere["centre_m"], float), float(sphere["radius_m"])
+            except (KeyError, TypeError, ValueError) as err:
+                raise ModelError(f"{path}: links.{link}[{k}]: needs centre_m [x, y, z] and radius_m ({err})") from err
+            if c.shape != (3,) or not r > 0:
+                raise ModelError(f"{path}: links.{link}[{k}]: needs centre_m [x, y, z] and radius_m > 0")
             body.append(idx)
-            centre.append((x_cb @ x_bg).translation())
-            radius.append(shape.radius())
-            names.append(inspector.GetName(gid))
+            centre.append(x_cb @ c)
+            radius.append(r)
+            names.append(f"{link}_sphere_{k}")
     return Spheres(np.array(body, int), np.array(centre, float).reshape(-1, 3), np.array(radius, float), names)
+
+
+def carrier_index(plant, body, body_names):
+    """Tree index (in `body_names`) of the body that carries `body`: itself or the nearest body
+    above it through welds; -1 when it is welded to the world (it never moves)."""
+    inboard = {plant.get_joint(j).child_body().index(): plant.get_joint(j) for j in plant.GetJointIndices()}
+    while body.name() not in body_names and body.index() in inboard:
+        body = inboard[body.index()].parent_body()
+    return body_names.index(body.name()) if body.name() in body_names else -1
 
 
 def payload_spheres(robot, dumbbell):

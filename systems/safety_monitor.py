@@ -1,9 +1,14 @@
 """SafetyMonitor: the referee of a closed-loop run, on the TRUE geometry and state.
 
-At every plant step it records the smallest signed distance between any robot geometry and any
-anchored environment geometry (obstacles, floor) from Drake's QueryObject, and the ratios of
+At every plant step it records the smallest signed distance between any robot geometry (the
+link shapes of the model file and the payload, as SceneGraph holds them) and any anchored
+environment geometry (obstacles, floor) from Drake's QueryObject, and the ratios of
 |q| to the position limits, |v| to the velocity limits and |u| to the torque limits. It knows
 nothing of the planner's spheres or over-approximations, so it can catch them being wrong.
+
+SceneGraph filters the pairs of bodies welded together, the base and the world included, so the
+base's pairs with the environment are queried one by one (a box through the base is a
+collision); the base standing on its support (the floor) is not.
 
 Torque is read twice: the controller's command (before the actuator saturation: this is what
 the planner's torque bound certifies, and it may exceed the limit) and the motor torque after
@@ -55,12 +60,14 @@ class SafetyMonitor(LeafSystem):
     """Inputs: geometry query, plant state (q, v), applied (motor) torque, commanded torque.
     Records every `period_s`."""
 
-    def __init__(self, plant, scene_graph, robot, period_s, max_distance_m=0.5):
+    def __init__(self, plant, scene_graph, robot, period_s, max_distance_m=0.5, supports=("floor",)):
+        """supports: names of environment geometries the fixed base stands on (not collisions)."""
         super().__init__()
         self._robot = robot
         self._inspector = scene_graph.model_inspector()
         self._world = plant.GetBodyFrameIdOrThrow(plant.world_body().index())
         self._max_distance = max_distance_m
+        self._fixed_pairs = self._base_environment_pairs(plant, set(supports))
         self.record = SafetyRecord()
         n = robot.n
         self.query_port = self.DeclareAbstractInputPort("query", AbstractValue.Make(QueryObject()))
@@ -73,10 +80,24 @@ class SafetyMonitor(LeafSystem):
     def _is_environment(self, geometry_id):
         return self._inspector.GetFrameId(geometry_id) == self._world
 
+    def _base_environment_pairs(self, plant, supports):
+        """(robot geometry on a body welded to the world, environment geometry) pairs, which the
+        pairwise query never reports (SceneGraph filters welded bodies), supports excepted."""
+        from pydrake.geometry import Role
+
+        inspector = self._inspector
+        ids = inspector.GetAllGeometryIds(Role.kProximity)
+        environment = [g for g in ids if self._is_environment(g) and inspector.GetName(g) not in supports]
+        fixed = [g for g in ids if not self._is_environment(g)
+                 and plant.IsAnchored(plant.GetBodyFromFrameId(inspector.GetFrameId(g)))]
+        return [(a, b) for a in fixed for b in environment]
+
     def min_clearance(self, query):
+        distances = list(query.ComputeSignedDistancePairwiseClosestPoints(self._max_distance))
+        distances += [query.ComputeSignedDistancePairClosestPoints(a, b) for a, b in self._fixed_pairs]
         best, pair = np.inf, None
-        for d in query.ComputeSignedDistancePairwiseClosestPoints(self._max_distance):
-            if self._is_environment(d.id_A) != self._is_environment(d.id_B) and d.distance < best:
+        for d in distances:
+            if self._is_environment(d.id_A) != self._is_environment(d.id_B) and d.distance < min(best, self._max_distance):
                 best = d.distance
                 pair = (self._inspector.GetName(d.id_A), self._inspector.GetName(d.id_B))
         return (self._max_distance if pair is None else best), pair

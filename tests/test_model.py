@@ -1,7 +1,7 @@
-"""Our Kinova Gen3 model: loads offline, one parameter file, end effector, spheres, payloads."""
+"""Our Kinova Gen3 model: loads offline, one parameter file, end effector, link shapes and the
+planner's separate spheres, payloads."""
 import numpy as np
 import pytest
-from pydrake.geometry import Sphere
 
 from safesysid.systems import inertial
 from safesysid.systems.payload import load_dumbbells, payload_theta_in_end_effector
@@ -32,12 +32,46 @@ def test_urdf_limits_come_from_the_parameter_file():
         assert actuator.effort_limit() == jp.torque_limit[k]
 
 
-def test_collision_spheres_on_the_links():
+def test_collision_geometry_is_the_link_shapes_and_the_planner_spheres_are_separate():
+    """The URDF collides with what it shows (capsules, gripper box); no sphere of the planner's
+    set is in it. The planner's spheres come from the sphere file, some on every link."""
+    from pydrake.geometry import Role
+
+    from safesysid.systems.reachability import arm_spheres
+
     plant, sg, _ = make_plant(MODELS_DIR / "kinova_gen3.urdf", scene_graph=True)
     plant.Finalize()
     inspector = sg.model_inspector()
-    spheres = [g for g in inspector.GetAllGeometryIds() if isinstance(inspector.GetShape(g), Sphere)]
-    assert len(spheres) == 20  # the ARMOUR sphere set
+
+    def shapes(role):
+        return sorted((inspector.GetName(inspector.GetFrameId(g)), repr(inspector.GetShape(g)), str(inspector.GetPoseInFrame(g)))
+                      for g in inspector.GetAllGeometryIds(role))
+
+    collision = shapes(Role.kProximity)
+    assert collision == shapes(Role.kIllustration) and len(collision) == 9
+    assert not any("Sphere" in shape for _, shape, _ in collision)
+    robot = load_robot()
+    spheres = arm_spheres(robot)
+    links = {name.rsplit("_sphere_", 1)[0] for name in spheres.names}
+    assert links == {"base_link", *robot.body_names}
+    assert np.all(spheres.body[[n.startswith("base_link") for n in spheres.names]] == -1)  # fixed to the world
+
+
+def test_a_bad_sphere_file_names_the_file_and_the_field(tmp_path):
+    from safesysid.systems.reachability import arm_spheres
+
+    spheres = tmp_path / "spheres.yaml"
+    params = tmp_path / "params.yaml"
+    text = (MODELS_DIR / "kinova_gen3_params.yaml").read_text()
+    params.write_text(text.replace("urdf: kinova_gen3.urdf", f"urdf: {MODELS_DIR / 'kinova_gen3.urdf'}")
+                      .replace("planner_spheres: kinova_gen3_spheres.yaml", f"planner_spheres: {spheres}"))
+    robot = load_robot(params_path=params)
+    spheres.write_text("links:\n  elbow_link:\n    - {centre_m: [0, 0, 0], radius_m: 0.05}\n")
+    with pytest.raises(ModelError, match=r"spheres.yaml: links.elbow_link: no such link"):
+        arm_spheres(robot)
+    spheres.write_text("links:\n  forearm_link:\n    - {centre_m: [0, 0], radius_m: 0.05}\n")
+    with pytest.raises(ModelError, match=r"spheres.yaml: links.forearm_link\[0\]: needs centre_m"):
+        arm_spheres(robot)
 
 
 def test_dumbbells_are_consistent_and_inside_the_table_ii_box():

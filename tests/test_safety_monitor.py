@@ -6,15 +6,16 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource
 
+from safesysid.systems import reachability as reach
 from safesysid.systems.robot_model import load_robot, make_plant
 from safesysid.systems.safety_monitor import SafetyMonitor, limit_ratio
 
 
-def run_with_box(box_center, command=None):
+def run_with_box(box_center, command=None, size=(0.1, 0.1, 0.1), name="box", q=None):
     robot = load_robot()
     builder = DiagramBuilder()
     plant, sg, _ = make_plant(robot.source, time_step=0.001, builder=builder)
-    plant.RegisterCollisionGeometry(plant.world_body(), RigidTransform(box_center), Box(0.1, 0.1, 0.1), "box", CoulombFriction(0.5, 0.5))
+    plant.RegisterCollisionGeometry(plant.world_body(), RigidTransform(box_center), Box(*size), name, CoulombFriction(0.5, 0.5))
     plant.Finalize()
     monitor = builder.AddSystem(SafetyMonitor(plant, sg, robot, period_s=0.001))
     zero = builder.AddSystem(ConstantVectorSource(np.zeros(robot.n)))
@@ -27,7 +28,7 @@ def run_with_box(box_center, command=None):
     diagram = builder.Build()
     sim = Simulator(diagram)
     ctx = plant.GetMyContextFromRoot(sim.get_mutable_context())
-    plant.SetPositions(ctx, np.zeros(robot.n))
+    plant.SetPositions(ctx, np.zeros(robot.n) if q is None else q)
     sim.Initialize()
     sim.AdvanceTo(0.0)
     return monitor.record, plant, ctx
@@ -42,6 +43,36 @@ def test_box_on_the_gripper_is_a_collision():
     assert summary["collisions"] == 1 and summary["min_clearance_m"] < -0.02
     far, _, _ = run_with_box(ee + [0.0, 0.6, 0.0])
     assert far.summary()["collisions"] == 0 and far.summary()["min_clearance_m"] > 0.2
+
+
+def test_the_referee_measures_the_link_shapes_not_the_planner_spheres():
+    """A box 5 cm from the half_arm_1 capsule (link shape): the referee reports 5 cm, where the
+    planner's spheres (1.5 cm fatter) would report less than 4 cm."""
+    robot = load_robot()
+    kin = robot.forward_kinematics(np.zeros(robot.n))
+    start, end = kin.p[0, 1], kin.p[0, 2]  # half_arm_1 capsule: its origin to joint 3
+    mid = 0.5 * (start + end)
+    side = np.cross(end - start, [0.0, 1.0, 0.0])
+    side /= np.linalg.norm(side)
+    centre = mid + side * (0.045 + 0.05 + 0.01)  # capsule radius, gap, half the 2 cm cube
+    record, _, _ = run_with_box(centre, size=(0.02, 0.02, 0.02))
+    clearance = record.summary()["min_clearance_m"]
+    spheres = reach.arm_spheres(robot)
+    c, _ = reach.sphere_centres(robot.tree, spheres, np.zeros((1, robot.n)), with_jacobian=False)
+    sd, _ = reach.box_signed_distance(c[0], np.broadcast_to(centre, c[0].shape), np.broadcast_to(np.eye(3), (len(spheres), 3, 3)),
+                                      np.full(c[0].shape, 0.01))
+    print(f"referee {clearance:.4f} m, planner spheres {np.min(sd - spheres.radius):.4f} m")
+    assert abs(clearance - 0.05) < 5e-4 and np.min(sd - spheres.radius) < 0.04
+
+
+def test_a_box_through_the_fixed_base_is_a_collision_but_the_floor_it_stands_on_is_not():
+    """SceneGraph filters the welded base's pairs with the world; the referee queries them."""
+    record, _, _ = run_with_box([-0.05, 0.0, 0.08], size=(0.05, 0.3, 0.05))  # 2 cm into the base, below the shoulder
+    summary = record.summary()
+    assert summary["collisions"] == 1 and abs(summary["min_clearance_m"] + 0.02) < 1e-6, summary
+    assert record.closest_pair[0][0].endswith("base_link_capsule")
+    floor, _, _ = run_with_box([0.0, 0.0, -0.025], size=(4.0, 4.0, 0.05), name="floor")
+    assert floor.summary()["collisions"] == 0 and floor.summary()["min_clearance_m"] > 0.05
 
 
 def test_limit_ratio():
