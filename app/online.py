@@ -1,5 +1,7 @@
 """Algorithm 2 as one Drake diagram: real arm <- ArmourController <- ExcitingPlanner, with the
-SysIdEstimator feeding (theta0, [theta]) back to both, refereed by the SafetyMonitor.
+SysIdEstimator feeding (theta0, [theta]) back to the planner, refereed by the SafetyMonitor.
+The controller takes its (theta0, [theta]) from the planner: those the executing plan was
+certified with (systems/planner_system.py), never the estimator's latest.
 
 Methods (paper Table III):
   ours          exciting plans + identification
@@ -148,8 +150,12 @@ def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> On
     else:
         theta_ports = [_constant(builder, v, f"prior_{k}") for k, v in enumerate((theta0, box.lo, box.hi))]
     for name, port in zip(("theta0", "theta_lower", "theta_upper"), theta_ports):
-        builder.Connect(port, controller.GetInputPort(name))
         builder.Connect(port, planner.GetInputPort(name))
+        builder.Connect(planner.GetOutputPort(f"plan_{name}"), controller.GetInputPort(name))
+    if estimator is not None and estimator.HasOutputPort("consistent"):
+        builder.Connect(estimator.GetOutputPort("consistent"), planner.GetInputPort("estimate_consistent"))
+    else:
+        builder.Connect(_constant(builder, [1.0], "estimate_consistent"), planner.GetInputPort("estimate_consistent"))
     builder.Connect(desired.get_output_port(), controller.GetInputPort("desired"))
     builder.Connect(arm.state_output, controller.GetInputPort("state"))
     builder.Connect(controller.GetOutputPort("torque"), arm.commanded_torque_input)
@@ -181,6 +187,12 @@ def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> On
 def _log(sink, context):
     data = sink.FindLog(context)
     return data.sample_times().copy(), data.data().T.copy()
+
+
+def merge_events(*sources):
+    """One list of {t, kind, detail} from several systems' event lists, in time order (stable:
+    events at the same instant keep their order within a source)."""
+    return sorted((dict(e) for source in sources for e in source), key=lambda e: e["t"])
 
 
 def classify_failure(safety, plans, tracking_ratio):
@@ -251,7 +263,9 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
         theta_e0, lo, hi = theta0[robot.ee_slice], box.lo[robot.ee_slice], box.hi[robot.ee_slice]
         history, cond_y, update_times = [], float("nan"), []
     contains = bool(np.all((lo <= truth) & (truth <= hi)))
-    plans = built.planner.records(built.planner.GetMyContextFromRoot(ctx))
+    planner_context = built.planner.GetMyContextFromRoot(ctx)
+    plans = built.planner.records(planner_context)
+    events = merge_events(built.planner.events(planner_context))  # every system's events, in time order
     solve_times = [p["solve_time_s"] for p in plans]
     deadline = scenario.planner.replan_period_s
     bound = np.asarray(built.tracking.position, float)
@@ -273,10 +287,10 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
         "contains_truth": contains, "cond_Y": cond_y,
         "planner": {"iterations": len(plans), "solve_time_s": solve_times, "deadline_s": deadline,
                     "missed_deadlines": int(sum(t_ > deadline for t_ in solve_times)),
-                    "brakes": int(sum(p["braking"] for p in plans)), "solver": scenario.planner.solver if method != "random" else "random",
+                    "brakes": sum(e["kind"] == "brake" for e in events), "solver": scenario.planner.solver if method != "random" else "random",
                     "status": [p["status"] for p in plans], "cond_W": [p.get("cond") for p in plans]},
         "sysid": {"updates": len(history), "update_time_s": update_times},
-        "wall_time_s": wall, "sim_time_s": float(horizon),
+        "wall_time_s": wall, "sim_time_s": float(horizon), "events": events,
     }
     if not write:
         return summary

@@ -25,17 +25,24 @@ def setup():
     return robot, planner, (theta0, lo, hi)
 
 
-def simulate(system, t_end, connect_thetas=None):
+def simulate(system, t_end, connect_thetas=None, consistent=None, theta_sources=None):
+    """Run the planner alone; logs of q, v, a and (plan_theta0, lower, upper) every 5 ms.
+    theta_sources: systems whose output feeds theta0, lower, upper (instead of constants)."""
     builder = DiagramBuilder()
     builder.AddSystem(system)
     if connect_thetas is not None:
-        for k, value in enumerate(connect_thetas):
-            src = builder.AddSystem(ConstantVectorSource(value))
-            builder.Connect(src.get_output_port(), system.get_input_port(k))
+        theta_sources = [ConstantVectorSource(value) for value in connect_thetas]
+    for k, src in enumerate(theta_sources or []):
+        builder.AddSystem(src)
+        builder.Connect(src.get_output_port(), system.get_input_port(k))
+    if consistent is not None:
+        flag = builder.AddSystem(ConstantVectorSource([consistent]))
+        builder.Connect(flag.get_output_port(), system.GetInputPort("estimate_consistent"))
     logs = []
-    for k in range(3):
-        log = builder.AddSystem(VectorLogSink(7, publish_period=0.005))
-        builder.Connect(system.get_output_port(k), log.get_input_port())
+    for name in ("q_desired", "v_desired", "a_desired", "plan_theta0", "plan_theta_lower", "plan_theta_upper"):
+        port = system.GetOutputPort(name)
+        log = builder.AddSystem(VectorLogSink(port.size(), publish_period=0.005))
+        builder.Connect(port, log.get_input_port())
         logs.append(log)
     diagram = builder.Build()
     sim = Simulator(diagram)
@@ -54,7 +61,7 @@ def test_four_plans_continuous_desired_trajectory_ending_at_rest(setup):
     assert all(r["ok"] for r in st.records)
     assert all(np.isfinite(r["solve_time_s"]) and r["status"] in ("solved", "best_feasible") for r in st.records)
     t = logs[0].sample_times()
-    q, v, a = (log.data().T for log in logs)
+    q, v, a = (log.data().T for log in logs[:3])
     # Continuity of q, qd (and qdd) across the replans: the next plan starts at the old state.
     dt = np.diff(t)
     assert np.max(np.abs(np.diff(q, axis=0))) < 1.5 * np.max(np.abs(v)) * dt.max() + 1e-9
@@ -85,6 +92,7 @@ def test_failed_plan_keeps_the_previous_one_which_brakes(setup):
     st, logs = simulate(system, 5.0)  # theta ports unconnected: the constructor's values are used
     assert st.calls == 2 and st.done
     assert st.records[1]["braking"] and not st.records[1]["ok"]
+    assert [(e["t"], e["kind"]) for e in st.events] == [(1.5, "plan_failed"), (1.5, "brake")]
     t = logs[0].sample_times()
     v = logs[1].data().T
     assert np.max(np.abs(v[t < 2.9])) > 1e-3  # moving along the first plan ...
@@ -105,4 +113,52 @@ def test_infeasible_first_plan_holds_the_start(setup):
     st, logs = simulate(system, 2.0)
     assert st.plan is None and st.calls == 1 and st.done
     assert not st.records[0]["braking"] and st.records[0]["reason"] == "start inside a margin"
+    assert [e["kind"] for e in st.events] == ["plan_failed"]  # nothing to brake on: it never moved
+    assert np.allclose(logs[0].data().T, Q0) and np.allclose(logs[1].data(), 0)
+
+
+class Recording:
+    """The real planner, keeping the parameters each call was asked to certify."""
+
+    def __init__(self, inner):
+        self.inner, self.config, self.robot, self.calls = inner, inner.config, inner.robot, []
+
+    def plan(self, q, v, a, theta0, lo, hi, **kw):
+        res = self.inner.plan(q, v, a, theta0, lo, hi, **kw)
+        self.calls.append((np.concatenate([theta0, lo, hi]), res.ok))
+        return res
+
+
+def test_outputs_the_parameters_the_executing_plan_was_certified_with(setup):
+    """The estimate tightens at 0.7 s: the plan started at 0 s keeps its own parameters on the
+    output until the plan started at 1.5 s, certified with the tight box, takes over."""
+    from pydrake.trajectories import PiecewisePolynomial
+    from pydrake.systems.primitives import TrajectorySource
+
+    robot, planner, (theta0, lo, hi) = setup
+    tight = (theta0, theta0 - 0.5 * (theta0 - lo), theta0 + 0.5 * (hi - theta0))
+    sources = [TrajectorySource(PiecewisePolynomial.ZeroOrderHold([0.0, 0.7, 10.0], np.stack([a, b, b], 1)))
+               for a, b in zip((theta0, lo, hi), tight)]
+    recording = Recording(planner)
+    system = ExcitingPlanner(recording, Q0, theta0, lo, hi, num_plans=2)
+    st, logs = simulate(system, 3.0, theta_sources=sources)
+    assert [ok for _, ok in recording.calls] == [True, True]
+    t = logs[3].sample_times()
+    out = np.hstack([log.data().T for log in logs[3:]])
+    first, second = (params for params, _ in recording.calls)
+    assert not np.array_equal(first, second)
+    # A log at t shows the outputs before the updates at t (Drake publishes, then updates).
+    before, after = t <= 1.5, t > 1.5
+    assert np.array_equal(out[before], np.broadcast_to(first, out[before].shape))
+    assert np.array_equal(out[after], np.broadcast_to(second, out[after].shape))
+    assert np.array_equal(np.concatenate(st.thetas), second)
+
+
+def test_an_inconsistent_estimate_is_never_planned_with(setup):
+    robot, planner, thetas = setup
+    recording = Recording(planner)
+    system = ExcitingPlanner(recording, Q0, *thetas)
+    st, logs = simulate(system, 2.0, connect_thetas=thetas, consistent=0.0)
+    assert recording.calls == [] and st.plan is None and st.done
+    assert [e["kind"] for e in st.events] == ["plan_refused"]
     assert np.allclose(logs[0].data().T, Q0) and np.allclose(logs[1].data(), 0)
