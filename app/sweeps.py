@@ -1,5 +1,8 @@
 """Randomized scenes for Monte-Carlo safety runs (issue 5): random start near a base pose,
-1-4 random boxes near the arm (never touching it at the start), random payload 0-8 lb."""
+1-4 random boxes near the arm (never touching it at the start), random payload 0-8 lb.
+With near_clearance_m=(lo, hi) the first box is placed at a clearance drawn in [lo, hi] from the
+planner's spheres (arm and payload) at the start: adversarially close, yet outside them, so the
+planner can start (the real link shapes are inside the spheres: their clearance is at least that)."""
 from __future__ import annotations
 
 import copy
@@ -11,10 +14,13 @@ from safesysid.scenario import Obstacle, Scenario, robot_from_scenario
 PAYLOADS = ("none", "4lb", "5lb", "6lb", "7lb", "8lb")
 
 
-def _sphere_centres(robot, q):
-    from safesysid.systems.reachability import arm_spheres, sphere_centres
+def _sphere_centres(robot, q, dumbbell=None):
+    """Planner sphere centres and radii at q: the arm's, and the payload's when given."""
+    from safesysid.systems.reachability import arm_spheres, payload_spheres, sphere_centres
 
     spheres = arm_spheres(robot)
+    if dumbbell is not None:
+        spheres = spheres.concat(payload_spheres(robot, dumbbell))
     centres, _ = sphere_centres(robot.tree, spheres, np.asarray(q, float)[None], with_jacobian=False)
     return centres[0], spheres.radius
 
@@ -30,8 +36,46 @@ def _clearance(points, radii, box: Obstacle):
     return float(np.min(outside + inside - radii))
 
 
-def random_scene(base: Scenario, rng, start_spread_rad=0.15, min_start_clearance_m=0.08, seed=None) -> Scenario:
-    """A copy of `base` with a random start, random boxes near the arm and a random payload."""
+def _box_on_floor(name, centre, size, yaw):
+    centre = np.array(centre, float)
+    centre[2] = max(centre[2], size[2] / 2)  # rest on or above the floor
+    return Obstacle(name=name, xyz_m=centre.tolist(), rpy_rad=[0.0, 0.0, float(yaw)], size_m=list(map(float, size)))
+
+
+def _random_direction(rng):
+    """A random unit direction, flattened toward the horizontal."""
+    direction = rng.normal(size=3)
+    direction[2] *= 0.3
+    return direction / np.linalg.norm(direction)
+
+
+def near_box(points, radii, rng, clearance_m, attempts=50):
+    """A random box whose clearance from the spheres (points, radii) is clearance_m (to 0.1 mm):
+    pushed out from a random sphere along a random direction, the distance found by bisection."""
+    for _ in range(attempts):
+        anchor = points[rng.integers(len(points))]
+        direction = _random_direction(rng)
+        size = rng.uniform(0.05, 0.3, 3)
+        yaw = rng.uniform(-np.pi, np.pi)
+
+        def gap(dist):
+            return _clearance(points, radii, _box_on_floor("near", anchor + dist * direction, size, yaw)) - clearance_m
+
+        lo, hi = 0.0, 2.0
+        if gap(lo) >= 0 or gap(hi) <= 0:
+            continue
+        for _ in range(40):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if gap(mid) < 0 else (lo, mid)
+        if abs(gap(hi)) < 1e-4:
+            return _box_on_floor("near", anchor + hi * direction, size, yaw)
+    return None
+
+
+def random_scene(base: Scenario, rng, start_spread_rad=0.15, min_start_clearance_m=0.08, seed=None,
+                 near_clearance_m=None) -> Scenario:
+    """A copy of `base` with a random start, random boxes near the arm and a random payload
+    (near_clearance_m: (lo, hi) of the first box's clearance from the planner's spheres)."""
     scene = copy.deepcopy(base)
     robot = robot_from_scenario(base)
     jp = robot.joint_params
@@ -42,13 +86,16 @@ def random_scene(base: Scenario, rng, start_spread_rad=0.15, min_start_clearance
     points, radii = _sphere_centres(robot, q0)
     # Dumbbell clearance is covered by the gripper spheres' margin plus min_start_clearance_m.
     boxes = []
+    if near_clearance_m is not None:
+        from safesysid.systems.real_arm import scenario_dumbbell
+
+        near = near_box(*_sphere_centres(robot, q0, scenario_dumbbell(scene)), rng, rng.uniform(*near_clearance_m))
+        boxes += [] if near is None else [near]
     for attempt in range(200):
         if len(boxes) >= rng.integers(1, 5):
             break
         anchor = points[rng.integers(len(points))]
-        direction = rng.normal(size=3)
-        direction[2] *= 0.3
-        direction /= np.linalg.norm(direction)
+        direction = _random_direction(rng)
         size = rng.uniform(0.05, 0.3, 3)
         centre = anchor + direction * (np.max(size) / 2 + rng.uniform(0.12, 0.35))
         if centre[2] - size[2] / 2 < 0.0:  # rest on or above the floor

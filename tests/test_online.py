@@ -1,5 +1,8 @@
-"""Closed-loop Algorithm 2 on the simulated real arm: safety on the true geometry, limits,
-interval containment; methods and outputs. Full sample: SAFESYSID_FULL=1 (100 scenes)."""
+"""Closed-loop Algorithm 2 on the simulated real arm: safety on the true geometry (link shapes,
+not the planner's spheres), the controller's command before saturation, joint and velocity
+limits, the tracking tube, interval containment; methods and outputs. The random scenes put a box
+1-5 cm outside the planner's spheres at the start (adversarially close). Full sample:
+SAFESYSID_FULL=1 (100 scenes)."""
 import json
 
 import numpy as np
@@ -17,11 +20,14 @@ def quickstart():
 
 
 def assert_safe(summary):
-    assert summary["collisions"] == 0 and summary["min_clearance_m"] >= 0.0
-    assert summary["max_commanded_torque_ratio"] <= 1.0 + 1e-9
-    assert summary["max_joint_limit_ratio"] <= 1.0 and summary["max_velocity_ratio"] <= 1.0
-    assert summary["max_tracking_error_ratio"] <= 1.0 + 1e-9
-    assert summary["contains_truth"]
+    """Every guarantee on its own line, so a failure names it."""
+    assert summary["collisions"] == 0 and summary["min_clearance_m"] >= 0.0, "collision"
+    assert summary["max_commanded_torque_ratio"] <= 1.0 + 1e-9, "torque limit (command before saturation)"
+    assert summary["max_joint_limit_ratio"] <= 1.0, "joint limit"
+    assert summary["max_velocity_ratio"] <= 1.0, "velocity limit"
+    assert summary["max_tracking_error_ratio"] <= 1.0 + 1e-9, "tracking tube"
+    assert summary["contains_truth"], "containment"
+    assert summary["success"] and summary["failure"] is None
 
 
 def test_quickstart_outputs(quickstart, tmp_path):
@@ -29,7 +35,8 @@ def test_quickstart_outputs(quickstart, tmp_path):
     on_disk = json.loads((tmp_path / "summary.json").read_text())
     for key in ("scenario", "method", "seed", "success", "failure", "collisions", "min_clearance_m", "max_torque_ratio",
                 "max_joint_limit_ratio", "max_tracking_error_rad", "tracking_bound_rad", "payload_true", "estimate",
-                "contains_truth", "cond_Y", "planner", "sysid", "wall_time_s", "sim_time_s"):
+                "contains_truth", "cond_Y", "planner", "sysid", "wall_time_s", "sim_time_s",
+                "max_commanded_torque_ratio", "events"):
         assert key in on_disk
     assert (tmp_path / "replay.html").stat().st_size > 100_000 and (tmp_path / "log.csv").exists()
     assert_safe(summary)
@@ -48,26 +55,28 @@ def test_quickstart_outputs(quickstart, tmp_path):
 
 
 @pytest.mark.parametrize("index", range(n_trials(2, 100)))
-def test_random_scenes_are_safe(quickstart, index):
-    scene = random_scene(quickstart, np.random.default_rng(1000 + index))
+def test_random_scenes_with_a_box_close_to_the_arm_are_safe(quickstart, index):
+    scene = random_scene(quickstart, np.random.default_rng(1000 + index), near_clearance_m=(0.01, 0.05))
+    assert scene.obstacles and scene.obstacles[0].name == "near"
     summary = run_online(scene, None, method="ours", write=False)
+    print({k: summary[k] for k in ("min_clearance_m", "max_commanded_torque_ratio", "max_joint_limit_ratio",
+                                   "max_velocity_ratio", "max_tracking_error_ratio", "contains_truth")}, summary["events"])
     assert_safe(summary)
     assert "solved" in summary["planner"]["status"] or "best_feasible" in summary["planner"]["status"]  # it moved
+    assert summary["min_clearance_m"] < 0.1  # the referee sees the box close to the real geometry
 
 
+@pytest.mark.skipif(not FULL, reason="a statistical claim: 20 pairs (SAFESYSID_FULL=1); CI checks the planner's "
+                                     "cond(W) in tests/test_planner.py")
 def test_exciting_plans_beat_random_ones(quickstart):
-    """Paired runs from the same start: median cond(Y) of ours / random (paper Table IV).
-
-    Full sample (20 pairs) must reach the issue's ratio <= 0.8; the CI sample only checks the
-    direction, since a median of 2 pairs is too noisy for the threshold."""
-    pairs = n_trials(2, 20)
+    """Paired runs from the same start: median cond(Y) of ours / random (paper Table IV) <= 0.8."""
     ours, rand = [], []
-    for seed in range(pairs):
+    for seed in range(20):
         ours.append(run_online(quickstart, None, method="ours", seed=seed, write=False)["cond_Y"])
         rand.append(run_online(quickstart, None, method="random", seed=seed, write=False)["cond_Y"])
     ratio = np.median(ours) / np.median(rand)
     print(f"median cond(Y) ours {np.median(ours):.1f} / random {np.median(rand):.1f} = {ratio:.2f}")
-    assert ratio <= (0.8 if FULL else 1.0)
+    assert ratio <= 0.8
 
 
 def test_wrong_model_leaves_the_tracking_bound(quickstart):
