@@ -19,3 +19,14 @@ def shared_path(*parts):
     if not path.exists():
         pytest.skip(f"shared data not available: {path}")
     return path
+
+
+def params_with_spheres(tmp_path, spheres_path):
+    """A copy of the Gen3 parameter file whose planner_spheres is `spheres_path` (same URDF)."""
+    from safesysid.systems.robot_model import MODELS_DIR
+
+    params = tmp_path / "params.yaml"
+    params.write_text((MODELS_DIR / "kinova_gen3_params.yaml").read_text()
+                      .replace("urdf: kinova_gen3.urdf", f"urdf: {MODELS_DIR / 'kinova_gen3.urdf'}")
+                      .replace("planner_spheres: kinova_gen3_spheres.yaml", f"planner_spheres: {spheres_path}"))
+    return params

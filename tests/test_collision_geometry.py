@@ -12,6 +12,7 @@ import pytest
 from pydrake.geometry import Box, Capsule, Cylinder, Role, Sphere
 from pydrake.systems.framework import DiagramBuilder
 
+from conftest import params_with_spheres
 from safesysid.scenario import SCENARIOS_DIR, load_scenario
 from safesysid.systems import reachability as reach
 from safesysid.systems.payload import load_dumbbells
@@ -142,11 +143,7 @@ def test_the_enclosure_check_catches_a_sphere_file_that_misses_the_arm(robot, tm
         sphere["radius_m"] -= 0.02
     spheres = tmp_path / "spheres.yaml"
     spheres.write_text(yaml.safe_dump(doc))
-    params = tmp_path / "params.yaml"
-    params.write_text((MODELS_DIR / "kinova_gen3_params.yaml").read_text()
-                      .replace("urdf: kinova_gen3.urdf", f"urdf: {MODELS_DIR / 'kinova_gen3.urdf'}")
-                      .replace("planner_spheres: kinova_gen3_spheres.yaml", f"planner_spheres: {spheres}"))
-    shrunk = load_robot(params_path=params)
+    shrunk = load_robot(params_path=params_with_spheres(tmp_path, spheres))
     worst = worst_protrusions(shrunk, None, configurations(shrunk, 2))
     assert worst["forearm_link Capsule (collision)"] > 0.01
     assert max(gap for label, gap in worst.items() if not label.startswith("forearm")) <= TOLERANCE_M

@@ -3,6 +3,7 @@ planner's separate spheres, payloads."""
 import numpy as np
 import pytest
 
+from conftest import params_with_spheres
 from safesysid.systems import inertial
 from safesysid.systems.payload import load_dumbbells, payload_theta_in_end_effector
 from safesysid.systems.robot_model import MODELS_DIR, ModelError, load_joint_parameters, load_robot, make_plant
@@ -61,11 +62,7 @@ def test_a_bad_sphere_file_names_the_file_and_the_field(tmp_path):
     from safesysid.systems.reachability import arm_spheres
 
     spheres = tmp_path / "spheres.yaml"
-    params = tmp_path / "params.yaml"
-    text = (MODELS_DIR / "kinova_gen3_params.yaml").read_text()
-    params.write_text(text.replace("urdf: kinova_gen3.urdf", f"urdf: {MODELS_DIR / 'kinova_gen3.urdf'}")
-                      .replace("planner_spheres: kinova_gen3_spheres.yaml", f"planner_spheres: {spheres}"))
-    robot = load_robot(params_path=params)
+    robot = load_robot(params_path=params_with_spheres(tmp_path, spheres))
     spheres.write_text("links:\n  elbow_link:\n    - {centre_m: [0, 0, 0], radius_m: 0.05}\n")
     with pytest.raises(ModelError, match=r"spheres.yaml: links.elbow_link: no such link"):
         arm_spheres(robot)
