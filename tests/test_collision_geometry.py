@@ -148,3 +148,22 @@ def test_the_enclosure_check_catches_a_sphere_file_that_misses_the_arm(robot, tm
     assert worst["forearm_link Capsule (collision)"] > 0.01
     assert max(gap for label, gap in worst.items() if not label.startswith("forearm")) <= TOLERANCE_M
     assert worst.keys() == worst_protrusions(robot, None, configurations(robot, 0)).keys()
+
+
+def test_the_planner_checks_obstacles_against_the_fixed_base(robot):
+    """The base cannot move, yet it has (world-fixed) planner spheres: a box 1 cm from the base
+    capsule, inside those spheres and clear of every moving one, makes the planner refuse to
+    start, naming the base; 5 cm away (outside them) it plans."""
+    from safesysid.scenario import Obstacle, Planner
+    from safesysid.systems.planner import SafePlanner
+
+    q0 = np.array([0.0, 0.26, 0.0, 2.0, 0.0, 0.9, 1.57])
+    theta = robot.theta
+    reasons = {}
+    for gap in (0.01, 0.05):
+        box = Obstacle(name="by_the_base", xyz_m=[-(0.045 + gap + 0.05), 0.0, 0.05], size_m=[0.1, 0.1, 0.1])
+        planner = SafePlanner(robot, Planner(num_cost_samples=16), [box], None, None)
+        problem = planner.problem(q0, np.zeros(robot.n), np.zeros(robot.n), theta, theta, theta)
+        reasons[gap] = problem.reason
+    assert "base_link_sphere" in reasons[0.01] and "by_the_base" in reasons[0.01]
+    assert reasons[0.05] == ""
