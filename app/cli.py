@@ -5,6 +5,8 @@ Exit status: 0 success, 2 bad input (one line naming file and field), 1 otherwis
 from __future__ import annotations
 
 import argparse
+import importlib
+import os
 import sys
 
 class BadInput(ValueError):
@@ -17,13 +19,6 @@ def _bad_input_types():
     from safesysid.systems.robot_model import ModelError
 
     return (BadInput, LogError, ScenarioError, ModelError)
-
-
-def not_done(issue):
-    def run(args):
-        print(f"safesysid {args.verb}: not implemented yet (issue {issue})", file=sys.stderr)
-        return 1
-    return run
 
 
 def build_parser():
@@ -43,6 +38,16 @@ def build_parser():
     p.add_argument("--methods", default="ours,random")
     p.add_argument("--trials", type=int, default=1)
     p.add_argument("--out", default="out/compare")
+
+    p = sub.add_parser("sweep", help="randomized adversarial closed-loop trials; aggregate safety evidence")
+    p.add_argument("scenario")
+    p.add_argument("--trials", type=int, default=20)
+    p.add_argument("--methods", help="comma-separated methods (default: the scenario's)")
+    p.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    p.add_argument("--seed", type=int, default=0, help="trial k uses seed SEED + k")
+    p.add_argument("--nominal", action="store_true",
+                   help="plain random scenes (default: noise at the declared bound, robot parameters drawn in their box)")
+    p.add_argument("--out", default="out/sweep")
 
     p = sub.add_parser("sysid", help="Algorithm 1 offline on a joint log")
     p.add_argument("log")
@@ -69,22 +74,15 @@ def build_parser():
 def _dispatch(args):
     # Each verb lives in its own module of app/ (safesysid.<module>.<function>(args)).
     handlers = {
-        "run": ("safesysid.run_cli", "cmd_run", 5),
-        "compare": ("safesysid.run_cli", "cmd_compare", 5),
-        "sysid": ("safesysid.sysid_cli", "cmd_sysid", 3),
-        "diagnose": ("safesysid.diagnose_cli", "cmd_diagnose", 6),
-        "bench": ("safesysid.bench_cli", "cmd_bench", 2),
+        "run": ("safesysid.run_cli", "cmd_run"),
+        "compare": ("safesysid.run_cli", "cmd_compare"),
+        "sweep": ("safesysid.sweep_cli", "cmd_sweep"),
+        "sysid": ("safesysid.sysid_cli", "cmd_sysid"),
+        "diagnose": ("safesysid.diagnose_cli", "cmd_diagnose"),
+        "bench": ("safesysid.bench_cli", "cmd_bench"),
     }
-    module_name, fn_name, issue = handlers[args.verb]
-    import importlib
-
-    try:
-        module = importlib.import_module(module_name)
-    except ModuleNotFoundError as err:
-        if err.name != module_name:
-            raise
-        return not_done(issue)(args)
-    return getattr(module, fn_name)(args)
+    module_name, fn_name = handlers[args.verb]
+    return getattr(importlib.import_module(module_name), fn_name)(args)
 
 
 def main(argv=None):
