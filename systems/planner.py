@@ -4,7 +4,8 @@ One call plans one quintic Bézier (systems/bezier.py) from the current (q0, qd0
 q_end = q0 + k_c + k_r * k. Safety (continuous time, every theta in [theta], every tracking error
 inside the controller's ultimate bound) comes from systems/reachability.py:
 - joint position / velocity limits -> a box of k (exact hull property);
-- torque -> a rigorous interval-RNEA check over the whole k box (the box is shrunk if needed);
+- torque -> a rigorous interval-RNEA check over the whole k box (the box is shrunk if needed),
+  robust input bounded on the whole tube, h < 0 included (reachability.torque_bound);
 - collision -> one smooth constraint per (time interval, sphere, obstacle) pair that can be
   active, sd(c_s(q_mid_i(k)), obstacle) >= r_s + spread_is (pairs that no k can bring close are
   dropped, rigorously).
@@ -252,22 +253,27 @@ class PlanningProblem:
 
         boxes, nb = boxes_for([1.0], group)
         wp = reach.interval_passivity_regressor(robot, *boxes)
-        sup, _, _ = reach.torque_bound(wp, theta0, theta_lo, theta_hi)
+        tracking = self.planner.tracking
+        excess = reach.barrier_excess(robot, boxes[0], theta_lo, theta_hi, tracking)  # lambda - |w_bar| (h < 0)
+        sup, _, _ = reach.torque_bound(wp, theta0, theta_lo, theta_hi, excess)
         if (sup / limit).max() <= 1.0:
             self.torque_ratio = float((sup / limit).max())
             return True
-        scales = [0.5 ** s for s in range(1, self.planner.torque_shrink_steps + 1)]
+        # Halving steps, each split in two (factor 1/sqrt 2): the robust term grows little with the
+        # box, so a finer ladder keeps markedly larger boxes for about one more RNEA batch.
+        scales = [0.5 ** (s / 2) for s in range(1, 2 * self.planner.torque_shrink_steps + 1)]
         boxes, nb = boxes_for(scales, group)
         wp = reach.interval_passivity_regressor(robot, *boxes)
-        sup, nominal, robust = reach.torque_bound(wp, theta0, theta_lo, theta_hi)
+        excess = reach.barrier_excess(robot, boxes[0], theta_lo, theta_hi, tracking)
+        sup, nominal, robust = reach.torque_bound(wp, theta0, theta_lo, theta_hi, excess)
         if take_largest_fit(sup):  # the plain bound admits a shrunk box
             return True
         big, nbig = boxes_for(scales, group * coarse)
         wv, _ = reach.robust_bound_vertex(robot, *big, theta0, theta_lo, theta_hi, robot.ee_slice, b_rows=nbig)
-        robust_v = reach.robust_term(wv)
         fine = np.arange(len(robust))
         owner = (fine // nb) * nbig + (fine % nb) // coarse  # coarse box containing each fine box
-        sup = _up(nominal + np.minimum(robust, robust_v[owner])[:, None])
+        robust_v = reach.robust_term(wv[owner], excess)
+        sup = _up(nominal + np.minimum(robust, robust_v)[:, None])
         if take_largest_fit(sup):
             return True
         last = sup.reshape(len(scales), nb, -1)[-1]

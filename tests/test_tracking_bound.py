@@ -40,7 +40,7 @@ def run(s, robot, theta0, box, q0, trajectory, kind="armour", duration=None, the
     gains = loop.controller.gains.armour
     e = C.wrap_error(d[:, :n] - x[:, :n], robot.joint_params.continuous)
     r = (d[:, n:2 * n] - x[:, n:]) + gains.Kr * e
-    bounds = C.tracking_bounds(gains.Kr, gains.V_max, C.mass_matrix_lower_bound(n, box.lo))
+    bounds = C.tracking_bounds_for(robot, gains, box.lo)
     lyapunov = np.zeros(1)
     if theta_true is not None:
         m_true = robot.mass_matrix(x[:, :n], theta_true)
