@@ -13,7 +13,7 @@ Why it works: with the true theta in [theta], w = tau(theta) - tau_nom has |w_i|
 along the closed loop (V = 1/2 r^T M(q; theta_true) r, the TRUE value; continuous time)
     dV/dt <= r^T (w - v) - r^T dF <= |r| (|w_bar| - lambda) <= alpha h <= alpha (V_max - V)
 (dF = friction(qd_a) - friction(qd) is monotone in r, so dissipative; h <= V_max - V as
-V_bar >= V), hence V(t) <= V_max whenever V(0) <= V_max. Sampling: see `SAMPLING` below.
+V_bar >= V), hence V(t) <= V_max whenever V(0) <= V_max. Sampling: see "Sampling" below.
 
 Bound of the robust input on the tube (what the planner's torque bound uses; `robust_gain_bound`).
 V_bar is a maximum over the box, so h < 0 happens while the true V <= V_max; there
@@ -23,6 +23,21 @@ with mu(q) >= lambda_max(sum_k width_k |dM/dtheta_k(q)|) (entrywise |.|, Perron-
     lambda = |w_bar| - alpha h/|r| <= |w_bar| + (alpha/2) |r| mu(q) <= |w_bar| + (alpha/2) eps mu(q),
 and |v_j| <= lambda. The planner adds (alpha/2) eps mu over each interval's configuration box
 (reachability.barrier_excess) to |w_bar|.
+
+Sampling (an assumption, measured, not proven). The loop runs at the plant step dt
+(plant.time_step_s) with the input held. Over a step, r moves by about dt |w - v| / sigma_min;
+at the boundary (h <= 0, so lambda >= |w_bar| and a = -r_hat^T (w - v) >= 0) |w - v|^2 <=
+2 a lambda, so to leading order
+    V(t_k + s) - V(t_k) <= s a (-|r| + s lambda / sigma_min)   (s <= dt),
+i.e. the held robust input cannot push V out while dt <= sigma_min rho_min / lambda, rho_min =
+eps sqrt(sigma_min / lambda_max(M)) the smallest |r| on the boundary. The other O(dt) terms (the
+drift of tau_nom and of the true torque along the step) meet the viscous dissipation
+r^T dF >= Fv_min |r|^2, which the continuous argument does not use. This leading-order limit
+is 11-13 ms for the adversarial runs of tests/test_tracking_bound.py (boundary starts, h = 0);
+those runs keep V <= V_max at 1 ms (the scenario's step; the hardware runs >= 1 kHz) and leave
+the tube at 40 ms (the test that shows the check can fail); the sweep test_step_size_margin
+(SAFESYSID_FULL=1) measures: held up to 25 ms, V = 1.84 V_max at 30 ms. Assumption used
+everywhere: dt <= 1 ms (a margin of ~10x on the leading-order limit, 25x on the measured one).
 
 Friction in tau_nom is evaluated at (qd_a, qdd_a) as in RobotModel.passivity_regressor; that is
 safe because the Coulomb law Fc tanh(v/vs) and Fv v are monotone, so r^T dF >= 0 above.
