@@ -19,7 +19,7 @@ Bound of the robust input on the tube (what the planner's torque bound uses; `ro
 V_bar is a maximum over the box, so h < 0 happens while the true V <= V_max; there
     -h = V_bar - V_max <= V_bar - V = max_[theta] 1/2 r^T (M(q; theta) - M(q; theta_true)) r
        <= 1/2 sum_k width_k |r^T dM/dtheta_k(q) r| <= 1/2 |r|^2 mu(q)            (`mass_spread`)
-with mu(q) >= lambda_max(sum_k width_k |dM/dtheta_k(q)|) (entrywise |.|, Perron-Frobenius), so
+with mu(q) = lambda_max(sum_k width_k |dM/dtheta_k(q)|) (entrywise |.|; |u^T A u| <= |u|^T |A| |u|), so
     lambda = |w_bar| - alpha h/|r| <= |w_bar| + (alpha/2) |r| mu(q) <= |w_bar| + (alpha/2) eps mu(q),
 and |v_j| <= lambda. The planner adds (alpha/2) eps mu over each interval's configuration box
 (reachability.barrier_excess) to |w_bar|.
@@ -233,10 +233,11 @@ def spectral_bound(a):
 
 
 def mass_spread(robot, q, theta_lo, theta_hi):
-    """mu(q) >= max over unit u of sum_k (hi_k - lo_k) |u^T dM/dtheta_k(q) u| <= lambda_max(
-    sum_k (hi_k - lo_k) |dM/dtheta_k(q)|) (entrywise |.|): the largest change of u^T M u between
-    two parameters of the box, at configuration q (n,). M includes the armature (as V does);
-    dM/dtheta_k from the momentum regressor (reachability.interval_mass_spread: over boxes)."""
+    """mu(q) = lambda_max(sum_k (hi_k - lo_k) |dM/dtheta_k(q)|) (entrywise |.|), an upper bound of
+    max over unit u of sum_k (hi_k - lo_k) |u^T dM/dtheta_k(q) u| (|u^T A u| <= |u|^T |A| |u|): the
+    largest change of u^T M u between two parameters of the box, at configuration q (n,). M
+    includes the armature (as V does); dM/dtheta_k from the momentum regressor
+    (reachability.interval_mass_spread: the same over boxes of configurations)."""
     n = robot.n
     columns = robot.momentum_regressor(np.repeat(np.asarray(q, float)[None], n, 0), np.eye(n))  # [j, i, k]
     spread = np.einsum("jik,k->ij", np.abs(columns), np.asarray(theta_hi, float) - theta_lo) * _UP

@@ -690,12 +690,13 @@ def robust_bound_vertex(robot, q, v, va, aa, theta0, theta_lo, theta_hi, block, 
     return _up(np.minimum(plain, best + rest)), plain
 
 
-def barrier_excess(robot, q, theta_lo, theta_hi, bounds: TrackingBounds):
+def barrier_excess(robot, q, theta_lo, theta_hi, bounds: TrackingBounds, rows=1):
     """(N,): alpha eps mu / 2 over each configuration box, the amount by which the controller's
-    lambda may exceed |w_bar| on the tube (controller.robust_gain_bound)."""
+    lambda may exceed |w_bar| on the tube (controller.robust_gain_bound); mu on hulls of `rows`
+    consecutive boxes (it varies slowly; fewer, slightly larger boxes)."""
     if bounds.eps == 0 or bounds.alpha == 0:
         return np.zeros(q.shape[0])
-    mu = interval_mass_spread(robot, q, theta_lo, theta_hi)
+    mu = interval_mass_spread(robot, merge_rows(q, rows), theta_lo, theta_hi)[np.arange(q.shape[0]) // rows]
     return robust_gain_bound(np.zeros_like(mu), bounds.alpha, bounds.eps, mu)
 
 

@@ -213,7 +213,7 @@ def test_a_colliding_plan_is_rejected_and_the_planner_goes_around(robot, payload
     from pydrake.math import RollPitchYaw, RotationMatrix
 
     # Wider shoulder/elbow ranges than the default so a sphere moves farther than its start margin.
-    k_range = [np.pi / 12] * 4 + [np.pi / 20] * 3
+    k_range = [np.pi / 8] * 4 + [np.pi / 20] * 3
     planner, thetas = make_planner(robot, payload, [], k_range_rad=k_range)
     prob = planner.problem(Q0, np.zeros(n), np.zeros(n), theta0, lo, hi)
     sp = planner.spheres
@@ -307,10 +307,14 @@ def test_exciting_beats_random_on_the_condition_number(robot, payload):
 
 
 def test_goal_mode_moves_toward_the_goal(robot, payload):
-    goal = Q0 + np.array([0.05, -0.03, 0.02, 0.04, -0.1, 0.1, 0.05])
-    planner, thetas = make_planner(robot, payload, [], cost="goal", goal_q_rad=goal.tolist())
+    planner, thetas = make_planner(robot, payload, [], cost="goal")
+    prob = planner.problem(Q0, np.zeros(7), np.zeros(7), *thetas)
+    pattern = np.array([0.8, -0.6, 0.4, 0.8, -0.8, 0.8, 0.5])
+    goal = prob.reach.q_end(np.where(pattern > 0, pattern * prob.k_hi, -pattern * prob.k_lo))  # inside the allowed box
+    planner.config.goal_q_rad = goal.tolist()
     res = planner.plan(Q0, np.zeros(7), np.zeros(7), *thetas)
     assert res.ok and np.linalg.norm(res.q_end - goal) < 0.01
+    assert np.linalg.norm(goal - Q0) > 0.05  # a real move
 
 
 def test_swept_spheres_of_a_plan_contain_the_spheres_along_the_tube(robot, payload):

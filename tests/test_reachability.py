@@ -274,6 +274,52 @@ def test_torque_bound_covers_the_controller_command_on_the_whole_tube(robot, V_m
     assert np.max(over / excess) > 0.2  # the extra term is needed and not absurdly loose
 
 
+def test_body_jacobians_rebuild_the_mass_matrix(robot):
+    """sum_i (J_i r)^T I_i (J_i r) + sum_j Ia_j r_j^2 = r^T M r (RobotModel.mass_matrix) with the
+    interval body Jacobians at degenerate boxes and the inertia quadratic forms."""
+    rng = np.random.default_rng(10)
+    n = robot.n
+    q = rng.uniform(-np.pi, np.pi, (5, n))
+    jac = reach.interval_body_jacobians(robot.tree, Interval(q))
+    assert np.max(jac.hi - jac.lo) < 1e-12
+    for row in range(len(q)):
+        r = rng.normal(size=n)
+        twists = np.einsum("ijc,j->ic", jac.mid[row], r)  # (bodies, 6)
+        energy = sum(twists[i] @ np.einsum("kab,k->ab", reach._INERTIA_FORMS, robot.theta[10 * i:10 * i + 10]) @ twists[i]
+                     for i in range(n))
+        energy += robot.theta[10 * n + 2::4] @ r ** 2
+        assert energy == pytest.approx(r @ robot.mass_matrix(q[row][None])[0] @ r, rel=1e-12)
+
+
+def test_interval_mass_spread_encloses_the_point_spread(robot):
+    """interval_mass_spread over a configuration box >= controller.mass_spread at every sampled
+    configuration of it (corners included); equal to it on degenerate boxes; tight on small boxes."""
+    from safesysid.scenario import InitialInterval
+    from safesysid.systems import controller as ctl
+
+    rng = np.random.default_rng(11)
+    n = robot.n
+    ii = InitialInterval()
+    _, box = ctl.parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper))
+    centre = rng.uniform(-2, 2, (12, n))
+    point = np.array([ctl.mass_spread(robot, q, box.lo, box.hi) for q in centre])
+    np.testing.assert_allclose(reach.interval_mass_spread(robot, Interval(centre), box.lo, box.hi), point, rtol=1e-9)
+    assert np.all(reach.interval_mass_spread(robot, Interval(centre), box.lo, box.hi) >= point)
+    for rad_max, loose in ((0.02, 1.3), (0.15, None)):
+        rad = rng.uniform(0, rad_max, centre.shape)
+        mu = reach.interval_mass_spread(robot, Interval(centre - rad, centre + rad), box.lo, box.hi)
+        worst = np.zeros(len(centre))
+        for _ in range(15):
+            pick = rng.uniform(-1, 1, centre.shape)
+            pick = np.where(rng.uniform(size=centre.shape) < 0.5, np.sign(pick), pick)
+            sampled = np.array([ctl.mass_spread(robot, q, box.lo, box.hi) for q in centre + pick * rad])
+            assert np.all(sampled <= mu)
+            worst = np.maximum(worst, sampled)
+        print(f"boxes up to +-{rad_max} rad: interval mu / sampled max {np.min(mu / worst):.3f}-{np.max(mu / worst):.3f}")
+        if loose:
+            assert np.max(mu / worst) < loose
+
+
 def test_local_spread_bounds_sphere_motion_on_joint_boxes(robot, spheres):
     rng = np.random.default_rng(8)
     n = robot.n
