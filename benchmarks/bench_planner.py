@@ -49,9 +49,9 @@ def table_ii_box(robot):
     return theta0, box.lo, box.hi
 
 
-def tracking(robot, theta_lo, V_max=0.02, Kr=(5.0, 5.0, 5.0, 5.0, 7.0, 7.0, 7.0)):
+def tracking(robot, theta_lo, V_max=0.02, Kr=(5.0, 5.0, 5.0, 5.0, 7.0, 7.0, 7.0), alpha=20.0):
     ia = theta_lo[10 * robot.n + 2::4]
-    return reach.TrackingBounds.from_ultimate_bound(V_max, float(ia.min()), np.asarray(Kr), robot.n)
+    return reach.TrackingBounds.from_ultimate_bound(V_max, float(ia.min()), np.asarray(Kr), robot.n, alpha)
 
 
 def near_boxes(robot, q, rng, count=3, clearance=(0.06, 0.12), payload=None):

@@ -10,8 +10,34 @@ Law (reference-notes.md, "Robust passivity controller"):
     h = V_max - V_bar,  lambda = max(0, -alpha h/|r| + |w_bar|),  v = lambda r/|r|,  u = tau_nom + v.
 
 Why it works: with the true theta in [theta], w = tau(theta) - tau_nom has |w_i| <= w_bar_i, and
-along the closed loop  dV/dt <= r^T (w - v) - r^T dF <= alpha h  (dF = friction(qd_a) -
-friction(qd) is monotone in r, so dissipative), hence V(t) <= V_max whenever V(0) <= V_max.
+along the closed loop (V = 1/2 r^T M(q; theta_true) r, the TRUE value; continuous time)
+    dV/dt <= r^T (w - v) - r^T dF <= |r| (|w_bar| - lambda) <= alpha h <= alpha (V_max - V)
+(dF = friction(qd_a) - friction(qd) is monotone in r, so dissipative; h <= V_max - V as
+V_bar >= V), hence V(t) <= V_max whenever V(0) <= V_max. Sampling: see "Sampling" below.
+
+Bound of the robust input on the tube (what the planner's torque bound uses; `robust_gain_bound`).
+V_bar is a maximum over the box, so h < 0 happens while the true V <= V_max; there
+    -h = V_bar - V_max <= V_bar - V = max_[theta] 1/2 r^T (M(q; theta) - M(q; theta_true)) r
+       <= 1/2 sum_k width_k |r^T dM/dtheta_k(q) r| <= 1/2 |r|^2 mu(q)            (`mass_spread`)
+with mu(q) = lambda_max(sum_k width_k |dM/dtheta_k(q)|) (entrywise |.|; |u^T A u| <= |u|^T |A| |u|), so
+    lambda = |w_bar| - alpha h/|r| <= |w_bar| + (alpha/2) |r| mu(q) <= |w_bar| + (alpha/2) eps mu(q),
+and |v_j| <= lambda. The planner adds (alpha/2) eps mu over each interval's configuration box
+(reachability.barrier_excess) to |w_bar|.
+
+Sampling (an assumption, measured, not proven). The loop runs at the plant step dt
+(plant.time_step_s) with the input held. Over a step, r moves by about dt |w - v| / sigma_min;
+at the boundary (h <= 0, so lambda >= |w_bar| and a = -r_hat^T (w - v) >= 0) |w - v|^2 <=
+2 a lambda, so to leading order
+    V(t_k + s) - V(t_k) <= s a (-|r| + s lambda / sigma_min)   (s <= dt),
+i.e. the held robust input cannot push V out while dt <= sigma_min rho_min / lambda, rho_min =
+eps sqrt(sigma_min / lambda_max(M)) the smallest |r| on the boundary. The other O(dt) terms (the
+drift of tau_nom and of the true torque along the step) meet the viscous dissipation
+r^T dF >= Fv_min |r|^2, which the continuous argument does not use. This leading-order limit
+is 11-13 ms for the adversarial runs of tests/test_tracking_bound.py (boundary starts, h = 0);
+those runs keep V <= V_max at 1 ms (the scenario's step; the hardware runs >= 1 kHz) and leave
+the tube at 40 ms (the test that shows the check can fail); the sweep test_step_size_margin
+(SAFESYSID_FULL=1) measures: held up to 25 ms, V = 1.84 V_max at 30 ms. Assumption used
+everywhere: dt <= 1 ms (a margin of ~10x on the leading-order limit, 25x on the measured one).
 
 Friction in tau_nom is evaluated at (qd_a, qdd_a) as in RobotModel.passivity_regressor; that is
 safe because the Coulomb law Fc tanh(v/vs) and Fv v are monotone, so r^T dF >= 0 above.
@@ -196,6 +222,34 @@ def lyapunov_upper(wm_r, r, theta_box: Interval):
     return 0.5 * float(matmul(row, theta_box).hi[0])
 
 
+def spectral_bound(a):
+    """Upper bound of max over unit u of u^T a u, i.e. the largest eigenvalue of the symmetric
+    part of a (..., n, n). eigvalsh is backward stable (its eigenvalues are those of a + E with
+    |E|_2 <= p(n) u |a|_2, p(n) a small multiple of n), so 1e-12 |a|_F covers its error."""
+    a = np.asarray(a, float)
+    sym = 0.5 * (a + np.swapaxes(a, -1, -2))
+    top = np.linalg.eigvalsh(sym)[..., -1]
+    return np.nextafter(top + 1e-12 * np.linalg.norm(sym, axis=(-2, -1)), np.inf)
+
+
+def mass_spread(robot, q, theta_lo, theta_hi):
+    """mu(q) = lambda_max(sum_k (hi_k - lo_k) |dM/dtheta_k(q)|) (entrywise |.|), an upper bound of
+    max over unit u of sum_k (hi_k - lo_k) |u^T dM/dtheta_k(q) u| (|u^T A u| <= |u|^T |A| |u|): the
+    largest change of u^T M u between two parameters of the box, at configuration q (n,). M
+    includes the armature (as V does); dM/dtheta_k from the momentum regressor
+    (reachability.interval_mass_spread: the same over boxes of configurations)."""
+    n = robot.n
+    columns = robot.momentum_regressor(np.repeat(np.asarray(q, float)[None], n, 0), np.eye(n))  # [j, i, k]
+    spread = np.einsum("jik,k->ij", np.abs(columns), np.asarray(theta_hi, float) - theta_lo) * _UP
+    return float(spectral_bound(spread))
+
+
+def robust_gain_bound(w_bar_norm, alpha, eps, mu):
+    """Upper bound of lambda on the tube (true V <= V_max, so |r| <= eps): |w_bar| + alpha eps mu / 2
+    (module docstring; mu from `mass_spread` at q or over a box of configurations)."""
+    return np.nextafter(np.asarray(w_bar_norm, float) + 0.5 * alpha * eps * np.asarray(mu, float) * _UP, np.inf)
+
+
 def robust_input(r, w_bar, h, alpha):
     """(v, lambda): v = lambda r/|r|, lambda = max(0, -alpha h/|r| + |w_bar|)."""
     norm_r = float(np.sqrt(r @ r))
@@ -276,16 +330,17 @@ class TrackingBounds:
     velocity: np.ndarray  # |qd - qd_d|
     qd_a: np.ndarray  # |qd_a - qd_d|
     qdd_a: np.ndarray  # |qdd_a - qdd_d|
+    alpha: float  # the barrier rate: lambda <= |w_bar| + alpha eps mu / 2 (robust_gain_bound)
 
     @classmethod
-    def from_ultimate_bound(cls, V_max, sigma_min, Kr, n):
-        """Bounds of n joints (Kr scalar or per joint) from V_max and sigma_min."""
-        return tracking_bounds(np.broadcast_to(np.asarray(Kr, float), (n,)), V_max, sigma_min)
+    def from_ultimate_bound(cls, V_max, sigma_min, Kr, n, alpha):
+        """Bounds of n joints (Kr scalar or per joint) from V_max, sigma_min and the barrier rate."""
+        return tracking_bounds(np.broadcast_to(np.asarray(Kr, float), (n,)), V_max, sigma_min, alpha)
 
     @classmethod
     def zero(cls, n):
         """Perfect tracking (tests only)."""
-        return cls(0.0, np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n))
+        return cls(0.0, np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n), 0.0)
 
     @classmethod
     def coerce(cls, bounds, n):
@@ -293,19 +348,20 @@ class TrackingBounds:
         if bounds is None:
             return cls.zero(n)
         full = lambda x: np.broadcast_to(np.asarray(x, float), (n,)).copy()  # noqa: E731
-        return cls(float(bounds.eps), full(bounds.position), full(bounds.velocity), full(bounds.qd_a), full(bounds.qdd_a))
+        return cls(float(bounds.eps), full(bounds.position), full(bounds.velocity), full(bounds.qd_a), full(bounds.qdd_a),
+                   float(bounds.alpha))
 
 
-def tracking_bounds(Kr, V_max, sigma_min):
+def tracking_bounds(Kr, V_max, sigma_min, alpha):
     Kr = np.asarray(Kr, float)
     eps = ultimate_bound(V_max, sigma_min)
     ones = np.ones_like(Kr)
-    return TrackingBounds(eps, eps / Kr * _UP, 2 * eps * ones, eps * ones, 2 * Kr * eps * _UP)
+    return TrackingBounds(eps, eps / Kr * _UP, 2 * eps * ones, eps * ones, 2 * Kr * eps * _UP, float(alpha))
 
 
 def tracking_bounds_for(robot, gains: ArmourGains, theta_lower):
     """Convenience: bounds from a RobotModel, the gains and the lower end of [theta]."""
-    return tracking_bounds(gains.Kr, gains.V_max, mass_matrix_lower_bound(robot.n, theta_lower))
+    return tracking_bounds(gains.Kr, gains.V_max, mass_matrix_lower_bound(robot.n, theta_lower), gains.alpha)
 
 
 # ---- parameter boxes ------------------------------------------------------------------------------

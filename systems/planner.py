@@ -4,7 +4,8 @@ One call plans one quintic Bézier (systems/bezier.py) from the current (q0, qd0
 q_end = q0 + k_c + k_r * k. Safety (continuous time, every theta in [theta], every tracking error
 inside the controller's ultimate bound) comes from systems/reachability.py:
 - joint position / velocity limits -> a box of k (exact hull property);
-- torque -> a rigorous interval-RNEA check over the whole k box (the box is shrunk if needed);
+- torque -> a rigorous interval-RNEA check over the whole k box (the box is shrunk if needed),
+  robust input bounded on the whole tube, h < 0 included (reachability.torque_bound);
 - collision -> one smooth constraint per (time interval, sphere, obstacle) pair that can be
   active, sd(c_s(q_mid_i(k)), obstacle) >= r_s + spread_is (pairs that no k can bring close are
   dropped, rigorously).
@@ -228,6 +229,7 @@ class PlanningProblem:
         robust term (tighter, costlier)."""
         limit = self.planner.robot.joint_params.torque_limit
         robot = self.planner.robot
+        tracking = self.planner.tracking
         centre = np.clip(np.zeros(self.n), self.k_lo, self.k_hi)
         group = max(1, int(self.planner.torque_group))
         coarse = 4  # the vertex refinement runs on hulls of `coarse` boxes (it costs more per box)
@@ -240,7 +242,15 @@ class PlanningProblem:
             return [Interval(np.concatenate([p[c].lo for p in per]), np.concatenate([p[c].hi for p in per]))
                     for c in range(4)], len(per[0][0].lo)
 
-        def take_largest_fit(sup):
+        def plain_bound(scales):
+            """(sup, nominal, robust, excess, rows per level): the interval bound of every level at
+            once; the robust term includes lambda's excess over |w_bar| on the tube (h < 0)."""
+            boxes, nb = boxes_for(scales, group)
+            wp = reach.interval_passivity_regressor(robot, *boxes)
+            excess = reach.barrier_excess(robot, boxes[0], theta_lo, theta_hi, tracking, rows=self.planner.spread_rows)
+            return (*reach.torque_bound(wp, theta0, theta_lo, theta_hi, excess), excess, nb)
+
+        def take_largest_fit(scales, sup, nb):
             """Adopt the largest shrink level whose bound fits the limits (False if none does)."""
             ratio = (sup / limit).reshape(len(scales), nb, -1).max((1, 2))
             for f, r in zip(scales, ratio):
@@ -250,25 +260,20 @@ class PlanningProblem:
                     return True
             return False
 
-        boxes, nb = boxes_for([1.0], group)
-        wp = reach.interval_passivity_regressor(robot, *boxes)
-        sup, _, _ = reach.torque_bound(wp, theta0, theta_lo, theta_hi)
+        sup, *_ = plain_bound([1.0])
         if (sup / limit).max() <= 1.0:
             self.torque_ratio = float((sup / limit).max())
             return True
         scales = [0.5 ** s for s in range(1, self.planner.torque_shrink_steps + 1)]
-        boxes, nb = boxes_for(scales, group)
-        wp = reach.interval_passivity_regressor(robot, *boxes)
-        sup, nominal, robust = reach.torque_bound(wp, theta0, theta_lo, theta_hi)
-        if take_largest_fit(sup):  # the plain bound admits a shrunk box
+        sup, nominal, robust, excess, nb = plain_bound(scales)
+        if take_largest_fit(scales, sup, nb):  # the plain bound admits a shrunk box
             return True
         big, nbig = boxes_for(scales, group * coarse)
         wv, _ = reach.robust_bound_vertex(robot, *big, theta0, theta_lo, theta_hi, robot.ee_slice, b_rows=nbig)
-        robust_v = reach.robust_term(wv)
         fine = np.arange(len(robust))
         owner = (fine // nb) * nbig + (fine % nb) // coarse  # coarse box containing each fine box
-        sup = _up(nominal + np.minimum(robust, robust_v[owner])[:, None])
-        if take_largest_fit(sup):
+        sup = _up(nominal + np.minimum(robust, reach.robust_term(wv[owner], excess))[:, None])
+        if take_largest_fit(scales, sup, nb):
             return True
         last = sup.reshape(len(scales), nb, -1)[-1]
         i, j = np.unravel_index(np.argmax(last / limit), last.shape)
@@ -456,7 +461,7 @@ class SafePlanner:
     """
 
     def __init__(self, robot, config, obstacles=(), payload=None, tracking=None, floor=True, torque_shrink_steps=3,
-                 torque_group=2):
+                 torque_group=2, spread_rows=4):
         self.robot = robot
         self.config = config
         n = robot.n
@@ -470,6 +475,7 @@ class SafePlanner:
         self.tracking = TrackingBounds.coerce(tracking, n)
         self.torque_shrink_steps = torque_shrink_steps
         self.torque_group = torque_group
+        self.spread_rows = spread_rows  # torque boxes per hull on which the M spread mu is bounded
 
     def problem(self, q0, v0, a0, theta0, theta_lo, theta_hi, mode=None):
         return PlanningProblem(self, q0, v0, a0, theta0, theta_lo, theta_hi, mode)

@@ -24,8 +24,11 @@ tracking error inside the bound and every theta in [theta]:
    I_i (sd is 1-Lipschitz); it is C1 in k outside the obstacle. The planner hands the solver a
    soft-min per (sphere, obstacle) over the intervals, which is <= the true min, and verifies
    every pair exactly.
-4. Torque. The commanded input is u = W_p(q, qd, qd_a, qdd_a) theta0 + v with |v_j| <= ||w_bar||_2
-   and w_bar_i <= sum_k |W_p,ik| max(theta_hi - theta0, theta0 - theta_lo)_k (the controller's
+4. Torque. The commanded input is u = W_p(q, qd, qd_a, qdd_a) theta0 + v with |v_j| <= lambda <=
+   ||w_bar||_2 + (alpha/2) eps mu(q) on the tube (controller.robust_gain_bound: lambda exceeds
+   ||w_bar|| where h < 0, which happens inside the tube; mu bounds the spread of M over [theta],
+   `interval_mass_spread` over the interval's configuration box) and
+   w_bar_i <= sum_k |W_p,ik| max(theta_hi - theta0, theta0 - theta_lo)_k (the controller's
    interval disturbance bound). An interval evaluation of the passivity regressor
    (interval RNEA in local frames, outward rounded) over the state box of I_i that covers every
    k of the allowed box and the tracking tube bounds sup|u_j| rigorously; the planner requires
@@ -40,6 +43,7 @@ import numpy as np
 from . import regressors
 from .bezier import QuinticBezier, restriction_matrix
 from .controller import TrackingBounds  # the controller's certified bounds (position, velocity, qd_a, qdd_a)
+from .controller import robust_gain_bound, spectral_bound
 from .intervals import Interval, _down, _up
 
 # ---------------------------------------------------------------------------------------------
@@ -532,18 +536,10 @@ def _force_to_parent(e, r, f):
     return _cat([_tmatvec(e, n_) + _cross(r, fp), fp])
 
 
-def interval_passivity_regressor(robot, q, v, va, aa, gravity=True):
-    """Interval Wp (N, n, 14n) enclosing RobotModel.passivity_regressor over boxes q, v, va, aa
-    (Intervals (N, n)). Local-frame RNEA: each body's velocity/acceleration from its parent's
-    through one interval joint transform; the body wrench regressors carried back up the tree."""
-    tree = robot.tree
-    n = tree.n
-    q, v, va, aa = (_Box(x.lo, x.hi) for x in (q, v, va, aa))
-    nsamp = q.shape[0]
-    e, r = _joint_transforms(tree, q)
-    # Joint motion subspace in child coordinates (constant).
-    s_local = np.zeros((n, 6))
-    for i in range(n):
+def _joint_screws(tree):
+    """Joint motion subspaces (n, 6) in child-body coordinates (constant)."""
+    s_local = np.zeros((tree.n, 6))
+    for i in range(tree.n):
         rc, tc = tree.X_joint_child[i, :3, :3], tree.X_joint_child[i, :3, 3]
         ax = tree.axis[i]
         if tree.prismatic[i]:
@@ -553,6 +549,73 @@ def interval_passivity_regressor(robot, q, v, va, aa, gravity=True):
             w = rc.T @ ax
             s_local[i, :3] = w
             s_local[i, 3:] = np.cross(-rc.T @ tc, w)
+    return s_local
+
+
+def interval_body_jacobians(tree, q):
+    """Interval body Jacobians (N, n_bodies, n, 6): [row, i, j] = twist of body i (its own
+    coordinates) per unit velocity of joint j, over the configuration boxes q (Interval (N, n));
+    the velocity pass of the local-frame RNEA below with one unit velocity per joint at once."""
+    n = tree.n
+    q = _Box(q.lo, q.hi)
+    nsamp = q.shape[0]
+    e, r = _joint_transforms(tree, q)
+    s_local = _joint_screws(tree)
+    unit = np.eye(n)[None, :, :, None]  # [., j, i, .] = 1 when j == i
+    jac = [None] * n
+    for i in range(n):
+        own = _Box(np.broadcast_to(unit[:, :, i] * s_local[i], (nsamp, n, 6)))
+        par = tree.parent[i]
+        jac[i] = own if par < 0 else _to_child(e[:, i, None], r[:, i, None], jac[par]) + own
+    return Interval(np.stack([x.lo for x in jac], 1), np.stack([x.hi for x in jac], 1))
+
+
+# V^T I(theta) V = sum_k theta_k V^T Q_k V for a body-frame spatial inertia (regressors.inertia_times).
+_INERTIA_FORMS = np.einsum("bak->kab", regressors.inertia_times(np.eye(6)))  # [k, a, b] = K(e_b)[a, k]
+_INERTIA_FORMS = 0.5 * (_INERTIA_FORMS + np.swapaxes(_INERTIA_FORMS, 1, 2))
+
+
+def interval_mass_spread(robot, q, theta_lo, theta_hi):
+    """mu (N,) >= controller.mass_spread(q') for every q' in each configuration box q (Interval (N, n)).
+
+    r^T M r = sum_i (J_i r)^T I_i (J_i r) + sum_j Ia_j r_j^2 (J_i: body Jacobians), so
+    dM/dtheta_k = J_i^T Q_k J_i for body i's parameters and e_j e_j^T for Ia_j. With J = Jc + D,
+    |D| <= rad(J) over the box: |J^T Q J| <= |Jc^T Q Jc| + |Jc|^T |Q| rad + rad^T |Q| (|Jc| + rad)
+    (centred form: the box's width enters to first order). Then as controller.mass_spread:
+    mu <= lambda_max(sum_k width_k |dM/dtheta_k|)."""
+    n = robot.n
+    width = np.asarray(theta_hi, float) - np.asarray(theta_lo, float)
+    jac = interval_body_jacobians(robot.tree, q)
+    mid = 0.5 * (jac.lo + jac.hi)
+    jc = np.swapaxes(mid, -1, -2)  # (N, n_bodies, 6, n)
+    rad = np.swapaxes(_up(np.maximum(jac.hi - mid, mid - jac.lo)), -1, -2)  # |J - Jc| <= rad on the box
+    forms = np.abs(_INERTIA_FORMS)
+    spread = np.zeros((q.shape[0], n, n))
+    for i in range(n):
+        w = width[10 * i:10 * i + 10]
+        jci, radi = jc[:, i], rad[:, i]
+        centre = np.abs(np.swapaxes(jci, -1, -2)[:, None] @ (_INERTIA_FORMS @ jci[:, None]))  # (N, 10, n, n)
+        absj = np.abs(jci)
+        first = np.swapaxes(absj, -1, -2)[:, None] @ (forms @ radi[:, None])
+        second = np.swapaxes(radi, -1, -2)[:, None] @ (forms @ (absj + radi)[:, None])
+        scale = np.swapaxes(absj, -1, -2)[:, None] @ (forms @ absj[:, None])
+        bound = centre + first + second + 64 * np.finfo(float).eps * scale  # + rounding of the products
+        spread += np.einsum("xkab,k->xab", bound, w)
+    ia = width[10 * n + 2::4]
+    spread[:, np.arange(n), np.arange(n)] += ia
+    return spectral_bound(spread)
+
+
+def interval_passivity_regressor(robot, q, v, va, aa, gravity=True):
+    """Interval Wp (N, n, 14n) enclosing RobotModel.passivity_regressor over boxes q, v, va, aa
+    (Intervals (N, n)). Local-frame RNEA: each body's velocity/acceleration from its parent's
+    through one interval joint transform; the body wrench regressors carried back up the tree."""
+    tree = robot.tree
+    n = tree.n
+    q, v, va, aa = (_Box(x.lo, x.hi) for x in (q, v, va, aa))
+    nsamp = q.shape[0]
+    e, r = _joint_transforms(tree, q)
+    s_local = _joint_screws(tree)
     g_world = np.concatenate([np.zeros(3), -tree.gravity if gravity else np.zeros(3)])  # base "acceleration"
     vel, vela, acc = [None] * n, [None] * n, [None] * n
     ys = [None] * n
@@ -648,11 +711,22 @@ def robust_bound_vertex(robot, q, v, va, aa, theta0, theta_lo, theta_hi, block, 
     return _up(np.minimum(plain, best + rest)), plain
 
 
-def torque_bound(wp, theta0, theta_lo, theta_hi):
+def barrier_excess(robot, q, theta_lo, theta_hi, bounds: TrackingBounds, rows=1):
+    """(N,): alpha eps mu / 2 over each configuration box, the amount by which the controller's
+    lambda may exceed |w_bar| on the tube (controller.robust_gain_bound); mu on hulls of `rows`
+    consecutive boxes (it varies slowly; fewer, slightly larger boxes)."""
+    if bounds.eps == 0 or bounds.alpha == 0:
+        return np.zeros(q.shape[0])
+    mu = interval_mass_spread(robot, merge_rows(q, rows), theta_lo, theta_hi)[np.arange(q.shape[0]) // rows]
+    return robust_gain_bound(np.zeros_like(mu), bounds.alpha, bounds.eps, mu)
+
+
+def torque_bound(wp, theta0, theta_lo, theta_hi, excess):
     """sup |u| per (interval, joint) over the boxes of wp (Interval (N, n, p)).
 
-    u = W_p theta0 + v, |v_j| <= ||w_bar||_2, w_bar_i <= sum_k |W_p,ik| d_k with
-    d = max(theta_hi - theta0, theta0 - theta_lo). Returns (sup|u| (N, n), nominal part, robust part (N,)).
+    u = W_p theta0 + v, |v_j| <= lambda <= ||w_bar||_2 + excess (excess (N,) from barrier_excess
+    on the same boxes), w_bar_i <= sum_k |W_p,ik| d_k with d = max(theta_hi - theta0, theta0 - theta_lo).
+    Returns (sup|u| (N, n), nominal part, robust part (N,)).
     """
     theta0 = np.asarray(theta0, float)
     d = np.maximum(np.asarray(theta_hi, float) - theta0, theta0 - np.asarray(theta_lo, float))
@@ -662,13 +736,13 @@ def torque_bound(wp, theta0, theta_lo, theta_hi):
     err = 8 * np.finfo(float).eps * (wp.mag @ np.abs(theta0))
     nominal = _up(np.abs(mid) + rad + err)
     wbar = _up((wp.mag @ d) * (1 + 1e-12))
-    robust = robust_term(wbar)
+    robust = robust_term(wbar, excess)
     return _up(nominal + robust[:, None]), nominal, robust
 
 
-def robust_term(w_bar):
-    """Rounded-up ||w_bar||_2 over the last axis: the bound of the controller's |v_j|."""
-    return _up(np.linalg.norm(w_bar, axis=-1) * (1 + 1e-12))
+def robust_term(w_bar, excess):
+    """Rounded-up ||w_bar||_2 (last axis) + excess: the bound of the controller's |v_j| <= lambda."""
+    return _up(_up(np.linalg.norm(w_bar, axis=-1) * (1 + 1e-12)) + excess)
 
 
 def merge_rows(box, group):

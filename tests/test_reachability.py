@@ -115,7 +115,7 @@ def _reach(robot, rng, bounds=None, v_scale=0.5, a_scale=0.5):
     v0 = rng.uniform(-v_scale, v_scale, robot.n)
     a0 = rng.uniform(-a_scale, a_scale, robot.n)
     kr = np.array([np.pi / 48] * 4 + [np.pi / 20] * 3)
-    bounds = bounds or reach.TrackingBounds.from_ultimate_bound(0.02, 8.0, 5.0, robot.n)
+    bounds = bounds or reach.TrackingBounds.from_ultimate_bound(0.02, 8.0, 5.0, robot.n, 20.0)
     return reach.PlanReach(q0, v0, a0, 3.0, np.zeros(robot.n), kr, 64, bounds)
 
 
@@ -155,7 +155,7 @@ def test_state_boxes_contain_every_k_time_and_tracking_error(robot):
 def test_limit_box_keeps_position_and_velocity_limits_and_is_not_vacuous(robot):
     rng = np.random.default_rng(6)
     jp = robot.joint_params
-    b = reach.TrackingBounds.from_ultimate_bound(0.02, 8.0, 5.0, robot.n)
+    b = reach.TrackingBounds.from_ultimate_bound(0.02, 8.0, 5.0, robot.n, 20.0)
     q0 = np.zeros(robot.n)
     q0[1] = jp.position_upper[1] - 0.05  # joint 2 close to its upper limit, moving up
     v0 = np.zeros(robot.n)
@@ -183,42 +183,140 @@ def test_limit_box_keeps_position_and_velocity_limits_and_is_not_vacuous(robot):
     assert k_lo is None and "joint 2" in why
 
 
-def test_torque_bound_covers_the_controller_command_inside_the_tube(robot):
-    """sup|u| from the interval RNEA >= |u| of the actual ARMOUR law (systems/controller.py) at
-    sampled states inside the tube, with h >= 0 (V <= V_max)."""
+def tube_boundary_states(robot, rng, desired, bounds, gains, box, count):
+    """States ON the boundary of the tracking tube around each desired state (q_d, qd_d, qdd_d)
+    (rows of `desired`): the position error e anywhere in its bound (entries at +-bound half the
+    time), theta_true in [theta] (a box vertex half the time), r in a random direction (along one joint half the time) scaled so
+    that the TRUE Lyapunov value 1/2 r^T M(q; theta_true) r equals V_max, edot = r - Kr e.
+    Yields (row, q, qd, theta_true)."""
+    n = robot.n
+    qd, vd, _ = desired
+    for row in range(len(qd)):
+        for _ in range(count):
+            e = rng.uniform(-1, 1, n)
+            e = np.where(rng.uniform(size=n) < 0.5, np.sign(e), e) * bounds.position / (1 + 1e-12)
+            theta_true = rng.uniform(box.lo, box.hi)
+            if rng.uniform() < 0.5:
+                theta_true = np.where(rng.uniform(size=theta_true.size) < 0.5, box.lo, box.hi)
+            q = qd[row] - e
+            m_true = robot.mass_matrix(q[None], theta_true)[0]
+            u = rng.normal(size=n)
+            if rng.uniform() < 0.5:  # along one joint: |v_j| = lambda there
+                u = np.eye(n)[rng.integers(n)] * np.sign(u[0])
+            r = u * np.sqrt(2 * gains.V_max / (u @ m_true @ u))
+            yield row, q, vd[row] - (r - gains.Kr * e), theta_true
+
+
+def tube_boxes(desired, bounds):
+    """The planner's state boxes (q, qd, qd_a, qdd_a) of the tube alone around each desired state:
+    the smallest boxes the planner's bound must be valid on (no time or k spread)."""
+    qd, vd, ad = desired
+    pad = lambda x, rad: Interval(x - rad, x + rad)  # noqa: E731
+    return pad(qd, bounds.position), pad(vd, bounds.velocity), pad(vd, bounds.qd_a), pad(ad, bounds.qdd_a)
+
+
+def planner_torque_bound(robot, boxes, theta0, box, bounds):
+    """(sup|u| (N, n), robust term (N,)) of the planner on state boxes (q, qd, qd_a, qdd_a)."""
+    wp = reach.interval_passivity_regressor(robot, *boxes)
+    excess = reach.barrier_excess(robot, boxes[0], box.lo, box.hi, bounds)
+    sup, _, robust = reach.torque_bound(wp, theta0, box.lo, box.hi, excess)
+    return sup, robust, excess
+
+
+@pytest.mark.parametrize("V_max", [0.005, 0.02])
+def test_torque_bound_covers_the_controller_command_on_the_whole_tube(robot, V_max):
+    """The planner's robust term and sup|u| >= |v_j|, |u_j| of the actual ARMOUR law
+    (systems/controller.py) on the BOUNDARY of the tube (true V = V_max), where the box bound
+    V_bar exceeds V_max (h < 0) and lambda exceeds |w_bar|. Quickstart Table II prior, desired
+    states of random plans; the planner's bound evaluated on two boxes that contain each state:
+    the tube alone around its desired state, and the state itself (a degenerate box: no slack)."""
+    from safesysid.scenario import load_scenario
     from safesysid.systems import controller as ctl
 
+    s = load_scenario()
     rng = np.random.default_rng(7)
     n = robot.n
-    theta0 = robot.theta.copy()
-    rel = 0.1 * np.abs(theta0)
-    lo, hi = theta0 - rel, theta0 + rel
-    gains = ctl.ArmourGains(Kr=np.array([5.0] * 4 + [7.0] * 3), alpha=20.0, V_max=0.02)
-    tb = ctl.tracking_bounds_for(robot, gains, lo)
-    bounds = reach.TrackingBounds.coerce(tb, n)
-    r = _reach(robot, rng, bounds)
-    qb, vb, vab, aab = r.state_boxes(-np.ones(n), np.ones(n))
-    wp = reach.interval_passivity_regressor(robot, qb, vb, vab, aab)
-    sup, _, _ = reach.torque_bound(wp, theta0, lo, hi)
+    ii = s.initial_interval
+    theta0, box = ctl.parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper))
+    gains = ctl.ArmourGains(Kr=np.array(s.controller.Kr, float), alpha=s.controller.alpha, V_max=V_max)
+    bounds = ctl.tracking_bounds_for(robot, gains, box.lo)
     dyn = ctl.ControllerDynamics(robot)
-    t = np.linspace(0, r.T, 400)
-    idx = np.minimum(np.searchsorted(r.edges, t, side="right") - 1, len(r.t_mid) - 1)
-    worst = 0.0
-    checked = 0
-    for _ in range(3):
-        k = rng.uniform(-1, 1, n)
-        qd, vd, ad = r.bezier.evaluate(t, r.q_end(k))
-        for m in range(len(t)):
-            e = rng.uniform(-1, 1, n) * bounds.position * 0.35
-            edot = rng.uniform(-1, 1, n) * bounds.velocity * 0.1
-            out = ctl.armour_control(dyn, gains, qd[m] - e, vd[m] - edot, qd[m], vd[m], ad[m], theta0, Interval(lo, hi))
-            if out.h < 0:
-                continue  # outside V <= V_max: not a state the bound is about
-            checked += 1
-            assert np.all(np.abs(out.u) <= sup[idx[m]])
-            worst = max(worst, np.max(np.abs(out.u) / sup[idx[m]]))
-    assert checked > 200
-    assert worst > 0.2  # the bound is not absurdly loose
+    plans = [reach.PlanReach(np.array(s.q0_rad) + rng.uniform(-0.5, 0.5, n), rng.uniform(-0.3, 0.3, n),
+                             rng.uniform(-0.5, 0.5, n), 3.0, np.zeros(n), np.array(s.planner.k_range_rad), 8, bounds)
+             for _ in range(8)]
+    desired = [np.concatenate(x) for x in zip(*(p.bezier.evaluate(rng.uniform(0, 3.0, 5), p.q_end(rng.uniform(-1, 1, n)))
+                                                for p in plans))]  # 40 desired states
+    sup_tube, robust_tube, _ = planner_torque_bound(robot, tube_boxes(desired, bounds), theta0, box, bounds)
+    rows, outs = [], []
+    for i, q, v, theta_true in tube_boundary_states(robot, rng, desired, bounds, gains, box, 12):
+        out = ctl.armour_control(dyn, gains, q, v, desired[0][i], desired[1][i], desired[2][i], theta0, box)
+        m_true = robot.mass_matrix(q[None], theta_true)[0]
+        assert 0.5 * out.err.r @ m_true @ out.err.r == pytest.approx(V_max, rel=1e-9)  # on the boundary
+        rows.append(i)
+        outs.append(out)
+    states = [np.array(x) for x in zip(*((q, v, o.err.qd_a, o.err.qdd_a) for o, (q, v) in
+                                         zip(outs, ((desired[0][i] - o.err.e, desired[1][i] - o.err.edot)
+                                                    for i, o in zip(rows, outs)))))]
+    sup_point, robust_point, excess = planner_torque_bound(robot, [Interval(x) for x in states], theta0, box, bounds)
+    v = np.array([np.abs(o.v).max() for o in outs])
+    u = np.abs([o.u for o in outs])
+    h = np.array([o.h for o in outs])
+    over = np.array([o.lam - np.linalg.norm(o.w_bar) for o in outs])
+    print(f"V_max {V_max}: {len(outs)} boundary states, {np.sum(h < 0)} with h < 0, lambda - |w_bar| up to "
+          f"{over.max():.3f} N m; max |v_j| - robust term {np.max(v - robust_point):+.3f} N m on the state's own box, "
+          f"{np.max(v - robust_tube[rows]):+.3f} N m on the tube box; max |u_j| / sup {np.max(u / sup_point):.4f} "
+          f"(own box), {np.max(u / sup_tube[rows]):.4f} (tube box); max (lambda - |w_bar|) / barrier excess "
+          f"{np.max(over / excess):.3f}")
+    assert np.sum(h < 0) > 0.3 * len(h)  # the states the old bound missed are sampled
+    assert np.all(v <= robust_point) and np.all(v <= robust_tube[rows])
+    assert np.all(u <= sup_point) and np.all(u <= sup_tube[rows])
+    assert np.max(over / excess) > 0.2  # the extra term is needed and not absurdly loose
+
+
+def test_body_jacobians_rebuild_the_mass_matrix(robot):
+    """sum_i (J_i r)^T I_i (J_i r) + sum_j Ia_j r_j^2 = r^T M r (RobotModel.mass_matrix) with the
+    interval body Jacobians at degenerate boxes and the inertia quadratic forms."""
+    rng = np.random.default_rng(10)
+    n = robot.n
+    q = rng.uniform(-np.pi, np.pi, (5, n))
+    jac = reach.interval_body_jacobians(robot.tree, Interval(q))
+    assert np.max(jac.hi - jac.lo) < 1e-12
+    for row in range(len(q)):
+        r = rng.normal(size=n)
+        twists = np.einsum("ijc,j->ic", jac.mid[row], r)  # (bodies, 6)
+        energy = sum(twists[i] @ np.einsum("kab,k->ab", reach._INERTIA_FORMS, robot.theta[10 * i:10 * i + 10]) @ twists[i]
+                     for i in range(n))
+        energy += robot.theta[10 * n + 2::4] @ r ** 2
+        assert energy == pytest.approx(r @ robot.mass_matrix(q[row][None])[0] @ r, rel=1e-12)
+
+
+def test_interval_mass_spread_encloses_the_point_spread(robot):
+    """interval_mass_spread over a configuration box >= controller.mass_spread at every sampled
+    configuration of it (corners included); equal to it on degenerate boxes; tight on small boxes."""
+    from safesysid.scenario import InitialInterval
+    from safesysid.systems import controller as ctl
+
+    rng = np.random.default_rng(11)
+    n = robot.n
+    ii = InitialInterval()
+    _, box = ctl.parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper))
+    centre = rng.uniform(-2, 2, (12, n))
+    point = np.array([ctl.mass_spread(robot, q, box.lo, box.hi) for q in centre])
+    np.testing.assert_allclose(reach.interval_mass_spread(robot, Interval(centre), box.lo, box.hi), point, rtol=1e-9)
+    assert np.all(reach.interval_mass_spread(robot, Interval(centre), box.lo, box.hi) >= point)
+    for rad_max, loose in ((0.02, 1.3), (0.15, None)):
+        rad = rng.uniform(0, rad_max, centre.shape)
+        mu = reach.interval_mass_spread(robot, Interval(centre - rad, centre + rad), box.lo, box.hi)
+        worst = np.zeros(len(centre))
+        for _ in range(15):
+            pick = rng.uniform(-1, 1, centre.shape)
+            pick = np.where(rng.uniform(size=centre.shape) < 0.5, np.sign(pick), pick)
+            sampled = np.array([ctl.mass_spread(robot, q, box.lo, box.hi) for q in centre + pick * rad])
+            assert np.all(sampled <= mu)
+            worst = np.maximum(worst, sampled)
+        print(f"boxes up to +-{rad_max} rad: interval mu / sampled max {np.min(mu / worst):.3f}-{np.max(mu / worst):.3f}")
+        if loose:
+            assert np.max(mu / worst) < loose
 
 
 def test_local_spread_bounds_sphere_motion_on_joint_boxes(robot, spheres):
