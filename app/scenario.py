@@ -159,6 +159,7 @@ class Task:
     torque_margin_ratio: float = 0.2  # nominal torque <= (1 - ratio) * limit (room for the tube)
     solver: str = "snopt"  # snopt (Ipopt as fallback) | ipopt
     max_iterations: int = 500
+    max_solve_time_s: float = 120.0  # wall-time cap per solver (offline; the result is cached)
 
 
 @dc.dataclass
@@ -295,6 +296,7 @@ def _validate_task(s: Scenario, need, where):
     need(t.torque_samples >= 2, "task.torque_samples", "must be >= 2")
     need(0 <= t.torque_margin_ratio < 1, "task.torque_margin_ratio", "must be in [0, 1)")
     need(t.max_iterations >= 1, "task.max_iterations", "must be >= 1")
+    need(t.max_solve_time_s > 0, "task.max_solve_time_s", "must be > 0")
     if task_enabled(s):
         from safesysid.systems.payload import load_dumbbells
 

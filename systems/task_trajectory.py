@@ -173,6 +173,7 @@ class TaskSettings:
     torque_margin_ratio: float = 0.2
     solver: str = "snopt"
     max_iterations: int = 500
+    max_solve_time_s: float = 120.0  # per solver (all its rounds)
 
     @classmethod
     def from_task(cls, task):
@@ -209,7 +210,7 @@ class TaskProblem:
 @dataclass
 class TaskResult:
     ok: bool
-    status: str  # solved | infeasible | goal_unreachable | start_blocked | solver_failed
+    status: str  # solved | feasible | infeasible | goal_unreachable | goal_blocked | start_blocked | solver_failed
     reason: str = ""
     trajectory: PiecewiseBezier | None = None
     q_goal: np.ndarray | None = None
@@ -420,12 +421,15 @@ class TaskConstraints:
         and d vals / d q_samples (O, N, m, n). spread: fixed margins (N, m) (a solver round) or
         None: the exact ones of y (the check)."""
         key = ("col", np.asarray(y, float).tobytes(), with_jacobian, None if spread is None else hash(spread.tobytes()))
-        if key in self._cache:
-            return self._cache[key]
+        if key not in self._cache:
+            q = self._samples(self.col_basis, y)
+            self._remember(key, self._clearance(q, self.spread(y) if spread is None else spread, with_jacobian))
+        return self._cache[key]
+
+    def _clearance(self, q, spread, with_jacobian=True):
         p = self.p
-        q = self._samples(self.col_basis, y)
         c, dc = reach.sphere_centres(p.robot.tree, p.spheres, q)
-        need = p.spheres.radius[None, :] + (self.spread(y) if spread is None else spread)
+        need = p.spheres.radius[None, :] + spread
         nsamp, m = need.shape
         vals, grads = [], []
         flat = c.reshape(-1, 3)
@@ -440,8 +444,21 @@ class TaskConstraints:
             grads.append(np.broadcast_to(np.array([0.0, 0.0, 1.0]), (nsamp, m, 3)))
         vals = np.stack(vals) if vals else np.zeros((0, nsamp, m))
         jac = np.einsum("osmk,smjk->osmj", np.stack(grads), dc) if (with_jacobian and len(vals)) else None
-        self._remember(key, (vals, jac))
         return vals, jac
+
+    def rest_clearance(self, q):
+        """(min of sd - radius - spread, what) holding still at q inside the tube: a start or goal
+        that fails this cannot be the end of any feasible trajectory."""
+        q = np.atleast_2d(q)
+        _, dc = reach.sphere_centres(self.p.robot.tree, self.p.spheres, q)
+        rho = np.broadcast_to(self.p.tracking.position, q.shape)
+        spread = reach.local_spread(self.p.robot.tree, self.lipschitz, np.linalg.norm(dc, axis=-1), rho, rho)
+        vals, _ = self._clearance(q, spread, with_jacobian=False)
+        if not vals.size:
+            return np.inf, ""
+        o, _, s = np.unravel_index(np.argmin(vals), vals.shape)
+        what = "the floor" if o == len(self.p.boxes) else f"obstacle {self.p.boxes.names[o]!r}"
+        return float(vals.min()), f"sphere {self.p.spheres.names[s]!r} vs {what}"
 
     def window_radius(self, y, q_mid):
         """(N, n) bound of |q(t) - q(t_i)| on window i (hull of the restricted control points,
@@ -465,19 +482,6 @@ class TaskConstraints:
         soft = vmin[:, 0] - np.log(total[:, 0]) / SOFTMIN_SHARPNESS_PER_M
         w = e / total
         return soft, self._chain(w[..., None] * d, self.col_basis)
-
-    def world_fixed_clearance(self):
-        """sd - radius of spheres that never move (the base) against the boxes: no q changes it."""
-        p = self.p
-        fixed = p.spheres.body < 0
-        worst = np.inf
-        for o in range(len(p.boxes)):
-            pts = p.spheres.centre[fixed]
-            sd, _ = reach.box_signed_distance(pts, np.broadcast_to(p.boxes.centre[o], pts.shape),
-                                              np.broadcast_to(p.boxes.rotation[o], (len(pts), 3, 3)),
-                                              np.broadcast_to(p.boxes.half_size[o], pts.shape))
-            worst = min(worst, float(np.min(sd - p.spheres.radius[fixed], initial=np.inf)))
-        return worst
 
     # -- torque ------------------------------------------------------------------------------
     def torque(self, y, with_jacobian=True, step=1e-6):
@@ -607,9 +611,9 @@ def solve_task_trajectory(problem: TaskProblem, solver=None, fallback=True) -> T
     con = TaskConstraints(problem)
     res = TaskResult(ok=False, status="start_blocked", solver=solver)
     details = res.details
-    fixed = con.world_fixed_clearance()
-    if fixed < 0:
-        res.reason = f"an obstacle overlaps the fixed base's spheres by {-fixed:.3f} m"
+    clear, what = con.rest_clearance(problem.q_start)
+    if clear < 0:
+        res.reason = f"q_start is {-clear:.4f} m inside the margin: {what}"
         return _finish(res, t0)
     if problem.place_xyz is not None:
         q_goal, msg = solve_placement_ik(problem)
@@ -620,6 +624,10 @@ def solve_task_trajectory(problem: TaskProblem, solver=None, fallback=True) -> T
         details["q_goal_ik_rad"] = q_goal
     else:
         q_goal = problem.goal_q
+        clear, what = con.rest_clearance(q_goal)
+        if clear < 0:
+            res.status, res.reason = "goal_blocked", f"goal_q is {-clear:.4f} m inside the margin: {what}"
+            return _finish(res, t0)
     y0 = con.initial_guess(q_goal)
     order = [solver] + ([s for s in ("snopt", "ipopt") if s != solver] if fallback else [])
     attempts = []
@@ -651,8 +659,12 @@ def _solve_rounds(con: TaskConstraints, y0, solver_name, max_rounds=4):
     (max with the previous: monotone, so the rounds settle) and the torque rows are added if
     torque was violated; warm start from the last solution. -> (y, status, rounds)."""
     spread, with_torque, y, status = con.spread(y0), False, y0, ""
+    deadline = time.perf_counter() + con.p.settings.max_solve_time_s
     for k in range(max_rounds):
-        y_new, status = _solve_with(con, y, solver_name, spread, with_torque)
+        remaining = deadline - time.perf_counter()
+        if remaining <= 0:
+            return y, f"{status}, wall-time cap", k
+        y_new, status = _solve_with(con, y, solver_name, spread, with_torque, remaining)
         if y_new is None:
             return None, status, k + 1
         y = y_new
@@ -672,7 +684,7 @@ def _finish(res, t0):
     return res
 
 
-def _solve_with(con: TaskConstraints, y0, solver_name, spread, with_torque=True):
+def _solve_with(con: TaskConstraints, y0, solver_name, spread, with_torque=True, time_limit_s=np.inf):
     """One solver run from y0 with collision margins `spread` -> (y or None, solver status)."""
     from pydrake.autodiffutils import ExtractGradient, ExtractValue, InitializeAutoDiff
     from pydrake.solvers import IpoptSolver, MathematicalProgram, SnoptSolver, SolverOptions
@@ -723,6 +735,7 @@ def _solve_with(con: TaskConstraints, y0, solver_name, spread, with_torque=True)
         options.SetOption(sid, "Major iterations limit", iters)
         options.SetOption(sid, "Major optimality tolerance", 1e-5)
         options.SetOption(sid, "Major feasibility tolerance", 1e-7)
+        options.SetOption(sid, "Time limit", float(min(time_limit_s, 1e6)))
     else:
         solver = IpoptSolver()
         sid = solver.solver_id()
@@ -730,6 +743,7 @@ def _solve_with(con: TaskConstraints, y0, solver_name, spread, with_torque=True)
         options.SetOption(sid, "tol", 1e-6)
         options.SetOption(sid, "constr_viol_tol", 1e-7)
         options.SetOption(sid, "mu_strategy", "adaptive")
+        options.SetOption(sid, "max_wall_time", float(min(time_limit_s, 1e6)))
         # The soft-min of many samples is stiff for a limited-memory Hessian: the dual
         # infeasibility may stay large while the objective no longer moves. Stop after 5 feasible
         # iterations changing the jerk by < 1e-4 (relative); the check decides feasibility.
