@@ -760,6 +760,38 @@ def _solve_with(con: TaskConstraints, y0, solver_name, spread, with_torque=True,
     return result.GetSolution(y), str(result.get_solution_result()).replace("SolutionResult.", "")
 
 
+def certified_torque_ratio(problem: TaskProblem, trajectory: PiecewiseBezier, theta0, theta_lo, theta_hi,
+                           windows_per_piece=100):
+    """max_j sup |u_j| / limit_j of the ARMOUR command while tracking `trajectory`: over every
+    instant (windows tiling each piece, Bézier hulls of q, dq, ddq), every tracking error in the
+    tube and every theta in [theta_lo, theta_hi] (reachability's interval passivity regressor and
+    robust-term bound, as the planner certifies its plans). <= 1: the controller's certificate
+    covers the task trajectory with that parameter box. Returns (ratio, per-joint sup |u| (n,))."""
+    from .intervals import Interval, _down, _up
+
+    tb = problem.tracking
+    edges = np.linspace(0.0, 1.0, windows_per_piece + 1)
+    hulls = []
+    for order in range(3):
+        lo, hi = [], []
+        for pts in trajectory.control_points:
+            d = _difference(pts, order) / trajectory.piece_duration ** order
+            sub = np.stack([restriction_matrix(DEGREE - order, a, b) @ d for a, b in zip(edges[:-1], edges[1:])])
+            lo.append(sub.min(1))
+            hi.append(sub.max(1))
+        hulls.append((np.concatenate(lo), np.concatenate(hi)))
+    (q_lo, q_hi), (v_lo, v_hi), (a_lo, a_hi) = hulls
+
+    def pad(lo, hi, r):  # outward, as reachability.PlanReach.state_boxes
+        return Interval(_down(_down(lo - r) - 1e-12 * np.abs(lo)), _up(_up(hi + r) + 1e-12 * np.abs(hi)))
+
+    wp = reach.interval_passivity_regressor(problem.robot, pad(q_lo, q_hi, tb.position), pad(v_lo, v_hi, tb.velocity),
+                                            pad(v_lo, v_hi, tb.qd_a), pad(a_lo, a_hi, tb.qdd_a))
+    sup, _, _ = reach.torque_bound(wp, theta0, theta_lo, theta_hi)
+    per_joint = sup.max(0)
+    return float(np.max(per_joint / problem.robot.joint_params.torque_limit)), per_joint
+
+
 # ---------------------------------------------------------------------------------------------
 # Cache: one JSON file per problem, keyed by a hash of everything the result depends on
 # ---------------------------------------------------------------------------------------------
