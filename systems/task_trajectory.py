@@ -290,7 +290,7 @@ def placement_above(platform, dumbbell, release_height):
     from pydrake.math import RollPitchYaw
 
     rot = RollPitchYaw(platform.rpy_rad).ToRotationMatrix().matrix()
-    top = np.max(np.abs(rot) @ (0.5 * np.asarray(platform.size_m, float)) * np.array([0, 0, 1]))
+    top = (np.abs(rot) @ (0.5 * np.asarray(platform.size_m, float)))[2]  # half height of the rotated box
     below = max(dumbbell.head_radius_m, dumbbell.handle_radius_m) if dumbbell is not None else 0.0
     return np.asarray(platform.xyz_m, float) + np.array([0.0, 0.0, top + below + release_height])
 
