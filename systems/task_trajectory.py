@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import time
 from dataclasses import dataclass, field, replace
 from math import comb
@@ -752,7 +753,7 @@ def _solve_with(con: TaskConstraints, y0, solver_name, spread, with_torque=True,
         options.SetOption(sid, "acceptable_constr_viol_tol", 1e-7)
         options.SetOption(sid, "acceptable_obj_change_tol", 1e-4)
         options.SetOption(sid, "hessian_approximation", "limited-memory")
-        options.SetOption(sid, "print_level", int(__import__("os").environ.get("TASK_IPOPT_PRINT", 0)))
+        options.SetOption(sid, "print_level", int(os.environ.get("SAFESYSID_IPOPT_PRINT", 0)))
     try:
         result = solver.Solve(prog, y0, options)
     except Exception as err:  # noqa: BLE001 -- a solver failure is a status, not a crash
