@@ -43,7 +43,7 @@ import hashlib
 import json
 import os
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from math import comb
 from pathlib import Path
 
