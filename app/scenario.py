@@ -135,6 +135,34 @@ class InitialInterval:
 
 
 @dc.dataclass
+class Task:
+    """Task phase (paper §VII): after identification the arm follows a trajectory computed
+    offline (systems/task_trajectory.py) from q0_rad to a goal, then releases the payload.
+
+    Goal: `goal_q_rad` (a joint configuration) or a placement: the payload (dumbbell) centre at
+    `place_xyz_m`, handle horizontal, gripper vertical (Drake InverseKinematics, then free in the
+    optimization); with neither, the centre goes above the top centre of the obstacle named
+    `platform` so that its lowest point is `release_height_m` above it. No goal, no platform:
+    no task phase.
+    """
+
+    goal_q_rad: List[float] = dc.field(default_factory=list)
+    place_xyz_m: List[float] = dc.field(default_factory=list)  # payload centre target, base frame
+    platform: str = ""  # name of the obstacle (in `obstacles`) the payload is placed on
+    release_height_m: float = 0.03  # payload's lowest point above the platform top at release
+    placement_tolerance_m: float = 0.01  # success: |payload centre at release - target|
+    duration_s: float = 2.0  # paper: 2 s
+    num_pieces: int = 2  # degree-5 Bézier pieces of equal length, C2 at the junctions
+    payload_model: str = "8lb"  # dumbbell whose model the trajectory is computed with
+    collision_samples: int = 200  # sphere/obstacle checks (+ a margin for the motion in between)
+    torque_samples: int = 41  # inverse-dynamics checks
+    torque_margin_ratio: float = 0.2  # nominal torque <= (1 - ratio) * limit (room for the tube)
+    solver: str = "snopt"  # snopt (Ipopt as fallback) | ipopt
+    max_iterations: int = 500
+    max_solve_time_s: float = 120.0  # wall-time cap per solver (offline; the result is cached)
+
+
+@dc.dataclass
 class Scenario:
     name: str = "scenario"
     robot: Robot = dc.field(default_factory=Robot)
@@ -147,6 +175,7 @@ class Scenario:
     planner: Planner = dc.field(default_factory=Planner)
     estimator: Estimator = dc.field(default_factory=Estimator)
     initial_interval: InitialInterval = dc.field(default_factory=InitialInterval)
+    task: Task = dc.field(default_factory=Task)
     method: str = "ours"  # ours | random | conservative | wrong
     seed: int = 0
     # Where the loader found the file (not a YAML field).
@@ -164,6 +193,7 @@ _CHOICES = {
     "estimator.point_estimate": ("map", "paper"),
     "noise.distribution": ("uniform", "none"),
     "controller.kind": ("armour", "pid", "adaptive", "adaptive_robust"),
+    "task.solver": ("snopt", "ipopt"),
 }
 
 
@@ -243,11 +273,40 @@ def _validate(s: Scenario, where):
         need(resolve_path(text, Path(where).parent).is_file(), field, f"file {text!r} not found")
     if s.robot.model:
         need(resolve_path(s.robot.model, Path(where).parent).is_file(), "robot.model", f"file {s.robot.model!r} not found")
+    _validate_task(s, need, where)
     if s.payload.dumbbell.lower() != "none":
         from safesysid.systems.payload import load_dumbbells
 
         names = list(load_dumbbells(resolve_path(s.payload.dumbbells_file, Path(where).parent)))
         need(s.payload.dumbbell in names, "payload.dumbbell", f"{s.payload.dumbbell!r} is not one of none, {', '.join(names)}")
+
+
+def _validate_task(s: Scenario, need, where):
+    t = s.task
+    need(len(t.goal_q_rad) in (0, len(s.q0_rad)), "task.goal_q_rad", f"needs {len(s.q0_rad)} angles or none")
+    need(len(t.place_xyz_m) in (0, 3), "task.place_xyz_m", "needs 3 values or none")
+    need(not (t.goal_q_rad and t.place_xyz_m), "task", "give goal_q_rad or place_xyz_m, not both")
+    names = [ob.name for ob in s.obstacles]
+    need(not t.platform or t.platform in names, "task.platform", f"{t.platform!r} is not an obstacle name ({', '.join(names) or 'none'})")
+    need(t.release_height_m >= 0, "task.release_height_m", "must be >= 0")
+    need(t.placement_tolerance_m > 0, "task.placement_tolerance_m", "must be > 0")
+    need(t.duration_s > 0, "task.duration_s", "must be > 0")
+    need(t.num_pieces >= 1, "task.num_pieces", "must be >= 1")
+    need(t.collision_samples >= 2, "task.collision_samples", "must be >= 2")
+    need(t.torque_samples >= 2, "task.torque_samples", "must be >= 2")
+    need(0 <= t.torque_margin_ratio < 1, "task.torque_margin_ratio", "must be in [0, 1)")
+    need(t.max_iterations >= 1, "task.max_iterations", "must be >= 1")
+    need(t.max_solve_time_s > 0, "task.max_solve_time_s", "must be > 0")
+    if task_enabled(s):
+        from safesysid.systems.payload import load_dumbbells
+
+        names = list(load_dumbbells(resolve_path(s.payload.dumbbells_file, Path(where).parent)))
+        need(t.payload_model in names, "task.payload_model", f"{t.payload_model!r} is not one of {', '.join(names)}")
+
+
+def task_enabled(s: Scenario):
+    """The scenario has a task phase (a goal or a platform)."""
+    return bool(s.task.goal_q_rad or s.task.place_xyz_m or s.task.platform)
 
 
 def load_scenario(path=None, text=None, overrides=None) -> Scenario:

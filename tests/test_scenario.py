@@ -18,6 +18,14 @@ def test_defaults_and_robot():
     ("method: best", "method"),
     ("robot: {params: nowhere.yaml}", "robot.params"),
     ("initial_interval: {lower: [0]}", "initial_interval.lower"),
+    ("task: {goal_q_rad: [0, 1]}", "task.goal_q_rad"),
+    ("task: {place_xyz_m: [0.3, 0.0]}", "task.place_xyz_m"),
+    ("task: {goal_q_rad: [0, 0, 0, 0, 0, 0, 0], place_xyz_m: [0.3, 0.0, 0.2]}", "task: give"),
+    ("obstacles: [{name: box}]\ntask: {platform: table}", "task.platform"),
+    ("task: {solver: cplex}", "task.solver"),
+    ("task: {placement_tolerance_m: 0}", "task.placement_tolerance_m"),
+    ("task: {torque_margin_ratio: 1.0}", "task.torque_margin_ratio"),
+    ("task: {place_xyz_m: [0.3, 0.0, 0.2], payload_model: 9lb}", "task.payload_model"),
 ])
 def test_bad_keys_are_named_with_the_file(tmp_path, text, field):
     path = tmp_path / "bad.yaml"
