@@ -786,9 +786,12 @@ def certified_torque_ratio(problem: TaskProblem, trajectory: PiecewiseBezier, th
     def pad(lo, hi, r):  # outward, as reachability.PlanReach.state_boxes
         return Interval(_down(_down(lo - r) - 1e-12 * np.abs(lo)), _up(_up(hi + r) + 1e-12 * np.abs(hi)))
 
-    wp = reach.interval_passivity_regressor(problem.robot, pad(q_lo, q_hi, tb.position), pad(v_lo, v_hi, tb.velocity),
+    q_box = pad(q_lo, q_hi, tb.position)
+    wp = reach.interval_passivity_regressor(problem.robot, q_box, pad(v_lo, v_hi, tb.velocity),
                                             pad(v_lo, v_hi, tb.qd_a), pad(a_lo, a_hi, tb.qdd_a))
-    sup, _, _ = reach.torque_bound(wp, theta0, theta_lo, theta_hi)
+    # The robust input may exceed |w_bar| on the tube (h < 0): the same excess the planner adds.
+    excess = reach.barrier_excess(problem.robot, q_box, theta_lo, theta_hi, tb)
+    sup, _, _ = reach.torque_bound(wp, theta0, theta_lo, theta_hi, excess)
     per_joint = sup.max(0)
     return float(np.max(per_joint / problem.robot.joint_params.torque_limit)), per_joint
 
