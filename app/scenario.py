@@ -18,6 +18,9 @@ List = typing.List
 Optional = typing.Optional
 
 
+MAX_CONTROL_STEP_S = 0.001
+
+
 class ScenarioError(ValueError):
     """Bad scenario input; the message names the file and the field."""
 
@@ -263,7 +266,10 @@ def _validate(s: Scenario, where):
         need(len(getattr(ii, name)) == 10, f"initial_interval.{name}", "needs 10 values")
     need(np.all(np.array(ii.lower) <= np.array(ii.nominal)) and np.all(np.array(ii.nominal) <= np.array(ii.upper)),
          "initial_interval", "needs lower <= nominal <= upper")
-    need(s.plant.time_step_s > 0, "plant.time_step_s", "must be > 0")
+    # The tube's invariance is argued and measured for a controller step of at most 1 ms
+    # (systems/controller.py "Sampling"; docs/guarantees.md).
+    need(0 < s.plant.time_step_s <= MAX_CONTROL_STEP_S, "plant.time_step_s",
+         f"must be in (0, {MAX_CONTROL_STEP_S}] s (the tracking guarantee assumes a >= 1 kHz controller)")
     need(s.plant.effects.time_delay_s >= 0, "plant.effects.time_delay_s", "must be >= 0")
     need(s.plant.effects.torque_sensor_lag_s >= 0, "plant.effects.torque_sensor_lag_s", "must be >= 0")
     need(s.estimator.horizon_s > 0, "estimator.horizon_s", "must be > 0")

@@ -23,6 +23,7 @@ def test_defaults_and_robot():
     ("task: {goal_q_rad: [0, 0, 0, 0, 0, 0, 0], place_xyz_m: [0.3, 0.0, 0.2]}", "task: give"),
     ("obstacles: [{name: box}]\ntask: {platform: table}", "task.platform"),
     ("task: {solver: cplex}", "task.solver"),
+    ("plant: {time_step_s: 0.01}", "plant.time_step_s"),
     ("task: {placement_tolerance_m: 0}", "task.placement_tolerance_m"),
     ("task: {torque_margin_ratio: 1.0}", "task.torque_margin_ratio"),
     ("task: {place_xyz_m: [0.3, 0.0, 0.2], payload_model: 9lb}", "task.payload_model"),

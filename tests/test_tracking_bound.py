@@ -34,9 +34,10 @@ def scenario_for(bell, V_max=None, time_step=None):
     overrides = {"payload": {"dumbbell": bell}, "obstacles": []}
     if V_max is not None:
         overrides["controller"] = {"V_max": V_max}
-    if time_step is not None:
-        overrides["plant"] = {"time_step_s": time_step}
-    return load_scenario(overrides=overrides)
+    s = load_scenario(overrides=overrides)
+    if time_step is not None:  # set after loading: steps above 1 ms are outside what a scenario accepts
+        s.plant.time_step_s = time_step
+    return s
 
 
 def random_trajectory(s, rng, moving=False):
