@@ -88,7 +88,7 @@ class EstimatorSettings:
     quadrature_safety: float = 2.0
     # Above this share of a row's torque radius the quadrature term is reported as "motion not
     # resolved by the sampling" (an event; the bound still holds under its assumption).
-    quadrature_warn_ratio: float = 0.25
+    quadrature_warn_ratio: float = 1.0
     newton_steps: int = 50  # max iterations of the exact-Hessian trust-region polish after the NLP
     max_condition: float = 1e10  # above: not identifiable yet, keep the previous estimate
     # Rows scaled by 1 / (their declared error bound) before the least squares ("bound"), or the

@@ -1,9 +1,12 @@
 """SysIdEstimator: Algorithm 1 as a Drake LeafSystem, refreshed every t_p as in Algorithm 2.
 
 Thin wrapper: the math is in estimator.py. Inputs: `state` (q, v; the plant's state port, 2n)
-and `measured_torque` (n). Outputs (whole robot, 14n each): `theta0` (θ_r nominal with the
-identified θ_e), `theta_lower`, `theta_upper` (θ_r box with [θ_e]); plus `update_info`
-[updates, last update wall time s, cond(Y), consistent (1/0)].
+and `measured_torque` (n): the torque held over [t_k, t_k+1] as sampled at t_k (in the real
+arm the sensor reads the command the plant applies over the next step). Outputs (whole robot,
+14n each): `theta0` (θ_r nominal with the identified θ_e), `theta_lower`, `theta_upper` (θ_r box
+with [θ_e]); `consistent` (1: every enclosure so far met the others; 0 from the first
+inconsistency on, latched — the published box is then the last consistent one, and a planner
+should stop planning); plus `update_info` [updates, last update wall time s, cond(Y), consistent].
 
 Samples are stored at the sampling period (the plant rate) by a periodic discrete update; on
 the samples that reach a multiple of t_p the new data are handed to the incremental estimator
@@ -47,6 +50,7 @@ class SysIdEstimator(LeafSystem):
             "theta_lower": self.DeclareDiscreteState(BasicVector(np.nan_to_num(first.theta_lower, neginf=-1e30))),
             "theta_upper": self.DeclareDiscreteState(BasicVector(np.nan_to_num(first.theta_upper, posinf=1e30))),
             "update_info": self.DeclareDiscreteState(BasicVector(np.array([0.0, 0.0, np.inf, 1.0]))),
+            "consistent": self.DeclareDiscreteState(BasicVector(np.array([1.0]))),
         }
         for name, index in self._groups.items():
             self.DeclareStateOutputPort(name, index)
@@ -67,6 +71,7 @@ class SysIdEstimator(LeafSystem):
         discrete_state.get_mutable_vector(groups["theta_upper"]).SetFromVector(np.nan_to_num(est.theta_upper, posinf=1e30))
         info = [len(self._history), est.update_time_s, est.cond_Y, float(est.consistent)]
         discrete_state.get_mutable_vector(groups["update_info"]).SetFromVector(np.array(info, float))
+        discrete_state.get_mutable_vector(groups["consistent"]).SetFromVector(np.array([float(est.consistent)]))
 
     def _on_initialize(self, context, discrete_state):
         self._reset()
@@ -92,7 +97,8 @@ class SysIdEstimator(LeafSystem):
             return EventStatus.DidNothing()
         self._history.append({"t": t, "update_time_s": est.update_time_s, "cond_Y": est.cond_Y, "case": est.case,
                               "consistent": est.consistent, "nominal": est.theta_e.tolist(),
-                              "lower": est.lower.tolist(), "upper": est.upper.tolist(), "message": est.message})
+                              "lower": est.lower.tolist(), "upper": est.upper.tolist(), "message": est.message,
+                              "problems": list(est.problems), "quadrature_ratio": est.quadrature_ratio})
         self._write(discrete_state, est)
         return EventStatus.Succeeded()
 
@@ -108,6 +114,24 @@ class SysIdEstimator(LeafSystem):
     def history(self):
         """One dict per completed update (t, update_time_s, cond_Y, case, consistent, θ_e box)."""
         return [h for h in self._history if "skipped" not in h]
+
+    @property
+    def consistent(self):
+        """False from the first update whose data contradicted a declared bound (latched)."""
+        return self._estimator.consistent
+
+    def events(self):
+        """[{t, kind, detail}]: the first inconsistent update ("inconsistent_estimate") and
+        updates whose quadrature term was large ("quadrature_unresolved")."""
+        out, seen = [], False
+        for h in self.history():
+            if not h["consistent"] and not seen:
+                seen = True
+                out.append({"t": h["t"], "kind": "inconsistent_estimate", "detail": h["message"]})
+            if h["quadrature_ratio"] > self.settings.quadrature_warn_ratio:
+                out.append({"t": h["t"], "kind": "quadrature_unresolved",
+                            "detail": f"quadrature bound up to {h['quadrature_ratio']:.2f} of a row's torque radius"})
+        return out
 
     def final_estimate(self, ee_slice=None):
         """(θ_e0, lower, upper) of the last update, or the prior before the first one."""

@@ -337,6 +337,52 @@ def test_intersection_never_returns_an_inverted_interval(robot, dumbbells):
     assert np.all(est.lower >= good_prior[0]) and np.all(est.upper <= good_prior[1])
 
 
+def test_inconsistent_data_keep_the_last_consistent_box(robot, dumbbells):
+    """A torque-sensor offset of 1 N·m appears at 4.5 s (outside the declared bound). The update
+    that sees it reports the inconsistency, consistency stays latched off, and the published box
+    is the last consistent one from then on: never wider, never outside the prior, and still
+    around the truth. (HEAD published the faulty intersection, then the hull of the two boxes:
+    truth outside from 4.5 s, mass upper 5.35 kg > the prior's 5.2 kg at 7.5 s.)"""
+    from test_estimator_adversarial import PRIOR, PRIOR_NOMINAL
+
+    rng = np.random.default_rng(5)
+    theta, theta_e = true_theta(rng, robot, dumbbells["8lb"], ratio=0.0)
+    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 7.5, 1000.0, centre=CENTRE)
+    tau[t >= 4.5] += 1.0
+    est = E.IncrementalEstimator(robot, prior=PRIOR, prior_nominal=PRIOR_NOMINAL)
+    published, flags = PRIOR, []
+    for a, b in zip(range(0, 7501, 1500), range(1500, 7502, 1500)):
+        est.add(t[a:b], q[a:b], v[a:b], tau[a:b])
+        e = est.update()
+        assert np.all(e.lower >= published[0]) and np.all(e.upper <= published[1])
+        assert e.contains(theta_e)
+        if flags and not flags[-1]:
+            np.testing.assert_array_equal(e.lower, published[0])
+            np.testing.assert_array_equal(e.upper, published[1])
+        published = (e.lower, e.upper)
+        flags.append(e.consistent)
+    assert flags == [True, True, True, False, False]
+    assert not est.consistent and any("inconsistent" in m for m in est.messages)
+
+
+def test_disjoint_enclosures_do_not_publish_the_gap(robot, dumbbells):
+    """Torque noise 10x the declared bound: when the two least-squares enclosures (or the LP) do
+    not meet, the published box is the prior, not the gap between them."""
+    from test_estimator_adversarial import PRIOR, PRIOR_NOMINAL
+
+    for seed in range(4):
+        rng = np.random.default_rng(500 + seed)
+        theta, theta_e = true_theta(rng, robot, dumbbells["8lb"])
+        t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 3.0, 1000.0, centre=CENTRE, noise_scale=10.0)
+        e = E.identify(robot, t, q, v, tau, prior=PRIOR, prior_nominal=PRIOR_NOMINAL)
+        if not e.consistent:
+            np.testing.assert_array_equal(e.lower, PRIOR[0])
+            np.testing.assert_array_equal(e.upper, PRIOR[1])
+            np.testing.assert_array_equal(e.theta_e, PRIOR_NOMINAL)
+            return
+    pytest.fail("no inconsistency with 10x the declared noise")
+
+
 def test_bad_input_is_rejected(robot):
     rng = np.random.default_rng(71)
     t, q, v, _ = E.fourier_trajectory(rng, robot, 1.0, 1000.0, centre=CENTRE)

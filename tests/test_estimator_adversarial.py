@@ -113,9 +113,12 @@ def run_case(robot, dumbbells, index):
     t, q, v, tau_meas, _, theta_e, what = make_case(robot, dumbbells, index)
     est = E.IncrementalEstimator(robot, prior=PRIOR, prior_nominal=PRIOR_NOMINAL)
     results = []
+    published = PRIOR
     for start, stop in ((0, 1500), (1500, len(t))):  # two updates, Algorithm 2's cadence
         est.add(t[start:stop], q[start:stop], v[start:stop], tau_meas[start:stop])
         e = est.update()
+        assert np.all(e.lower >= published[0]) and np.all(e.upper <= published[1]), what  # nested, inside the prior
+        published = (e.lower, e.upper)
         results.append((e.contains(theta_e), e.consistent, outside(e, theta_e)))
     return what, results
 
