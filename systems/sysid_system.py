@@ -8,11 +8,14 @@ with [θ_e]); `consistent` (1: every enclosure so far met the others; 0 from the
 inconsistency on, latched — the published box is then the last consistent one, and a planner
 should stop planning); plus `update_info` [updates, last update wall time s, cond(Y), consistent].
 
-Samples are stored at the sampling period (the plant rate) by a periodic discrete update; on
-the samples that reach a multiple of t_p the new data are handed to the incremental estimator
-(old segments are not recomputed) and the outputs (discrete state) are refreshed. The sample
-buffer and the estimator live in this system object (not in the Context): one simulation per
-instance at a time; an initialization event resets them.
+Samples are stored at the sampling period (the plant rate) by a periodic PUBLISH event: it
+sees what a logger sees, (x_k, τ_k) with τ_k applied over [t_k, t_k+1]. (A discrete update at
+t_k would read the discrete MultibodyPlant's state already advanced to x_k+1, paired with the
+command of t_k: tests/test_sysid_system.py.) At every multiple of t_p a discrete update hands
+the new samples (the one at t_p included) to the incremental estimator (old segments are not
+recomputed) and refreshes the outputs (discrete state). The sample buffer and the estimator
+live in this system object (not in the Context): one simulation per instance at a time; an
+initialization event resets them.
 """
 from __future__ import annotations
 
@@ -55,13 +58,13 @@ class SysIdEstimator(LeafSystem):
         for name, index in self._groups.items():
             self.DeclareStateOutputPort(name, index)
         self.DeclareInitializationDiscreteUpdateEvent(self._on_initialize)
-        self.DeclarePeriodicDiscreteUpdateEvent(self.sample_period_s, 0.0, self._on_sample)
+        self.DeclarePeriodicPublishEvent(self.sample_period_s, 0.0, self._on_sample)
+        self.DeclarePeriodicDiscreteUpdateEvent(self.update_period_s, self.update_period_s, self._on_update)
 
     # -- state kept outside the Context ------------------------------------------------------------
     def _reset(self):
         self._estimator = IncrementalEstimator(self.robot, self.settings, self.prior, self.prior_nominal)
         self._buffer = []
-        self._next_update = self.update_period_s
         self._history = []
 
     def _write(self, discrete_state, est):
@@ -78,17 +81,20 @@ class SysIdEstimator(LeafSystem):
         self._write(discrete_state, self._estimator.prior_estimate())
         return EventStatus.Succeeded()
 
-    def _on_sample(self, context, discrete_state):
-        t = context.get_time()
+    def _on_sample(self, context):
         x = self.get_input_port(0).Eval(context)
         tau = self.get_input_port(1).Eval(context)
         n = self.n
-        self._buffer.append(np.concatenate([[t], x[:n], x[n:2 * n], tau]))
-        if t + 1e-9 < self._next_update:
+        self._buffer.append(np.concatenate([[context.get_time()], x[:n], x[n:2 * n], tau]))
+        return EventStatus.Succeeded()
+
+    def _on_update(self, context, discrete_state):
+        t = context.get_time()
+        if not self._buffer:
             return EventStatus.DidNothing()
-        self._next_update += self.update_period_s
         data = np.array(self._buffer)
         self._buffer = []
+        n = self.n
         try:
             self._estimator.add(data[:, 0], data[:, 1:1 + n], data[:, 1 + n:1 + 2 * n], data[:, 1 + 2 * n:])
             est = self._estimator.update()

@@ -156,3 +156,58 @@ def test_consistent_port_latches_off_and_the_box_is_kept(rigid_robot):
     events = est.events()
     assert [e["kind"] for e in events if e["kind"] == "inconsistent_estimate"] == ["inconsistent_estimate"]
     assert "inconsistent" in events[0]["detail"]
+
+
+def test_samples_are_what_the_discrete_arm_applies():
+    """On the discrete real arm, the estimator's sample at t_k must be (x_k, τ_k) with τ_k the
+    torque the plant applies over [t_k, t_k+1] — what the loggers record (tests/test_real_arm.py
+    checks that pairing against the momentum identity). A time-varying state-feedback command
+    makes any shift visible: sampled by a discrete update, the estimator read x_k+1 (the plant's
+    state is already advanced) with the command of t_k."""
+    from pydrake.systems.primitives import VectorLogSink
+
+    from safesysid.scenario import robot_from_scenario
+    from safesysid.systems.controller import ControllerDynamics
+    from safesysid.systems.real_arm import add_real_arm
+
+    s = load_scenario(overrides={"payload": {"dumbbell": "none"}})
+    robot = robot_from_scenario(s)
+    n = robot.n
+    q0 = np.array(s.q0_rad)
+    hold = ControllerDynamics(robot).gravity(q0, robot.theta)
+
+    class Feedback(LeafSystem):
+        def __init__(self):
+            super().__init__()
+            self.x = self.DeclareVectorInputPort("x", 2 * n)
+            self.DeclareVectorOutputPort("u", n, self._calc)
+
+        def _calc(self, ctx, out):
+            x = self.x.Eval(ctx)
+            t = ctx.get_time()
+            out.SetFromVector(hold + 200.0 * (q0 + 0.05 * np.sin(9.0 * t) - x[:n]) - 20.0 * x[n:])
+
+    b = DiagramBuilder()
+    arm = add_real_arm(b, s, robot=robot)
+    ctrl = b.AddSystem(Feedback())
+    b.Connect(arm.state_output, ctrl.x)
+    b.Connect(ctrl.get_output_port(), arm.commanded_torque_input)
+    est = b.AddSystem(SysIdEstimator(robot, s, update_period_s=10.0))
+    b.Connect(arm.state_output, est.GetInputPort("state"))
+    b.Connect(arm.measured_torque_output, est.GetInputPort("measured_torque"))
+    logs = {name: b.AddSystem(VectorLogSink(port.size(), s.plant.time_step_s))
+            for name, port in (("state", arm.state_output), ("torque", arm.measured_torque_output))}
+    b.Connect(arm.state_output, logs["state"].get_input_port())
+    b.Connect(arm.measured_torque_output, logs["torque"].get_input_port())
+    sim = Simulator(b.Build())
+    arm.set_state(sim.get_mutable_context(), q0)
+    sim.Initialize()
+    sim.AdvanceTo(0.05)
+    samples = np.array(est._buffer)
+    t = logs["state"].FindLog(sim.get_context()).sample_times()
+    x = logs["state"].FindLog(sim.get_context()).data().T
+    tau = logs["torque"].FindLog(sim.get_context()).data().T
+    k = np.rint(samples[:, 0] / s.plant.time_step_s).astype(int)
+    assert len(k) >= 50 and np.allclose(t[k], samples[:, 0])
+    np.testing.assert_array_equal(samples[:, 1:1 + 2 * n], x[k])
+    np.testing.assert_array_equal(samples[:, 1 + 2 * n:], tau[k])
