@@ -31,22 +31,27 @@ stays valid there; it is reported, not replaced.
 Two left inverses are used (whitened/θ_r-marginalised and bound-scaled rows) and their boxes
 intersected; then an optional certified LP (`set_membership_bounds`, exact projection of the
 feasible polytope, dual-certified) tightens the mass (default) or all parameters. Each update
-is intersected with the previous interval (or the prior); an empty intersection is reported as
-inconsistent data (never an inverted interval).
+is intersected with the published interval (or the prior). Any empty set — the two boxes, the
+LP's polytope, the intersection, a torque faster than declared — is evidence that a declared
+bound failed: consistency is latched off and the last consistent box is published unchanged
+(never the gap between boxes, never wider than before, never outside the prior).
 
 Error terms of the box, per parameter (all exact hulls of linear maps, then outward rounding):
     torque:  |L ∂U/∂τ| r_τ   with r_τ = (ratio·|τ_meas| + floor)/(1 − ratio) per sample
              (the declared bound |τ_meas − τ| ≤ ratio·|τ| + floor re-expressed on what we
-             measure); a sample shared by two segments is counted once, with both weights.
-    θ_r:     |L D_r| r_θr    with r_θr = theta_r_ratio·|θ_r nominal|
-    quadrature: |L| e_s, e_s an a-posteriori estimate of the trapezoid (or Euler) error of
-             ∫ṗ dt per segment from third (second) divided differences of the model momentum,
-             times a safety factor (4). It is an estimate, not a proof: it assumes the motion is
-             resolved by the sampling. On smooth 1 kHz data the true error is < 1% of the
-             torque term and inside the estimate (tested).
+             measure). ∫τ dt: a held torque (zero-order hold, the default) is integrated exactly
+             by the left sum — sample k acts over [t_k, t_k+1], so no sample is shared by two
+             segments; a continuous torque signal by the trapezoid (a shared boundary sample
+             counted once, with both weights) plus `torque_rate_bound`.
+    θ_r:     |L D_r| r_θr    with r_θr = max(theta_r_ratio·|θ_r nominal|, floor of its kind)
+    quadrature: |L| e_s, e_s the bound of `quadrature_bound` on the error of the quadrature of
+             ∫W_c θ dt for every θ in the parameter box, under its stated assumption (on every
+             step the integrand is monotone or its rate stays within κ = 2 times the mean rates
+             of the step and its neighbours); plus, for a continuous torque, the trapezoid's.
     rounding: L is a left inverse only up to E = LY − I: |E|(|centre| + radius) plus a relative
              pad for the float sums, then one ulp outward.
-Segments are cut by time (horizon_s) and never span a step longer than max_gap_s.
+Segments are cut by time (horizon_s) and never span a step longer than max_gap_s (for a held
+torque, nor 1.5 hold periods: a lost sample's held torque is unknown).
 """
 from __future__ import annotations
 
@@ -261,25 +266,36 @@ def _segment_sums(values, t, bounds, integration):
     return out
 
 
-def rate_regressor_samples(factors, n):
-    """W_c,rigid at every sample (N, n, 10 n) from the factors (the per-sample form of
-    `integrated_rate_regressor`, needed for the rates of the quadrature bound)."""
+def _rate_blocks(factors, n):
+    """Per body i: (i, its ancestor joints, W_c,rigid[:, joints, body i] at every sample (N, k, 10)),
+    from Σ_ab s_a x_b K_ab = s · (x K), x K one (2N, 6)(6, 60) product per body."""
     N = factors.nsamp
-    kbasis = _K_BASIS.reshape(36, 10)
-    out = np.zeros((N, n, 10 * n))
+    k_by_b = _K_BASIS.transpose(1, 0, 2).reshape(6, 60)  # (b, a·10)
     for i in range(n):
-        s, x = factors.screws[i], factors.twist_grav[i]
-        outer = s[:N, :, :, None] * x[:N, None, None, :] + s[N:, :, :, None] * x[N:, None, None, :]
-        out[:, factors.joints[i], 10 * i:10 * i + 10] = outer.reshape(N, len(factors.joints[i]), 36) @ kbasis
+        s, xk = factors.screws[i], (factors.twist_grav[i] @ k_by_b).reshape(2 * N, 6, 10)
+        yield i, factors.joints[i], s[:N] @ xk[:N] + s[N:] @ xk[N:]
+
+
+def rate_regressor_samples(factors, n):
+    """W_c,rigid at every sample (N, n, 10 n): the per-sample form of `integrated_rate_regressor`."""
+    out = np.zeros((factors.nsamp, n, 10 * n))
+    for i, joints, block in _rate_blocks(factors, n):
+        out[:, joints, 10 * i:10 * i + 10] = block
     return out
 
 
-def integrand_rates(t, wc, theta_centre, theta_radius):
-    """Per step k and joint, a_k ≥ |f(t_k+1) − f(t_k)| / h_k for f = W_c θ and EVERY θ in
-    θ_centre ± θ_radius (the mean of ḟ over the step), (N − 1, n)."""
-    h = np.diff(t)[:, None]
-    dw = np.diff(wc, axis=0)
-    return (np.abs(dw @ theta_centre) + np.abs(dw) @ theta_radius) / h
+def integrand_rates(t, factors, fric_cols, theta_centre, theta_radius):
+    """Per step k and joint, a_k ≥ |f(t_k+1) − f(t_k)| / h_k for the integrand f = W_c θ and
+    EVERY θ in θ_centre ± θ_radius (the mean of ḟ over the step), (N − 1, n). W_c = rigid part
+    (from the factors, body by body: never the whole (N, n, 14 n) array) + fric_cols (N, n, 4 n)."""
+    n = fric_cols.shape[1]
+    f = fric_cols @ theta_centre[10 * n:]
+    spread = np.abs(np.diff(fric_cols, axis=0)) @ theta_radius[10 * n:]
+    for i, joints, block in _rate_blocks(factors, n):
+        body = slice(10 * i, 10 * i + 10)
+        f[:, joints] += block @ theta_centre[body]
+        spread[:, joints] += np.abs(np.diff(block, axis=0)) @ theta_radius[body]
+    return (np.abs(np.diff(f, axis=0)) + spread) / np.diff(t)[:, None]
 
 
 def quadrature_bound(t, rates, bounds, integration, safety):
@@ -405,8 +421,7 @@ def build_segment_rows(robot, t, q, v, tau, bounds, settings, theta_box=None, in
     shared_prev = np.zeros(S, bool)
     shared_prev[1:] = loc[1:, 0] == loc[:-1, 1]
     centre, radius = (robot.theta, np.zeros_like(robot.theta)) if theta_box is None else theta_box
-    wc = np.concatenate([rate_regressor_samples(factors, n), rate_fric], -1)
-    rates = integrand_rates(tt, wc, centre, radius)
+    rates = integrand_rates(tt, factors, rate_fric, centre, radius)
     quad = quadrature_bound(tt, rates, loc, integ, settings.quadrature_safety)
     violated = np.zeros(S, bool)
     if settings.torque_signal == "continuous":

@@ -19,24 +19,12 @@ import pytest
 
 from conftest import n_trials
 from safesysid.systems import estimator as E
-from safesysid.systems.payload import load_dumbbells, payload_theta_in_end_effector
-from safesysid.systems.robot_model import MODELS_DIR, load_robot
+from safesysid.systems.payload import payload_theta_in_end_effector
+from test_estimator import CENTRE, PAYLOADS, dumbbells, robot  # noqa: F401 (fixtures)
 
-CENTRE = [0.0, 0.3, 0.0, 1.5, 0.0, 0.8, 0.0]
-PAYLOADS = ["4lb", "5lb", "6lb", "7lb", "8lb"]
 PRIOR = (np.array([1.2, -0.4, -0.4, -1.0] + [-0.2] * 6), np.array([5.2, 0.4, 0.4, -0.1] + [0.2] * 6))
 PRIOR_NOMINAL = np.array([3.2, 0.0, 0.0, -0.5] + [0.0] * 6)
 PATTERNS = ["uniform", "plus", "alternating", "worst_map", "worst_bound", "worst_map", "worst_bound", "uniform"]
-
-
-@pytest.fixture(scope="module")
-def robot():
-    return load_robot(coulomb_smoothing=0.01)
-
-
-@pytest.fixture(scope="module")
-def dumbbells():
-    return load_dumbbells(MODELS_DIR / "dumbbells.yaml")
 
 
 def theta_r_radius(est):
