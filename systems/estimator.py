@@ -941,8 +941,12 @@ class IncrementalEstimator:
         robot, st = self.robot, self.settings
         S = len(self.rows)
         if S * self.n < 10:
+            hint = "" if st.segment_gap_s() == st.max_gap_s else (
+                f" (held torque: a step longer than {st.segment_gap_s():.3g} s, 1.5 hold periods, ends a segment; "
+                "for a log sampled slower than its controller set estimator.hold_period_s or "
+                "estimator.torque_signal: continuous)")
             raise EstimatorError(f"too little data: {S} segment(s) of {st.horizon_s} s; need at least "
-                                 f"{int(np.ceil(10 / self.n))} gap-free segments")
+                                 f"{int(np.ceil(10 / self.n))} gap-free segments{hint}")
         hull, cond = interval_hull(self.rows, self.theta_r, self.theta_r_radius, st)
         prev = self.estimate
         if hull is None or cond > st.max_condition:

@@ -229,6 +229,17 @@ def test_held_torque_segments_never_span_a_lost_sample(robot, dumbbells):
         assert np.max(np.diff(tk[a:b + 1])) < 1.5e-3
 
 
+def test_a_log_slower_than_the_hold_period_is_refused_with_a_hint(robot):
+    """A 100 Hz log declared as held at 1 kHz: every step loses held samples, so no segment
+    forms; the error says which setting to change."""
+    rng = np.random.default_rng(14)
+    t, q, v, tau, _ = E.simulate_log(rng, robot, robot.theta, 2.0, 100.0, centre=CENTRE)
+    est = E.IncrementalEstimator(robot, E.EstimatorSettings(hold_period_s=1e-3))
+    est.add(t, q, v, tau)
+    with pytest.raises(E.EstimatorError, match="hold_period_s"):
+        est.update()
+
+
 def test_continuous_torque_with_dropped_samples_and_its_rate_check(robot, dumbbells):
     """A torque sampled from a continuous signal (inverse dynamics at the sample instants), 20 %
     of the samples dropped and a 0.5 s gap: with a declared rate limit above the true one the
