@@ -33,7 +33,8 @@ def prior(robot, scenario: Scenario, method):
         theta0 = robot.theta.copy()
         return theta0, Interval(theta0, theta0)
     ratio = scenario.noise.theta_r_ratio
-    return parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper), rest_ratio=ratio, friction_ratio=ratio)
+    return parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper), rest_ratio=ratio, friction_ratio=ratio,
+                         floors=scenario.noise.theta_r_floor)
 
 
 @dataclass
@@ -258,10 +259,12 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
         history = est.history()
         cond_y = history[-1]["cond_Y"] if history else float("nan")
         update_times = [h["update_time_s"] for h in history]
+        consistent, events = est.consistent, est.events()
     else:
         theta0, box = built.theta_prior
         theta_e0, lo, hi = theta0[robot.ee_slice], box.lo[robot.ee_slice], box.hi[robot.ee_slice]
         history, cond_y, update_times = [], float("nan"), []
+        consistent, events = True, []
     contains = bool(np.all((lo <= truth) & (truth <= hi)))
     planner_context = built.planner.GetMyContextFromRoot(ctx)
     plans = built.planner.records(planner_context)
@@ -283,7 +286,9 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
         "max_tracking_error_rad": max_err, "tracking_bound_rad": tracking_bound,
         "max_tracking_error_ratio": worst_ratio, "tracking_bound_per_joint_rad": bound.tolist(),
         "payload_true": {"theta": truth.tolist(), "dumbbell": arm.dumbbell.name if arm.dumbbell else None},
-        "estimate": {"nominal": np.asarray(theta_e0).tolist(), "lower": np.asarray(lo).tolist(), "upper": np.asarray(hi).tolist()},
+        "estimate": {"nominal": np.asarray(theta_e0).tolist(), "lower": np.asarray(lo).tolist(), "upper": np.asarray(hi).tolist(),
+                     "consistent": bool(consistent)},
+        "events": events,
         "contains_truth": contains, "cond_Y": cond_y,
         "planner": {"iterations": len(plans), "solve_time_s": solve_times, "deadline_s": deadline,
                     "missed_deadlines": int(sum(t_ > deadline for t_ in solve_times)),

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from safesysid.systems.uncertainty import ParameterFloors
 from safesysid.systems.robot_model import MODELS_DIR
 
 SCENARIOS_DIR = Path(__file__).resolve().parent.parent / "scenarios"
@@ -59,6 +60,10 @@ class Noise:
     declared_torque_ratio: float = 0.025
     declared_torque_floor_Nm: float = 0.05
     theta_r_ratio: float = 0.05  # relative uncertainty of the rest-of-robot parameters
+    # Absolute floor of each robot parameter's half-width, per kind (units in the names): the box
+    # is nominal +- max(theta_r_ratio |nominal|, floor), shared by controller, planner, estimator
+    # and the drawn real arm (systems/controller.py ParameterFloors has the defaults).
+    theta_r_floor: ParameterFloors = dc.field(default_factory=ParameterFloors)
 
 
 @dc.dataclass
@@ -76,6 +81,10 @@ class PlantEffects:
 @dc.dataclass
 class Plant:
     time_step_s: float = 0.001
+    # The real arm's robot parameters (links, friction, armature, offsets): the model's nominal
+    # values, drawn uniformly inside the declared box (seeded; links kept physically consistent),
+    # or at a random vertex of it (pulled inside where a vertex is not physically consistent).
+    robot_parameters: str = "nominal"  # nominal | drawn | corner
     effects: PlantEffects = dc.field(default_factory=PlantEffects)
 
 
@@ -126,6 +135,11 @@ class Estimator:
     max_gap_s: float = 0.05  # a segment never spans a time step longer than this
     set_membership: str = "mass"  # LP refinement of [θ_e]: none | mass | all (estimator.py)
     point_estimate: str = "map"  # θ0: map (θ_r marginalised) | paper (plain least squares)
+    # Logged torque: held (zero-order hold, exact left sum) | continuous (trapezoid + rate bound).
+    torque_signal: str = "held"
+    hold_period_s: float = 0.0  # held: the hold period; 0 = plant.time_step_s
+    torque_rate_limit_Nm_s: float = 200.0  # continuous: declared |dtau/dt|, checked on the data
+    quadrature_safety: float = 2.0  # kappa of the quadrature bound (estimator.py), >= 2
 
 
 @dc.dataclass
@@ -194,6 +208,8 @@ _CHOICES = {
     "estimator.integration": ("trapezoid", "euler"),
     "estimator.set_membership": ("none", "mass", "all"),
     "estimator.point_estimate": ("map", "paper"),
+    "estimator.torque_signal": ("held", "continuous"),
+    "plant.robot_parameters": ("nominal", "drawn", "corner"),
     "noise.distribution": ("uniform", "none"),
     "controller.kind": ("armour", "pid", "adaptive", "adaptive_robust"),
     "task.solver": ("snopt", "ipopt"),
@@ -273,6 +289,11 @@ def _validate(s: Scenario, where):
     need(s.plant.effects.time_delay_s >= 0, "plant.effects.time_delay_s", "must be >= 0")
     need(s.plant.effects.torque_sensor_lag_s >= 0, "plant.effects.torque_sensor_lag_s", "must be >= 0")
     need(s.estimator.horizon_s > 0, "estimator.horizon_s", "must be > 0")
+    need(s.estimator.quadrature_safety >= 2, "estimator.quadrature_safety", "must be >= 2")
+    need(s.estimator.hold_period_s >= 0, "estimator.hold_period_s", "must be >= 0")
+    need(s.estimator.torque_rate_limit_Nm_s > 0, "estimator.torque_rate_limit_Nm_s", "must be > 0")
+    for key, value in dc.asdict(s.noise.theta_r_floor).items():
+        need(value >= 0, f"noise.theta_r_floor.{key}", "must be >= 0")
     need(0 < s.planner.replan_period_s <= s.planner.duration_s, "planner.replan_period_s", "must be in (0, duration_s]")
     need(s.noise.torque_ratio >= 0 and s.noise.declared_torque_ratio >= 0, "noise", "ratios must be >= 0")
     for field, text in (("robot.params", s.robot.params), ("payload.dumbbells_file", s.payload.dumbbells_file)):

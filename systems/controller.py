@@ -56,6 +56,7 @@ import numpy as np
 
 from . import regressors
 from .intervals import Interval, matmul
+from .uncertainty import ParameterFloors, parameter_radius
 
 _TINY_R = 1e-9  # below this |r| the direction r/|r| is meaningless and lambda is 0 anyway
 _UP = 1 + 8 * np.finfo(float).eps  # outward factor for the few float sums done here
@@ -365,15 +366,16 @@ def tracking_bounds_for(robot, gains: ArmourGains, theta_lower):
 
 
 # ---- parameter boxes ------------------------------------------------------------------------------
-def parameter_box(robot, theta_e_nominal, theta_e_lower, theta_e_upper, rest_ratio=None, friction_ratio=None):
+def parameter_box(robot, theta_e_nominal, theta_e_lower, theta_e_upper, rest_ratio=None, friction_ratio=None,
+                  floors: ParameterFloors | None = None):
     """(theta0, [theta]) over all 14 n parameters: the end effector from the given box, the rest
-    of the robot +-ratio |theta| around the model (ratios from the parameter YAML by default)."""
+    of the robot +- max(ratio |theta|, floor) around the model (ratios from the parameter YAML and
+    the default floors unless given)."""
     doc = (robot.extra.get("params_doc") or {}).get("uncertainty", {})
     rest_ratio = doc.get("link_inertial_ratio", 0.0) if rest_ratio is None else rest_ratio
     friction_ratio = doc.get("friction_ratio", 0.0) if friction_ratio is None else friction_ratio
     theta0 = robot.theta.copy()
-    rad = np.abs(theta0) * rest_ratio
-    rad[10 * robot.n:] = np.abs(theta0[10 * robot.n:]) * friction_ratio
+    rad = parameter_radius(robot, rest_ratio, friction_ratio, floors)
     theta0[robot.ee_slice] = theta_e_nominal
     lo, hi = theta0 - rad, theta0 + rad
     lo[robot.ee_slice], hi[robot.ee_slice] = theta_e_lower, theta_e_upper

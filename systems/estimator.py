@@ -31,22 +31,27 @@ stays valid there; it is reported, not replaced.
 Two left inverses are used (whitened/θ_r-marginalised and bound-scaled rows) and their boxes
 intersected; then an optional certified LP (`set_membership_bounds`, exact projection of the
 feasible polytope, dual-certified) tightens the mass (default) or all parameters. Each update
-is intersected with the previous interval (or the prior); an empty intersection is reported as
-inconsistent data (never an inverted interval).
+is intersected with the published interval (or the prior). Any empty set — the two boxes, the
+LP's polytope, the intersection, a torque faster than declared — is evidence that a declared
+bound failed: consistency is latched off and the last consistent box is published unchanged
+(never the gap between boxes, never wider than before, never outside the prior).
 
 Error terms of the box, per parameter (all exact hulls of linear maps, then outward rounding):
     torque:  |L ∂U/∂τ| r_τ   with r_τ = (ratio·|τ_meas| + floor)/(1 − ratio) per sample
              (the declared bound |τ_meas − τ| ≤ ratio·|τ| + floor re-expressed on what we
-             measure); a sample shared by two segments is counted once, with both weights.
-    θ_r:     |L D_r| r_θr    with r_θr = theta_r_ratio·|θ_r nominal|
-    quadrature: |L| e_s, e_s an a-posteriori estimate of the trapezoid (or Euler) error of
-             ∫ṗ dt per segment from third (second) divided differences of the model momentum,
-             times a safety factor (4). It is an estimate, not a proof: it assumes the motion is
-             resolved by the sampling. On smooth 1 kHz data the true error is < 1% of the
-             torque term and inside the estimate (tested).
+             measure). ∫τ dt: a held torque (zero-order hold, the default) is integrated exactly
+             by the left sum — sample k acts over [t_k, t_k+1], so no sample is shared by two
+             segments; a continuous torque signal by the trapezoid (a shared boundary sample
+             counted once, with both weights) plus `torque_rate_bound`.
+    θ_r:     |L D_r| r_θr    with r_θr = max(theta_r_ratio·|θ_r nominal|, floor of its kind)
+    quadrature: |L| e_s, e_s the bound of `quadrature_bound` on the error of the quadrature of
+             ∫W_c θ dt for every θ in the parameter box, under its stated assumption (on every
+             step the integrand is monotone or its rate stays within κ = 2 times the mean rates
+             of the step and its neighbours); plus, for a continuous torque, the trapezoid's.
     rounding: L is a left inverse only up to E = LY − I: |E|(|centre| + radius) plus a relative
              pad for the float sums, then one ulp outward.
-Segments are cut by time (horizon_s) and never span a step longer than max_gap_s.
+Segments are cut by time (horizon_s) and never span a step longer than max_gap_s (for a held
+torque, nor 1.5 hold periods: a lost sample's held torque is unknown).
 """
 from __future__ import annotations
 
@@ -57,6 +62,7 @@ import numpy as np
 from scipy.optimize import linprog  # imported here: its first import costs ~0.3 s
 
 from . import inertial, regressors
+from .uncertainty import ParameterFloors, parameter_radius
 
 EPS = np.finfo(float).eps
 
@@ -69,12 +75,25 @@ class EstimatorError(ValueError):
 class EstimatorSettings:
     horizon_s: float = 0.1
     max_gap_s: float = 0.05
-    integration: str = "trapezoid"  # trapezoid | euler (paper)
+    integration: str = "trapezoid"  # quadrature of ∫W_c dt: trapezoid | euler (paper's left sum)
+    # What the logged torque is. "held": each sample is the torque a zero-order hold applies until
+    # the next sample (the simulated arm, a digital controller logged at its own rate): ∫τ dt is
+    # the left sum, exactly. "continuous": a signal sampled at the log instants whose rate is at
+    # most torque_rate_limit_Nm_s (checked on the data): trapezoid plus its error bound.
+    torque_signal: str = "held"
+    hold_period_s: float | None = None  # held: a step longer than 1.5 hold periods is a gap
+    torque_rate_limit_Nm_s: float = 200.0  # continuous: declared |dτ/dt| of the applied torque
     solver: str = "ipopt"  # ipopt | snopt
     torque_ratio: float = 0.025  # declared |τ_meas − τ| ≤ ratio·|τ| + floor
     torque_floor_Nm: float = 0.05
-    theta_r_ratio: float = 0.05  # [θ_r] = θ_r ± ratio·|θ_r|
-    quadrature_safety: float = 4.0  # multiplies the quadrature-error estimate
+    theta_r_ratio: float = 0.05  # [θ_r] = θ_r ± max(ratio·|θ_r|, floor of its kind)
+    theta_r_floor: ParameterFloors = field(default_factory=ParameterFloors)
+    # κ of the quadrature bound (`quadrature_bound`, its assumption); ≥ 2 covers any integrand
+    # that is monotone on each step, whatever its slope.
+    quadrature_safety: float = 2.0
+    # Above this share of a row's torque radius the quadrature term is reported as "motion not
+    # resolved by the sampling" (an event; the bound still holds under its assumption).
+    quadrature_warn_ratio: float = 1.0
     newton_steps: int = 50  # max iterations of the exact-Hessian trust-region polish after the NLP
     max_condition: float = 1e10  # above: not identifiable yet, keep the previous estimate
     # Rows scaled by 1 / (their declared error bound) before the least squares ("bound"), or the
@@ -92,12 +111,24 @@ class EstimatorSettings:
 
     @classmethod
     def from_scenario(cls, s):
-        return cls(horizon_s=s.estimator.horizon_s, max_gap_s=s.estimator.max_gap_s,
-                   integration=s.estimator.integration, solver=s.estimator.solver,
+        e = s.estimator
+        return cls(horizon_s=e.horizon_s, max_gap_s=e.max_gap_s, integration=e.integration, solver=e.solver,
+                   torque_signal=e.torque_signal, hold_period_s=e.hold_period_s or s.plant.time_step_s,
+                   torque_rate_limit_Nm_s=e.torque_rate_limit_Nm_s, quadrature_safety=e.quadrature_safety,
                    torque_ratio=s.noise.declared_torque_ratio, torque_floor_Nm=s.noise.declared_torque_floor_Nm,
-                   theta_r_ratio=s.noise.theta_r_ratio,
-                   set_membership=getattr(s.estimator, "set_membership", "mass"),
-                   point_estimate=getattr(s.estimator, "point_estimate", "map"))
+                   theta_r_ratio=s.noise.theta_r_ratio, theta_r_floor=s.noise.theta_r_floor,
+                   set_membership=e.set_membership, point_estimate=e.point_estimate)
+
+    def segment_gap_s(self):
+        """Longest step a segment may span: max_gap_s, and for a held torque 1.5 hold periods
+        (a longer step lost held samples whose torque is unknown)."""
+        if self.torque_signal == "held" and self.hold_period_s:
+            return min(self.max_gap_s, 1.5 * self.hold_period_s)
+        return self.max_gap_s
+
+    def torque_rule(self):
+        """Quadrature of ∫τ dt: the exact left sum of a held torque, else the trapezoid."""
+        return "euler" if self.torque_signal == "held" else "trapezoid"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -235,30 +266,74 @@ def _segment_sums(values, t, bounds, integration):
     return out
 
 
-def quadrature_error_estimate(t, p, bounds, integration):
-    """Per segment and joint, estimated |∫ṗ dt − quadrature(ṗ)| from divided differences of p.
+def _rate_blocks(factors, n):
+    """Per body i: (i, its ancestor joints, W_c,rigid[:, joints, body i] at every sample (N, k, 10)),
+    from Σ_ab s_a x_b K_ab = s · (x K), x K one (2N, 6)(6, 60) product per body."""
+    N = factors.nsamp
+    k_by_b = _K_BASIS.transpose(1, 0, 2).reshape(6, 60)  # (b, a·10)
+    for i in range(n):
+        s, xk = factors.screws[i], (factors.twist_grav[i] @ k_by_b).reshape(2 * N, 6, 10)
+        yield i, factors.joints[i], s[:N] @ xk[:N] + s[N:] @ xk[N:]
 
-    Trapezoid on step k: −Δt³ p'''/12; Euler (left sum): Δt² p''/2. p''' (p'') from the third
-    (second) divided differences of the segment's samples; the largest one found bounds every
-    step of the segment (a safety factor is applied by the caller).
-    """
-    out = np.zeros((len(bounds), p.shape[1]))
-    for s, (a, b) in enumerate(bounds):
-        tt, pp = t[a:b + 1], p[a:b + 1]  # this segment only: independent of how data was chunked
-        if len(tt) < 4:
-            continue
-        d, ts = pp, tt
-        order = 2 if integration == "euler" else 3
-        for k in range(1, order + 1):
-            d = (d[1:] - d[:-1]) / (ts[k:] - ts[:-k])[:, None]
-        deriv = np.abs(d) * (2.0 if order == 2 else 6.0)  # f[..] = p^(k)/k!
-        steps = np.diff(t[a:b + 1])
-        dmax = np.max(deriv, 0)  # largest derivative estimate around the segment
-        if order == 3:
-            out[s] = dmax * np.sum(steps ** 3) / 12.0
-        else:
-            out[s] = dmax * np.sum(steps ** 2) / 2.0
+
+def rate_regressor_samples(factors, n):
+    """W_c,rigid at every sample (N, n, 10 n): the per-sample form of `integrated_rate_regressor`."""
+    out = np.zeros((factors.nsamp, n, 10 * n))
+    for i, joints, block in _rate_blocks(factors, n):
+        out[:, joints, 10 * i:10 * i + 10] = block
     return out
+
+
+def integrand_rates(t, factors, fric_cols, theta_centre, theta_radius):
+    """Per step k and joint, a_k ≥ |f(t_k+1) − f(t_k)| / h_k for the integrand f = W_c θ and
+    EVERY θ in θ_centre ± θ_radius (the mean of ḟ over the step), (N − 1, n). W_c = rigid part
+    (from the factors, body by body: never the whole (N, n, 14 n) array) + fric_cols (N, n, 4 n)."""
+    n = fric_cols.shape[1]
+    f = fric_cols @ theta_centre[10 * n:]
+    spread = np.abs(np.diff(fric_cols, axis=0)) @ theta_radius[10 * n:]
+    for i, joints, block in _rate_blocks(factors, n):
+        body = slice(10 * i, 10 * i + 10)
+        f[:, joints] += block @ theta_centre[body]
+        spread[:, joints] += np.abs(np.diff(block, axis=0)) @ theta_radius[body]
+    return (np.abs(np.diff(f, axis=0)) + spread) / np.diff(t)[:, None]
+
+
+def quadrature_bound(t, rates, bounds, integration, safety):
+    """Per segment and joint, a bound on |∫ f dt − quadrature(f)| for the integrand f = W_c θ.
+
+    Assumption (κ = safety ≥ 2): on every step, f is monotone, or |ḟ| ≤ κ·max(a_k−1, a_k, a_k+1)
+    (the mean rates of the step and its neighbours in the segment, `integrand_rates`). Per step
+    the trapezoid errs by at most h·|Δf|/2 = h² a_k/2 when f is monotone there, and by L h²/4
+    when |ḟ| ≤ L; the left sum by h² a_k and L h²/2. Both cases are covered by
+        c·κ·h_k²·max(a_k−1, a_k, a_k+1),   c = 1/4 (trapezoid), 1/2 (left sum).
+    Under a zero-order-hold torque ḟ jumps only at the samples, so inside a step f is as smooth as
+    the arm's dynamics; the neighbours cover an extremum of f inside a step (where a_k ~ 0).
+    """
+    c = 0.5 if integration == "euler" else 0.25
+    h2 = np.diff(t) ** 2
+    out = np.zeros((len(bounds), rates.shape[1]))
+    for s, (a, b) in enumerate(bounds):
+        r = rates[a:b]  # the steps of this segment only: independent of how data was chunked
+        local = r.copy()
+        local[1:] = np.maximum(local[1:], r[:-1])
+        local[:-1] = np.maximum(local[:-1], r[1:])
+        out[s] = c * safety * (h2[a:b] @ local)
+    return out
+
+
+def torque_rate_bound(t, tau_meas, radius, bounds, rate_limit):
+    """Continuous torque signal with |dτ/dt| ≤ rate_limit: per segment and joint the trapezoid
+    error bound rate_limit·Σ h²/4, and per segment whether the measurements contradict the
+    declared rate (|Δτ_meas| > rate_limit·h + r_k + r_k+1 on some step: the assumption failed)."""
+    h = np.diff(t)
+    slack = rate_limit * h[:, None] + radius[:-1] + radius[1:]
+    bad_step = np.any(np.abs(np.diff(tau_meas, axis=0)) > slack, 1)
+    err = np.zeros((len(bounds), tau_meas.shape[1]))
+    bad = np.zeros(len(bounds), bool)
+    for s, (a, b) in enumerate(bounds):
+        err[s] = 0.25 * rate_limit * np.sum(h[a:b] ** 2)
+        bad[s] = bool(np.any(bad_step[a:b]))
+    return err, bad
 
 
 # ---------------------------------------------------------------------------------------------
@@ -278,7 +353,8 @@ class SegmentRows:
     r_inner: np.ndarray  # (S, n) Σ_inner w_k r_k
     r_inner_sq: np.ndarray  # (S, n) Σ_inner w_k² r_k² (noise scale for the point estimate)
     shared_prev: np.ndarray  # (S,) bool: first sample is the previous segment's last
-    quad: np.ndarray  # (S, n) quadrature-error estimate
+    quad: np.ndarray  # (S, n) quadrature-error bound (`quadrature_bound`, `torque_rate_bound`)
+    violated: np.ndarray  # (S,) bool: the data contradict a declared assumption (torque rate)
     end_index: np.ndarray  # (S,) global index of the last sample (bookkeeping)
     start_index: np.ndarray
 
@@ -286,7 +362,7 @@ class SegmentRows:
     def empty(cls, n, nr):
         z = lambda *s: np.zeros(s)  # noqa: E731
         return cls(z(0), z(0), z(0, n, 10), z(0, n, nr), z(0, n), z(0), z(0), z(0, n), z(0, n), z(0, n), z(0, n),
-                   np.zeros(0, bool), z(0, n), np.zeros(0, int), np.zeros(0, int))
+                   np.zeros(0, bool), z(0, n), np.zeros(0, bool), np.zeros(0, int), np.zeros(0, int))
 
     def __len__(self):
         return len(self.t0)
@@ -304,8 +380,12 @@ def torque_radius(tau_meas, settings):
     return (ratio * np.abs(tau_meas) + settings.torque_floor_Nm) / (1.0 - ratio)
 
 
-def build_segment_rows(robot, t, q, v, tau, bounds, settings, theta_for_quadrature=None, index_offset=0):
-    """Y, D_r, ∫τ and interval bookkeeping for the given segments (vectorized over samples)."""
+def build_segment_rows(robot, t, q, v, tau, bounds, settings, theta_box=None, index_offset=0):
+    """Y, D_r, ∫τ and interval bookkeeping for the given segments (vectorized over samples).
+
+    theta_box: (centre, radius) over all 14 n parameters, the box the true θ lies in, for the
+    quadrature bound (None: the model's θ, zero radius).
+    """
     n = robot.n
     ee = robot.ee_slice
     rest = robot.rest_mask()
@@ -326,41 +406,32 @@ def build_segment_rows(robot, t, q, v, tau, bounds, settings, theta_for_quadratu
     wm_a = wm[[pos[a] for a in loc[:, 0]]]
     wm_b = wm[[pos[b] for b in loc[:, 1]]]
     D = wm_b - wm_a - np.concatenate([wc_rigid, wc_fric], -1)
-    T = _segment_sums(ta, tt, loc, integ)
+    rule = settings.torque_rule()
+    T = _segment_sums(ta, tt, loc, rule)
     r = torque_radius(ta, settings)
     w_first = np.empty(S)
     w_last = np.empty(S)
     r_inner = np.empty((S, n))
     r_inner_sq = np.empty((S, n))
     for s, (a, b) in enumerate(loc):
-        w = sample_weights(tt, a, b, integ)
+        w = sample_weights(tt, a, b, rule)
         w_first[s], w_last[s] = w[0], w[-1]
         r_inner[s] = w[1:-1] @ r[a + 1:b]
         r_inner_sq[s] = w[1:-1] ** 2 @ r[a + 1:b] ** 2
     shared_prev = np.zeros(S, bool)
     shared_prev[1:] = loc[1:, 0] == loc[:-1, 1]
-    theta_q = robot.theta if theta_for_quadrature is None else theta_for_quadrature
-    # Momentum at every sample for the quadrature-error estimate (Wm θ without the (N,n,14n) array).
-    quad = quadrature_error_estimate(tt, _momentum_all(robot, vv, theta_q, factors), loc, integ)
-    quad *= settings.quadrature_safety
+    centre, radius = (robot.theta, np.zeros_like(robot.theta)) if theta_box is None else theta_box
+    rates = integrand_rates(tt, factors, rate_fric, centre, radius)
+    quad = quadrature_bound(tt, rates, loc, integ, settings.quadrature_safety)
+    violated = np.zeros(S, bool)
+    if settings.torque_signal == "continuous":
+        err, violated = torque_rate_bound(tt, ta, r, loc, settings.torque_rate_limit_Nm_s)
+        quad = quad + err
     return SegmentRows(t0=tt[loc[:, 0]], t1=tt[loc[:, 1]], Y=D[..., ee], D_r=D[..., rest], T=T,
                        w_first=w_first, w_last=w_last, r_first=r[loc[:, 0]], r_last=r[loc[:, 1]],
                        r_inner=r_inner, r_inner_sq=r_inner_sq, shared_prev=shared_prev, quad=quad,
-                       start_index=bounds[:, 0] + index_offset, end_index=bounds[:, 1] + index_offset)
-
-
-def _momentum_all(robot, v, theta, factors):
-    """(M + diag Ia) v at every sample from the factors: p_j = Σ_i (X_i⁻¹S_j)ᵀ I(θ_i) V_i."""
-    n, N = robot.n, factors.nsamp
-    p = np.zeros(v.shape)
-    for i in range(n):
-        th = theta[10 * i:10 * i + 10]
-        vb = factors.twist_grav[i][:N]
-        w, u = vb[:, :3], vb[:, 3:]
-        f = np.concatenate([w @ inertial.inertia_matrix(th) + _cross(th[1:4], u), th[0] * u + _cross(w, th[1:4])], -1)
-        p[:, factors.joints[i]] += (factors.screws[i][N:] * f[:, None, :]).sum(-1)
-    ia = theta[10 * n:].reshape(n, 4)[:, 2]
-    return p + ia * v
+                       violated=violated, start_index=bounds[:, 0] + index_offset,
+                       end_index=bounds[:, 1] + index_offset)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -580,12 +651,14 @@ class Estimate:
     radius_quadrature: np.ndarray
     radius_rounding: np.ndarray
     case: str  # interior | interior_at_m | lmi_active | not_identifiable | prior
-    consistent: bool  # False: this box does not meet the previous one (an assumption is violated)
+    consistent: bool  # False from the first update whose data contradict a declared bound (latched)
     cond_Y: float
     num_segments: int
     num_samples: int
     solver: dict = field(default_factory=dict)
     message: str = ""
+    problems: list = field(default_factory=list)  # this update's evidence that an assumption failed
+    quadrature_ratio: float = 0.0  # max over rows of quadrature bound / torque radius
     update_time_s: float = 0.0
 
     @property
@@ -604,6 +677,7 @@ class Estimate:
                 "rounding": f(self.radius_rounding)}, "case": self.case, "consistent": self.consistent,
                 "cond_Y": float(self.cond_Y), "num_segments": int(self.num_segments),
                 "num_samples": int(self.num_samples), "solver": self.solver, "message": self.message,
+                "problems": list(self.problems), "quadrature_ratio": float(self.quadrature_ratio),
                 "update_time_s": float(self.update_time_s)}
 
 
@@ -617,14 +691,19 @@ def _pinv(Y2):
     return np.linalg.solve(R, Q.T), cond
 
 
-def row_bounds(rows: SegmentRows, theta_r, settings):
-    """Declared error bound of each row of U (torque + θ_r + quadrature), (S n,)."""
-    r_tau = rows.w_first[:, None] * rows.r_first + rows.w_last[:, None] * rows.r_last + rows.r_inner
-    r_thr = np.abs(rows.D_r) @ (settings.theta_r_ratio * np.abs(theta_r))
-    return (r_tau + r_thr + rows.quad).ravel()
+def _torque_row_radius(rows: SegmentRows):
+    """(S, n) declared bound of the torque part of each row, Σ_k w_k r_k."""
+    return rows.w_first[:, None] * rows.r_first + rows.w_last[:, None] * rows.r_last + rows.r_inner
 
 
-def _left_inverse(rows: SegmentRows, theta_r, settings):
+def row_bounds(rows: SegmentRows, rad_r):
+    """Declared error bound of each row of U (torque + θ_r + quadrature), (S n,); rad_r the
+    half-widths of [θ_r]."""
+    r_thr = np.abs(rows.D_r) @ rad_r
+    return (_torque_row_radius(rows) + r_thr + rows.quad).ravel()
+
+
+def _left_inverse(rows: SegmentRows, theta_r, rad_r, settings):
     """A left inverse L of Y (L Y = I) and the NLP's quadratic (A, b, c) with
     ‖·‖² = θᵀAθ − 2bᵀθ + c, for the chosen point estimate:
 
@@ -644,7 +723,6 @@ def _left_inverse(rows: SegmentRows, theta_r, settings):
         sig = np.sqrt((rows.w_first[:, None] ** 2 * rows.r_first ** 2 + rows.w_last[:, None] ** 2 * rows.r_last ** 2
                        + rows.r_inner_sq) / 3.0).ravel() + rows.quad.ravel()
         wrow = 1.0 / np.maximum(sig, 1e-12 * max(sig.max(), 1e-300))
-        rad_r = settings.theta_r_ratio * np.abs(theta_r)
         keep = (rad_r > 0) & (np.abs(Dr2).max(0) > 0)
         Yt, Dt, Ut = Y2 * wrow[:, None], Dr2[:, keep] * wrow[:, None], U * wrow
         K = Dt.T @ Dt + np.diag(3.0 / rad_r[keep] ** 2)
@@ -661,7 +739,7 @@ def _left_inverse(rows: SegmentRows, theta_r, settings):
             return None
         return L, A, b, c, U
     if settings.row_weighting == "bound":
-        bnd = row_bounds(rows, theta_r, settings)
+        bnd = row_bounds(rows, rad_r)
         wrow = 1.0 / np.maximum(bnd, 1e-12 * max(bnd.max(), 1e-300))
     else:
         wrow = np.ones(S * n)
@@ -672,7 +750,7 @@ def _left_inverse(rows: SegmentRows, theta_r, settings):
     return pinv_w * wrow, A, b, c, U
 
 
-def interval_hull(rows: SegmentRows, theta_r, settings):
+def interval_hull(rows: SegmentRows, theta_r, rad_r, settings):
     """Centre L U(m) and radii of the exact hull {L(U(m') − e) : m' ∈ [m], |e| ≤ quad}.
 
     L is a left inverse of Y (`_left_inverse`): θ_e = L(U(m_true) − e) exactly, so the box
@@ -683,7 +761,7 @@ def interval_hull(rows: SegmentRows, theta_r, settings):
     Y2 = rows.Y.reshape(S * n, 10)
     Dr2 = rows.D_r.reshape(S * n, -1)
     _, cond = _pinv(Y2)  # cond of the raw Y (the paper's figure)
-    inv = None if not np.isfinite(cond) else _left_inverse(rows, theta_r, settings)
+    inv = None if not np.isfinite(cond) else _left_inverse(rows, theta_r, rad_r, settings)
     if inv is None:
         return None, cond
     L, A, b, c, U = inv
@@ -699,7 +777,7 @@ def interval_hull(rows: SegmentRows, theta_r, settings):
     last = G * (rows.w_last * ~next_shared)[None, :, None]
     rad_tau = (np.abs(first) * rows.r_first).sum((1, 2)) + (np.abs(last) * rows.r_last).sum((1, 2)) \
         + (np.abs(G) * rows.r_inner).sum((1, 2))
-    rad_theta_r = np.abs(L @ Dr2) @ (settings.theta_r_ratio * np.abs(theta_r))
+    rad_theta_r = np.abs(L @ Dr2) @ rad_r
     rad_quad = np.abs(L) @ rows.quad.ravel()
     total = rad_tau + rad_theta_r + rad_quad
     # Float rounding: the computed L is a left inverse only up to E = L Y − I, so
@@ -713,7 +791,7 @@ def interval_hull(rows: SegmentRows, theta_r, settings):
                 U=U, A=A, b=b, c=c, pinv=L), cond
 
 
-def set_membership_bounds(rows: SegmentRows, theta_r, settings, box_lo, box_hi, params):
+def set_membership_bounds(rows: SegmentRows, theta_r, rad_r, settings, box_lo, box_hi, params):
     """Certified [min, max] of θ_e[i] (i in params) over the feasible polytope, by LP.
 
     Variables x = (θ_e, θ_r); rows |Y θ_e + D_r θ_r − ∫τ| ≤ Σ_k w_k r_k + quadrature term (a
@@ -726,7 +804,6 @@ def set_membership_bounds(rows: SegmentRows, theta_r, settings, box_lo, box_hi, 
     S, n = rows.T.shape
     Y2 = rows.Y.reshape(S * n, 10)
     Dr2 = rows.D_r.reshape(S * n, -1)
-    rad_r = settings.theta_r_ratio * np.abs(theta_r)
     # Order reduction of the θ_r zonotope: the lp_generators entries with the largest effect
     # stay LP variables; the others are fixed at nominal and their worst case |D_r,c| rad_c is
     # added to each row's bound (a relaxation, so still an enclosure; ~no loss at 40 of 88).
@@ -737,8 +814,7 @@ def set_membership_bounds(rows: SegmentRows, theta_r, settings, box_lo, box_hi, 
     fixed = Dr2[:, ~keep] @ theta_r[~keep]
     dropped = (np.abs(Dr2[:, ~keep]) * rad_r[~keep]).sum(1)
     A = np.hstack([Y2, Dr2[:, keep]])
-    R = ((rows.w_first[:, None] * rows.r_first + rows.w_last[:, None] * rows.r_last + rows.r_inner
-          + rows.quad).ravel() + dropped) * (1 + 1e-9)
+    R = ((_torque_row_radius(rows) + rows.quad).ravel() + dropped) * (1 + 1e-9)
     T = rows.T.ravel() - fixed
     A_ub = np.vstack([A, -A])
     b_ub = np.concatenate([T + R, R - T])
@@ -781,16 +857,30 @@ def _box_is_consistent(centre, radius):
 class IncrementalEstimator:
     """Accepts joint-log chunks; keeps per-segment rows so old segments are never recomputed.
 
-    prior: optional (lower, upper) of θ_e to intersect with (e.g. the paper's Table II box).
+    prior: optional (lower, upper) of θ_e to intersect with (e.g. the paper's Table II box). It
+    also bounds θ_e in the quadrature term; without one that term takes |θ_e − θ_e0| ≤ |θ_e0|
+    (θ_e0 = prior_nominal, or the model's end effector).
+
+    Consistency is latched: the first update whose data contradict a declared bound (two
+    enclosures that do not meet, an infeasible set-membership LP, a box disjoint from the
+    published one, a torque faster than declared) sets `consistent` False for good, and from then
+    on the last consistent box (or the prior) is published unchanged: a published box is never
+    outside the previous one, nor outside the prior.
     """
 
     def __init__(self, robot, settings: EstimatorSettings | None = None, prior=None, prior_nominal=None):
         self.robot = robot
-        self.settings = settings or EstimatorSettings()
-        if self.settings.integration not in ("trapezoid", "euler"):
-            raise EstimatorError(f"estimator.integration: {self.settings.integration!r} is not trapezoid or euler")
+        self.settings = st = settings or EstimatorSettings()
+        if st.integration not in ("trapezoid", "euler"):
+            raise EstimatorError(f"estimator.integration: {st.integration!r} is not trapezoid or euler")
+        if st.torque_signal not in ("held", "continuous"):
+            raise EstimatorError(f"estimator.torque_signal: {st.torque_signal!r} is not held or continuous")
+        if st.quadrature_safety < 2:
+            raise EstimatorError(f"estimator.quadrature_safety: {st.quadrature_safety} must be >= 2")
         self.n = robot.n
-        self.theta_r = robot.theta[robot.rest_mask()].copy()
+        rest = robot.rest_mask()
+        self.theta_r = robot.theta[rest].copy()
+        self.theta_r_radius = parameter_radius(robot, st.theta_r_ratio, st.theta_r_ratio, st.theta_r_floor)[rest]
         self.rows = SegmentRows.empty(self.n, len(self.theta_r))
         self._pending = None  # (t, q, v, tau) of the unfinished tail
         self._consumed = 0  # global index of the first pending sample
@@ -801,6 +891,7 @@ class IncrementalEstimator:
         self.eta = inertial.theta_to_log_cholesky(nominal) if inertial.is_physically_consistent(nominal) \
             else np.zeros(10)
         self.estimate: Estimate | None = None
+        self.consistent = True  # latched: False from the first inconsistent update on
         self.update_times_s = []
         self.messages = []
 
@@ -820,18 +911,28 @@ class IncrementalEstimator:
         if np.any(np.diff(t) <= 0):
             raise EstimatorError("time is not strictly increasing")
         self.num_samples += len(t) - (0 if self._pending is None else len(self._pending[0]))
-        bounds, next_start = segment_bounds(t, self.settings.horizon_s, self.settings.max_gap_s)
+        bounds, next_start = segment_bounds(t, self.settings.horizon_s, self.settings.segment_gap_s())
         if len(bounds):
-            theta_q = self.robot.theta.copy()
-            if self.estimate is not None:
-                theta_q[self.robot.ee_slice] = self.estimate.theta_e
-            new = build_segment_rows(self.robot, t, q, v, tau, bounds, self.settings, theta_q, self._consumed)
+            new = build_segment_rows(self.robot, t, q, v, tau, bounds, self.settings, self.theta_box(), self._consumed)
             if len(self.rows) and len(new) and new.start_index[0] == self.rows.end_index[-1]:
                 new.shared_prev[0] = True
             self.rows = self.rows.concat(new)
         self._consumed += next_start
         self._pending = tuple(x[next_start:] for x in (t, q, v, tau))
         return len(bounds)
+
+    def theta_box(self):
+        """(centre, radius) of the box the whole-robot θ lies in: [θ_r] and the published [θ_e]
+        (or the prior), for the quadrature bound."""
+        centre, radius = self.robot.theta.copy(), np.zeros(14 * self.n)
+        radius[self.robot.rest_mask()] = self.theta_r_radius
+        ee = self.robot.ee_slice
+        box = (self.estimate.lower, self.estimate.upper) if self.estimate is not None else self.prior
+        if box is not None and np.all(np.isfinite(box[0])) and np.all(np.isfinite(box[1])):
+            centre[ee], radius[ee] = 0.5 * (box[0] + box[1]), 0.5 * (box[1] - box[0])
+        else:
+            centre[ee], radius[ee] = self.prior_nominal, np.abs(self.prior_nominal)
+        return centre, radius
 
     # -- estimate ---------------------------------------------------------------------------
     def update(self):
@@ -840,16 +941,16 @@ class IncrementalEstimator:
         robot, st = self.robot, self.settings
         S = len(self.rows)
         if S * self.n < 10:
+            hint = "" if st.segment_gap_s() == st.max_gap_s else (
+                f" (held torque: a step longer than {st.segment_gap_s():.3g} s, 1.5 hold periods, ends a segment; "
+                "for a log sampled slower than its controller set estimator.hold_period_s or "
+                "estimator.torque_signal: continuous)")
             raise EstimatorError(f"too little data: {S} segment(s) of {st.horizon_s} s; need at least "
-                                 f"{int(np.ceil(10 / self.n))} gap-free segments")
-        hull, cond = interval_hull(self.rows, self.theta_r, st)
+                                 f"{int(np.ceil(10 / self.n))} gap-free segments{hint}")
+        hull, cond = interval_hull(self.rows, self.theta_r, self.theta_r_radius, st)
         prev = self.estimate
         if hull is None or cond > st.max_condition:
-            est = self._prior_estimate(cond, S, f"not identifiable yet (cond(Y) = {cond:.3g})")
-            est.update_time_s = time.perf_counter() - start
-            self.update_times_s.append(est.update_time_s)
-            self.estimate = est
-            return est
+            return self._finish(self._prior_estimate(cond, S, f"not identifiable yet (cond(Y) = {cond:.3g})"), start)
         centre = hull["centre"]
         A, b, c = hull["A"], hull["b"], hull["c"]
         # Warm start: previous η, or P⁻¹ of the unconstrained solution when it is consistent
@@ -860,27 +961,34 @@ class IncrementalEstimator:
         if not np.all(np.isfinite(sol.theta)):
             sol.eta, sol.theta = self.eta, inertial.log_cholesky_to_theta(self.eta)
             self.messages.append("solver failed; kept the previous estimate")
-        radius_noise = hull["rad_torque"] + hull["rad_theta_r"] + hull["rad_quad"]
-        radius = radius_noise + hull["rad_round"]
+        radius = hull["rad_torque"] + hull["rad_theta_r"] + hull["rad_quad"] + hull["rad_round"]
         lo = np.nextafter(centre - radius, -np.inf)
         hi = np.nextafter(centre + radius, np.inf)
-        sm_note = ""
+        # Evidence that a declared assumption failed (each one empties the set the truth is in).
+        problems = []
+        if np.any(self.rows.violated):
+            problems.append(f"the measured torque changes faster than the declared {st.torque_rate_limit_Nm_s} N·m/s "
+                            f"in {int(self.rows.violated.sum())} segment(s)")
         # The same hull with the other left inverse (rows scaled by their declared bound): also
         # an enclosure, often tighter on the mass; keep the intersection.
         if st.point_estimate == "map":
-            alt, _ = interval_hull(self.rows, self.theta_r, replace(st, point_estimate="paper", row_weighting="bound"))
+            alt, _ = interval_hull(self.rows, self.theta_r, self.theta_r_radius,
+                                   replace(st, point_estimate="paper", row_weighting="bound"))
             if alt is not None:
                 r_alt = alt["rad_torque"] + alt["rad_theta_r"] + alt["rad_quad"] + alt["rad_round"]
-                lo = np.maximum(lo, np.nextafter(alt["centre"] - r_alt, -np.inf))
-                hi = np.minimum(hi, np.nextafter(alt["centre"] + r_alt, np.inf))
-                if np.any(lo > hi):
-                    sm_note = "the two least-squares enclosures do not meet: the data contradict the declared bounds"
-                    lo, hi = np.minimum(lo, hi), np.maximum(lo, hi)
+                lo_alt = np.maximum(lo, np.nextafter(alt["centre"] - r_alt, -np.inf))
+                hi_alt = np.minimum(hi, np.nextafter(alt["centre"] + r_alt, np.inf))
+                if np.any(lo_alt > hi_alt):
+                    problems.append("the two least-squares enclosures do not meet in "
+                                    f"{[inertial.NAMES[k] for k in np.flatnonzero(lo_alt > hi_alt)]}")
+                else:
+                    lo, hi = lo_alt, hi_alt
         params = {"none": [], "mass": [0], "all": list(range(10))}[st.set_membership]
-        if params and not sm_note:
-            sm_lo, sm_hi, feasible = set_membership_bounds(self.rows, self.theta_r, st, lo, hi, params)
+        if params and not problems:
+            sm_lo, sm_hi, feasible = set_membership_bounds(self.rows, self.theta_r, self.theta_r_radius, st, lo, hi,
+                                                           params)
             if not feasible:
-                sm_note = "set-membership LP infeasible: the data contradict the declared noise/θ_r bounds"
+                problems.append("the set-membership LP is infeasible")
             else:
                 lo = np.where(np.isnan(sm_lo), lo, np.maximum(lo, sm_lo))
                 hi = np.where(np.isnan(sm_hi), hi, np.minimum(hi, sm_hi))
@@ -892,28 +1000,31 @@ class IncrementalEstimator:
             case = "interior_at_m"  # LMI inactive at m but reachable inside [m]; box encloses truth
         else:
             case = "lmi_active"  # θ0 near the LMI boundary; box around Y⁺U(m) still encloses truth
-        # Intersect with the previous interval (or the prior); never empty.
-        old = (prev.lower, prev.upper) if prev is not None and prev.case != "prior" else self.prior
-        consistent, message = not sm_note, sm_note
-        if sm_note:
-            self.messages.append(sm_note)
-        new_lo, new_hi = lo.copy(), hi.copy()
-        if old is not None:
-            cand_lo, cand_hi = np.maximum(lo, old[0]), np.minimum(hi, old[1])
-            if np.any(cand_lo > cand_hi):
-                bad = [inertial.NAMES[k] for k in np.flatnonzero(cand_lo > cand_hi)]
-                consistent = False
-                message = message + ("; " if message else "")
-                message = message + (f"inconsistent data: the new interval does not meet the previous one in {bad} "
-                           "(torque noise or θ_r outside the declared bounds?); returning their hull")
-                new_lo, new_hi = np.minimum(lo, old[0]), np.maximum(hi, old[1])
-                self.messages.append(message)
-            else:
-                new_lo, new_hi = cand_lo, cand_hi
-        self.eta = sol.eta  # the consistent least-squares solution stays the warm start
-        # Publish the nominal clipped into the interval: the truth is inside it, so per parameter
-        # the projection is never farther from the truth (it matters for barely excited inertias).
-        theta_e = np.clip(sol.theta, new_lo, new_hi)
+        # Intersect with the published interval (or the prior).
+        old = (prev.lower, prev.upper) if prev is not None else self.prior
+        new_lo, new_hi = (lo, hi) if old is None else (np.maximum(lo, old[0]), np.minimum(hi, old[1]))
+        if np.any(new_lo > new_hi):
+            problems.append("the new interval does not meet the published one in "
+                            f"{[inertial.NAMES[k] for k in np.flatnonzero(new_lo > new_hi)]}")
+        notes = []
+        quad_ratio = float(np.max(self.rows.quad / np.maximum(_torque_row_radius(self.rows), 1e-300)))
+        if quad_ratio > st.quadrature_warn_ratio:
+            notes.append(f"quadrature term up to {quad_ratio:.2f} of a row's torque radius: the motion is not "
+                         "resolved by the sampling")
+        if problems:
+            if self.consistent:
+                notes.insert(0, "inconsistent data (" + "; ".join(problems) + "): torque noise or θ_r outside the "
+                             "declared bounds, or the model is wrong; keeping the last consistent interval")
+            self.consistent = False
+        self.messages.extend(notes)
+        if not self.consistent:  # latched: publish the last consistent box (or the prior) unchanged
+            keep = prev or self._prior_estimate(np.inf, 0, "")
+            theta_e, new_lo, new_hi = keep.theta_e.copy(), keep.lower.copy(), keep.upper.copy()
+        else:
+            self.eta = sol.eta  # the consistent least-squares solution stays the warm start
+            # Publish the nominal clipped into the interval: the truth is inside it, so per parameter
+            # the projection is never farther from the truth (it matters for barely excited inertias).
+            theta_e = np.clip(sol.theta, new_lo, new_hi)
         theta = robot.theta.copy()
         theta[robot.ee_slice] = theta_e
         t_lo, t_hi = self._robot_box()
@@ -922,21 +1033,22 @@ class IncrementalEstimator:
                        eta=sol.eta, theta_ls=centre, update_lower=lo, update_upper=hi,
                        radius_torque=hull["rad_torque"], radius_theta_r=hull["rad_theta_r"],
                        radius_quadrature=hull["rad_quad"], radius_rounding=hull["rad_round"], case=case,
-                       consistent=consistent, cond_Y=cond, num_segments=S, num_samples=self.num_samples,
+                       consistent=self.consistent, cond_Y=cond, num_segments=S, num_samples=self.num_samples,
                        solver={"name": sol.solver, "success": sol.success, "result": sol.message,
                                "cost": sol.cost, "grad_norm": sol.grad_norm, "newton_steps": sol.newton_steps},
-                       message=message)
+                       message="; ".join(notes), problems=problems, quadrature_ratio=quad_ratio)
+        return self._finish(est, start)
+
+    def _finish(self, est, start):
         est.update_time_s = time.perf_counter() - start
         self.update_times_s.append(est.update_time_s)
         self.estimate = est
         return est
 
     def _robot_box(self):
-        r = self.theta_r
-        rad = self.settings.theta_r_ratio * np.abs(r)
         lo, hi = self.robot.theta.copy(), self.robot.theta.copy()
         mask = self.robot.rest_mask()
-        lo[mask], hi[mask] = r - rad, r + rad
+        lo[mask], hi[mask] = self.theta_r - self.theta_r_radius, self.theta_r + self.theta_r_radius
         return lo, hi
 
     def _prior_estimate(self, cond, S, message):
@@ -952,7 +1064,7 @@ class IncrementalEstimator:
         theta[self.robot.ee_slice] = theta_e
         z = np.zeros(10)
         return Estimate(theta_e, lo.copy(), hi.copy(), theta, t_lo, t_hi, self.eta, theta_e, lo.copy(), hi.copy(),
-                        z, z, z, z, "prior", True, cond, S, self.num_samples, {}, message)
+                        z, z, z, z, "prior", self.consistent, cond, S, self.num_samples, {}, message)
 
     def prior_estimate(self):
         """What to publish before the first identification (nominal θ_e, prior box)."""
@@ -969,11 +1081,12 @@ def identify(robot, t, q, v, tau, settings: EstimatorSettings | None = None, pri
 # ---------------------------------------------------------------------------------------------
 # Synthetic data (validation, benchmarks, Table V)
 # ---------------------------------------------------------------------------------------------
-def fourier_trajectory(rng, robot, duration_s, rate_hz, harmonics=5, period_s=None, centre=None,
-                       velocity_fraction=0.7, position_amplitude_rad=0.6, t0=0.0):
+def fourier_motion(rng, robot, duration_s, rate_hz, harmonics=5, period_s=None, centre=None,
+                   velocity_fraction=0.7, position_amplitude_rad=0.6, t0=0.0):
     """Smooth random finite Fourier series (Swevers form) within joint position/velocity limits.
 
-    q_j(t) = c_j + Σ_l a_jl/(lω) sin(lωt) − b_jl/(lω) cos(lωt). Returns t, q, v, a.
+    q_j(t) = c_j + Σ_l a_jl/(lω) sin(lωt) − b_jl/(lω) cos(lωt), scaled on the sample grid.
+    Returns (t, motion): the grid and motion(times) -> (q, v, a) at any times.
     """
     n = robot.n
     jp = robot.joint_params
@@ -983,26 +1096,57 @@ def fourier_trajectory(rng, robot, duration_s, rate_hz, harmonics=5, period_s=No
     a_c = rng.uniform(-1, 1, (n, harmonics))
     b_c = rng.uniform(-1, 1, (n, harmonics))
     ell = np.arange(1, harmonics + 1)
-    wt = np.outer(t, ell * w)  # (N, L)
-    sin, cos = np.sin(wt), np.cos(wt)
-    q_dev = (sin @ (a_c / (ell * w)).T) - (cos @ (b_c / (ell * w)).T)
-    v = cos @ a_c.T + sin @ b_c.T
-    acc = -(sin * (ell * w)) @ a_c.T + (cos * (ell * w)) @ b_c.T
-    q_dev -= q_dev.mean(0)
+
+    def series(times):
+        wt = np.outer(times, ell * w)  # (N, L)
+        sin, cos = np.sin(wt), np.cos(wt)
+        q_dev = (sin @ (a_c / (ell * w)).T) - (cos @ (b_c / (ell * w)).T)
+        v = cos @ a_c.T + sin @ b_c.T
+        acc = -(sin * (ell * w)) @ a_c.T + (cos * (ell * w)) @ b_c.T
+        return q_dev, v, acc
+
+    q_dev, v, _ = series(t)
+    mean = q_dev.mean(0)
     # Scale per joint: velocity within the fraction of the limit, deviation within the amplitude.
     s_v = velocity_fraction * jp.velocity_limit / np.maximum(np.abs(v).max(0), 1e-9)
-    s_q = position_amplitude_rad / np.maximum(np.abs(q_dev).max(0), 1e-9)
+    s_q = position_amplitude_rad / np.maximum(np.abs(q_dev - mean).max(0), 1e-9)
     s = np.minimum(s_v, s_q)
     if centre is None:
         centre = np.zeros(n)
         finite = np.isfinite(jp.position_lower) & np.isfinite(jp.position_upper)
         centre[finite] = 0.5 * (jp.position_lower + jp.position_upper)[finite]
     centre = np.asarray(centre, float)
-    q = centre + q_dev * s
-    lo_ok = np.all(q >= jp.position_lower) and np.all(q <= jp.position_upper)
-    if not lo_ok:
+
+    def motion(times):
+        q_dev, v, acc = series(np.atleast_1d(np.asarray(times, float)))
+        return centre + (q_dev - mean) * s, v * s, acc * s
+
+    q = motion(t)[0]
+    if not (np.all(q >= jp.position_lower) and np.all(q <= jp.position_upper)):
         raise EstimatorError("trajectory leaves the joint limits; choose a centre inside them")
-    return t, q, v * s, acc * s
+    return t, motion
+
+
+def fourier_trajectory(rng, robot, duration_s, rate_hz, **kw):
+    """`fourier_motion` sampled on its grid: t, q, v, a."""
+    t, motion = fourier_motion(rng, robot, duration_s, rate_hz, **kw)
+    return (t, *motion(t))
+
+
+_GAUSS_NODES, _GAUSS_WEIGHTS = np.polynomial.legendre.leggauss(3)
+
+
+def held_torque(robot, motion, t, theta):
+    """The torque a zero-order hold must apply on each step [t_k, t_k+1] to produce `motion`
+    exactly, in the momentum sense: τ̄_k = (1/h_k) ∫ τ_ID dt (3-point Gauss, error ~h⁶; the last sample
+    holds over one more step of the same length). Over any segment of whole steps
+    ∫ τ_ID dt = Σ τ̄_k h_k, so (t, q, v, τ̄) is an exact held-torque log of the motion."""
+    h = np.diff(t)
+    h = np.append(h, h[-1])
+    nodes = t[:, None] + 0.5 * h[:, None] * (1 + _GAUSS_NODES[None, :])  # (N, 4)
+    q, v, a = motion(nodes.ravel())
+    tau = robot.inverse_dynamics(q, v, a, theta).reshape(len(t), len(_GAUSS_NODES), -1)
+    return 0.5 * np.tensordot(tau, _GAUSS_WEIGHTS, axes=([1], [0]))
 
 
 def perturbed_robot_theta(rng, robot, ratio):
@@ -1014,11 +1158,14 @@ def perturbed_robot_theta(rng, robot, ratio):
 
 
 def simulate_log(rng, robot, theta_true, duration_s=7.5, rate_hz=1000.0, noise_ratio=0.025, noise_floor_Nm=0.05,
-                 noise_scale=1.0, **traj):
-    """Joint log of an open-loop exciting motion: τ exact from inverse dynamics with θ_true, plus
-    uniform noise inside |τ_meas − τ| ≤ noise_scale·(ratio|τ| + floor)."""
-    t, q, v, a = fourier_trajectory(rng, robot, duration_s, rate_hz, **traj)
-    tau = robot.inverse_dynamics(q, v, a, theta_true)
+                 noise_scale=1.0, torque="held", **traj):
+    """Joint log of an open-loop exciting motion with θ_true, plus uniform noise inside
+    |τ_meas − τ| ≤ noise_scale·(ratio|τ| + floor). torque "held": τ is the zero-order-hold
+    torque that produces the motion (`held_torque`, what a digital controller applies);
+    "sampled": τ is inverse dynamics at the sample instants. Returns t, q, v, τ_meas, τ."""
+    t, motion = fourier_motion(rng, robot, duration_s, rate_hz, **traj)
+    q, v, a = motion(t)
+    tau = held_torque(robot, motion, t, theta_true) if torque == "held" else robot.inverse_dynamics(q, v, a, theta_true)
     bound = noise_scale * (noise_ratio * np.abs(tau) + noise_floor_Nm)
     tau_meas = tau + rng.uniform(-1, 1, tau.shape) * bound
     return t, q, v, tau_meas, tau

@@ -20,6 +20,14 @@ Signal path (everything from the scenario and the RobotModel; nothing hard-coded
 - Torque sensor: tau_meas = scale * (tau_m + n) + offset, n uniform in +-(ratio |tau_m| + floor)
   per sample and joint (noise.distribution "none": n = 0); scale = 1, offset = 0 by default.
 
+Robot parameters (scenario.plant.robot_parameters): "nominal" uses the model's theta exactly;
+"drawn" draws every link's inertial parameters and every joint's friction, armature and offset
+uniformly inside the declared box nominal +- max(theta_r_ratio |nominal|, floor) (the box the
+controller, planner and estimator assume; seeded by the run's seed); "corner" takes a random
+vertex of it. A link whose drawn parameters are not physically consistent (pseudo-inertia not
+positive definite) has its deviation halved until it is, so it stays inside the box; the links
+are built from a copy of the URDF with those inertials. RealArm.theta is what the plant uses.
+
 Unmodelled effects (scenario.plant.effects, each off by default):
 - torque_sensor_offset_Nm / torque_sensor_scale: per joint, on the measured torque only.
 - torque_sensor_lag_s: the sensor signal is low-passed (first order, time constant d), as a
@@ -63,9 +71,10 @@ def scenario_dumbbell(scenario):
     return bells[name]
 
 
-def true_theta(robot, dumbbell):
-    """The plant's true 14 n parameters: the model plus the payload on the end effector."""
-    theta = robot.theta.copy()
+def true_theta(robot, dumbbell, theta=None):
+    """The plant's true 14 n parameters: the robot's (the model's nominal by default) plus the
+    payload on the end effector."""
+    theta = (robot.theta if theta is None else np.asarray(theta, float)).copy()
     theta[robot.ee_slice] += payload_theta_in_end_effector(dumbbell, robot.extra["grasp_point"])
     return theta
 
@@ -169,6 +178,109 @@ def _per_joint(values, n, default, field):
     return arr
 
 
+_PD_MARGIN = 1e-3  # a drawn link keeps λ_min(pseudo-inertia) ≥ this share of its nominal one
+
+
+def draw_robot_theta(robot, radius, rng, mode="drawn", link_theta=None):
+    """The real arm's 14 n parameters inside robot.theta ± radius: uniform ("drawn") or a random
+    vertex ("corner"). link_theta (n, 10): each moving link's OWN inertial parameters (the body a
+    deviation is applied to; default: robot.theta's bodies); a link deviation that would make its
+    pseudo-inertia lose positive definiteness is halved until it does not."""
+    from . import inertial
+
+    n = robot.n
+    theta0 = robot.theta
+    unit = rng.choice([-1.0, 1.0], theta0.shape) if mode == "corner" else rng.uniform(-1.0, 1.0, theta0.shape)
+    delta = unit * radius
+    own = theta0[:10 * n].reshape(n, 10) if link_theta is None else np.asarray(link_theta, float)
+    for i in range(n):
+        d = delta[10 * i:10 * i + 10]
+        floor = _PD_MARGIN * np.linalg.eigvalsh(inertial.pseudo_inertia(own[i])).min()
+        while not inertial.is_physically_consistent(own[i] + d, floor):
+            d *= 0.5
+    return theta0 + delta
+
+
+def _robot_parameter_box(robot, scenario):
+    from .uncertainty import parameter_radius
+
+    ratio = scenario.noise.theta_r_ratio
+    return parameter_radius(robot, ratio, ratio, scenario.noise.theta_r_floor)
+
+
+def _link_inertials(plant, names):
+    from . import inertial
+
+    return np.array([inertial.from_spatial_inertia(plant.GetBodyByName(name).default_spatial_inertia())
+                     for name in names])
+
+
+def _urdf_with_inertials(source, inertials, directory):
+    """A copy of the URDF at `source` whose named links carry the given inertials ({link: theta
+    about the link origin}); relative mesh paths made absolute. Returns its path."""
+    import xml.etree.ElementTree as ET
+    from pathlib import Path
+
+    from . import inertial
+
+    source = Path(source)
+    tree = ET.parse(source)
+    root = tree.getroot()
+    for mesh in root.iter("mesh"):
+        name = mesh.get("filename", "")
+        if name and "://" not in name and not Path(name).is_absolute():
+            mesh.set("filename", str((source.parent / name).resolve()))
+    links = {link.get("name"): link for link in root.iter("link")}
+    for name, th in inertials.items():
+        m, com = th[0], th[1:4] / th[0]
+        i_com = inertial.inertia_matrix(th) - m * (com @ com * np.eye(3) - np.outer(com, com))
+        old = links[name].find("inertial")
+        if old is not None:
+            links[name].remove(old)
+        node = ET.SubElement(links[name], "inertial")
+        ET.SubElement(node, "origin", xyz=" ".join(repr(float(c)) for c in com), rpy="0 0 0")
+        ET.SubElement(node, "mass", value=repr(float(m)))
+        ET.SubElement(node, "inertia", **{k: repr(float(i_com[a, b])) for k, (a, b) in
+                                          {"ixx": (0, 0), "iyy": (1, 1), "izz": (2, 2), "ixy": (0, 1),
+                                           "ixz": (0, 2), "iyz": (1, 2)}.items()})
+    path = Path(directory) / source.name
+    tree.write(path)
+    return path
+
+
+def real_robot_theta(robot, scenario, seed):
+    """(theta, link inertials) of the real arm: the nominal model (inertials None), or parameters
+    drawn in the box (plant.robot_parameters) with {link name: its own drawn inertial theta}."""
+    from pathlib import Path
+
+    from safesysid.scenario import ScenarioError
+    from .robot_model import make_plant
+
+    mode = scenario.plant.robot_parameters
+    if mode == "nominal":
+        return robot.theta.copy(), None
+    if Path(robot.source).suffix.lower() != ".urdf":
+        raise ScenarioError(f"{scenario.source}: plant.robot_parameters: {mode!r} needs a URDF model, got {robot.source}")
+    nominal_plant, _, _ = make_plant(robot.source)
+    own = _link_inertials(nominal_plant, robot.body_names)
+    rng = np.random.default_rng([int(seed), 0x5EED])  # its own stream: not the sensor noise's
+    theta = draw_robot_theta(robot, _robot_parameter_box(robot, scenario), rng, mode, own)
+    return theta, {name: own[i] + theta[10 * i:10 * i + 10] - robot.theta[10 * i:10 * i + 10]
+                   for i, name in enumerate(robot.body_names)}
+
+
+def _make_real_plant(robot, inertials, time_step, builder):
+    """make_plant of the model, or of a temporary copy of its URDF with the drawn inertials."""
+    import tempfile
+
+    from .robot_model import make_plant
+
+    if inertials is None:
+        return make_plant(robot.source, time_step, builder=builder)
+    with tempfile.TemporaryDirectory(prefix="safesysid_real_arm_") as directory:
+        return make_plant(_urdf_with_inertials(robot.source, inertials, directory), time_step, builder=builder)
+
+
 @dataclass
 class RealArm:
     """Handles to the real arm's systems inside a DiagramBuilder (connect to the ports)."""
@@ -188,6 +300,7 @@ class RealArm:
     time_step: float
     payload_collision: tuple = ()  # ((GeometryId, ProximityProperties), ...) of the dumbbell
     robot_geometries: object = None  # GeometrySet of the arm + payload (no self-contact)
+    theta: np.ndarray = None  # the robot's 14 n parameters the plant uses (no payload)
 
     @property
     def n(self):
@@ -232,7 +345,7 @@ class RealArm:
         self.plant.SetVelocities(ctx, self.instance, np.zeros(self.n) if v is None else np.asarray(v, float))
 
     def true_theta(self, dumbbell="current"):
-        return true_theta(self.robot, self.dumbbell if dumbbell == "current" else dumbbell)
+        return true_theta(self.robot, self.dumbbell if dumbbell == "current" else dumbbell, self.theta)
 
 
 def _dumbbell_spatial_inertia(db: Dumbbell):
@@ -287,7 +400,6 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
     from pydrake.systems.primitives import DiscreteTimeDelay, Saturation
 
     from safesysid.scenario import ScenarioError, robot_from_scenario
-    from .robot_model import make_plant
 
     robot = robot or robot_from_scenario(scenario)
     n = robot.n
@@ -295,7 +407,10 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
     eff = scenario.plant.effects
     db = scenario_dumbbell(scenario) if isinstance(dumbbell, str) and dumbbell == "scenario" else dumbbell
 
-    plant, scene_graph, instance = make_plant(robot.source, h, builder=builder)
+    seed = scenario.seed if seed is None else seed
+    theta, inertials = real_robot_theta(robot, scenario, seed)
+    fric = theta[10 * n:].reshape(n, 4)  # [Fc, Fv, Ia, beta] per joint
+    plant, scene_graph, instance = _make_real_plant(robot, inertials, h, builder)
     plant.set_name("real_arm_plant")
     jp = robot.joint_params
     joints = [plant.GetJointByName(name, instance) for name in jp.names]
@@ -306,7 +421,7 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
             raise ScenarioError(f"{robot.source}: joint {joint.name()} has no actuator")
         act = actuators[joint.name()]
         act.set_default_gear_ratio(1.0)
-        act.set_default_rotor_inertia(float(jp.armature[k]))  # reflected inertia = Ia
+        act.set_default_rotor_inertia(float(fric[k, 2]))  # reflected inertia = Ia
     # Payload body welded at the grasp point (its frame: origin at the dumbbell centre, x along it).
     ee_body = plant.GetBodyByName(robot.body_names[robot.end_effector], instance)
     payload_instance = plant.AddModelInstance("payload")
@@ -345,7 +460,7 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
     stiffness = _per_joint(eff.joint_stiffness_Nm_rad, n, 0.0, "joint_stiffness_Nm_rad") if eff.joint_stiffness_Nm_rad else None
     if stiffness is not None and np.any(stiffness <= 0):
         raise ScenarioError("plant.effects.joint_stiffness_Nm_rad: values must be > 0")
-    friction, encoders = _make_friction_system(n, jp.coulomb, jp.viscous, jp.offset, robot.coulomb_smoothing, stiffness)
+    friction, encoders = _make_friction_system(n, fric[:, 0], fric[:, 1], fric[:, 3], robot.coulomb_smoothing, stiffness)
     builder.AddSystem(friction)
     friction.set_name("joint_friction")
     builder.Connect(applied_port, friction.applied)
@@ -363,7 +478,7 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
         n, h, noise.torque_ratio, noise.torque_floor_Nm,
         _per_joint(eff.torque_sensor_scale, n, 1.0, "torque_sensor_scale"),
         _per_joint(eff.torque_sensor_offset_Nm, n, 0.0, "torque_sensor_offset_Nm"),
-        scenario.seed if seed is None else seed, noise.distribution == "uniform", eff.torque_sensor_lag_s)
+        seed, noise.distribution == "uniform", eff.torque_sensor_lag_s)
     builder.AddSystem(sensor)
     sensor.set_name("torque_sensor")
     builder.Connect(sat.get_output_port(), sensor.torque)
@@ -371,4 +486,4 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
                    dumbbell=db, commanded_torque_input=sat.get_input_port(), state_output=state_out,
                    measured_torque_output=sensor.get_output_port(), applied_torque_output=applied_port,
                    motor_torque_output=sat.get_output_port(), torque_sensor=sensor, time_step=h,
-                   payload_collision=payload_collision, robot_geometries=robot_geometries)
+                   payload_collision=payload_collision, robot_geometries=robot_geometries, theta=theta)

@@ -73,30 +73,39 @@ def test_integrated_rate_regressor_matches_per_sample_regressor(robot, integrati
     assert np.abs(fast - ref).max() <= 1e-12 * np.abs(ref).max()
 
 
-def test_momentum_identity_and_quadrature_error_is_covered(robot, dumbbells):
-    """Noise-free data and the true θ: every row's residual is the pure quadrature error; it is
-    inside the (safety-scaled) quadrature estimate and tiny next to the declared torque bound."""
+@pytest.mark.parametrize("integration, rate_hz, period_s", [("trapezoid", 1000.0, None), ("euler", 1000.0, None),
+                                                           ("trapezoid", 200.0, 0.5), ("euler", 100.0, 1.0)])
+def test_quadrature_bound_covers_the_integration_error(robot, dumbbells, integration, rate_hz, period_s):
+    """Noise-free held-torque log and the true θ: ∫τ dt is exact (left sum of the held torque), so
+    every row's residual is the quadrature error of ∫W_c θ dt; it is inside the bound, also at
+    100-200 Hz on a fast motion where that error is large. The trapezoid on the held torque (the
+    old rule) leaves an error of h/2·|τ_b − τ_a| per segment that no bound carries."""
     rng = np.random.default_rng(3)
     theta, theta_e = true_theta(rng, robot, dumbbells["8lb"])
-    t, q, v, _, tau = E.simulate_log(rng, robot, theta, 3.0, centre=CENTRE)
-    settings = E.EstimatorSettings()
-    bounds, _ = E.segment_bounds(t, settings.horizon_s, settings.max_gap_s)
-    rows = E.build_segment_rows(robot, t, q, v, tau, bounds, settings, theta)
-    resid = rows.Y @ theta_e + np.einsum("snk,k->sn", rows.D_r, theta[robot.rest_mask()]) - rows.T
+    t, q, v, _, tau = E.simulate_log(rng, robot, theta, 3.0, rate_hz, centre=CENTRE, period_s=period_s)
+    settings = E.EstimatorSettings(integration=integration, horizon_s=max(0.1, 10 / rate_hz))
+    bounds, _ = E.segment_bounds(t, settings.horizon_s, settings.segment_gap_s())
+    box = (theta, 0.05 * np.abs(theta))  # the bound holds for every θ of a box around the truth
+    rows = E.build_segment_rows(robot, t, q, v, tau, bounds, settings, box)
+    lhs = rows.Y @ theta_e + np.einsum("snk,k->sn", rows.D_r, theta[robot.rest_mask()])
+    resid = lhs - rows.T
     assert np.all(np.abs(resid) <= rows.quad)
-    torque_bound = rows.w_first[:, None] * rows.r_first + rows.w_last[:, None] * rows.r_last + rows.r_inner
-    assert np.abs(resid).max() < 0.05 * torque_bound.min()  # quadrature error << noise bound
+    assert np.abs(resid).max() > 1e-3 * rows.quad.max()  # a real error, not a zero
+    trapezoid_torque = E._segment_sums(tau, t, bounds, "trapezoid")
+    assert np.any(np.abs(lhs - trapezoid_torque) > rows.quad)
 
 
-def test_euler_quadrature_error_is_covered(robot, dumbbells):
+def test_quadrature_bound_grows_with_the_box(robot, dumbbells):
+    """The rates behind the bound are taken over the whole parameter box, so a wider box never
+    gives a smaller bound (monotone), and a zero box gives the nominal integrand's bound."""
     rng = np.random.default_rng(4)
-    theta, theta_e = true_theta(rng, robot, dumbbells["6lb"])
+    theta, _ = true_theta(rng, robot, dumbbells["6lb"])
     t, q, v, _, tau = E.simulate_log(rng, robot, theta, 1.0, centre=CENTRE)
-    settings = E.EstimatorSettings(integration="euler")
-    bounds, _ = E.segment_bounds(t, settings.horizon_s, settings.max_gap_s)
-    rows = E.build_segment_rows(robot, t, q, v, tau, bounds, settings, theta)
-    resid = rows.Y @ theta_e + np.einsum("snk,k->sn", rows.D_r, theta[robot.rest_mask()]) - rows.T
-    assert np.all(np.abs(resid) <= rows.quad)
+    settings = E.EstimatorSettings()
+    bounds, _ = E.segment_bounds(t, settings.horizon_s, settings.segment_gap_s())
+    quads = [E.build_segment_rows(robot, t, q, v, tau, bounds, settings, (theta, k * 0.05 * np.abs(theta))).quad
+             for k in (0, 1, 2)]
+    assert np.all(quads[0] <= quads[1]) and np.all(quads[1] <= quads[2]) and np.any(quads[0] < quads[2])
 
 
 # ---- solver and sensitivity ---------------------------------------------------------------------
@@ -177,23 +186,78 @@ def test_truth_inside_interval_in_every_randomized_run(robot, dumbbells, payload
     assert max(half) <= 0.5, half
 
 
+def uneven_held_log(rng, robot, theta, duration_s=7.5):
+    """A held-torque log on an uneven grid (the controller's period jitters, each sample holds
+    until the next) with a 0.5 s logging gap: (t, q, v, τ_meas, θ_e)."""
+    t_grid, motion = E.fourier_motion(rng, robot, duration_s, 1000.0, centre=CENTRE)
+    t = np.concatenate([[0.0], np.cumsum(rng.uniform(0.0006, 0.0014, int(duration_s / 1e-3)))])
+    t = t[t <= t_grid[-1]]
+    t = t[(t < 3.0) | (t > 3.5)]  # the gap: no samples, the torque held over it is unknown
+    q, v, _ = motion(t)
+    tau = E.held_torque(robot, motion, t, theta)
+    tau_meas = tau + rng.uniform(-1, 1, tau.shape) * (0.025 * np.abs(tau) + 0.05)
+    return t, q, v, tau_meas
+
+
 @pytest.mark.parametrize("integration", ["trapezoid", "euler"])
-def test_containment_with_uneven_steps_and_gaps(robot, dumbbells, integration):
+def test_held_torque_with_uneven_steps_and_gaps(robot, dumbbells, integration):
     rng = np.random.default_rng(11)
     theta, theta_e = true_theta(rng, robot, dumbbells["7lb"])
-    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 7.5, 1000.0, centre=CENTRE)
-    keep = np.ones(len(t), bool)
-    keep[rng.choice(len(t), 1500, replace=False)] = False  # dropped samples (uneven steps)
-    keep[3000:3500] = False  # a 0.5 s gap
-    keep[0] = True
-    settings = E.EstimatorSettings(integration=integration)
-    est = E.identify(robot, t[keep], q[keep], v[keep], tau[keep], settings)
-    assert est.consistent and est.contains(theta_e)
+    t, q, v, tau = uneven_held_log(rng, robot, theta)
+    settings = E.EstimatorSettings(integration=integration, hold_period_s=0.0014)
     ie = E.IncrementalEstimator(robot, settings)
-    ie.add(t[keep], q[keep], v[keep], tau[keep])
-    t_k = t[keep]
+    ie.add(t, q, v, tau)
+    est = ie.update()
+    assert est.consistent and est.contains(theta_e)
     for a, b in zip(ie.rows.start_index, ie.rows.end_index):
-        assert np.max(np.diff(t_k[a:b + 1])) <= settings.max_gap_s
+        assert np.max(np.diff(t[a:b + 1])) <= min(settings.max_gap_s, 1.5 * settings.hold_period_s)
+
+
+def test_held_torque_segments_never_span_a_lost_sample(robot, dumbbells):
+    """A held sample that was not logged has an unknown torque: a step longer than 1.5 hold
+    periods ends the segment (here one dropped sample in twenty)."""
+    rng = np.random.default_rng(12)
+    theta, _ = true_theta(rng, robot, dumbbells["5lb"])
+    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 3.0, 1000.0, centre=CENTRE)
+    keep = np.ones(len(t), bool)
+    keep[rng.choice(np.arange(1, len(t)), len(t) // 20, replace=False)] = False
+    ie = E.IncrementalEstimator(robot, E.EstimatorSettings(hold_period_s=1e-3))
+    ie.add(t[keep], q[keep], v[keep], tau[keep])
+    tk = t[keep]
+    assert len(ie.rows) > 0
+    for a, b in zip(ie.rows.start_index, ie.rows.end_index):
+        assert np.max(np.diff(tk[a:b + 1])) < 1.5e-3
+
+
+def test_a_log_slower_than_the_hold_period_is_refused_with_a_hint(robot):
+    """A 100 Hz log declared as held at 1 kHz: every step loses held samples, so no segment
+    forms; the error says which setting to change."""
+    rng = np.random.default_rng(14)
+    t, q, v, tau, _ = E.simulate_log(rng, robot, robot.theta, 2.0, 100.0, centre=CENTRE)
+    est = E.IncrementalEstimator(robot, E.EstimatorSettings(hold_period_s=1e-3))
+    est.add(t, q, v, tau)
+    with pytest.raises(E.EstimatorError, match="hold_period_s"):
+        est.update()
+
+
+def test_continuous_torque_with_dropped_samples_and_its_rate_check(robot, dumbbells):
+    """A torque sampled from a continuous signal (inverse dynamics at the sample instants), 20 %
+    of the samples dropped and a 0.5 s gap: with a declared rate limit above the true one the
+    interval contains the truth; declared 10x below it, the data contradict it (flagged)."""
+    rng = np.random.default_rng(13)
+    theta, theta_e = true_theta(rng, robot, dumbbells["7lb"])
+    t, q, v, tau, tau_true = E.simulate_log(rng, robot, theta, 7.5, 1000.0, centre=CENTRE, torque="sampled")
+    keep = np.ones(len(t), bool)
+    keep[rng.choice(len(t), 1500, replace=False)] = False
+    keep[3000:3500] = False
+    keep[0] = True
+    true_rate = np.max(np.abs(np.diff(tau_true, axis=0)) / np.diff(t)[:, None])
+    ok = E.EstimatorSettings(torque_signal="continuous", torque_rate_limit_Nm_s=1.2 * true_rate)
+    est = E.identify(robot, t[keep], q[keep], v[keep], tau[keep], ok)
+    assert est.consistent and est.contains(theta_e), est.message
+    low = E.EstimatorSettings(torque_signal="continuous", torque_rate_limit_Nm_s=0.1 * true_rate)
+    est = E.identify(robot, t[keep], q[keep], v[keep], tau[keep], low)
+    assert not est.consistent and "faster than the declared" in " ".join(est.problems)
 
 
 def test_bound_is_not_vacuous_containment_fails_when_noise_exceeds_it(robot, dumbbells):
@@ -282,6 +346,52 @@ def test_intersection_never_returns_an_inverted_interval(robot, dumbbells):
     est = E.identify(robot, t, q, v, tau, prior=good_prior)
     assert est.consistent and est.contains(theta_e)
     assert np.all(est.lower >= good_prior[0]) and np.all(est.upper <= good_prior[1])
+
+
+def test_inconsistent_data_keep_the_last_consistent_box(robot, dumbbells):
+    """A torque-sensor offset of 1 N·m appears at 4.5 s (outside the declared bound). The update
+    that sees it reports the inconsistency, consistency stays latched off, and the published box
+    is the last consistent one from then on: never wider, never outside the prior, and still
+    around the truth. (HEAD published the faulty intersection, then the hull of the two boxes:
+    truth outside from 4.5 s, mass upper 5.35 kg > the prior's 5.2 kg at 7.5 s.)"""
+    from test_estimator_adversarial import PRIOR, PRIOR_NOMINAL
+
+    rng = np.random.default_rng(5)
+    theta, theta_e = true_theta(rng, robot, dumbbells["8lb"], ratio=0.0)
+    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 7.5, 1000.0, centre=CENTRE)
+    tau[t >= 4.5] += 1.0
+    est = E.IncrementalEstimator(robot, prior=PRIOR, prior_nominal=PRIOR_NOMINAL)
+    published, flags = PRIOR, []
+    for a, b in zip(range(0, 7501, 1500), range(1500, 7502, 1500)):
+        est.add(t[a:b], q[a:b], v[a:b], tau[a:b])
+        e = est.update()
+        assert np.all(e.lower >= published[0]) and np.all(e.upper <= published[1])
+        assert e.contains(theta_e)
+        if flags and not flags[-1]:
+            np.testing.assert_array_equal(e.lower, published[0])
+            np.testing.assert_array_equal(e.upper, published[1])
+        published = (e.lower, e.upper)
+        flags.append(e.consistent)
+    assert flags == [True, True, True, False, False]
+    assert not est.consistent and any("inconsistent" in m for m in est.messages)
+
+
+def test_disjoint_enclosures_do_not_publish_the_gap(robot, dumbbells):
+    """Torque noise 10x the declared bound: when the two least-squares enclosures (or the LP) do
+    not meet, the published box is the prior, not the gap between them."""
+    from test_estimator_adversarial import PRIOR, PRIOR_NOMINAL
+
+    for seed in range(4):
+        rng = np.random.default_rng(500 + seed)
+        theta, theta_e = true_theta(rng, robot, dumbbells["8lb"])
+        t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 3.0, 1000.0, centre=CENTRE, noise_scale=10.0)
+        e = E.identify(robot, t, q, v, tau, prior=PRIOR, prior_nominal=PRIOR_NOMINAL)
+        if not e.consistent:
+            np.testing.assert_array_equal(e.lower, PRIOR[0])
+            np.testing.assert_array_equal(e.upper, PRIOR[1])
+            np.testing.assert_array_equal(e.theta_e, PRIOR_NOMINAL)
+            return
+    pytest.fail("no inconsistency with 10x the declared noise")
 
 
 def test_bad_input_is_rejected(robot):

@@ -253,3 +253,108 @@ def test_released_payload_stops_colliding(robot):
     arm.set_payload(ctx, bell)
     pairs = payload_pairs()
     assert pairs and all("obstacle" in a or "obstacle" in b or "floor" in a or "floor" in b for a, b in pairs)
+
+
+# ---- the real arm's robot parameters (issue 11, item 5) and what its torque log means ---------------
+def _drawn_arm(mode, seed, bell="8lb"):
+    s = load_scenario(overrides={"plant": {"robot_parameters": mode}, "payload": {"dumbbell": bell}, "seed": seed})
+    robot = robot_from_scenario(s)
+    b = DiagramBuilder()
+    arm = add_real_arm(b, s, robot=robot)
+    return s, robot, arm, b.Build()
+
+
+@pytest.mark.parametrize("mode", ["drawn", "corner"])
+def test_drawn_robot_parameters_stay_in_the_box_and_are_what_the_plant_uses(mode):
+    """plant.robot_parameters draws links, friction, armature and offsets inside the box the
+    controller, planner and estimator assume (nominal +- max(ratio |nominal|, floor)), keeps every
+    link physically consistent, and the Drake plant's mass matrix, gravity and friction are those
+    of the drawn theta. (HEAD: the plant used the nominal parameters exactly.)"""
+    from safesysid.systems import inertial
+    from safesysid.systems.uncertainty import parameter_radius
+
+    s, robot, arm, diagram = _drawn_arm(mode, seed=3)
+    radius = parameter_radius(robot, s.noise.theta_r_ratio, s.noise.theta_r_ratio, s.noise.theta_r_floor)
+    dev = (arm.theta - robot.theta) / radius
+    assert np.all(np.abs(dev) <= 1.0 + 1e-12)
+    n = robot.n
+    assert np.all(arm.theta[10 * n:] != robot.theta[10 * n:])  # every friction parameter moved, beta too
+    if mode == "corner":
+        assert np.all(np.isclose(np.abs(dev[10 * n:]), 1.0)) and np.mean(np.isclose(np.abs(dev), 1.0)) > 0.5
+    for i in range(n):
+        assert inertial.is_physically_consistent(arm.theta[10 * i:10 * i + 10])
+    ctx = diagram.CreateDefaultContext()
+    theta = arm.true_theta()
+    rng = np.random.default_rng(0)
+    dyn = ControllerDynamics(robot)
+    for _ in range(3):
+        q = rng.uniform(-2, 2, n)
+        arm.set_state(ctx, q)
+        plant_ctx = arm.plant_context(ctx)
+        np.testing.assert_allclose(arm.plant.CalcMassMatrix(plant_ctx), robot.mass_matrix(q[None], theta)[0], atol=1e-12)
+        beta = theta[10 * n + 3::4]
+        np.testing.assert_allclose(-arm.plant.CalcGravityGeneralizedForces(plant_ctx) + beta, dyn.gravity(q, theta),
+                                   atol=1e-10)
+    friction = diagram.GetSubsystemByName("joint_friction")
+    fctx = friction.CreateDefaultContext()
+    v = rng.normal(scale=0.3, size=n)
+    friction.applied.FixValue(fctx, np.zeros(n))
+    friction.state.FixValue(fctx, np.concatenate([np.zeros(n), v]))
+    law = friction_columns(v[None], np.zeros((1, n)), "standard", robot.coulomb_smoothing)[0] @ arm.theta[10 * n:]
+    np.testing.assert_allclose(friction.get_output_port().Eval(fctx), -law, atol=1e-12)
+
+
+def test_drawn_parameters_are_seeded():
+    a = _drawn_arm("drawn", seed=5)[2].theta
+    b = _drawn_arm("drawn", seed=5)[2].theta
+    c = _drawn_arm("drawn", seed=6)[2].theta
+    np.testing.assert_array_equal(a, b)
+    assert np.any(a != c)
+    s, robot, arm, _ = _drawn_arm("nominal", seed=5)
+    np.testing.assert_array_equal(arm.theta, robot.theta)
+
+
+def test_logged_torque_is_the_torque_held_over_the_next_step(robot):
+    """The sensor's sample at t_k is the torque the plant applies over [t_k, t_k+1] (noise off):
+    measured == applied sample by sample, and in the momentum identity over 0.1 s segments the
+    left sum of the logged torque (what the estimator integrates) leaves a residual well below
+    the right sum (a log lagged by one step) and the trapezoid (the old rule)."""
+    from pydrake.systems.framework import LeafSystem
+
+    from safesysid.systems import estimator as E
+
+    s = load_scenario(overrides={"payload": {"dumbbell": "8lb"}, "noise": {"distribution": "none"}})
+    theta = true_theta(robot, scenario_dumbbell(s))
+    q0 = np.array(s.q0_rad)
+    hold = ControllerDynamics(robot).gravity(q0, theta)
+    n = robot.n
+
+    class Wobble(LeafSystem):
+        def __init__(self):
+            super().__init__()
+            self.DeclareVectorOutputPort("u", n, lambda ctx, out: out.SetFromVector(
+                hold + 8.0 * np.sin(7.0 * ctx.get_time() + np.arange(n))))
+
+    b = DiagramBuilder()
+    arm = add_real_arm(b, s, robot=robot)
+    src = b.AddSystem(Wobble())
+    b.Connect(src.get_output_port(), arm.commanded_torque_input)
+    logs = {}
+    for name, port in (("state", arm.state_output), ("measured", arm.measured_torque_output),
+                       ("applied", arm.applied_torque_output)):
+        logs[name] = b.AddSystem(VectorLogSink(port.size(), s.plant.time_step_s))
+        b.Connect(port, logs[name].get_input_port())
+    sim = Simulator(b.Build())
+    arm.set_state(sim.get_mutable_context(), q0)
+    sim.AdvanceTo(0.6)
+    t = logs["state"].FindLog(sim.get_context()).sample_times()
+    x, tau, applied = (_log(sim, logs[k]) for k in ("state", "measured", "applied"))
+    np.testing.assert_array_equal(tau, applied)
+    bounds, _ = E.segment_bounds(t, 0.1, 0.05)
+    rows = E.build_segment_rows(robot, t, x[:, :n], x[:, n:], tau, bounds, E.EstimatorSettings())
+    lhs = rows.Y @ theta[robot.ee_slice] + np.einsum("snk,k->sn", rows.D_r, theta[robot.rest_mask()])
+    left = np.abs(lhs - rows.T).max()
+    right = np.abs(lhs - np.stack([tau[a + 1:b + 1].T @ np.diff(t[a:b + 1]) for a, b in bounds])).max()
+    trapezoid = np.abs(lhs - E._segment_sums(tau, t, bounds, "trapezoid")).max()
+    print(f"momentum residual max: left sum {left:.3g}, trapezoid {trapezoid:.3g}, right sum {right:.3g} N·m·s")
+    assert left < 0.5 * trapezoid < 0.5 * right

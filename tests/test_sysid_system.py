@@ -1,9 +1,10 @@
-"""SysIdEstimator in a Drake diagram with a MultibodyPlant (continuous, integrated by Drake)."""
+"""SysIdEstimator in a Drake diagram with a MultibodyPlant (continuous, integrated by Drake) driven
+through a zero-order hold, as a digital controller drives the arm."""
 import numpy as np
 import pytest
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
-from pydrake.systems.primitives import MatrixGain
+from pydrake.systems.primitives import Adder, ConstantVectorSource, MatrixGain, ZeroOrderHold
 
 from safesysid.scenario import load_scenario
 from safesysid.systems.estimator import EstimatorSettings
@@ -52,7 +53,10 @@ def rigid_robot():
     return robot.with_theta(theta)
 
 
-def build(robot, update_period_s=1.0, duration_s=3.0):
+def build(robot, update_period_s=1.0, duration_s=3.0, sensor_offset_Nm=0.0):
+    """Plant <- ZOH(1 ms) <- computed torque; the estimator logs the controller's output at t_k,
+    which is what the hold latches at t_k and applies over [t_k, t_k+1] (the hold's own output
+    at t_k is still the previous sample: logging it would shift the log by one step)."""
     builder = DiagramBuilder()
     # No SceneGraph: no contact between links (rigid-body dynamics only, as the model assumes).
     plant, _, _ = make_plant(robot.source, 0.0)
@@ -68,12 +72,18 @@ def build(robot, update_period_s=1.0, duration_s=3.0):
     q0 = np.array([0.0, 0.3, 0.0, 1.5, 0.0, 0.8, 0.0])
     ctrl = builder.AddSystem(ComputedTorque(plant, q0))
     builder.Connect(plant.get_state_output_port(), ctrl.get_input_port(0))
+    hold = builder.AddSystem(ZeroOrderHold(1e-3, robot.n))
+    builder.Connect(ctrl.get_output_port(0), hold.get_input_port())
     # Actuators may not be in joint order: u = Bᵀ τ (B a permutation for this arm).
     to_actuators = builder.AddSystem(MatrixGain(plant.MakeActuationMatrix().T))
-    builder.Connect(ctrl.get_output_port(0), to_actuators.get_input_port(0))
+    builder.Connect(hold.get_output_port(), to_actuators.get_input_port(0))
     builder.Connect(to_actuators.get_output_port(0), plant.get_actuation_input_port())
     builder.Connect(plant.get_state_output_port(), est.GetInputPort("state"))
-    builder.Connect(ctrl.get_output_port(0), est.GetInputPort("measured_torque"))
+    sensor = builder.AddSystem(Adder(2, robot.n))  # a sensor offset fault when != 0
+    offset = builder.AddSystem(ConstantVectorSource(np.full(robot.n, sensor_offset_Nm)))
+    builder.Connect(ctrl.get_output_port(0), sensor.get_input_port(0))
+    builder.Connect(offset.get_output_port(), sensor.get_input_port(1))
+    builder.Connect(sensor.get_output_port(), est.GetInputPort("measured_torque"))
     diagram = builder.Build()
     sim = Simulator(diagram)
     ctx = sim.get_mutable_context()
@@ -105,6 +115,7 @@ def test_estimator_system_in_a_diagram(rigid_robot):
     sim.AdvanceTo(3.0005)  # the event at t = 3 s is handled when time moves past it
     info = est.GetOutputPort("update_info").Eval(est_ctx)
     assert info[0] == 3 and info[3] == 1.0  # three updates at t = 1, 2, 3 s, consistent
+    assert est.GetOutputPort("consistent").Eval(est_ctx)[0] == 1.0 and est.consistent and est.events() == []
     theta0 = est.GetOutputPort("theta0").Eval(est_ctx)
     lo = est.GetOutputPort("theta_lower").Eval(est_ctx)
     hi = est.GetOutputPort("theta_upper").Eval(est_ctx)
@@ -124,3 +135,79 @@ def test_estimator_system_in_a_diagram(rigid_robot):
     ctx.SetTime(0.0)
     sim.Initialize()
     assert est.GetOutputPort("update_info").Eval(est_ctx)[0] == 0
+
+
+def test_consistent_port_latches_off_and_the_box_is_kept(rigid_robot):
+    """The torque sensor reads 1 N·m high on every joint (outside the declared bound): the estimator's
+    `consistent` port drops to 0, an "inconsistent_estimate" event is recorded, and the published
+    box never widens and stays inside the prior."""
+    sim, diagram, plant, est = build(rigid_robot, update_period_s=1.0, sensor_offset_Nm=1.0)
+    ctx = sim.get_mutable_context()
+    est_ctx = est.GetMyContextFromRoot(ctx)
+    sim.Initialize()
+    ee = rigid_robot.ee_slice
+    boxes = [(est.GetOutputPort("theta_lower").Eval(est_ctx)[ee], est.GetOutputPort("theta_upper").Eval(est_ctx)[ee])]
+    for stop in (1.0005, 2.0005, 3.0005):
+        sim.AdvanceTo(stop)
+        boxes.append((est.GetOutputPort("theta_lower").Eval(est_ctx)[ee], est.GetOutputPort("theta_upper").Eval(est_ctx)[ee]))
+    for (lo0, hi0), (lo1, hi1) in zip(boxes, boxes[1:]):
+        assert np.all(lo1 >= lo0) and np.all(hi1 <= hi0)
+    assert est.GetOutputPort("consistent").Eval(est_ctx)[0] == 0.0 and not est.consistent
+    events = est.events()
+    assert [e["kind"] for e in events if e["kind"] == "inconsistent_estimate"] == ["inconsistent_estimate"]
+    assert "inconsistent" in events[0]["detail"]
+
+
+def test_samples_are_what_the_discrete_arm_applies():
+    """On the discrete real arm, the estimator's sample at t_k must be (x_k, τ_k) with τ_k the
+    torque the plant applies over [t_k, t_k+1] — what the loggers record (tests/test_real_arm.py
+    checks that pairing against the momentum identity). A time-varying state-feedback command
+    makes any shift visible: sampled by a discrete update, the estimator read x_k+1 (the plant's
+    state is already advanced) with the command of t_k."""
+    from pydrake.systems.primitives import VectorLogSink
+
+    from safesysid.scenario import robot_from_scenario
+    from safesysid.systems.controller import ControllerDynamics
+    from safesysid.systems.real_arm import add_real_arm
+
+    s = load_scenario(overrides={"payload": {"dumbbell": "none"}})
+    robot = robot_from_scenario(s)
+    n = robot.n
+    q0 = np.array(s.q0_rad)
+    hold = ControllerDynamics(robot).gravity(q0, robot.theta)
+
+    class Feedback(LeafSystem):
+        def __init__(self):
+            super().__init__()
+            self.x = self.DeclareVectorInputPort("x", 2 * n)
+            self.DeclareVectorOutputPort("u", n, self._calc)
+
+        def _calc(self, ctx, out):
+            x = self.x.Eval(ctx)
+            t = ctx.get_time()
+            out.SetFromVector(hold + 200.0 * (q0 + 0.05 * np.sin(9.0 * t) - x[:n]) - 20.0 * x[n:])
+
+    b = DiagramBuilder()
+    arm = add_real_arm(b, s, robot=robot)
+    ctrl = b.AddSystem(Feedback())
+    b.Connect(arm.state_output, ctrl.x)
+    b.Connect(ctrl.get_output_port(), arm.commanded_torque_input)
+    est = b.AddSystem(SysIdEstimator(robot, s, update_period_s=10.0))
+    b.Connect(arm.state_output, est.GetInputPort("state"))
+    b.Connect(arm.measured_torque_output, est.GetInputPort("measured_torque"))
+    logs = {name: b.AddSystem(VectorLogSink(port.size(), s.plant.time_step_s))
+            for name, port in (("state", arm.state_output), ("torque", arm.measured_torque_output))}
+    b.Connect(arm.state_output, logs["state"].get_input_port())
+    b.Connect(arm.measured_torque_output, logs["torque"].get_input_port())
+    sim = Simulator(b.Build())
+    arm.set_state(sim.get_mutable_context(), q0)
+    sim.Initialize()
+    sim.AdvanceTo(0.05)
+    samples = np.array(est._buffer)
+    t = logs["state"].FindLog(sim.get_context()).sample_times()
+    x = logs["state"].FindLog(sim.get_context()).data().T
+    tau = logs["torque"].FindLog(sim.get_context()).data().T
+    k = np.rint(samples[:, 0] / s.plant.time_step_s).astype(int)
+    assert len(k) >= 50 and np.allclose(t[k], samples[:, 0])
+    np.testing.assert_array_equal(samples[:, 1:1 + 2 * n], x[k])
+    np.testing.assert_array_equal(samples[:, 1 + 2 * n:], tau[k])
