@@ -259,16 +259,16 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
         history = est.history()
         cond_y = history[-1]["cond_Y"] if history else float("nan")
         update_times = [h["update_time_s"] for h in history]
-        consistent, events = est.consistent, est.events()
+        consistent, estimator_events = est.consistent, est.events()
     else:
         theta0, box = built.theta_prior
         theta_e0, lo, hi = theta0[robot.ee_slice], box.lo[robot.ee_slice], box.hi[robot.ee_slice]
         history, cond_y, update_times = [], float("nan"), []
-        consistent, events = True, []
+        consistent, estimator_events = True, []
     contains = bool(np.all((lo <= truth) & (truth <= hi)))
     planner_context = built.planner.GetMyContextFromRoot(ctx)
     plans = built.planner.records(planner_context)
-    events = merge_events(built.planner.events(planner_context))  # every system's events, in time order
+    events = merge_events(estimator_events, built.planner.events(planner_context))  # every system's, in time order
     solve_times = [p["solve_time_s"] for p in plans]
     deadline = scenario.planner.replan_period_s
     bound = np.asarray(built.tracking.position, float)
@@ -295,7 +295,7 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
                     "brakes": sum(e["kind"] == "brake" for e in events), "solver": scenario.planner.solver if method != "random" else "random",
                     "status": [p["status"] for p in plans], "cond_W": [p.get("cond") for p in plans]},
         "sysid": {"updates": len(history), "update_time_s": update_times},
-        "wall_time_s": wall, "sim_time_s": float(horizon), "events": events,
+        "wall_time_s": wall, "sim_time_s": float(horizon),
     }
     if not write:
         return summary

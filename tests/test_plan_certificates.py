@@ -42,6 +42,13 @@ class StubEstimator(LeafSystem):
     def history(self):
         return []
 
+    @property
+    def consistent(self):
+        return bool(self.boxes[-1][3])
+
+    def events(self):
+        return []
+
     def final_estimate(self, ee_slice):
         theta0, lo, hi, _ = self.boxes[-1]
         return theta0[ee_slice], lo[ee_slice], hi[ee_slice]
