@@ -28,6 +28,11 @@ Unmodelled effects (scenario.plant.effects, each off by default):
   sensor reports the motor torque when it is produced, so logs show torque leading motion by d.
 - base_tilt_rad [roll, pitch]: the base is tilted in the world, i.e. gravity in the base frame is
   R(roll, pitch)^T [0, 0, -g].
+- load_friction_mu: friction that grows with the transmitted torque (gear teeth, harmonic
+  drives), mu |tau_a| sgn v with tau_a the applied motor torque, which the sensor measures: the
+  diagnosis' load_friction law tau_meas = tau_model + mu |tau_meas| sgn v.
+- stribeck_friction_Nm / stribeck_velocity_rad_s: Fs sgn v exp(-(v/vs)^2) (diagnosis' law).
+  Both use the model's Coulomb shape for sgn v (tanh(v/vs_c) with the scenario's smoothing).
 - joint_stiffness_Nm_rad: series elasticity, quasi-static approximation: the link is driven as
   if rigid, but encoders sit on the motor side and read q + tau_s / K, tau_s = the torque the
   transmission carries (applied torque minus friction). Velocities are reported unchanged. This
@@ -70,13 +75,15 @@ def true_theta(robot, dumbbell):
     return theta
 
 
-def _make_friction_system(n, coulomb, viscous, offset, smoothing, stiffness):
+def _make_friction_system(n, coulomb, viscous, offset, smoothing, stiffness, load_mu=0.0, stribeck=0.0,
+                          stribeck_vs=1.0):
     from pydrake.systems.framework import BasicVector
 
     LeafSystem = _leaf_system()
 
     class JointFriction(LeafSystem):
-        """Generalized force on the joints: applied torque minus joint friction."""
+        """Generalized force on the joints: applied torque minus joint friction (the model's
+        law, plus the load-dependent and Stribeck terms of plant.effects)."""
 
         def __init__(self):
             super().__init__()
@@ -88,7 +95,9 @@ def _make_friction_system(n, coulomb, viscous, offset, smoothing, stiffness):
         def _calc(self, context, output):
             v = self.state.Eval(context)[n:]
             law = np.tanh(v / smoothing) if smoothing > 0 else np.sign(v)
-            output.SetFromVector(self.applied.Eval(context) - (coulomb * law + viscous * v + offset))
+            applied = self.applied.Eval(context)
+            extra = (load_mu * np.abs(applied) + stribeck * np.exp(-(v / stribeck_vs) ** 2)) * law
+            output.SetFromVector(applied - (coulomb * law + viscous * v + offset) - extra)
 
     class SeriesElasticEncoders(LeafSystem):
         """Motor-side encoders: q + tau_s / K (quasi-static series elasticity), v unchanged."""
@@ -115,7 +124,8 @@ def _make_torque_sensor(n, time_step, ratio, floor, scale, offset, seed, noisy, 
     class TorqueSensor(LeafSystem):
         """scale * (tau + n) + offset, n uniform inside +-(ratio |tau| + floor), one draw per step;
         with lag_s > 0 the signal is first low-passed, lag_s y' + y = raw, exact for a torque held
-        over each step: y_k = a y_(k-1) + (1 - a) raw_k, a = exp(-h / lag_s), starting steady."""
+        over each step: y_k = a y_(k-1) + (1 - a) raw_(k-1), a = exp(-h / lag_s), raw_(k-1) the
+        reading of the step [t_(k-1), t_k) that just ended, starting steady."""
 
         def __init__(self):
             super().__init__()
@@ -153,7 +163,10 @@ def _make_torque_sensor(n, time_step, ratio, floor, scale, offset, seed, noisy, 
             return self._unit[step]
 
         def _calc(self, context, output):
-            output.SetFromVector(self._lagged(context) if self._keep else self._raw(context))
+            # The filter state: the lag of the torque held over the steps that have ended (reading
+            # the current step's torque again would lead the continuous law by one step).
+            output.SetFromVector(context.get_discrete_state(self._filtered).get_value() if self._keep
+                                 else self._raw(context))
 
     return TorqueSensor()
 
@@ -345,7 +358,10 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
     stiffness = _per_joint(eff.joint_stiffness_Nm_rad, n, 0.0, "joint_stiffness_Nm_rad") if eff.joint_stiffness_Nm_rad else None
     if stiffness is not None and np.any(stiffness <= 0):
         raise ScenarioError("plant.effects.joint_stiffness_Nm_rad: values must be > 0")
-    friction, encoders = _make_friction_system(n, jp.coulomb, jp.viscous, jp.offset, robot.coulomb_smoothing, stiffness)
+    friction, encoders = _make_friction_system(
+        n, jp.coulomb, jp.viscous, jp.offset, robot.coulomb_smoothing, stiffness,
+        _per_joint(eff.load_friction_mu, n, 0.0, "load_friction_mu"),
+        _per_joint(eff.stribeck_friction_Nm, n, 0.0, "stribeck_friction_Nm"), eff.stribeck_velocity_rad_s)
     builder.AddSystem(friction)
     friction.set_name("joint_friction")
     builder.Connect(applied_port, friction.applied)
