@@ -11,9 +11,8 @@ import pytest
 from safesysid.cli import main
 from safesysid.joint_bag import read_joint_bag
 from safesysid.joint_log import JointLog, LogError, read_joint_log, write_joint_log
-from safesysid.systems import gap_simulate as gs
 from safesysid.systems.robot_model import load_robot
-from test_gap import TWO_LINK
+from test_gap import TWO_LINK, _logs
 
 FORMATS = ("ros2_sqlite3", "ros2_mcap", "ros1")
 TOPIC = "/arm/joint_states"
@@ -79,14 +78,9 @@ def logs(tmp_path_factory):
     urdf = root / "two_link.urdf"
     urdf.write_text(TWO_LINK)
     model = load_robot(urdf)
-    rng = np.random.default_rng(5)
-    csvs = []
-    for k in range(3):
-        traj = gs.random_trajectory(model, rng)
-        t = 100.0 + gs.sample_times(rng, 8.0)  # absolute times like a robot clock
-        q, v, _, tau = gs.true_torque(model, traj, t, {"viscous_friction": {"delta": np.array([1.5, 0.0])}})
-        tau = tau + 0.2 * rng.uniform(-1, 1, tau.shape)
-        csvs.append(write_joint_log(root / f"log{k}.csv", JointLog(t, q, v, tau)))
+    sims = _logs(model, 5, {"viscous_friction": {"delta": np.array([1.5, 0.0])}}, with_a=False, noise=0.2)
+    # Absolute times like a robot clock (stamps with whole seconds).
+    csvs = [write_joint_log(root / f"log{k}.csv", JointLog(100.0 + x.t, x.q, x.v, x.tau)) for k, x in enumerate(sims)]
     return root, urdf, model, csvs, [read_joint_log(p, 2) for p in csvs]
 
 
