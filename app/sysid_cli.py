@@ -140,9 +140,9 @@ def corrected_model(path):
         lag = mc.torque_lag_s(corr)
     except mc.CorrectionError as err:
         raise BadInput(f"--model: {err}") from err
-    applied = [e["name"] for e in corr.effects if e["name"] in mc.ROBOT_SIDE or (e["name"] == "time_delay" and lag > 0)]
+    applied = [e.name for e in corr.effects if e.name in mc.ROBOT_SIDE or (e.name == "time_delay" and lag > 0)]
     summary = {"file": str(Path(path).resolve()), "starting_model": str(corr.model_path()), "applied": applied,
-               "torque_lag_s": lag, "not_applied": [e["name"] for e in corr.effects if e["name"] not in applied]}
+               "torque_lag_s": lag, "not_applied": [e.name for e in corr.effects if e.name not in applied]}
     return robot, lag, summary
 
 

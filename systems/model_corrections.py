@@ -16,7 +16,10 @@ parameter applies to all joints (per-joint lists of n values); `joints` only say
 effect was found to matter, as in diagnosis.json.
 
 The params of each effect are gap.effect_params' (units in the key names); the time law is
-`time_law: lag | shift` when present, else read from the `law` text.
+`time_law: lag | shift` when present, else read from the `law` text. `read_correction` is a
+small local reader whose objects have the shape of systems/corrected_model.py's
+(CorrectedModel: model, effects, path, model_path(); CorrectedEffect: name, joints, params),
+so everything below works with either.
 """
 from __future__ import annotations
 
@@ -37,11 +40,18 @@ class CorrectionError(ValueError):
 
 
 @dataclass
+class Effect:
+    name: str
+    joints: list  # 1-based, where the effect matters (information)
+    params: dict  # gap.effect_params
+
+
+@dataclass
 class Correction:
     """The parts of corrected_model.yaml the consumers use (schema: contracts.md)."""
 
     model: str  # starting URDF/SDF/scenario, as written
-    effects: list  # [{name, joints, params}]
+    effects: list  # [Effect]
     path: str = ""
     model_resolved: str = ""
 
@@ -55,8 +65,10 @@ class Correction:
         candidates.append(p)
         return next((c for c in candidates if c.is_file()), candidates[-1])
 
-    def effect(self, name):
-        return next((e for e in self.effects if e["name"] == name), None)
+
+
+def find_effect(corr, name):
+    return next((e for e in corr.effects if e.name == name), None)
 
 
 def read_correction(path) -> Correction:
@@ -78,17 +90,18 @@ def read_correction(path) -> Correction:
     for k, e in enumerate(effects):
         if not isinstance(e, dict) or not isinstance(e.get("name"), str) or not isinstance(e.get("params"), dict):
             raise CorrectionError(f"{where}: effects[{k}]: expected {{name, joints, params}}")
-    return Correction(doc["model"], effects, str(path), doc.get("model_resolved") or "")
+    return Correction(doc["model"], [Effect(e["name"], list(e.get("joints") or []), e["params"]) for e in effects],
+                      str(path), doc.get("model_resolved") or "")
 
 
 def _param(corr, effect, key, n=None):
     """A parameter of an effect (a per-joint array when n is given); CorrectionError names it."""
     k = corr.effects.index(effect)
     where = f"{corr.path}: effects[{k}].params.{key}"
-    if key not in effect["params"]:
+    if key not in effect.params:
         raise CorrectionError(f"{where}: missing")
     try:
-        value = np.asarray(effect["params"][key], float)
+        value = np.asarray(effect.params[key], float)
     except (TypeError, ValueError):
         raise CorrectionError(f"{where}: expected numbers") from None
     if n is not None and value.shape != (n,):
@@ -100,7 +113,7 @@ def _param(corr, effect, key, n=None):
 
 def time_law(effect):
     """'lag' (first-order lag of the torque signal) or 'shift' (pure delay) of a time_delay."""
-    params = effect["params"]
+    params = effect.params
     if "time_law" in params:
         return params["time_law"]
     return "lag" if str(params.get("law", "")).startswith("first-order") else "shift"
@@ -108,7 +121,7 @@ def time_law(effect):
 
 def torque_lag_s(corr):
     """Time constant of a diagnosed first-order lag of the torque signal (0 when none)."""
-    e = corr.effect("time_delay")
+    e = find_effect(corr, "time_delay")
     return float(_param(corr, e, "delay_s")) if e is not None and time_law(e) == "lag" else 0.0
 
 
@@ -118,7 +131,7 @@ def corrected_robot(robot, corr):
     jp = robot.joint_params
     changes = {}
     for name, (attr, key) in ROBOT_SIDE.items():
-        e = corr.effect(name)
+        e = find_effect(corr, name)
         if e is not None:
             changes[attr] = getattr(jp, attr) + _param(corr, e, key, robot.n)
     if not changes:
@@ -133,7 +146,7 @@ def plant_effects(corr, n=None):
     """{scenario plant.effects field: value} of the plant-side effects (see module docstring)."""
     out = {}
     for e in corr.effects:
-        name, k = e["name"], corr.effects.index(e)
+        name, k = e.name, corr.effects.index(e)
         if name == "time_delay":
             d = float(_param(corr, e, "delay_s"))
             if time_law(e) == "lag":
