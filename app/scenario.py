@@ -70,6 +70,7 @@ class PlantEffects:
     torque_sensor_scale: List[float] = dc.field(default_factory=list)
     time_delay_s: float = 0.0
     torque_sensor_lag_s: float = 0.0  # first-order low-pass of the torque sensor signal
+    torque_sensor_delay_s: float = 0.0  # the sensor reading arrives late (torque lags the motion)
     base_tilt_rad: List[float] = dc.field(default_factory=lambda: [0.0, 0.0])
     joint_stiffness_Nm_rad: List[float] = dc.field(default_factory=list)
     # Friction the robot model has no term for (the diagnosis' laws, sgn = the Coulomb shape):
@@ -247,6 +248,7 @@ def _validate(s: Scenario, where):
     need(s.plant.effects.time_delay_s >= 0, "plant.effects.time_delay_s", "must be >= 0")
     need(s.plant.effects.torque_sensor_lag_s >= 0, "plant.effects.torque_sensor_lag_s", "must be >= 0")
     eff = s.plant.effects
+    need(eff.torque_sensor_delay_s >= 0, "plant.effects.torque_sensor_delay_s", "must be >= 0")
     need(all(0 <= mu < 1 for mu in eff.load_friction_mu), "plant.effects.load_friction_mu", "values must be in [0, 1)")
     need(all(fs >= 0 for fs in eff.stribeck_friction_Nm), "plant.effects.stribeck_friction_Nm", "values must be >= 0")
     need(eff.stribeck_velocity_rad_s > 0, "plant.effects.stribeck_velocity_rad_s", "must be > 0")

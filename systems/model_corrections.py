@@ -7,11 +7,12 @@ One file, two sides of one model truth:
                RobotModel that plant, controller, planner and estimator share (the offset is
                the model's beta, counted once: not again as a sensor offset);
   plant side   everything the RobotModel has no term for, as scenario `plant.effects` fields:
-               a first-order lag of the torque signal (torque_sensor_lag_s), an actuation
-               delay (time_delay_s, a pure delay with torque leading the motion), base tilt,
-               joint elasticity, torque scale, load-dependent and Stribeck friction.
-A measurement delay (pure delay, torque lagging the motion) and a diagnosed payload have no
-counterpart in the simulated arm: asking for them is an error naming the effect. Every
+               a first-order lag of the torque signal (torque_sensor_lag_s), a pure delay
+               (time_delay_s when the torque leads the motion: actuation; torque_sensor_delay_s
+               when it lags: the reading arrives late), base tilt, joint elasticity, torque
+               scale, load-dependent and Stribeck friction.
+A diagnosed payload has no counterpart in the simulated arm (its payload is the scenario's
+dumbbell): asking for it is an error naming the effect. Every
 parameter applies to all joints (per-joint lists of n values); `joints` only says where the
 effect was found to matter, as in diagnosis.json.
 
@@ -154,8 +155,7 @@ def plant_effects(corr, n=None):
             elif d <= 0:
                 out["time_delay_s"] = -d  # torque leads the motion: an actuation delay
             else:
-                raise CorrectionError(f"{corr.path}: effects[{k}] time_delay: a measurement delay (d = {d:.4g} s > 0) "
-                                      "has no counterpart in the simulated arm")
+                out["torque_sensor_delay_s"] = d  # torque lags the motion: the reading arrives late
         elif name == "torque_scale":
             out["torque_sensor_scale"] = _param(corr, e, "scale", n).tolist()
         elif name == "base_tilt":

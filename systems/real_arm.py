@@ -26,6 +26,9 @@ Unmodelled effects (scenario.plant.effects, each off by default):
   filtered torque signal is logged (safesysid diagnose finds d ~ 0.1 s on the real Gen3 logs).
 - time_delay_s: the motor torque reaches the joint d seconds late (rounded to whole steps); the
   sensor reports the motor torque when it is produced, so logs show torque leading motion by d.
+- torque_sensor_delay_s: the sensor reading arrives d seconds late (rounded to whole steps; zero
+  before the first one): logs show torque lagging the motion by d (the diagnosis' pure delay
+  with d > 0).
 - base_tilt_rad [roll, pitch]: the base is tilted in the world, i.e. gravity in the base frame is
   R(roll, pitch)^T [0, 0, -g].
 - load_friction_mu: friction that grows with the transmitted torque (gear teeth, harmonic
@@ -297,7 +300,7 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
     from pydrake.math import RollPitchYaw
     from pydrake.multibody.tree import SpatialInertia
     from pydrake.math import RigidTransform
-    from pydrake.systems.primitives import DiscreteTimeDelay, Saturation
+    from pydrake.systems.primitives import DiscreteTimeDelay, Saturation, ZeroOrderHold
 
     from safesysid.scenario import ScenarioError, robot_from_scenario
     from .robot_model import make_plant
@@ -383,8 +386,18 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
     builder.AddSystem(sensor)
     sensor.set_name("torque_sensor")
     builder.Connect(sat.get_output_port(), sensor.torque)
+    measured = sensor.get_output_port()
+    sensor_delay_steps = int(round(eff.torque_sensor_delay_s / h))
+    if sensor_delay_steps > 0:
+        # A sampled element already holds the reading one step (a reading is published before the
+        # step's update samples it), so N - 1 buffered steps make a reading N steps late.
+        late = builder.AddSystem(DiscreteTimeDelay(h, sensor_delay_steps - 1, n) if sensor_delay_steps > 1
+                                 else ZeroOrderHold(h, n))
+        late.set_name("torque_sensor_delay")
+        builder.Connect(measured, late.get_input_port())
+        measured = late.get_output_port()
     return RealArm(robot=robot, plant=plant, scene_graph=scene_graph, instance=instance, payload_body=payload_body,
                    dumbbell=db, commanded_torque_input=sat.get_input_port(), state_output=state_out,
-                   measured_torque_output=sensor.get_output_port(), applied_torque_output=applied_port,
+                   measured_torque_output=measured, applied_torque_output=applied_port,
                    motor_torque_output=sat.get_output_port(), torque_sensor=sensor, time_step=h,
                    payload_collision=payload_collision, robot_geometries=robot_geometries)

@@ -136,9 +136,6 @@ def test_scenario_loads_both_sides(tmp_path):
     ("robot: {corrected_model: c.yaml}\nplant: {effects: {torque_sensor_lag_s: 0.1}}",
      [{"name": "time_delay", "joints": [1], "params": {"delay_s": 0.05, "time_law": "lag"}}],
      "plant.effects.torque_sensor_lag_s: also set by robot.corrected_model"),
-    ("robot: {corrected_model: c.yaml}", [{"name": "time_delay", "joints": [1], "params": {"delay_s": 0.05,
-                                                                                          "time_law": "shift"}}],
-     "effects[0] time_delay: a measurement delay"),
     ("robot: {corrected_model: c.yaml}", [{"name": "payload", "joints": [7], "params": {"theta_delta": [0.1] * 10}}],
      "effects[0] payload"),
     ("robot: {corrected_model: c.yaml}", [{"name": "load_friction", "joints": [1], "params": {}}],
@@ -151,6 +148,16 @@ def test_bad_corrected_models_are_named(tmp_path, scenario, effects, expect):
     with pytest.raises(ScenarioError, match="s.yaml: ") as err:
         robot_from_scenario(load_scenario(tmp_path / "s.yaml"))
     assert expect in str(err.value) and "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("delay, field", [(0.03, "torque_sensor_delay_s"), (-0.02, "time_delay_s")])
+def test_pure_delays_map_to_the_sensor_or_the_actuation(tmp_path, delay, field):
+    """Torque lagging the motion (d > 0) is a late sensor reading; leading it, an actuation delay."""
+    doc = {"model": str(URDF), "effects": [{"name": "time_delay", "joints": [1],
+                                            "params": {"delay_s": delay, "law": "pure delay tau(t - d)"}}]}
+    (tmp_path / "c.yaml").write_text(yaml.safe_dump(doc))
+    (tmp_path / "s.yaml").write_text("robot: {corrected_model: c.yaml}\n")
+    assert getattr(load_scenario(tmp_path / "s.yaml").plant.effects, field) == abs(delay)
 
 
 def test_joint_count_is_checked(tmp_path):

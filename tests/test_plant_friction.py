@@ -1,6 +1,6 @@
-"""Friction effects of the simulated arm that the diagnosis names but the robot model has no
-term for: load-dependent friction mu |tau| sgn v and Stribeck friction Fs sgn v exp(-(v/vs)^2),
-both in the diagnosis' law (systems/gap.py), as plant.effects of the real arm."""
+"""Effects of the simulated arm that the diagnosis names but the robot model has no term for:
+load-dependent friction mu |tau| sgn v and Stribeck friction Fs sgn v exp(-(v/vs)^2), both in the
+diagnosis' law (systems/gap.py), and a late torque reading, as plant.effects of the real arm."""
 import numpy as np
 import pytest
 from pydrake.systems.framework import DiagramBuilder
@@ -63,3 +63,36 @@ def test_load_friction_of_the_simulated_arm_is_diagnosed_blind():
     mu = np.array(entry["params"]["mu"])
     np.testing.assert_allclose(mu[[1, 3]], np.array(MU)[[1, 3]], rtol=0.15)
     assert d.result["combined"]["reduction"] > 0.8
+
+
+def test_late_torque_reading(robot):
+    """torque_sensor_delay_s: the measured torque is the reading of d earlier (zero before);
+    the motion is unchanged."""
+    for delay in (0.001, 0.004):
+        _late_reading(robot, delay)
+
+
+def _late_reading(robot, delay):
+    from pydrake.systems.analysis import Simulator
+    from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
+
+    runs = {}
+    steps = int(round(delay / 0.001))
+    for name, d in (("late", delay), ("plain", 0.0)):
+        s = load_scenario(overrides={"payload": {"dumbbell": "none"},
+                                     "plant": {"effects": {"torque_sensor_delay_s": d}}})
+        b = DiagramBuilder()
+        arm = add_real_arm(b, s, robot=robot)
+        src = b.AddSystem(ConstantVectorSource(np.linspace(-3.0, 3.0, 7)))
+        b.Connect(src.get_output_port(), arm.commanded_torque_input)
+        sinks = [b.AddSystem(VectorLogSink(p.size(), 0.001)) for p in (arm.measured_torque_output, arm.state_output)]
+        b.Connect(arm.measured_torque_output, sinks[0].get_input_port())
+        b.Connect(arm.state_output, sinks[1].get_input_port())
+        sim = Simulator(b.Build())
+        arm.set_state(sim.get_mutable_context(), s.q0_rad)
+        sim.AdvanceTo(0.02)
+        runs[name] = [k.FindLog(sim.get_context()).data().T for k in sinks]
+    (late, x_late), (plain, x_plain) = runs["late"], runs["plain"]
+    np.testing.assert_array_equal(late[steps:], plain[:-steps])
+    assert np.all(late[:steps] == 0)
+    np.testing.assert_array_equal(x_late, x_plain)
