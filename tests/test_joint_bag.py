@@ -179,3 +179,21 @@ def test_not_a_bag(tmp_path):
     (tmp_path / "x.bag").write_text("not a bag")
     with pytest.raises(LogError, match="cannot open as a ROS bag"):
         read_joint_bag(tmp_path / "x.bag")
+
+
+def test_sysid_on_a_bag_equals_the_csv(tmp_path, capsys):
+    """`safesysid sysid` reads bags too (joints by the model's names): the same estimate."""
+    from safesysid.systems import estimator as E
+
+    robot = load_robot(coulomb_smoothing=0.01)
+    rng = np.random.default_rng(4)
+    t, q, v, tau, _ = E.simulate_log(rng, robot, robot.theta, 2.0, 1000.0, centre=[0.0, 0.3, 0.0, 1.5, 0.0, 0.8, 0.0])
+    csv = write_joint_log(tmp_path / "log.csv", JointLog(t, q, v, tau))
+    log = read_joint_log(csv, 7)
+    bag = write_bag(tmp_path / "log_mcap", "ros2_mcap", log, robot.joint_params.names, extra_group=False)
+    docs = []
+    for path, extra in ((csv, []), (bag, ["--topic", TOPIC])):
+        assert main(["sysid", str(path), *extra, "--out", str(tmp_path / f"out_{path.name}")]) == 0
+        docs.append(json.loads((tmp_path / f"out_{path.name}" / "estimate.json").read_text()))
+    for key in ("nominal", "lower", "upper", "consistent", "case"):
+        assert docs[0][key] == docs[1][key]
