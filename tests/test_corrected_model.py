@@ -167,3 +167,17 @@ def test_joint_count_is_checked(tmp_path):
     (tmp_path / "s.yaml").write_text("robot: {corrected_model: c.yaml}\n")
     with pytest.raises(ScenarioError, match=r"effects\[0\].params.delta_Fv_Nms_rad: 2 values for a model with 7"):
         robot_from_scenario(load_scenario(tmp_path / "s.yaml"))
+
+
+def test_late_torque_reading_is_diagnosed_as_its_delay():
+    """torque_sensor_delay_s (the counterpart of a diagnosed pure delay with d > 0): 0.03 s in
+    the simulated arm is diagnosed blind as a 0.03 s pure delay, so it maps back one to one."""
+    real = load_scenario(overrides={"payload": {"dumbbell": "none"}, "noise": NOISE,
+                                    "plant": {"effects": {"torque_sensor_delay_s": 0.03}}})
+    robot = robot_from_scenario(real)
+    rng = np.random.default_rng(4)
+    logs = [track_trajectory(real, robot, robot, gs.random_trajectory(robot, rng), 20 + k, 4.0) for k in range(3)]
+    d = gap.diagnose(robot, logs[:2], logs[2:])
+    assert d.result["cause"] == ["time_delay"]
+    params = next(e for e in d.result["effects"] if e["name"] == "time_delay")["params"]
+    assert params["law"].startswith("pure delay") and params["delay_s"] == pytest.approx(0.03, abs=5e-4)
