@@ -21,6 +21,12 @@ def _bad_input_types():
     return (BadInput, LogError, ScenarioError, ModelError)
 
 
+def _bag_options(p):
+    p.add_argument("--topic", default="/joint_states", help="ROS bag logs: the sensor_msgs/JointState topic")
+    p.add_argument("--joints", type=lambda text: [x.strip() for x in text.split(",") if x.strip()],
+                   help="ROS bag logs: joint names in model order, comma separated (default: the model's)")
+
+
 def build_parser():
     parser = argparse.ArgumentParser(prog="safesysid", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="verb", metavar="VERB")
@@ -50,9 +56,11 @@ def build_parser():
     p.add_argument("--out", default="out/sweep")
 
     p = sub.add_parser("sysid", help="Algorithm 1 offline on a joint log")
-    p.add_argument("log")
+    p.add_argument("log", help="joint log: CSV (contracts.md) or a ROS bag (see --topic)")
     p.add_argument("--scenario", help="scenario YAML (robot, noise, estimator settings)")
+    p.add_argument("--model", help="corrected_model.yaml from `safesysid diagnose`: the robot model to identify with")
     p.add_argument("--out", default="out/sysid")
+    _bag_options(p)
 
     p = sub.add_parser("diagnose", help="where and why a model and logs disagree")
     p.add_argument("--model", help="URDF/SDF of a fixed-base arm, or a scenario YAML")
@@ -64,6 +72,7 @@ def build_parser():
     p.add_argument("--self-check", action="store_true", help="blind test on simulated logs with withheld effects")
     p.add_argument("--cases", type=int, default=40, help="self-check: number of blind cases")
     p.add_argument("--seed", type=int, default=0)
+    _bag_options(p)
 
     p = sub.add_parser("bench", help="timing benchmarks")
     p.add_argument("--out", default="out/bench")

@@ -77,16 +77,17 @@ def _clean(x):
     return x
 
 
-def run_diagnosis(model, fit_paths, check_paths, out, model_path="", plots=True):
-    """Read logs, diagnose, write diagnosis.json, corrected_params.yaml, report.md and plots."""
-    from safesysid.joint_log import read_joint_log
+def run_diagnosis(model, fit_paths, check_paths, out, model_path="", plots=True, bag=None):
+    """Read logs (CSV or ROS bag; `bag`: read_log's topic/joints), diagnose, write
+    diagnosis.json, corrected_params.yaml, report.md and plots."""
+    from safesysid.joint_bag import read_log
     from safesysid.systems import gap
 
     from .diagnose_report import write_plots, write_report
 
     t0 = time.perf_counter()
-    fit = [read_joint_log(p, model.n) for p in fit_paths]
-    check = [read_joint_log(p, model.n) for p in check_paths]
+    fit = [read_log(p, model.n, **(bag or {})) for p in fit_paths]
+    check = [read_log(p, model.n, **(bag or {})) for p in check_paths]
     with gap.single_threaded_blas():
         d = gap.diagnose(model, fit, check)
         d.result["gap"]["residual_forms"] = {log.source: gap.residual_forms(model, log) for log in check}
@@ -162,7 +163,7 @@ def self_check(args):
     return 0
 
 
-def leave_one_out(model, paths, out, model_path):
+def leave_one_out(model, paths, out, model_path, bag=None):
     """Each log held out once (fit on the others): a diagnosis folder per fold, and the pooled
     held-out numbers in DIR/leave_one_out.json and DIR/report.md."""
     from safesysid.systems import gap
@@ -171,7 +172,8 @@ def leave_one_out(model, paths, out, model_path):
 
     out = Path(out)
     dirs = [out / f"fold{k + 1}_{Path(p).stem}" for k, p in enumerate(paths)]
-    folds = [run_diagnosis(model, paths[:k] + paths[k + 1:], [paths[k]], d, model_path) for k, d in enumerate(dirs)]
+    folds = [run_diagnosis(model, paths[:k] + paths[k + 1:], [paths[k]], d, model_path, bag=bag)
+             for k, d in enumerate(dirs)]
     pooled = gap.pool_held_out(folds)
     (out / "leave_one_out.json").write_text(json.dumps(_clean(pooled), indent=2))
     write_leave_one_out_report(out, pooled, model_path, dirs)
@@ -181,6 +183,11 @@ def leave_one_out(model, paths, out, model_path):
           f"{', '.join(pooled['named_in_every_fold']) or 'none'}")
     print(f"wrote {out}/leave_one_out.json, report.md and one folder per fold")
     return 0
+
+
+def bag_options(args, model):
+    """read_log's ROS bag options: --topic, --joints (default: the model's joint names)."""
+    return {"topic": args.topic, "joints": args.joints or list(model.joint_params.names)}
 
 
 def cmd_diagnose(args):
@@ -194,7 +201,8 @@ def cmd_diagnose(args):
         paths = list(args.fit) + list(args.check)
         if len(paths) < 2:
             raise BadInput("--leave-one-out: give at least two logs (--fit A.csv B.csv ...)")
-        return leave_one_out(load_model(args.model), paths, args.out, args.model)
+        model = load_model(args.model)
+        return leave_one_out(model, paths, args.out, args.model, bag_options(args, model))
     if not args.fit:
         raise BadInput("--fit: at least one log is required")
     fit, check = list(args.fit), list(args.check)
@@ -203,6 +211,6 @@ def cmd_diagnose(args):
             raise BadInput("--check: give held-out logs (or at least two --fit logs; the last is then held out)")
         fit, check = fit[:-1], fit[-1:]
     model = load_model(args.model)
-    d = run_diagnosis(model, fit, check, args.out, args.model)
+    d = run_diagnosis(model, fit, check, args.out, args.model, bag=bag_options(args, model))
     _print_summary(d, args.out)
     return 0

@@ -31,6 +31,10 @@ class Robot:
     params: str = "builtin:kinova_gen3_params.yaml"  # joint parameters YAML (names the URDF)
     model: str = ""  # URDF/SDF; empty: the one named in `params`
     coulomb_smoothing_rad_s: float = 0.01  # Coulomb law Fc*tanh(v/vs); 0 = sign(v)
+    # corrected_model.yaml of `safesysid diagnose`: its starting model with the diagnosed
+    # friction/armature/offset is the robot model, its other effects fill plant.effects
+    # (systems/model_corrections.py); robot.model and robot.params stay unset.
+    corrected_model: str = ""
 
 
 @dc.dataclass
@@ -74,8 +78,15 @@ class PlantEffects:
     torque_sensor_scale: List[float] = dc.field(default_factory=list)
     time_delay_s: float = 0.0
     torque_sensor_lag_s: float = 0.0  # first-order low-pass of the torque sensor signal
+    torque_sensor_delay_s: float = 0.0  # the sensor reading arrives late (torque lags the motion)
     base_tilt_rad: List[float] = dc.field(default_factory=lambda: [0.0, 0.0])
     joint_stiffness_Nm_rad: List[float] = dc.field(default_factory=list)
+    # Friction the robot model has no term for (the diagnosis' laws, sgn = the Coulomb shape):
+    # load-dependent mu |tau_motor| sgn v [N m per N m of motor torque], per joint, in [0, 1) ...
+    load_friction_mu: List[float] = dc.field(default_factory=list)
+    # ... and Stribeck Fs sgn v exp(-(v / vs)^2): Fs per joint [N m], vs shared [rad/s].
+    stribeck_friction_Nm: List[float] = dc.field(default_factory=list)
+    stribeck_velocity_rad_s: float = 0.05
 
 
 @dc.dataclass
@@ -288,6 +299,11 @@ def _validate(s: Scenario, where):
          f"must be in (0, {MAX_CONTROL_STEP_S}] s (the tracking guarantee assumes a >= 1 kHz controller)")
     need(s.plant.effects.time_delay_s >= 0, "plant.effects.time_delay_s", "must be >= 0")
     need(s.plant.effects.torque_sensor_lag_s >= 0, "plant.effects.torque_sensor_lag_s", "must be >= 0")
+    eff = s.plant.effects
+    need(eff.torque_sensor_delay_s >= 0, "plant.effects.torque_sensor_delay_s", "must be >= 0")
+    need(all(0 <= mu < 1 for mu in eff.load_friction_mu), "plant.effects.load_friction_mu", "values must be in [0, 1)")
+    need(all(fs >= 0 for fs in eff.stribeck_friction_Nm), "plant.effects.stribeck_friction_Nm", "values must be >= 0")
+    need(eff.stribeck_velocity_rad_s > 0, "plant.effects.stribeck_velocity_rad_s", "must be > 0")
     need(s.estimator.horizon_s > 0, "estimator.horizon_s", "must be > 0")
     need(s.estimator.quadrature_safety >= 2, "estimator.quadrature_safety", "must be >= 2")
     need(s.estimator.hold_period_s >= 0, "estimator.hold_period_s", "must be >= 0")
@@ -361,8 +377,37 @@ def load_scenario(path=None, text=None, overrides=None) -> Scenario:
         raise ScenarioError(f"{where}: {errors[0]}")
     scenario = yaml_load_typed(schema=Scenario, data=yaml.safe_dump(raw) if raw else "{}")
     scenario.source = str(Path(path).resolve()) if path is not None else str(SCENARIOS_DIR / "defaults")
+    _apply_corrected_model(scenario, raw, where)
     _validate(scenario, where if path is not None else str(SCENARIOS_DIR / "defaults.yaml"))
     return scenario
+
+
+def _corrected_model_path(s: Scenario):
+    return resolve_path(s.robot.corrected_model, scenario_dir(s))
+
+
+def _apply_corrected_model(s: Scenario, raw, where):
+    """robot.corrected_model: its plant-side effects fill plant.effects (one source: a field
+    the scenario also sets is an error, as are robot.model / robot.params beside it)."""
+    if not s.robot.corrected_model:
+        return
+    from safesysid.systems.model_corrections import CorrectionError, plant_effects, read_correction
+
+    for key in ("model", "params"):
+        if key in raw.get("robot", {}):
+            raise ScenarioError(f"{where}: robot.{key}: not with robot.corrected_model (it names the model)")
+    path = _corrected_model_path(s)
+    if not path.is_file():
+        raise ScenarioError(f"{where}: robot.corrected_model: file {s.robot.corrected_model!r} not found")
+    try:
+        fields = plant_effects(read_correction(path))
+    except CorrectionError as err:
+        raise ScenarioError(f"{where}: robot.corrected_model: {err}") from err
+    given = raw.get("plant", {}).get("effects", {})
+    for key, value in fields.items():
+        if key in given:
+            raise ScenarioError(f"{where}: plant.effects.{key}: also set by robot.corrected_model ({path.name})")
+        setattr(s.plant.effects, key, value)
 
 
 def scenario_dir(s: Scenario):
@@ -374,5 +419,14 @@ def robot_from_scenario(s: Scenario):
     from safesysid.systems.robot_model import load_robot
 
     base = scenario_dir(s)
+    if s.robot.corrected_model:
+        from safesysid.systems.model_corrections import (CorrectionError, corrected_robot, load_starting_robot,
+                                                         read_correction)
+
+        try:
+            corr = read_correction(_corrected_model_path(s))
+            return corrected_robot(load_starting_robot(corr, s.robot.coulomb_smoothing_rad_s), corr)
+        except CorrectionError as err:
+            raise ScenarioError(f"{s.source}: robot.corrected_model: {err}") from err
     model = resolve_path(s.robot.model, base) if s.robot.model else None
     return load_robot(model, resolve_path(s.robot.params, base), coulomb_smoothing=s.robot.coulomb_smoothing_rad_s)

@@ -1,4 +1,16 @@
-"""`safesysid sysid LOG.csv --scenario S.yaml --out DIR`: Algorithm 1 offline on a joint log.
+"""`safesysid sysid LOG.csv --scenario S.yaml [--model corrected_model.yaml] --out DIR`: Algorithm 1
+offline on a joint log (a CSV or a ROS bag, see app/joint_bag.py).
+
+With --model (a corrected_model.yaml of `safesysid diagnose`) the estimator's robot model is
+the diagnosis' starting model with its corrected friction, armature and torque offset, and a
+diagnosed first-order lag of the torque signal (tau_meas + d dtau_meas/dt = tau) is undone in
+the integral form the estimator works in: over a segment [a, b],
+    int tau dt = int tau_meas dt + d (tau_meas(b) - tau_meas(a)),
+exact for the lag law (the model side equivalent: nothing is differentiated). The noise of the
+two endpoint readings enters multiplied by d, so each row's error term gains d (r_a + r_b), r
+the declared per-sample bound: the interval stays an enclosure under the declared noise bound
+of the signal fed in (the logged one). Effects the estimator's model has no term for (load or
+Stribeck friction, torque scale, base tilt, elasticity, a pure delay) are listed as not applied.
 
 The log is replayed as Algorithm 2 sees it online: the estimator gets the data chunk by chunk
 and updates every planner.replan_period_s (intervals intersected from the scenario's
@@ -15,10 +27,10 @@ from pathlib import Path
 import numpy as np
 
 from safesysid.cli import BadInput
-from safesysid.joint_log import read_joint_log
+from safesysid.joint_bag import read_log
 from safesysid.scenario import ScenarioError, load_scenario, resolve_path, robot_from_scenario, scenario_dir
 from safesysid.systems import inertial
-from safesysid.systems.estimator import EstimatorError, EstimatorSettings, IncrementalEstimator
+from safesysid.systems.estimator import EstimatorError, EstimatorSettings, IncrementalEstimator, torque_radius
 
 
 def payload_truth(scenario, robot):
@@ -35,7 +47,17 @@ def payload_truth(scenario, robot):
     return robot.theta_e + payload_theta_in_end_effector(dumbbells[name], robot.extra["grasp_point"])
 
 
-def run_sysid(log, robot, settings, period_s, prior=None, prior_nominal=None):
+def undo_torque_lag(rows, tau_meas, lag_s, settings, first=0):
+    """Rows `first`.. of the estimator's segments (SegmentRows, indices into tau_meas) for a
+    torque signal logged through a first-order lag d: int tau = int tau_meas + d (tau_meas(b) -
+    tau_meas(a)), the endpoint noise bounded by d (r_a + r_b) in the row's error term."""
+    a, b = rows.start_index[first:], rows.end_index[first:]
+    r = torque_radius(tau_meas, settings)
+    rows.T[first:] += lag_s * (tau_meas[b] - tau_meas[a])
+    rows.quad[first:] += lag_s * (r[a] + r[b])
+
+
+def run_sysid(log, robot, settings, period_s, prior=None, prior_nominal=None, torque_lag_s=0.0):
     """Replay a JointLog through the incremental estimator; returns (estimator, history)."""
     est = IncrementalEstimator(robot, settings, prior, prior_nominal)
     history = []
@@ -45,7 +67,10 @@ def run_sysid(log, robot, settings, period_s, prior=None, prior_nominal=None):
     for edge in edges:
         stop = int(np.searchsorted(t, edge, side="right"))
         if stop > start:
+            done = len(est.rows)
             est.add(t[start:stop], log.q[start:stop], log.v[start:stop], log.tau[start:stop])
+            if torque_lag_s > 0:
+                undo_torque_lag(est.rows, log.tau, torque_lag_s, settings, done)
             start = stop
         try:
             e = est.update()
@@ -105,17 +130,44 @@ def plot_history(path, history, truth):
     plt.close(fig)
 
 
+def corrected_model(path):
+    """(robot, torque lag [s], corrections summary) of a corrected_model.yaml for the estimator."""
+    from safesysid.systems import model_corrections as mc
+
+    try:
+        corr = mc.read_correction(path)
+        robot = mc.corrected_robot(mc.load_starting_robot(corr), corr)
+        lag = mc.torque_lag_s(corr)
+    except mc.CorrectionError as err:
+        raise BadInput(f"--model: {err}") from err
+    applied = [e.name for e in corr.effects if e.name in mc.ROBOT_SIDE or (e.name == "time_delay" and lag > 0)]
+    summary = {"file": str(Path(path).resolve()), "starting_model": str(corr.model_path()), "applied": applied,
+               "torque_lag_s": lag, "not_applied": [e.name for e in corr.effects if e.name not in applied]}
+    return robot, lag, summary
+
+
 def cmd_sysid(args):
     scenario = load_scenario(args.scenario) if args.scenario else load_scenario()
-    robot = robot_from_scenario(scenario)
-    log = read_joint_log(args.log, robot.n)
+    lag, corrections = 0.0, None
+    if args.model:
+        robot, lag, corrections = corrected_model(args.model)
+    else:
+        robot = robot_from_scenario(scenario)
+    log = read_log(args.log, robot.n, args.topic, args.joints or list(robot.joint_params.names))
     settings = EstimatorSettings.from_scenario(scenario)
+    if settings.torque_signal == "held" and not scenario.estimator.hold_period_s:
+        # A log's torque is held for the log's own sample period; the scenario's plant step only
+        # describes the simulator's logs (a 100 Hz robot log would otherwise be all gaps).
+        settings = dataclasses.replace(settings, hold_period_s=float(np.median(np.diff(log.t))))
     ii = scenario.initial_interval
     prior = (np.array(ii.lower, float), np.array(ii.upper, float))
     prior_nominal = np.array(ii.nominal, float)
-    truth = payload_truth(scenario, robot)
+    if args.model and not args.scenario:  # the default scenario's prior is about its own robot and payload
+        prior, prior_nominal = None, robot.theta_e
+    # Only a scenario the user gives says what the log holds; the default one's dumbbell does not.
+    truth = payload_truth(scenario, robot) if args.scenario else None
     try:
-        est, history = run_sysid(log, robot, settings, scenario.planner.replan_period_s, prior, prior_nominal)
+        est, history = run_sysid(log, robot, settings, scenario.planner.replan_period_s, prior, prior_nominal, lag)
     except EstimatorError as err:
         raise BadInput(f"{args.log}: {err}") from err
     if not history:
@@ -129,7 +181,9 @@ def cmd_sysid(args):
     doc.update({
         "log": str(Path(args.log).resolve()), "scenario": scenario.source, "samples": int(len(log)),
         "estimate": {"nominal": doc["nominal"], "lower": doc["lower"], "upper": doc["upper"]},
-        "prior": {"nominal": prior_nominal.tolist(), "lower": prior[0].tolist(), "upper": prior[1].tolist()},
+        "prior": {"nominal": prior_nominal.tolist(), "lower": None if prior is None else prior[0].tolist(),
+                  "upper": None if prior is None else prior[1].tolist()},
+        "model": corrections,
         "truth": None if truth is None else {"theta": truth.tolist(), "dumbbell": scenario.payload.dumbbell},
         "contains_truth": None if truth is None else final.contains(truth),
         "mass_error_rel": None if truth is None else float((final.theta_e[0] - truth[0]) / truth[0]),
@@ -141,6 +195,12 @@ def cmd_sysid(args):
     title = f"{Path(args.log).name}: {len(history)} updates, cond(Y) = {final.cond_Y:.3g}, case {final.case}"
     plot_intervals(out / "intervals.png", final, prior_nominal, truth, title)
     plot_history(out / "history.png", history, truth)
-    verdict = "" if truth is None else f", truth inside: {final.contains(truth)}"
-    print(f"m = {final.theta_e[0]:.4g} kg in [{final.lower[0]:.4g}, {final.upper[0]:.4g}]{verdict}; wrote {out / 'estimate.json'}")
+    verdict = "truth: unknown (no payload given)" if truth is None else f"truth inside: {final.contains(truth)}"
+    if corrections:
+        print(f"model: {corrections['starting_model']} corrected by {', '.join(corrections['applied']) or 'nothing'}"
+              + (f"; not applied (no term in the estimator's model): {', '.join(corrections['not_applied'])}"
+                 if corrections["not_applied"] else ""))
+    print(f"m = {final.theta_e[0]:.4g} kg in [{final.lower[0]:.4g}, {final.upper[0]:.4g}], "
+          f"{'consistent' if final.consistent else 'INCONSISTENT with the declared bounds'}; {verdict}; "
+          f"wrote {out / 'estimate.json'}")
     return 0

@@ -34,8 +34,16 @@ Unmodelled effects (scenario.plant.effects, each off by default):
   filtered torque signal is logged (safesysid diagnose finds d ~ 0.1 s on the real Gen3 logs).
 - time_delay_s: the motor torque reaches the joint d seconds late (rounded to whole steps); the
   sensor reports the motor torque when it is produced, so logs show torque leading motion by d.
+- torque_sensor_delay_s: the sensor reading arrives d seconds late (rounded to whole steps; zero
+  before the first one): logs show torque lagging the motion by d (the diagnosis' pure delay
+  with d > 0).
 - base_tilt_rad [roll, pitch]: the base is tilted in the world, i.e. gravity in the base frame is
   R(roll, pitch)^T [0, 0, -g].
+- load_friction_mu: friction that grows with the transmitted torque (gear teeth, harmonic
+  drives), mu |tau_a| sgn v with tau_a the applied motor torque, which the sensor measures: the
+  diagnosis' load_friction law tau_meas = tau_model + mu |tau_meas| sgn v.
+- stribeck_friction_Nm / stribeck_velocity_rad_s: Fs sgn v exp(-(v/vs)^2) (diagnosis' law).
+  Both use the model's Coulomb shape for sgn v (tanh(v/vs_c) with the scenario's smoothing).
 - joint_stiffness_Nm_rad: series elasticity, quasi-static approximation: the link is driven as
   if rigid, but encoders sit on the motor side and read q + tau_s / K, tau_s = the torque the
   transmission carries (applied torque minus friction). Velocities are reported unchanged. This
@@ -79,13 +87,15 @@ def true_theta(robot, dumbbell, theta=None):
     return theta
 
 
-def _make_friction_system(n, coulomb, viscous, offset, smoothing, stiffness):
+def _make_friction_system(n, coulomb, viscous, offset, smoothing, stiffness, load_mu=0.0, stribeck=0.0,
+                          stribeck_vs=1.0):
     from pydrake.systems.framework import BasicVector
 
     LeafSystem = _leaf_system()
 
     class JointFriction(LeafSystem):
-        """Generalized force on the joints: applied torque minus joint friction."""
+        """Generalized force on the joints: applied torque minus joint friction (the model's
+        law, plus the load-dependent and Stribeck terms of plant.effects)."""
 
         def __init__(self):
             super().__init__()
@@ -97,7 +107,9 @@ def _make_friction_system(n, coulomb, viscous, offset, smoothing, stiffness):
         def _calc(self, context, output):
             v = self.state.Eval(context)[n:]
             law = np.tanh(v / smoothing) if smoothing > 0 else np.sign(v)
-            output.SetFromVector(self.applied.Eval(context) - (coulomb * law + viscous * v + offset))
+            applied = self.applied.Eval(context)
+            extra = (load_mu * np.abs(applied) + stribeck * np.exp(-(v / stribeck_vs) ** 2)) * law
+            output.SetFromVector(applied - (coulomb * law + viscous * v + offset) - extra)
 
     class SeriesElasticEncoders(LeafSystem):
         """Motor-side encoders: q + tau_s / K (quasi-static series elasticity), v unchanged."""
@@ -124,7 +136,8 @@ def _make_torque_sensor(n, time_step, ratio, floor, scale, offset, seed, noisy, 
     class TorqueSensor(LeafSystem):
         """scale * (tau + n) + offset, n uniform inside +-(ratio |tau| + floor), one draw per step;
         with lag_s > 0 the signal is first low-passed, lag_s y' + y = raw, exact for a torque held
-        over each step: y_k = a y_(k-1) + (1 - a) raw_k, a = exp(-h / lag_s), starting steady."""
+        over each step: y_k = a y_(k-1) + (1 - a) raw_(k-1), a = exp(-h / lag_s), raw_(k-1) the
+        reading of the step [t_(k-1), t_k) that just ended, starting steady."""
 
         def __init__(self):
             super().__init__()
@@ -162,7 +175,10 @@ def _make_torque_sensor(n, time_step, ratio, floor, scale, offset, seed, noisy, 
             return self._unit[step]
 
         def _calc(self, context, output):
-            output.SetFromVector(self._lagged(context) if self._keep else self._raw(context))
+            # The filter state: the lag of the torque held over the steps that have ended (reading
+            # the current step's torque again would lead the continuous law by one step).
+            output.SetFromVector(context.get_discrete_state(self._filtered).get_value() if self._keep
+                                 else self._raw(context))
 
     return TorqueSensor()
 
@@ -397,7 +413,7 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
     from pydrake.math import RollPitchYaw
     from pydrake.multibody.tree import SpatialInertia
     from pydrake.math import RigidTransform
-    from pydrake.systems.primitives import DiscreteTimeDelay, Saturation
+    from pydrake.systems.primitives import DiscreteTimeDelay, Saturation, ZeroOrderHold
 
     from safesysid.scenario import ScenarioError, robot_from_scenario
 
@@ -460,7 +476,10 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
     stiffness = _per_joint(eff.joint_stiffness_Nm_rad, n, 0.0, "joint_stiffness_Nm_rad") if eff.joint_stiffness_Nm_rad else None
     if stiffness is not None and np.any(stiffness <= 0):
         raise ScenarioError("plant.effects.joint_stiffness_Nm_rad: values must be > 0")
-    friction, encoders = _make_friction_system(n, fric[:, 0], fric[:, 1], fric[:, 3], robot.coulomb_smoothing, stiffness)
+    friction, encoders = _make_friction_system(
+        n, fric[:, 0], fric[:, 1], fric[:, 3], robot.coulomb_smoothing, stiffness,
+        _per_joint(eff.load_friction_mu, n, 0.0, "load_friction_mu"),
+        _per_joint(eff.stribeck_friction_Nm, n, 0.0, "stribeck_friction_Nm"), eff.stribeck_velocity_rad_s)
     builder.AddSystem(friction)
     friction.set_name("joint_friction")
     builder.Connect(applied_port, friction.applied)
@@ -482,8 +501,18 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
     builder.AddSystem(sensor)
     sensor.set_name("torque_sensor")
     builder.Connect(sat.get_output_port(), sensor.torque)
+    measured = sensor.get_output_port()
+    sensor_delay_steps = int(round(eff.torque_sensor_delay_s / h))
+    if sensor_delay_steps > 0:
+        # A sampled element already holds the reading one step (a reading is published before the
+        # step's update samples it), so N - 1 buffered steps make a reading N steps late.
+        late = builder.AddSystem(DiscreteTimeDelay(h, sensor_delay_steps - 1, n) if sensor_delay_steps > 1
+                                 else ZeroOrderHold(h, n))
+        late.set_name("torque_sensor_delay")
+        builder.Connect(measured, late.get_input_port())
+        measured = late.get_output_port()
     return RealArm(robot=robot, plant=plant, scene_graph=scene_graph, instance=instance, payload_body=payload_body,
                    dumbbell=db, commanded_torque_input=sat.get_input_port(), state_output=state_out,
-                   measured_torque_output=sensor.get_output_port(), applied_torque_output=applied_port,
+                   measured_torque_output=measured, applied_torque_output=applied_port,
                    motor_torque_output=sat.get_output_port(), torque_sensor=sensor, time_step=h,
                    payload_collision=payload_collision, robot_geometries=robot_geometries, theta=theta)

@@ -148,7 +148,8 @@ def test_sensor_offset_scale_and_delay(robot):
 
 def test_lagged_torque_sensor(robot):
     """torque_sensor_lag_s low-passes the (noisy) sensor signal: it starts steady and follows
-    y_k = a y_(k-1) + (1 - a) raw_k, a = exp(-h/d), raw the same run's unlagged reading; the
+    y_k = a y_(k-1) + (1 - a) raw_(k-1), a = exp(-h/d), raw the same run's unlagged reading (the
+    torque held over the step that ended: the exact lag of a held torque, no one-step lead); the
     motion is unchanged (a sensor effect only)."""
     d = 0.04
     s = load_scenario(overrides={"noise": {"torque_ratio": 0.02, "torque_floor_Nm": 0.05}, "payload": {"dumbbell": "none"},
@@ -167,7 +168,7 @@ def test_lagged_torque_sensor(robot):
     expected = np.empty_like(raw)
     expected[0] = raw[0]
     for k in range(1, len(raw)):
-        expected[k] = a * expected[k - 1] + (1 - a) * raw[k]
+        expected[k] = a * expected[k - 1] + (1 - a) * raw[k - 1]
     np.testing.assert_allclose(lagged, expected, rtol=1e-12, atol=1e-12)
     assert np.abs(lagged - raw).max() > 0.01  # the noise is filtered (not vacuous)
     np.testing.assert_array_equal(runs["lag"]["state"], runs["plain"]["state"])

@@ -1,0 +1,191 @@
+"""What a corrected model (`corrected_model.yaml`, written by `safesysid diagnose`) changes, for
+its consumers: the scenario (`robot.corrected_model`), the simulated arm built from it, and
+`safesysid sysid --model`.
+
+One file, two sides of one model truth:
+  robot side   Coulomb and viscous friction, armature and torque offset: terms of the
+               RobotModel that plant, controller, planner and estimator share (the offset is
+               the model's beta, counted once: not again as a sensor offset);
+  plant side   everything the RobotModel has no term for, as scenario `plant.effects` fields:
+               a first-order lag of the torque signal (torque_sensor_lag_s), a pure delay
+               (time_delay_s when the torque leads the motion: actuation; torque_sensor_delay_s
+               when it lags: the reading arrives late), base tilt, joint elasticity, torque
+               scale, load-dependent and Stribeck friction.
+A diagnosed payload has no counterpart in the simulated arm (its payload is the scenario's
+dumbbell): asking for it is an error naming the effect. Every
+parameter applies to all joints (per-joint lists of n values); `joints` only says where the
+effect was found to matter, as in diagnosis.json.
+
+The params of each effect are gap.effect_params' (units in the key names); the time law is
+`time_law: lag | shift` when present, else read from the `law` text. `read_correction` is a
+small local reader whose objects have the shape of systems/corrected_model.py's
+(CorrectedModel: model, effects, path, model_path(); CorrectedEffect: name, joints, params),
+so everything below works with either.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+# effect -> (JointParameters field, params key of the increment on the starting model)
+ROBOT_SIDE = {"coulomb_friction": ("coulomb", "delta_Fc_Nm"), "viscous_friction": ("viscous", "delta_Fv_Nms_rad"),
+              "armature": ("armature", "delta_Ia_kgm2"), "torque_offset": ("offset", "offset_Nm")}
+RIGID = 1e12  # N m/rad: the stiffness of a joint without diagnosed compliance (rigid)
+
+
+class CorrectionError(ValueError):
+    """A corrected model that cannot be applied; the message names the file and the field."""
+
+
+@dataclass
+class Effect:
+    name: str
+    joints: list  # 1-based, where the effect matters (information)
+    params: dict  # gap.effect_params
+
+
+@dataclass
+class Correction:
+    """The parts of corrected_model.yaml the consumers use (schema: contracts.md)."""
+
+    model: str  # starting URDF/SDF/scenario, as written
+    effects: list  # [Effect]
+    path: str = ""
+    model_resolved: str = ""
+
+    def model_path(self):
+        """The starting model: model_resolved when it exists, else `model` relative to this
+        file's folder, else as written."""
+        p = Path(self.model)
+        candidates = [Path(self.model_resolved)] if self.model_resolved else []
+        if self.path and not p.is_absolute():
+            candidates.append(Path(self.path).parent / p)
+        candidates.append(p)
+        return next((c for c in candidates if c.is_file()), candidates[-1])
+
+
+
+def find_effect(corr, name):
+    return next((e for e in corr.effects if e.name == name), None)
+
+
+def read_correction(path) -> Correction:
+    """Correction from a corrected_model.yaml (CorrectionError naming file and field)."""
+    import yaml
+
+    where = str(path)
+    try:
+        doc = yaml.safe_load(Path(path).read_text())
+    except OSError as err:
+        raise CorrectionError(f"{where}: cannot read ({err.strerror})") from err
+    except yaml.YAMLError as err:
+        raise CorrectionError(f"{where}: not valid YAML") from err
+    if not isinstance(doc, dict) or not isinstance(doc.get("model"), str) or not doc["model"]:
+        raise CorrectionError(f"{where}: model: missing (path of the starting URDF/SDF/scenario)")
+    effects = doc.get("effects")
+    if not isinstance(effects, list):
+        raise CorrectionError(f"{where}: effects: missing or not a list")
+    for k, e in enumerate(effects):
+        if not isinstance(e, dict) or not isinstance(e.get("name"), str) or not isinstance(e.get("params"), dict):
+            raise CorrectionError(f"{where}: effects[{k}]: expected {{name, joints, params}}")
+    return Correction(doc["model"], [Effect(e["name"], list(e.get("joints") or []), e["params"]) for e in effects],
+                      str(path), doc.get("model_resolved") or "")
+
+
+def _param(corr, effect, key, n=None):
+    """A parameter of an effect (a per-joint array when n is given); CorrectionError names it."""
+    k = corr.effects.index(effect)
+    where = f"{corr.path}: effects[{k}].params.{key}"
+    if key not in effect.params:
+        raise CorrectionError(f"{where}: missing")
+    try:
+        value = np.asarray(effect.params[key], float)
+    except (TypeError, ValueError):
+        raise CorrectionError(f"{where}: expected numbers") from None
+    if n is not None and value.shape != (n,):
+        raise CorrectionError(f"{where}: {value.size} values for a model with {n} joints")
+    if not np.all(np.isfinite(value)):
+        raise CorrectionError(f"{where}: not finite")
+    return value
+
+
+def time_law(effect):
+    """'lag' (first-order lag of the torque signal) or 'shift' (pure delay) of a time_delay."""
+    params = effect.params
+    if "time_law" in params:
+        return params["time_law"]
+    return "lag" if str(params.get("law", "")).startswith("first-order") else "shift"
+
+
+def torque_lag_s(corr):
+    """Time constant of a diagnosed first-order lag of the torque signal (0 when none)."""
+    e = find_effect(corr, "time_delay")
+    return float(_param(corr, e, "delay_s")) if e is not None and time_law(e) == "lag" else 0.0
+
+
+def corrected_robot(robot, corr):
+    """The RobotModel with the robot-side corrections (increments on `robot`, the starting
+    model): joint parameters and the friction part of theta (Fc, Fv, Ia, beta per joint)."""
+    jp = robot.joint_params
+    changes = {}
+    for name, (attr, key) in ROBOT_SIDE.items():
+        e = find_effect(corr, name)
+        if e is not None:
+            changes[attr] = getattr(jp, attr) + _param(corr, e, key, robot.n)
+    if not changes:
+        return robot
+    jp = dataclasses.replace(jp, **changes)
+    theta = robot.theta.copy()
+    theta[10 * robot.n:] = jp.friction_theta()
+    return dataclasses.replace(robot, joint_params=jp, theta=theta)
+
+
+def plant_effects(corr, n=None):
+    """{scenario plant.effects field: value} of the plant-side effects (see module docstring)."""
+    out = {}
+    for e in corr.effects:
+        name, k = e.name, corr.effects.index(e)
+        if name == "time_delay":
+            d = float(_param(corr, e, "delay_s"))
+            if time_law(e) == "lag":
+                out["torque_sensor_lag_s"] = d
+            elif d <= 0:
+                out["time_delay_s"] = -d  # torque leads the motion: an actuation delay
+            else:
+                out["torque_sensor_delay_s"] = d  # torque lags the motion: the reading arrives late
+        elif name == "torque_scale":
+            out["torque_sensor_scale"] = _param(corr, e, "scale", n).tolist()
+        elif name == "base_tilt":
+            out["base_tilt_rad"] = [float(_param(corr, e, "roll_rad")), float(_param(corr, e, "pitch_rad"))]
+        elif name == "joint_elasticity":
+            c = _param(corr, e, "compliance_rad_per_Nm", n)
+            out["joint_stiffness_Nm_rad"] = [1.0 / x if x > 1.0 / RIGID else RIGID for x in c]
+        elif name == "load_friction":
+            out["load_friction_mu"] = _param(corr, e, "mu", n).tolist()
+        elif name == "stribeck_friction":
+            out["stribeck_friction_Nm"] = _param(corr, e, "Fs_Nm", n).tolist()
+            out["stribeck_velocity_rad_s"] = float(_param(corr, e, "vs_rad_s"))
+        elif name == "payload":
+            raise CorrectionError(f"{corr.path}: effects[{k}] payload: a diagnosed payload has no counterpart in "
+                                  "the simulated arm (the scenario's payload is payload.dumbbell)")
+        elif name not in ROBOT_SIDE:
+            raise CorrectionError(f"{corr.path}: effects[{k}].name: unknown effect {name!r}")
+    return out
+
+
+def load_starting_robot(corr, coulomb_smoothing=0.0):
+    """The model a diagnosis started from: a URDF/SDF (root welded, friction zero) or a
+    scenario YAML's robot."""
+    from safesysid.systems.robot_model import load_robot
+
+    path = corr.model_path()
+    if not path.is_file():
+        raise CorrectionError(f"{corr.path}: model: file {corr.model!r} not found")
+    if path.suffix.lower() in (".yaml", ".yml"):
+        from safesysid.scenario import load_scenario, robot_from_scenario
+
+        return robot_from_scenario(load_scenario(path))
+    return load_robot(path, coulomb_smoothing=coulomb_smoothing)
