@@ -987,9 +987,10 @@ def effect_params(model, effect, params, group_used):
         return {"theta_delta": lst(p), "theta_e": lst(model.theta_e + p), "mass_kg": m,
                 "com_m": lst(p[1:4] / m) if m > 1e-9 else [0.0, 0.0, 0.0]}
     if effect == "time_delay":
+        shift = group_used.endswith("@shift")
         return {"delay_s": float(p[0]),
-                "law": "pure delay tau(t - d)" if group_used.endswith("@shift")
-                else "first-order lag: tau_meas + d dtau_meas/dt = tau"}
+                "law": "pure delay tau(t - d)" if shift else "first-order lag: tau_meas + d dtau_meas/dt = tau",
+                "time_law": "shift" if shift else "lag"}
     if effect == "base_tilt":
         # Base rotated by RollPitchYaw(roll, pitch, 0): gravity in the base frame is
         # |g| [sin p, -cos p sin r, -cos p cos r] (real_arm's convention).
