@@ -262,7 +262,7 @@ def test_speed_saturated_samples_are_found_and_left_out(two_link, monkeypatch):
     assert wo["reduction"] > 0.9
     assert r["gap"]["where"]["regimes"]["velocity_saturation"] == pytest.approx(sat["residual_share"])
 
-    monkeypatch.setattr(gap, "velocity_saturation", lambda logs: [np.zeros(l.v.shape, bool) for l in logs])
+    monkeypatch.setattr(gap, "velocity_saturation", lambda logs, rule=None: [np.zeros(l.v.shape, bool) for l in logs])
     blind = gap.diagnose(two_link, logs[:2], logs[2:]).result
     fv_blind = next(e for e in blind["effects"] if e["name"] == "viscous_friction")["params"]["Fv_Nms_rad"]
     assert abs(fv_blind[0] - truth[0]) > 0.05 * truth[0]
