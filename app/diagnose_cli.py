@@ -2,8 +2,13 @@
 and how much of the gap goes away on held-out logs (systems/gap.py does the math).
 
     safesysid diagnose --model MODEL --fit A.csv [B.csv ...] --check C.csv [...] --out DIR
+    safesysid diagnose --model corrected_model.yaml --check NEW.csv [...] --out DIR   (frozen: fits nothing)
     safesysid diagnose --model MODEL --leave-one-out --fit A.csv B.csv [C.csv ...] --out DIR
     safesysid diagnose --self-check [--cases 40] [--seed 0] [--model MODEL] --out DIR
+
+Honest protocol: selection uses the fit logs only (inner cross-validation); the check logs are
+scored once (`test` in diagnosis.json) with the frozen selection and parameters, which
+`corrected_model.yaml` carries.
 """
 from __future__ import annotations
 
@@ -78,35 +83,78 @@ def _clean(x):
 
 
 def run_diagnosis(model, fit_paths, check_paths, out, model_path="", plots=True):
-    """Read logs, diagnose, write diagnosis.json, corrected_params.yaml, report.md and plots."""
+    """Read logs, diagnose, write diagnosis.json, corrected_model.yaml, corrected_params.yaml,
+    report.md/.html and plots."""
     from safesysid.joint_log import read_joint_log
     from safesysid.systems import gap
-
-    from .diagnose_report import write_plots, write_report
+    from safesysid.systems.corrected_model import write_corrected_model
 
     t0 = time.perf_counter()
     fit = [read_joint_log(p, model.n) for p in fit_paths]
     check = [read_joint_log(p, model.n) for p in check_paths]
     with gap.single_threaded_blas():
-        d = gap.diagnose(model, fit, check)
+        d = gap.diagnose(model, fit, check, model_path=str(model_path or ""))
         d.result["gap"]["residual_forms"] = {log.source: gap.residual_forms(model, log) for log in check}
-    wall = time.perf_counter() - t0
-    d.result["wall_time_s"] = wall
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "diagnosis.json").write_text(json.dumps(_clean(d.result), indent=2))
+    write_corrected_model(out / "corrected_model.yaml", d.corrected_model,
+                          "# Corrected model from `safesysid diagnose` (selected and fitted on "
+                          + ", ".join(Path(p).name for p in fit_paths) + "); score it on new logs with\n"
+                          "# `safesysid diagnose --model corrected_model.yaml --check NEW.csv` (fits nothing).\n")
     params_file = out / "corrected_params.yaml"
     _write_yaml(params_file, corrected_params_doc(model, d),
                 "# Corrected joint parameters from `safesysid diagnose` (fit logs: "
                 + ", ".join(Path(p).name for p in fit_paths) + ").\n")
-    files = write_plots(out, d) if plots else {}
-    write_report(out, d, model_path, fit_paths, check_paths, files, wall, params_file.name)
+    _write_outputs(out, d, model_path, fit_paths, check_paths, t0, plots, params_file.name)
     return d
+
+
+def _write_outputs(out, d, model_path, fit_paths, check_paths, t0, plots, params_file=None, frozen=False):
+    from .diagnose_report import write_plots, write_report
+
+    files = write_plots(out, d) if plots else {}
+    wall = time.perf_counter() - t0
+    d.result["wall_time_s"] = wall
+    (out / "diagnosis.json").write_text(json.dumps(_clean(d.result), indent=2))
+    write_report(out, d, model_path, fit_paths, check_paths, files, wall, params_file, frozen=frozen)
+
+
+def score_corrected(path, check_paths, out, plots=True):
+    """`--model corrected_model.yaml --check X.csv`: score the frozen model on X (the same code
+    path diagnose scores its check logs with); nothing is fitted."""
+    from safesysid.cli import BadInput
+    from safesysid.joint_log import read_joint_log
+    from safesysid.systems import gap
+    from safesysid.systems.corrected_model import CorrectedModelError, read_corrected_model
+
+    t0 = time.perf_counter()
+    if not check_paths:
+        raise BadInput(f"{path}: --check: give the logs to score the corrected model on")
+    try:
+        corrected = read_corrected_model(path)
+        model_file = corrected.model_path()
+        if not model_file.is_file():
+            raise BadInput(f"{path}: model: {corrected.model} not found")
+        model = load_model(model_file)
+        corrected.check_joints(model.n)
+        logs = [read_joint_log(p, model.n) for p in check_paths]
+        d = gap.frozen_diagnosis(model, corrected, logs)
+    except CorrectedModelError as err:
+        raise BadInput(str(err)) from err
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    _write_outputs(out, d, path, [], check_paths, t0, plots, frozen=True)
+    r = d.result
+    print(f"frozen corrected model {path} (nothing fitted): RMS {r['gap']['rms_check']:.6f} -> "
+          f"{r['combined']['rms_check_after']:.6f} N·m ({100 * r['combined']['reduction']:.1f}% less) on "
+          + ", ".join(Path(p).name for p in check_paths) + f"; effects {', '.join(r['cause']) or 'none'}")
+    print(f"wrote {out}/diagnosis.json, report.md, report.html")
+    return 0
 
 
 def _print_summary(d, out):
     r = d.result
-    print(f"held-out RMS {r['gap']['rms_check']:.3f} N·m -> {r['combined']['rms_check_after']:.3f} N·m "
+    print(f"held-out (test) RMS {r['gap']['rms_check']:.6f} N·m -> {r['combined']['rms_check_after']:.6f} N·m "
           f"({100 * r['combined']['reduction']:.1f}% less); cause: {', '.join(r['cause']) or 'no significant effect'}")
     print("per joint before: " + " ".join(f"{x:.2f}" for x in r["gap"]["rms_check_per_joint"]))
     print("per joint after:  " + " ".join(f"{x:.2f}" for x in r["combined"]["rms_check_per_joint_after"]))
@@ -116,7 +164,10 @@ def _print_summary(d, out):
         print(f"speed-saturated (drive at its limit, torque not delivered): {100 * sat['element_share']:.1f}% of "
               f"samples, {100 * sat['residual_share']:.1f}% of the residual^2; without them "
               f"{wo['rms_check']:.3f} -> {wo['rms_check_after']:.3f} N·m ({100 * wo['reduction']:.1f}% less)")
-    print(f"wrote {out}/diagnosis.json, report.md, corrected_params.yaml")
+    cv = r["cross_validation"]
+    print(f"selection on the fit logs only ({cv['scheme']}): validation RMS {cv['rms_before']:.3f} -> "
+          f"{cv['rms_after']:.3f} N·m ({100 * cv['reduction']:.1f}% less); the check logs were scored once (test)")
+    print(f"wrote {out}/diagnosis.json, report.md, report.html, corrected_model.yaml, corrected_params.yaml")
 
 
 def self_check(args):
@@ -176,7 +227,7 @@ def leave_one_out(model, paths, out, model_path):
     (out / "leave_one_out.json").write_text(json.dumps(_clean(pooled), indent=2))
     write_leave_one_out_report(out, pooled, model_path, dirs)
     p, m = pooled["pooled"], pooled["mean_over_folds"]
-    print(f"held-out RMS pooled over {len(paths)} folds {p['rms_before']:.3f} -> {p['rms_after']:.3f} N·m "
+    print(f"held-out (test) RMS pooled over {len(paths)} folds {p['rms_before']:.3f} -> {p['rms_after']:.3f} N·m "
           f"({100 * p['reduction']:.1f}% less; mean over folds {100 * m['reduction']:.1f}%); named in every fold: "
           f"{', '.join(pooled['named_in_every_fold']) or 'none'}")
     print(f"wrote {out}/leave_one_out.json, report.md and one folder per fold")
@@ -190,6 +241,13 @@ def cmd_diagnose(args):
         return self_check(args)
     if not args.model:
         raise BadInput("--model: required (URDF/SDF of a fixed-base arm or a scenario YAML)")
+    from safesysid.systems.corrected_model import is_corrected_model_file
+
+    if is_corrected_model_file(args.model):
+        if args.fit or args.leave_one_out:
+            raise BadInput(f"{args.model}: a corrected model is scored as it is (--check only, fits nothing); "
+                           "to diagnose again give the starting model to --model")
+        return score_corrected(args.model, list(args.check), args.out)
     if args.leave_one_out:
         paths = list(args.fit) + list(args.check)
         if len(paths) < 2:

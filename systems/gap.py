@@ -1326,8 +1326,6 @@ def _diagnose(model, fit_logs, check_logs, effects, form, max_effects, model_pat
     before, after = score_designs(corrected_model, check)
     test = held_out_numbers(check, before, after)
     n = model.n
-    share, samples, windows = regimes(check, before)
-
     entries = []
     for e in effects:
         alone, _ = final.fit_effects([e])
@@ -1357,27 +1355,10 @@ def _diagnose(model, fit_logs, check_logs, effects, form, max_effects, model_pat
                         **_rms_table(cv_before, cv_after, np.ones_like(cv_valid)),
                         "without_saturated": _rms_table(cv_before, cv_after, cv_valid),
                         "selection": sel.steps}
-    rms_fit = float(np.sqrt(final.yy / max(final.n_fit_rows, 1)))
-    result = {
-        "gap": {"rms_fit": rms_fit, "rms_check": test["rms_before"],
-                "rms_check_per_joint": test["rms_before_per_joint"],
-                "where": {"joints": [int(j) + 1 for j in np.argsort(-np.array(test["rms_before_per_joint"]))],
-                          "regimes": share, "regime_sample_share": samples, "time_windows": windows},
-                "residual_form": form,
-                "rms_check_per_log": test["rms_before_per_log"],
-                "velocity_saturation": _saturation_summary(check, before)},
-        "effects": entries,
-        "cause": list(sel.effects),
-        "combined": {"effects": list(sel.effects), "rms_check_after": test["rms_after"],
-                     "reduction": test["reduction"],
-                     "rms_check_per_joint_after": test["rms_after_per_joint"],
-                     "rms_check_per_log_after": test["rms_after_per_log"],
-                     "rms_fit_after": _rms(final.fit_residual(params)),
-                     "regimes_after": regimes(check, after)[0],
-                     "without_saturated": {"rms_check": test["without_saturated"]["rms_before"],
-                                           "rms_check_after": test["without_saturated"]["rms_after"],
-                                           "reduction": test["without_saturated"]["reduction"]},
-                     "selection": sel.steps},
+    result = _held_out_result(check, before, after, test, entries, form)
+    result["gap"]["rms_fit"] = float(np.sqrt(final.yy / max(final.n_fit_rows, 1)))
+    result["combined"].update(rms_fit_after=_rms(final.fit_residual(params)), selection=sel.steps)
+    result.update({
         "test": {**test, "note": "check logs, scored once with the frozen selection and parameters; "
                                  "no selection step or threshold saw them"},
         "cross_validation": cross_validation,
@@ -1390,9 +1371,57 @@ def _diagnose(model, fit_logs, check_logs, effects, form, max_effects, model_pat
                               "min_noise_fraction": MIN_NOISE_FRACTION,
                               "information_criterion": "BIC on the inner training folds",
                               "data": "validation residuals of the inner folds on the fit logs"},
-    }
+    })
     corrected = corrected_parameters(model, sel.effects, params)
     return Diagnosis(result, form, cv.designs, check, before, after, params, corrected, corrected_model)
+
+
+def _held_out_result(designs, before, after, test, entries, form):
+    """The contract fields of diagnosis.json (gap, effects, cause, combined) on scored logs."""
+    named = [e["name"] for e in entries if e["significant"]]
+    share, samples, windows = regimes(designs, before)
+    return {
+        "gap": {"rms_check": test["rms_before"], "rms_check_per_joint": test["rms_before_per_joint"],
+                "where": {"joints": [int(j) + 1 for j in np.argsort(-np.array(test["rms_before_per_joint"]))],
+                          "regimes": share, "regime_sample_share": samples, "time_windows": windows},
+                "residual_form": form,
+                "rms_check_per_log": test["rms_before_per_log"],
+                "velocity_saturation": _saturation_summary(designs, before)},
+        "effects": entries,
+        "cause": named,
+        "combined": {"effects": named, "rms_check_after": test["rms_after"], "reduction": test["reduction"],
+                     "rms_check_per_joint_after": test["rms_after_per_joint"],
+                     "rms_check_per_log_after": test["rms_after_per_log"],
+                     "regimes_after": regimes(designs, after)[0],
+                     "without_saturated": {"rms_check": test["without_saturated"]["rms_before"],
+                                           "rms_check_after": test["without_saturated"]["rms_after"],
+                                           "reduction": test["without_saturated"]["reduction"]}},
+    }
+
+
+def frozen_diagnosis(model, corrected, logs):
+    """Logs scored with a frozen corrected model (`diagnose --model corrected_model.yaml
+    --check`): the contract fields on those logs, each effect's own numbers with that effect of
+    the file alone; nothing is fitted or selected."""
+    from .corrected_model import group_params
+
+    with single_threaded_blas():
+        designs, before, after, test = score(model, corrected, logs)
+        entries = []
+        for k, e in enumerate(corrected.effects):
+            rms = _rms(np.concatenate([design_residual(d, group_params([e])) for d in designs]))
+            entries.append({"name": e.name, "joints": list(e.joints), "params": e.params, "rms_check_after": rms,
+                            "reduction": _reduction(test["rms_before"], rms), "significant": True,
+                            "params_from": "frozen", "selection_step": k + 1})
+        result = _held_out_result(designs, before, after, test, entries, designs[0].form)
+    sc = corrected.scoring
+    result["gap"]["rms_fit"] = None  # no fit logs
+    result["test"] = {**test, "note": "scored with the frozen corrected model; nothing fitted, nothing selected"}
+    result["frozen"] = {"corrected_model": corrected.path, "model": str(corrected.model_path()),
+                        "fitted": "nothing", "residual_form": sc.residual_form,
+                        "saturation_top_speed_rad_s": sc.saturation.top_speed_rad_s if sc.saturation else None}
+    return Diagnosis(result, designs[0].form, [], designs, before, after, group_params(corrected.effects), {},
+                     corrected)
 
 
 def leave_one_out(model, logs, **kwargs):
