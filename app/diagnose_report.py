@@ -193,8 +193,11 @@ def verdict_lines(result, frozen=False):
         why = "**Why:** no effect of the vocabulary explains a significant part of it on the fit logs."
     logs = ", ".join(f"`{Path(p).name}`" for p in test["logs"])
     wo = test["without_saturated"]
+    change = (f"**{100 * test['reduction']:.1f} % less**" if test["rms_after"] <= test["rms_before"] else
+              f"**{100 * (test['rms_after'] / test['rms_before'] - 1):.1f} % more**: the correction does not "
+              "carry over to these logs")
     shrink = (f"**Held-out (test):** RMS {test['rms_before']:.3f} → {test['rms_after']:.3f} N·m "
-              f"(**{100 * test['reduction']:.1f} % less**) on {logs}, "
+              f"({change}) on {logs}, "
               + ("scored with the frozen model, nothing fitted" if frozen else "never used by any selection step")
               + (f"; without speed-saturated samples {100 * wo['reduction']:.1f} %" if gap["velocity_saturation"]["spans"] else "")
               + (f"; inner cross-validation on the fit logs {100 * result['cross_validation']['reduction']:.1f} %."

@@ -339,3 +339,98 @@ def test_restarted_lag_matches_the_ode_with_state_resets(integrated):
         # the reset really changes the answer (the test is not vacuous)
         plain = gap.first_order_lag(t, X, bounds, d)
         assert np.abs((plain[:300] - plain[0]) - (truth_int[:300] - truth_int[0])).max() > 1e-2
+
+
+def test_selection_never_looks_at_the_check_logs(two_link):
+    """Honest protocol: selection and parameters come from the fit logs only, so swapping the
+    check log for one where the effect is gone (tomorrow's logs) changes the test score, never
+    the diagnosis. Before (selection on the check log): check A named viscous_friction, check B
+    named nothing (RMS 0.289 -> 0.289 N·m, the effect of the fit logs silently dropped)."""
+    effect = {"viscous_friction": {"delta": np.array([1.0, 0.0])}}
+    fit_and_a = _logs(two_link, 41, effect, n=3, noise=0.5)
+    (b,) = _logs(two_link, 42, {}, n=1, noise=0.5)
+    da = gap.diagnose(two_link, fit_and_a[:2], fit_and_a[2:])
+    db = gap.diagnose(two_link, fit_and_a[:2], [b])
+    assert da.result["cause"] == db.result["cause"] == ["viscous_friction"]
+    assert da.corrected_model.to_doc() == db.corrected_model.to_doc()
+    assert da.result["cross_validation"] == db.result["cross_validation"]
+    # The test numbers tell the two check logs apart: the correction helps on A, hurts on B.
+    assert da.result["test"]["reduction"] > 0.5
+    assert db.result["test"]["rms_after"] > 1.5 * db.result["test"]["rms_before"]
+    assert da.result["cross_validation"]["scheme"] == "leave_one_fit_log_out"
+
+
+def test_one_fit_log_is_cross_validated_in_time_blocks(two_link):
+    """With a single fit log the inner folds are contiguous time pieces (leave one out); the
+    effect is still named and every fit-log sample is validated exactly once."""
+    logs = _logs(two_link, 43, {"torque_offset": {"delta": np.array([0.0, 0.8])}}, n=2, noise=0.3)
+    d = gap.diagnose(two_link, logs[:1], logs[1:])
+    cv = d.result["cross_validation"]
+    assert cv["scheme"] == "time_blocked" and len(cv["folds"]) == gap.TIME_FOLDS
+    assert d.result["cause"] == ["torque_offset"]
+    validated = sum(len(dd.y) for dd in d.fit_designs)
+    assert validated == len(logs[0].t)  # the pieces partition the log
+    assert d.result["test"]["reduction"] > 0.5
+
+
+def test_frozen_corrected_model_reproduces_the_check_scoring(two_link, tmp_path, monkeypatch):
+    """corrected_model.yaml carries everything the check scoring used — the first-order lag
+    (with its restarts), viscous friction and the speed-saturation top speeds of the fit logs —
+    so scoring the file on the check log gives the diagnosis' test residual, fitting nothing.
+    The check log's drive pins joint 1 at 0.9 of the fit logs' limit: the rule frozen on the
+    fit logs does not flag those samples while a rule re-derived on the check log would, so the
+    threshold really is frozen (not vacuous)."""
+    from safesysid.systems.corrected_model import read_corrected_model, write_corrected_model
+
+    rng = np.random.default_rng(47)
+    clean = _logs(two_link, 47, {"viscous_friction": {"delta": np.array([1.5, 0.0])}}, n=3)
+    lagged = []
+    for log in clean:
+        tau = gap.first_order_lag(log.t, log.tau, np.array(gap.segments(log.t)), 0.04)
+        lagged.append(JointLog(log.t, log.q, log.v, tau + 0.1 * rng.uniform(-1, 1, tau.shape), log.a, {}, "sim"))
+    limit = 0.8 * min(np.abs(l.v[:, 0]).max() for l in lagged)
+    fit = [_pin_at_top_speed(l, 0, limit, 4.0, rng)[0] for l in lagged[:2]]
+    check = [_pin_at_top_speed(lagged[2], 0, 0.9 * limit, 1.0, rng)[0]]
+    d = gap.diagnose(two_link, fit, check, model_path="two_link.urdf")
+    assert set(d.result["cause"]) >= {"time_delay", "viscous_friction"}
+    assert any(m[:, 0].any() for m in gap.velocity_saturation(fit, gap.saturation_rule(fit)))
+    assert not d.check_designs[0].row_saturated.any()
+    assert gap.velocity_saturation(check)[0][:, 0].any()
+    path = write_corrected_model(tmp_path / "corrected_model.yaml", d.corrected_model)
+    frozen = read_corrected_model(path)
+
+    def no_fitting(*args, **kwargs):
+        raise AssertionError("a frozen model must not be fitted")
+
+    monkeypatch.setattr(gap, "fit_effects", no_fitting)
+    monkeypatch.setattr(gap.Problem, "solve", no_fitting)
+    designs, before, after, numbers = gap.score(two_link, frozen, check)
+    assert np.abs(after[0] - d.check_residual_after[0]).max() < 1e-9
+    assert numbers["rms_after"] == pytest.approx(d.result["combined"]["rms_check_after"], abs=1e-9)
+    assert numbers["rms_after"] < 0.6 * numbers["rms_before"]
+
+
+def test_self_check_value_errors_measure_distance_to_the_truth():
+    """value_errors is a real comparison: exact values give 0, a wrong delay its difference."""
+    truth = {"params": {"delay_s": 0.02, "law": "lag"}, "injected_joints": [1, 2]}
+    (rec,) = gs.value_errors("time_delay", truth, {"delay_s": 0.03})
+    assert rec["abs_error"] == pytest.approx(0.01) and rec["rel_error"] == pytest.approx(0.5)
+    truth = {"params": {"compliance": [0.0, 1e-3, 0.0]}, "injected_joints": [2]}
+    (rec,) = gs.value_errors("joint_elasticity", truth, {"compliance_rad_per_Nm": [0.0, 1e-3, 0.0]})
+    assert rec["abs_error"] == 0.0 and rec["truth"] == pytest.approx(1000.0)
+
+
+def test_detection_ladder_finds_the_smallest_reliable_size(monkeypatch):
+    """The ladder walk (stub detector) returns the smallest size found in >= 90 % of the cases
+    from either side of its starting point; 8/10 is not enough; None above the ladder."""
+    sizes = gs.DETECTION_LADDERS["torque_offset"][2]  # 0.01 ... 1.0, walk starts at 0.1
+    for threshold, partial, expected in ((0.005, None, 0.01), (0.02, None, 0.02), (0.5, None, 0.5),
+                                         (0.2, 0.2, 0.5), (3.0, None, None)):
+        def stub(job, th=threshold, part=partial):
+            size, i = job[4], job[5]
+            return {"found": size >= th and not (size == part and i < 2), "false": [], "snr": 1.0}
+
+        monkeypatch.setattr(gs, "_detection_case", stub)
+        r = gs._ladder((None, 0, "torque_offset", 0.01, 10))
+        assert r["limit"] == expected, (threshold, r)
+        assert all(t["size"] in sizes for t in r["tried"])
