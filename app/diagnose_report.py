@@ -78,20 +78,25 @@ def write_plots(out, diagnosis):
     files["timeseries"] = "residual_timeseries.png"
     # Per-joint bars.
     res = d.result
-    b = np.array(res["gap"]["rms_check_per_joint"])
-    a = np.array(res["combined"]["rms_check_per_joint_after"])
+    files["bars"] = joint_bars(out / "joint_rms.png", res["gap"]["rms_check_per_joint"],
+                               res["combined"]["rms_check_per_joint_after"], "corrected")
+    return files
+
+
+def joint_bars(path, before, after, label_after):
+    """Per-joint held-out RMS bars, nominal vs corrected; returns the file name."""
+    plt = _plt()
+    idx = np.arange(len(before))
     fig, ax = plt.subplots(figsize=(7, 3))
-    idx = np.arange(n)
-    ax.bar(idx - 0.2, b, 0.4, color="0.6", label="nominal")
-    ax.bar(idx + 0.2, a, 0.4, color="tab:blue", label="corrected")
+    ax.bar(idx - 0.2, before, 0.4, color="0.6", label="nominal")
+    ax.bar(idx + 0.2, after, 0.4, color="tab:blue", label=label_after)
     ax.set_xticks(idx, [f"j{j + 1}" for j in idx])
     ax.set_ylabel("held-out RMS [N·m]")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(out / "joint_rms.png", dpi=90)
+    fig.savefig(path, dpi=90)
     plt.close(fig)
-    files["bars"] = "joint_rms.png"
-    return files
+    return Path(path).name
 
 
 def _fmt(x, digits=3):
@@ -404,24 +409,6 @@ def write_html(path, markdown_text, folder, title):
     return Path(path)
 
 
-def write_pooled_plot(out, pooled):
-    """Per-joint held-out RMS pooled over the folds (nominal vs corrected, all samples)."""
-    plt = _plt()
-    p = pooled["pooled"]
-    b, a = np.array(p["rms_before_per_joint"]), np.array(p["rms_after_per_joint"])
-    idx = np.arange(len(b))
-    fig, ax = plt.subplots(figsize=(7, 3))
-    ax.bar(idx - 0.2, b, 0.4, color="0.6", label="nominal")
-    ax.bar(idx + 0.2, a, 0.4, color="tab:blue", label="corrected (each log held out once)")
-    ax.set_xticks(idx, [f"j{j + 1}" for j in idx])
-    ax.set_ylabel("held-out RMS [N·m]")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(Path(out) / "pooled_joint_rms.png", dpi=90)
-    plt.close(fig)
-    return "pooled_joint_rms.png"
-
-
 def write_leave_one_out_report(out, pooled, model_path, fold_dirs):
     """report.md/.html of a nested leave-one-log-out diagnosis: test RMS pooled over the folds per
     joint (all samples and without speed-saturated ones), the mean over folds, each fold, and the
@@ -458,7 +445,9 @@ def write_leave_one_out_report(out, pooled, model_path, fold_dirs):
                      f"| {100 * f['reduction']:.1f}% | {100 * f['without_saturated']['reduction']:.1f}% "
                      f"| {100 * f['cross_validation']['reduction']:.1f}% "
                      f"| {', '.join(f['cause']) or 'none'} | [{Path(d).name}]({Path(d).name}/report.md) |")
-    lines += ["", "## Plots", "", f"![pooled per joint]({write_pooled_plot(out, pooled)})", ""]
+    bars = joint_bars(Path(out) / "pooled_joint_rms.png", p["rms_before_per_joint"], p["rms_after_per_joint"],
+                      "corrected (each log held out once)")
+    lines += ["", "## Plots", "", f"![pooled per joint]({bars})", ""]
     text = "\n".join(lines)
     Path(out, "report.md").write_text(text)
     write_html(Path(out, "report.html"), text, out, "Gap diagnosis, leave one log out")

@@ -49,19 +49,28 @@ Fits are bounded linear least squares (scipy lsq_linear on the Cholesky factor o
 equations, so each fit costs microseconds); the payload uses a log-Cholesky Gauss-Newton
 (scipy least_squares) when the linear fit is not physically consistent.
 
+Honest protocol (diagnose): every selection step and threshold uses the fit logs only. Inner
+folds on them (leave one fit log out; TIME_FOLDS contiguous time pieces when there is one fit
+log) fit each candidate set on the training folds and score it on the validation fold; the
+validation residuals, concatenated (each fit-log sample validated once), are what the rules
+below call "held-out". The speed-saturation top speeds come from the fit logs too. The selected
+set is refitted on all fit logs; the check logs are scored once with that frozen selection and
+its parameters (`test`), through design_residual, the function that also scores a
+corrected_model.yaml (score).
+
 Selection is forward-greedy: the candidate with the largest held-out improvement is added while
 it is significant, i.e. all of
-  (1) held-out (check) squared residual drops by more than Z_BLOCK standard errors of its
+  (1) held-out (validation) squared residual drops by more than Z_BLOCK standard errors of its
       random part (see `significance`; blocks of BLOCK_S seconds, so autocorrelated residuals
       do not fake significance), or the drop is consistent across blocks: a Wilcoxon
       signed-rank test of the per-block gains at the same 3-sigma level (P_BLOCKS). The first
       credits effects acting in bursts; the second effects that improve nearly every block
       while the residual left is heavy-tailed (real logs with unmodelled transients, whose
       few large blocks inflate the standard error),
-  (2) the drop exceeds MIN_RELATIVE of the current check mean square and MIN_NOISE_FRACTION of
-      the noise variance (robust estimate from first differences of the check residual): improvement
-      beyond what measurement noise explains,
-  (3) BIC on the fit logs decreases,
+  (2) the drop exceeds MIN_RELATIVE of the current validation mean square and MIN_NOISE_FRACTION
+      of the noise variance (robust estimate from first differences of the validation residual):
+      improvement beyond what measurement noise explains,
+  (3) BIC on the inner training folds decreases,
   (4) relevance: on its most affected joint the effect changes the predicted torque by at
       least MIN_EFFECT_RATIO of the measured torque RMS (0.25 %, well below torque-sensor
       accuracy): a statistically clear but physically negligible mismatch, such as a
@@ -908,7 +917,8 @@ def _delay_of(params):
 
 
 def significance(problem, r0, r1, sse0_fit, sse1_fit, k_added, joint=None):
-    """The significance rule of the module docstring. r0/r1: check residual vectors.
+    """The significance rule of the module docstring. r0/r1: held-out residual vectors of
+    `problem` (validation residuals of the inner folds in the honest protocol).
 
     With c = r0 - r1 (the candidate's change of prediction), the held-out gain is
     sum(r0^2 - r1^2) = sum(2 r1 c + c^2); only 2 r1 c is random (r1 estimates the noise), so its

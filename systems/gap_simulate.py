@@ -367,10 +367,12 @@ def run_self_check(model, n_cases, seed, progress=None, workers=1):
 # ---- parameter values against the withheld truth --------------------------------------------
 def value_errors(name, truth, fitted):
     """Errors of a named effect's fitted parameters against the withheld truth: a list of
-    {effect, quantity, unit, truth, fitted, abs_error, rel_error} (per injected joint for
-    per-joint effects; rel_error relative to the injected size)."""
+    {effect, quantity, unit, truth, fitted, abs_error, rel_error} (per-joint effects: on each
+    injected joint the effect acts on, i.e. changes the torque by >= 20 % of its largest
+    change; an elasticity on an axis whose torque does not depend on its angle is invisible
+    and has no value to recover). rel_error is relative to the injected size."""
     tp = truth["params"]
-    joints = [j - 1 for j in truth["injected_joints"]]
+    joints = [j - 1 for j in truth["injected_joints"] if j in truth.get("joints", truth["injected_joints"])]
 
     def rec(quantity, unit, t, f, size=None):
         size = abs(t) if size is None else size
@@ -390,8 +392,9 @@ def value_errors(name, truth, fitted):
     if name == "torque_scale":
         return [rec("scale", "-", tp["scale"][j], fitted["scale"][j], abs(tp["scale"][j] - 1.0)) for j in joints]
     if name == "joint_elasticity":
-        return [rec("stiffness", "N·m/rad", 1.0 / tp["compliance"][j],
-                    1.0 / max(fitted["compliance_rad_per_Nm"][j], 1e-12)) for j in joints]
+        return [r for j in joints for r in (
+            rec("stiffness", "N·m/rad", 1.0 / tp["compliance"][j], 1.0 / max(fitted["compliance_rad_per_Nm"][j], 1e-12)),
+            rec("compliance", "rad/(N·m)", tp["compliance"][j], fitted["compliance_rad_per_Nm"][j]))]
     if name == "time_delay":
         return [rec("d", "s", tp["delay_s"], fitted["delay_s"])]
     if name == "payload":

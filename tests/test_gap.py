@@ -157,15 +157,20 @@ def test_where_ranks_the_joint_and_regime_of_the_gap(two_link):
 
 
 def test_self_check_blind_confusion(kinova):
-    """Blind self-check on fixed seeds: injected effects named, few false ones, nulls empty.
-    Small sample in CI; the full >= 40 cases with SAFESYSID_FULL=1."""
-    cases, summary, table = gs.run_self_check(kinova, n_trials(6, 40), seed=11)
+    """Blind self-check on fixed seeds, honest (selection on the fit logs, check log scored
+    once): injected effects named, few false ones, nulls empty, and the named effects' values
+    close to the withheld truth. Small sample in CI; the full 40 cases with SAFESYSID_FULL=1."""
+    cases, summary, table = gs.run_self_check(kinova, n_trials(6, 40), seed=11, workers=n_trials(1, 2))
     assert summary["null_correct"] == summary["null_cases"]
     small = len(cases) < 20
-    assert summary["injected_named_rate"] >= (0.75 if small else 0.9)
-    assert summary["cases_with_false_effect_rate"] <= (0.2 if small else 0.1)
+    assert summary["injected_named_rate"] >= (0.75 if small else 0.95)
+    assert summary["cases_with_false_effect_rate"] <= (0.2 if small else 0.05)
     assert sum(table["none"].values()) == summary["null_cases"]
     assert summary["time_law_correct"] >= 0.75 * summary["time_law_named"]  # pure delay vs first-order lag
+    errors = summary["parameter_errors"]
+    assert errors and all(r["rel_median"] < 0.25 for r in errors), errors
+    if not small:
+        assert summary["near_floor"]["cases"] >= 8 and summary["same_joints"]["cases"] >= 4
 
 
 def test_reference_gen3_urdf_and_real_logs_leave_one_run_out():
@@ -181,18 +186,18 @@ def test_reference_gen3_urdf_and_real_logs_leave_one_run_out():
     # The drive's speed limit (about 1.73 rad/s on joint 1) pins run1 and run3, never run2.
     sat = gap.velocity_saturation(logs)
     assert sat[0][:, 0].any() and sat[2][:, 0].any() and not sat[1].any()
-    before, after, before_unsat, after_unsat = [], [], [], []
-    for held in range(n_trials(1, 3)):
-        d = gap.diagnose(model, [l for k, l in enumerate(logs) if k != held], [logs[held]])
+    # Nested leave-one-run-out: the held-out run is scored once; selection runs on inner folds
+    # of the other two runs only (leave one of them out). CI: the first fold; full: all three.
+    folds = [gap.diagnose(model, [l for k, l in enumerate(logs) if k != held], [logs[held]])
+             for held in range(n_trials(1, 3))]
+    for held, d in enumerate(folds):
         r = d.result
+        assert all(str(runs[held]) not in f["fit"] + f["validate"] for f in r["cross_validation"]["folds"])
         assert {"viscous_friction", "armature", "time_delay"} <= set(r["cause"][:3])
-        assert next(e for e in r["effects"] if e["name"] == "time_delay")["params"]["law"].startswith("first-order")
-        before.append(r["gap"]["rms_check"])
-        after.append(r["combined"]["rms_check_after"])
-        before_unsat.append(r["combined"]["without_saturated"]["rms_check"])
-        after_unsat.append(r["combined"]["without_saturated"]["rms_check_after"])
-    assert 1 - np.mean(after) / np.mean(before) > 0.86  # per held-out run, all samples
-    assert 1 - np.mean(after_unsat) / np.mean(before_unsat) > 0.88
+        assert next(e for e in r["effects"] if e["name"] == "time_delay")["params"]["time_law"] == "lag"
+    pooled = gap.pool_held_out(folds)
+    assert pooled["pooled"]["reduction"] >= 0.85  # all held-out samples
+    assert pooled["pooled_unsaturated"]["reduction"] >= 0.88
 
 
 def test_real_arm_logs_cross_check():
@@ -434,3 +439,23 @@ def test_detection_ladder_finds_the_smallest_reliable_size(monkeypatch):
         r = gs._ladder((None, 0, "torque_offset", 0.01, 10))
         assert r["limit"] == expected, (threshold, r)
         assert all(t["size"] in sizes for t in r["tried"])
+
+
+def test_three_logs_of_1500_samples_in_under_10_s_cpu():
+    """Speed target: 3 Kinova logs x 1 500 samples (2 fit with their inner folds, 1 check) in
+    <= 10 s of CPU time (one BLAS thread; CPU time so a shared machine's load does not count)."""
+    import time
+
+    import scipy.optimize  # noqa: F401  (import time is not the diagnosis' time)
+    import scipy.signal  # noqa: F401
+    import scipy.stats  # noqa: F401
+
+    from safesysid.benchmarks.bench_diagnose import logs_3x1500
+
+    model = load_robot()
+    logs = logs_3x1500(model, 0, True)
+    c0 = time.process_time()
+    d = gap.diagnose(model, logs[:2], logs[2:])
+    cpu = time.process_time() - c0
+    assert set(d.result["cause"]) == {"time_delay", "viscous_friction"}
+    assert cpu <= 10.0, cpu
