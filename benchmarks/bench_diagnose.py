@@ -94,9 +94,11 @@ def run(quick: bool = False) -> dict:
 if __name__ == "__main__":
     import json
 
-    if "--detection-limits" in sys.argv:
+    if "--detection-limits" in sys.argv:  # optionally followed by KEY,KEY (DETECTION_LADDERS keys)
+        rest = sys.argv[sys.argv.index("--detection-limits") + 1:]
+        keys = rest[0].split(",") if rest and not rest[0].startswith("--") else None
         t0 = time.perf_counter()
-        limits = gs.detection_limits(load_robot(), workers=2, seed=0,
+        limits = gs.detection_limits(load_robot(), workers=2, seed=0, keys=keys,
                                      progress=lambda r: print(json.dumps(r, default=float), file=sys.stderr, flush=True))
         print(gs.detection_markdown(limits))
         print(json.dumps({"detection_limits": limits, "wall_time_s": time.perf_counter() - t0}, indent=2, default=float))

@@ -443,22 +443,25 @@ def error_markdown(table):
 
 # ---- detection limits -----------------------------------------------------------------------
 # Physical sizes tried per effect (time_delay once per law): the smallest found in >= 90 % of
-# cases at a given noise level is the detection limit. Per-joint effects act on one random joint.
+# cases at a given noise level is the detection limit. Per-joint effects act on one random joint;
+# the elasticity on one of the joints whose deflection gravity sees (ELASTIC_JOINTS): on the
+# others the torque does not depend on the deflection and no size is visible.
 DETECTION_LADDERS = {
     "coulomb_friction": ("ΔFc", "N·m", (0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0)),
     "viscous_friction": ("ΔFv", "N·m·s/rad", (0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0)),
     "stribeck_friction": ("Fs", "N·m", (0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0)),
     "load_friction": ("μ", "-", (0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2)),
-    "armature": ("ΔIa", "kg·m²", (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0)),
+    "armature": ("ΔIa", "kg·m²", (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0)),
     "torque_offset": ("offset", "N·m", (0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0)),
-    "torque_scale": ("|scale - 1|", "-", (0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1)),
+    "torque_scale": ("scale deviation from 1", "-", (0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1)),
     "payload": ("mass", "kg", (0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0)),
     "time_delay@shift": ("pure delay d", "s", (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05)),
     "time_delay@lag": ("lag d", "s", (0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1)),
-    "base_tilt": ("tilt", "rad", (0.0002, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.02)),
-    "joint_elasticity": ("compliance 1/k", "rad/(N·m)", (1e-6, 2e-6, 5e-6, 1e-5, 2e-5, 5e-5, 1e-4, 2e-4, 5e-4, 1e-3)),
+    "base_tilt": ("tilt", "rad", (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05)),
+    "joint_elasticity": ("compliance 1/k", "rad/(N·m)", (1e-5, 2e-5, 5e-5, 1e-4, 2e-4, 5e-4, 1e-3, 3e-3)),
 }
 DETECTION_RATE = 0.9
+ELASTIC_JOINTS = (1, 3, 5)  # 0-based: the Gen3's pitch joints 2, 4, 6
 
 
 def effect_at(key, size, model, rng):
@@ -466,7 +469,7 @@ def effect_at(key, size, model, rng):
     n = model.n
     name = key.split("@")[0]
     mask = np.zeros(n)
-    mask[rng.integers(n)] = 1.0
+    mask[rng.choice(ELASTIC_JOINTS) if name == "joint_elasticity" and n == 7 else rng.integers(n)] = 1.0
     sign = 1.0 if rng.random() < 0.5 else -1.0
     if name in ("coulomb_friction", "viscous_friction", "armature"):
         return name, {"delta": mask * size}

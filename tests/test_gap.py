@@ -420,9 +420,10 @@ def test_self_check_value_errors_measure_distance_to_the_truth():
     truth = {"params": {"delay_s": 0.02, "law": "lag"}, "injected_joints": [1, 2]}
     (rec,) = gs.value_errors("time_delay", truth, {"delay_s": 0.03})
     assert rec["abs_error"] == pytest.approx(0.01) and rec["rel_error"] == pytest.approx(0.5)
-    truth = {"params": {"compliance": [0.0, 1e-3, 0.0]}, "injected_joints": [2]}
-    (rec,) = gs.value_errors("joint_elasticity", truth, {"compliance_rad_per_Nm": [0.0, 1e-3, 0.0]})
-    assert rec["abs_error"] == 0.0 and rec["truth"] == pytest.approx(1000.0)
+    truth = {"params": {"compliance": [0.0, 1e-3, 1e-3]}, "injected_joints": [2, 3], "joints": [2]}
+    stiffness, compliance = gs.value_errors("joint_elasticity", truth, {"compliance_rad_per_Nm": [0.0, 1e-3, 0.0]})
+    assert stiffness["truth"] == pytest.approx(1000.0) and stiffness["abs_error"] == 0.0
+    assert compliance["abs_error"] == 0.0  # joint 3 is injected but invisible: not scored
 
 
 def test_detection_ladder_finds_the_smallest_reliable_size(monkeypatch):
