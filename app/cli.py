@@ -71,6 +71,7 @@ def build_parser():
                    help="hold each log (--fit and --check) out once, fit on the others; pooled held-out report")
     p.add_argument("--self-check", action="store_true", help="blind test on simulated logs with withheld effects")
     p.add_argument("--cases", type=int, default=40, help="self-check: number of blind cases")
+    p.add_argument("--workers", type=int, default=1, help="self-check: parallel processes")
     p.add_argument("--seed", type=int, default=0)
     _bag_options(p)
 

@@ -49,19 +49,28 @@ Fits are bounded linear least squares (scipy lsq_linear on the Cholesky factor o
 equations, so each fit costs microseconds); the payload uses a log-Cholesky Gauss-Newton
 (scipy least_squares) when the linear fit is not physically consistent.
 
+Honest protocol (diagnose): every selection step and threshold uses the fit logs only. Inner
+folds on them (leave one fit log out; TIME_FOLDS contiguous time pieces when there is one fit
+log) fit each candidate set on the training folds and score it on the validation fold; the
+validation residuals, concatenated (each fit-log sample validated once), are what the rules
+below call "held-out". The speed-saturation top speeds come from the fit logs too. The selected
+set is refitted on all fit logs; the check logs are scored once with that frozen selection and
+its parameters (`test`), through design_residual, the function that also scores a
+corrected_model.yaml (score).
+
 Selection is forward-greedy: the candidate with the largest held-out improvement is added while
 it is significant, i.e. all of
-  (1) held-out (check) squared residual drops by more than Z_BLOCK standard errors of its
+  (1) held-out (validation) squared residual drops by more than Z_BLOCK standard errors of its
       random part (see `significance`; blocks of BLOCK_S seconds, so autocorrelated residuals
       do not fake significance), or the drop is consistent across blocks: a Wilcoxon
       signed-rank test of the per-block gains at the same 3-sigma level (P_BLOCKS). The first
       credits effects acting in bursts; the second effects that improve nearly every block
       while the residual left is heavy-tailed (real logs with unmodelled transients, whose
       few large blocks inflate the standard error),
-  (2) the drop exceeds MIN_RELATIVE of the current check mean square and MIN_NOISE_FRACTION of
-      the noise variance (robust estimate from first differences of the check residual): improvement
-      beyond what measurement noise explains,
-  (3) BIC on the fit logs decreases,
+  (2) the drop exceeds MIN_RELATIVE of the current validation mean square and MIN_NOISE_FRACTION
+      of the noise variance (robust estimate from first differences of the validation residual):
+      improvement beyond what measurement noise explains,
+  (3) BIC on the inner training folds decreases,
   (4) relevance: on its most affected joint the effect changes the predicted torque by at
       least MIN_EFFECT_RATIO of the measured torque RMS (0.25 %, well below torque-sensor
       accuracy): a statistically clear but physically negligible mismatch, such as a
@@ -254,16 +263,27 @@ class Design:
     sample: dict = None  # sample-level model quantities for time laws (see model_side_rows)
     residual_forms: dict = field(default_factory=dict)
     segments: list = field(default_factory=list)
+    cache: dict = field(default_factory=dict)  # flattened rows and normal equations per time law
 
 
-def velocity_saturation(logs):
+def saturation_rule(logs):
+    """The speed-saturation rule with each joint's top speed taken from `logs` (the fit logs:
+    the rule is frozen there and stored in corrected_model.yaml, never re-derived on check logs)."""
+    from .corrected_model import Saturation
+
+    top = np.max([np.abs(l.v).max(0) for l in logs], axis=0)
+    return Saturation([float(x) for x in top], SATURATION_LEVEL, SATURATION_BAND, SATURATION_MIN_S)
+
+
+def velocity_saturation(logs, rule=None):
     """(N, n) masks per log: joint j's velocity pinned at its top speed, i.e. |v_j| stays inside
-    a SATURATION_BAND band for >= SATURATION_MIN_S (gap-free, one sign) at >= SATURATION_LEVEL
-    of the largest |v_j| over all logs. A drive at its speed limit does not deliver the logged
-    torque command: on the real Gen3 logs the torque swings by 36 N m while v stays at
-    1.73 rad/s and the acceleration at zero. Such samples obey no model of the arm; they are
-    left out of fitting and selection and reported apart."""
-    vmax = np.max([np.abs(l.v).max(0) for l in logs], axis=0)
+    a `band` for >= `min_duration` (gap-free, one sign) at >= `level` of the joint's top speed
+    (rule: corrected_model.Saturation; default saturation_rule(logs)). A drive at its speed
+    limit does not deliver the logged torque command: on the real Gen3 logs the torque swings
+    by 36 N m while v stays at 1.73 rad/s and the acceleration at zero. Such samples obey no
+    model of the arm; they are left out of fitting and selection and reported apart."""
+    rule = rule or saturation_rule(logs)
+    vmax = np.asarray(rule.top_speed_rad_s, float)
     masks = []
     for l in logs:
         mask = np.zeros(l.v.shape, bool)
@@ -271,7 +291,7 @@ def velocity_saturation(logs):
             for j in range(l.v.shape[1]):
                 v = l.v[s0:s1 + 1, j]
                 av = np.abs(v)
-                cand = av >= SATURATION_LEVEL * vmax[j]
+                cand = av >= rule.level * vmax[j]
                 i, N = 0, len(v)
                 while i < N:
                     if not cand[i]:
@@ -279,10 +299,10 @@ def velocity_saturation(logs):
                         continue
                     k, lo, hi = i, av[i], av[i]
                     while (k + 1 < N and cand[k + 1] and np.sign(v[k + 1]) == np.sign(v[i])
-                           and max(hi, av[k + 1]) - min(lo, av[k + 1]) <= SATURATION_BAND):
+                           and max(hi, av[k + 1]) - min(lo, av[k + 1]) <= rule.band_rad_s):
                         k += 1
                         lo, hi = min(lo, av[k]), max(hi, av[k])
-                    if l.t[s0 + k] - l.t[s0 + i] >= SATURATION_MIN_S:
+                    if l.t[s0 + k] - l.t[s0 + i] >= rule.min_duration_s:
                         mask[s0 + i:s0 + k + 1, j] = True
                     i = k + 1
         masks.append(mask)
@@ -572,12 +592,74 @@ def group_bounds(model, group, k):
     return np.full(k, -inf), np.full(k, inf)
 
 
+# ---- rows of one design, cached on it -------------------------------------------------------
+def _group_slices(design):
+    """Column offset of each group in the design's flattened rows (cols order)."""
+    if "slices" not in design.cache:
+        out, start = {}, 0
+        for g, c in design.cols.items():
+            out[g] = slice(start, start + c.shape[-1])
+            start += c.shape[-1]
+        design.cache["slices"] = out
+    return design.cache["slices"]
+
+
+def _flat_rows(design):
+    """(A (R n, K) of every group, y (R n,), valid (R n,)): row-major (row, joint) elements;
+    valid = not speed-saturated (velocity_saturation)."""
+    if "flat" not in design.cache:
+        K = sum(c.shape[-1] for c in design.cols.values())
+        A = np.concatenate(list(design.cols.values()), -1).reshape(-1, K)
+        design.cache["flat"] = (A, design.y.reshape(-1), ~design.row_saturated.reshape(-1))
+    return design.cache["flat"]
+
+
+def design_rows(design, transform, groups):
+    """(A (R n, k), y (R n,)) for `groups` with a model-side time law (None, ("shift", d) or
+    ("lag", d)): with a law the columns of `groups` and the nominal torque move, the
+    measurement stays (model_side_rows)."""
+    if transform is None:
+        A, y, _ = _flat_rows(design)
+        sl = _group_slices(design)
+        cols = [np.arange(sl[g].start, sl[g].stop) for g in groups]
+        return A[:, np.concatenate(cols) if cols else np.zeros(0, int)], y
+    moving = [g for g in groups if design.cols[g].shape[-1]]
+    A, nominal = model_side_rows(design, moving, transform)
+    y = (design.y + design.tau_hat_nominal - nominal).reshape(-1)
+    return A.reshape(A.shape[0] * A.shape[1], A.shape[-1]), y
+
+
+def design_normal(design, transform):
+    """(G, b, y'y, rows) of the valid elements of one design, every group, one time law:
+    formed once per design and law (a time-law search revisits the same d across folds and
+    effect sets) and summed over the logs of a fit."""
+    key = ("normal", transform)
+    if key not in design.cache:
+        A, y = design_rows(design, transform, list(design.cols))
+        valid = _flat_rows(design)[2]
+        A, y = A[valid], y[valid]
+        design.cache[key] = (A.T @ A, A.T @ y, float(y @ y), int(valid.sum()))
+    return design.cache[key]
+
+
+def design_residual(design, params):
+    """Residual (R, n) of one design on every element after the effects `params`
+    ({group: array}; a TIME_LAWS group carries d). The one function that scores a set of
+    effects on a log: selection (inner folds), the check logs and a frozen corrected model."""
+    groups = [g for g in params if g not in TIME_LAWS]
+    timed = [g for g in params if g in TIME_LAWS]
+    transform = (TIME_LAWS[timed[0]], float(params[timed[0]][0])) if timed else None
+    A, y = design_rows(design, transform, groups)
+    p = np.concatenate([params[g] for g in groups]) if groups else np.zeros(0)
+    return (y - A @ p).reshape(design.y.shape)
+
+
 class Problem:
-    """Fit and check designs with their flattened matrices and fit normal equations."""
+    """Fit designs (their normal equations, summed) and check designs (scored element-wise)."""
 
     def __init__(self, model, fit, check):
         self.model = model
-        self.fit, self.check = fit, check
+        self.fit, self.check = list(fit), list(check)
         self.groups = list(fit[0].cols)
         self.k = {g: fit[0].cols[g].shape[-1] for g in self.groups}
         self.offset = {}
@@ -586,36 +668,26 @@ class Problem:
             self.offset[g] = start
             start += self.k[g]
         self.K = start
-
-        def flat(ds):
-            A = np.concatenate([np.concatenate([d.cols[g] for g in self.groups], -1).reshape(-1, self.K)
-                                for d in ds])
-            return A, np.concatenate([d.y.reshape(-1) for d in ds])
-
-        # Rows where a joint is speed-saturated obey no model (velocity_saturation): fitting and
-        # selection use the valid elements only; reports also give the all-sample residual.
-        self.fit_valid = np.concatenate([~d.row_saturated.reshape(-1) for d in fit])
-        self.check_valid = np.concatenate([~d.row_saturated.reshape(-1) for d in check])
-        A_fit, y_fit = flat(fit)
-        self.A_fit, self.y_fit = A_fit[self.fit_valid], y_fit[self.fit_valid]
-        self.G = self.A_fit.T @ self.A_fit
-        self.b = self.A_fit.T @ self.y_fit
-        self.yy = float(self.y_fit @ self.y_fit)
-        self.A_check_all, self.y_check_all = flat(check)
-        self.A_check, self.y_check = self.A_check_all[self.check_valid], self.y_check_all[self.check_valid]
         n = fit[0].y.shape[1]
         self.n = n
+        # Rows where a joint is speed-saturated obey no model (velocity_saturation): fitting and
+        # selection use the valid elements only; reports also give the all-sample residual.
+        G, b, yy, rows = design_normal(fit[0], None)
+        for d in fit[1:]:
+            Gd, bd, yyd, rd = design_normal(d, None)
+            G, b, yy, rows = G + Gd, b + bd, yy + yyd, rows + rd
+        self.G, self.b, self.yy, self.n_fit_rows = G, b, yy, rows
+        self.check_valid = np.concatenate([_flat_rows(d)[2] for d in check]) if check else np.zeros(0, bool)
+        self.y_check_all = np.concatenate([d.y.reshape(-1) for d in check]) if check else np.zeros(0)
+        self.y_check = self.y_check_all[self.check_valid]
         # Row-major flattening: element (row, joint); blocks numbered across check logs.
         blocks, base = [], 0
         for d in check:
             blocks.append(np.repeat(d.row_block + base, n))
             base += d.row_block.max() + 1
-        self.check_block = np.concatenate(blocks)[self.check_valid]
+        self.check_block = np.concatenate(blocks)[self.check_valid] if check else np.zeros(0, int)
         self.check_joint = np.tile(np.arange(n), len(self.y_check_all) // n)[self.check_valid]
-        self.n_fit_rows = len(self.y_fit)
-        self._cache = {}  # time law -> fit normal equations
-        self._check_rows = {}  # time law -> check rows of every group (scored many times)
-        tau_check = np.concatenate([d.y + d.tau_hat_nominal for d in check])
+        tau_check = np.concatenate([d.y + d.tau_hat_nominal for d in check]) if check else np.zeros((1, n))
         self.tau_rms_check = np.sqrt(np.mean(tau_check ** 2, 0))
         self.min_delay = 0.5 * float(np.median(np.concatenate([np.diff(d.sample["t"]) for d in fit])))
 
@@ -623,45 +695,20 @@ class Problem:
         return np.concatenate([np.arange(self.offset[g], self.offset[g] + self.k[g]) for g in groups]) \
             if groups else np.zeros(0, int)
 
-    def _transformed(self, designs, transform, groups):
-        """Flattened (A, y) of designs with a time law on the model side (model_side_rows): the
-        columns of `groups` and the nominal torque move; the measurement stays."""
-        groups = [g for g in groups if self.k[g]]
-        As, ys = [], []
-        for d in designs:
-            A, tn_d = model_side_rows(d, groups, transform)
-            As.append(A.reshape(A.shape[0] * A.shape[1], A.shape[-1]))
-            ys.append((d.y + d.tau_hat_nominal - tn_d).reshape(-1))
-        return np.concatenate(As), np.concatenate(ys)
-
     def _system(self, transform, groups):
         """(G, b, yy) of the fit logs for `groups` (column order of index(groups)) with a model
-        side time law (None: none). The full normal equations are formed once per law and d
-        (cached) and then only indexed."""
+        side time law (None: none), summed from the designs' cached normal equations."""
         idx = self.index(groups)
         if transform is None:
             return self.G[np.ix_(idx, idx)], self.b[idx], self.yy
-        if transform not in self._cache:
-            A, y = self._fit_system(transform, self.groups)
-            self._cache[transform] = (A.T @ A, A.T @ y, float(y @ y))
-        G, b, yy = self._cache[transform]
+        G, b, yy, _ = design_normal(self.fit[0], transform)
+        for d in self.fit[1:]:
+            Gd, bd, yyd, _ = design_normal(d, transform)
+            G, b, yy = G + Gd, b + bd, yy + yyd
         return G[np.ix_(idx, idx)], b[idx], yy
 
-    def _check_system(self, transform, groups, valid_only=True):
-        if transform is None:
-            A, y = (self.A_check, self.y_check) if valid_only else (self.A_check_all, self.y_check_all)
-            return A[:, self.index(groups)], y
-        if transform not in self._check_rows:
-            self._check_rows[transform] = self._transformed(self.check, transform, self.groups)
-        A, y = self._check_rows[transform]
-        A = A[:, self.index(groups)]
-        return (A[self.check_valid], y[self.check_valid]) if valid_only else (A, y)
-
-    def _fit_system(self, transform, groups):
-        if transform is None:
-            return self.A_fit[:, self.index(groups)], self.y_fit
-        A, y = self._transformed(self.fit, transform, groups)
-        return A[self.fit_valid], y[self.fit_valid]
+    def fit_effects(self, effects):
+        return fit_effects(self, effects)
 
     def solve(self, groups):
         """Constrained least squares on the fit logs for the union of `groups`.
@@ -803,23 +850,20 @@ class Problem:
             q[sl] = 0.0
         return q
 
-    def _residual(self, system, params):
-        groups = [g for g in params if g not in TIME_LAWS]
-        timed = [g for g in params if g in TIME_LAWS]
-        A, y = system((TIME_LAWS[timed[0]], float(params[timed[0]][0])) if timed else None, groups)
-        p = np.concatenate([params[g] for g in groups]) if groups else np.zeros(0)
-        return y - A @ p
-
-    def check_residual(self, params):
-        """Check residual on the valid (not speed-saturated) elements, flattened."""
-        return self._residual(self._check_system, params)
+    def check_residual(self, params, valid_only=True):
+        """Check residual flattened row-major, on the valid (not speed-saturated) elements or on
+        every element."""
+        if not self.check:
+            return np.zeros(0)
+        r = np.concatenate([design_residual(d, params).reshape(-1) for d in self.check])
+        return r[self.check_valid] if valid_only else r
 
     def check_residual_all(self, params):
-        """Check residual on every element (R_total * n), flattened row-major."""
-        return self._residual(lambda d, g: self._check_system(d, g, valid_only=False), params)
+        return self.check_residual(params, valid_only=False)
 
     def fit_residual(self, params):
-        return self._residual(self._fit_system, params)
+        r = [design_residual(d, params).reshape(-1)[_flat_rows(d)[2]] for d in self.fit]
+        return np.concatenate(r)
 
 
 def fit_effects(problem, effects):
@@ -836,7 +880,9 @@ def fit_effects(problem, effects):
 
 
 def n_params(params):
-    """Free parameters of a fit."""
+    """Free parameters of a fit (of one fold's fit for inner folds: a tuple of dicts)."""
+    if isinstance(params, tuple):
+        return n_params(params[0]) if params else 0
     return sum(len(p) for p in params.values())
 
 
@@ -854,7 +900,9 @@ def noise_variance(r, block, joint):
 
 def resolvable(problem, params):
     """A delay shorter than half the logs' sample period is below what the logs resolve (and
-    of the order of a simulator's own step): never reported as a cause."""
+    of the order of a simulator's own step): never reported as a cause (in any inner fold)."""
+    if isinstance(params, tuple):
+        return all(resolvable(problem, p) for p in params)
     d = _delay_of(params)
     return d is None or abs(d) >= problem.min_delay
 
@@ -869,7 +917,8 @@ def _delay_of(params):
 
 
 def significance(problem, r0, r1, sse0_fit, sse1_fit, k_added, joint=None):
-    """The significance rule of the module docstring. r0/r1: check residual vectors.
+    """The significance rule of the module docstring. r0/r1: held-out residual vectors of
+    `problem` (validation residuals of the inner folds in the honest protocol).
 
     With c = r0 - r1 (the candidate's change of prediction), the held-out gain is
     sum(r0^2 - r1^2) = sum(2 r1 c + c^2); only 2 r1 c is random (r1 estimates the noise), so its
@@ -987,9 +1036,10 @@ def effect_params(model, effect, params, group_used):
         return {"theta_delta": lst(p), "theta_e": lst(model.theta_e + p), "mass_kg": m,
                 "com_m": lst(p[1:4] / m) if m > 1e-9 else [0.0, 0.0, 0.0]}
     if effect == "time_delay":
+        shift = group_used.endswith("@shift")
         return {"delay_s": float(p[0]),
-                "law": "pure delay tau(t - d)" if group_used.endswith("@shift")
-                else "first-order lag: tau_meas + d dtau_meas/dt = tau"}
+                "law": "pure delay tau(t - d)" if shift else "first-order lag: tau_meas + d dtau_meas/dt = tau",
+                "time_law": "shift" if shift else "lag"}
     if effect == "base_tilt":
         # Base rotated by RollPitchYaw(roll, pitch, 0): gravity in the base frame is
         # |g| [sin p, -cos p sin r, -cos p cos r] (real_arm's convention).
@@ -1014,137 +1064,379 @@ class Diagnosis:
     check_designs: list
     check_residual_before: list  # per check log (R, n)
     check_residual_after: list
-    combined_params: dict
-    corrected: dict  # corrected joint parameters and other effects for the YAML
+    combined_params: dict  # {group: array}, refitted on all fit logs
+    corrected: dict  # corrected joint parameters and other effects for corrected_params.yaml
+    corrected_model: object = None  # corrected_model.CorrectedModel (frozen selection + parameters)
 
 
-def diagnose(model, fit_logs, check_logs, effects=EFFECTS, form=None, max_effects=6):
-    """Diagnose the gap between `model` and logs; returns a Diagnosis (result = contract JSON)."""
-    with single_threaded_blas():
-        return _diagnose(model, fit_logs, check_logs, effects, form, max_effects)
+# ---- the honest protocol: select on inner folds of the fit logs, score the check logs once --
+class CrossValidated:
+    """Selection data of the honest protocol: inner folds on the fit logs only. Each fold fits
+    on its training designs and is scored on its validation designs; every fit-log element is
+    validated exactly once, so the concatenated validation residuals carry the significance
+    tests, the best single/pair, the greedy additions and the per-joint assignment. Parameters
+    are one dict per fold (a tuple)."""
+
+    def __init__(self, model, designs, folds, scheme):
+        self.designs, self.folds, self.scheme = designs, folds, scheme
+        self.problems = [Problem(model, [designs[i] for i in tr], [designs[i] for i in va]) for tr, va in folds]
+        self.n = model.n
+        self.empty = tuple({} for _ in folds)
+        self.y_check = np.concatenate([p.y_check for p in self.problems])
+        self.y_check_all = np.concatenate([p.y_check_all for p in self.problems])
+        self.check_valid = np.concatenate([p.check_valid for p in self.problems])
+        blocks, base = [], 0
+        for p in self.problems:
+            blocks.append(p.check_block + base)
+            base += int(p.check_block.max()) + 1 if len(p.check_block) else 0
+        self.check_block = np.concatenate(blocks)
+        self.check_joint = np.concatenate([p.check_joint for p in self.problems])
+        tau = np.concatenate([d.y + d.tau_hat_nominal for p in self.problems for d in p.check])
+        self.tau_rms_check = np.sqrt(np.mean(tau ** 2, 0))
+        self.n_fit_rows = sum(p.n_fit_rows for p in self.problems)
+        self.yy = sum(p.yy for p in self.problems)
+        self.min_delay = min(p.min_delay for p in self.problems)
+
+    def fit_effects(self, effects):
+        """Per-fold fits (tuple of params) and their summed training SSE."""
+        fits = [fit_effects(p, effects) for p in self.problems]
+        return tuple(f[0] for f in fits), float(sum(f[1] for f in fits))
+
+    def check_residual(self, params, valid_only=True):
+        """Validation residual of every fold, concatenated (flattened row-major)."""
+        return np.concatenate([p.check_residual(q, valid_only) for p, q in zip(self.problems, params)])
 
 
-def _diagnose(model, fit_logs, check_logs, effects, form, max_effects):
-    form = form or choose_form(list(fit_logs) + list(check_logs))
-    saturated = velocity_saturation(list(fit_logs) + list(check_logs))
-    fit = [build_design(model, l, form, saturated=m) for l, m in zip(fit_logs, saturated)]
-    check = [build_design(model, l, form, saturated=m) for l, m in zip(check_logs, saturated[len(fit_logs):])]
-    prob = Problem(model, fit, check)
-    n = model.n
-    r0 = prob.y_check  # selection works on the valid (not speed-saturated) elements
-    sse0_fit = prob.yy
-    rms_fit = float(np.sqrt(np.mean(prob.y_fit ** 2)))
-    rms_check = _rms(prob.y_check_all)  # reported numbers: every element
-    res_check0 = [d.y for d in check]
-    per_joint0 = _rms(np.concatenate(res_check0), axis=0)
-    share, samples, windows = regimes(check, res_check0)
+TIME_FOLDS = 3  # inner folds (contiguous pieces in time) when there is a single fit log
 
-    # Each effect alone (marginal) against the nominal model.
+
+def time_pieces(t, k=TIME_FOLDS):
+    """k contiguous index slices of equal duration."""
+    edges = np.searchsorted(t, t[0] + (t[-1] - t[0]) * np.arange(1, k) / k)
+    bounds = np.concatenate([[0], edges, [len(t)]])
+    return [slice(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+
+
+def inner_folds(model, fit_logs, form, rule):
+    """CrossValidated on the fit logs: leave one fit log out, or time-blocked folds (TIME_FOLDS
+    contiguous pieces, leave one piece out) when there is one fit log."""
+    masks = velocity_saturation(fit_logs, rule)
+    if len(fit_logs) >= 2:
+        designs = [build_design(model, l, form, WINDOW_S, saturated=m) for l, m in zip(fit_logs, masks)]
+        scheme = "leave_one_fit_log_out"
+    else:
+        (log,), (mask,) = fit_logs, masks
+        designs = []
+        for sl in time_pieces(log.t):
+            piece = dataclasses.replace(log.slice(sl), source=f"{log.source} [{log.t[sl][0]:.2f}, {log.t[sl][-1]:.2f}] s")
+            designs.append(build_design(model, piece, form, WINDOW_S, saturated=mask[sl]))
+        scheme = "time_blocked"
+    folds = [([i for i in range(len(designs)) if i != k], [k]) for k in range(len(designs))]
+    return CrossValidated(model, designs, folds, scheme)
+
+
+@dataclass
+class Selection:
+    effects: list  # selected, most important first
+    params: object  # evaluator parameters of the selected set
+    residual: np.ndarray  # evaluator residual (valid elements) after the selected set
+    steps: list
+    single: dict  # effect -> {params, sse, r, sig}: each effect alone
+    joints: dict  # selected effect -> 1-based joints where it matters
+
+
+def _drop(params, effect):
+    """params without the groups of `effect` (per fold for inner folds)."""
+    if isinstance(params, tuple):
+        return tuple(_drop(p, effect) for p in params)
+    return {g: v for g, v in params.items() if g.split("@")[0] != effect}
+
+
+def select_effects(ev, effects, max_effects):
+    """The selection of the module docstring on an evaluator `ev` (CrossValidated: validation
+    residuals of inner folds of the fit logs; a Problem would select on its check logs)."""
+    n = ev.n
+    r0, sse0 = ev.y_check, ev.yy
     single = {}
     for e in effects:
-        params, sse = fit_effects(prob, [e])
-        r1 = prob.check_residual(params)
-        sig = significance(prob, r0, r1, sse0_fit, sse, n_params(params))
-        sig["significant"] &= resolvable(prob, params)
-        single[e] = {"params": params, "sse": sse, "rms": _rms(prob.check_residual_all(params)), "sig": sig}
-
-    # Selection: the best pair (or single) first, exhaustively, then forward-greedy.
-    selected, cur_params, cur_sse, cur_r, steps = _best_small_set(prob, effects, single, r0, sse0_fit)
+        params, sse = ev.fit_effects([e])
+        r1 = ev.check_residual(params)
+        sig = significance(ev, r0, r1, sse0, sse, n_params(params))
+        sig["significant"] &= resolvable(ev, params)
+        single[e] = {"params": params, "sse": sse, "r": r1, "sig": sig}
+    # The best pair (or single) first, exhaustively, then forward-greedy.
+    selected, cur_params, cur_sse, cur_r, steps = _best_small_set(ev, effects, single, r0, sse0)
     while len(selected) < max_effects:
         best = None
         for e in effects:
             if e in selected:
                 continue
-            params, sse = fit_effects(prob, selected + [e])
-            r1 = prob.check_residual(params)
-            k_added = n_params(params) - n_params(cur_params)
-            sig = significance(prob, cur_r, r1, cur_sse, sse, k_added)
-            sig["significant"] &= resolvable(prob, params)
+            params, sse = ev.fit_effects(selected + [e])
+            r1 = ev.check_residual(params)
+            sig = significance(ev, cur_r, r1, cur_sse, sse, n_params(params) - n_params(cur_params))
+            sig["significant"] &= resolvable(ev, params)
             if sig["significant"] and (best is None or sig["delta_mse"] > best[4]["delta_mse"]):
                 best = (e, params, sse, r1, sig)
         if best is None:
             break
         e, cur_params, cur_sse, cur_r, sig = best
         selected.append(e)
-        steps.append({"effect": e, "rms_check_after": _rms(cur_r), **sig})
-    # Most important first: the held-out loss when an effect is left out of the final set.
+        steps.append({"effect": e, "rms_after": _rms(cur_r), **sig})
+    # Most important first: the validation loss when an effect is left out of the final set.
     if len(selected) > 1:
         loss = {}
         for e in selected:
-            params, _ = fit_effects(prob, [x for x in selected if x != e])
-            loss[e] = float(np.mean(prob.check_residual(params) ** 2) - np.mean(cur_r ** 2))
+            params, _ = ev.fit_effects([x for x in selected if x != e])
+            loss[e] = float(np.mean(ev.check_residual(params) ** 2) - np.mean(cur_r ** 2))
         selected.sort(key=lambda e: -loss[e])
-
     # Joints where each selected effect matters: removing it from the combined fit on that
-    # joint must lose a significant amount on the check logs.
-    joints_of = {}
+    # joint must lose a significant amount on the validation residuals.
+    joints = {}
     for e in selected:
-        g = _group_of(e, cur_params)
-        without = {k: v for k, v in cur_params.items() if k != g}
-        r_wo = prob.check_residual(without)
+        r_wo = ev.check_residual(_drop(cur_params, e))
         if e in PER_JOINT:
-            js = [j + 1 for j in range(n)
-                  if significance(prob, r_wo, cur_r, 1, 1, 0, joint=j)["significant"]]
+            js = [j + 1 for j in range(n) if significance(ev, r_wo, cur_r, 1, 1, 0, joint=j)["significant"]]
         else:
-            gain = np.array([np.mean(r_wo[prob.check_joint == j] ** 2 - cur_r[prob.check_joint == j] ** 2)
+            gain = np.array([np.mean(r_wo[ev.check_joint == j] ** 2 - cur_r[ev.check_joint == j] ** 2)
                              for j in range(n)])
-            js = [j + 1 for j in range(n) if gain[j] > MIN_RELATIVE * np.mean(r_wo[prob.check_joint == j] ** 2)]
-        joints_of[e] = js or list(range(1, n + 1))
+            js = [j + 1 for j in range(n) if gain[j] > MIN_RELATIVE * np.mean(r_wo[ev.check_joint == j] ** 2)]
+        joints[e] = js or list(range(1, n + 1))
+    return Selection(selected, cur_params, cur_r, steps, single, joints)
 
+
+def _best_small_set(ev, effects, single, r0, sse0_fit):
+    """Exhaustive search over sets of one or two effects (greedy alone can pick one effect
+    that mimics two, e.g. a torque scale for armature + delay on an arm with large nominal
+    armature, or miss two effects that only fit together, e.g. payload + base tilt, both
+    gravity-like). A set is admissible when each member is significant against the set without
+    it; the admissible set with the lowest validation residual wins."""
+    fits = {(): (ev.empty, sse0_fit, r0)}
+    for e in effects:
+        fits[(e,)] = (single[e]["params"], single[e]["sse"], single[e]["r"])
+    admissible = [()] + [(e,) for e in effects if single[e]["sig"]["significant"]]
+    for i, e in enumerate(effects):
+        for f in effects[i + 1:]:
+            params, sse = ev.fit_effects([e, f])
+            r = ev.check_residual(params)
+            fits[(e, f)] = (params, sse, r)
+            ok = resolvable(ev, params)
+            for keep in (e, f):
+                p0, s0, rr0 = fits[(keep,)]
+                ok = ok and significance(ev, rr0, r, s0, sse, n_params(params) - n_params(p0))["significant"]
+            if ok:
+                admissible.append((e, f))
+    best = min(admissible, key=lambda k: float(np.mean(fits[k][2] ** 2)))
+    params, sse, r = fits[best]
+    steps = []
+    prev = ()
+    order = sorted(best, key=lambda e: float(np.mean(fits[(e,)][2] ** 2)))
+    for e in order:
+        cur = tuple(sorted((x for x in best if x in prev + (e,)), key=best.index))
+        p1, s1, r1 = fits[cur]
+        p0, s0, rr0 = fits[prev]
+        sig = significance(ev, rr0, r1, s0, s1, n_params(p1) - n_params(p0))
+        steps.append({"effect": e, "rms_after": _rms(r1), "phase": "best pair", **sig})
+        prev = cur
+    return list(order), params, sse, r, steps
+
+
+# ---- frozen scoring: the one code path for check logs and for a corrected_model.yaml ---------
+WINDOW_S = 0.1  # momentum-form window
+
+
+def frozen_designs(model, logs, form, rule, window_s=WINDOW_S):
+    """Designs of logs scored with a frozen rule: the residual form of the diagnosis (the
+    momentum form when a log has no accelerations) and the speed-saturation rule of the fit
+    logs (None: nothing flagged)."""
+    if form == "inverse_dynamics" and any(l.a is None for l in logs):
+        form = "momentum"
+    masks = velocity_saturation(logs, rule) if rule is not None else [np.zeros(l.v.shape, bool) for l in logs]
+    return [build_design(model, l, form, window_s, saturated=m) for l, m in zip(logs, masks)]
+
+
+def score_designs(corrected, designs):
+    """(before, after): residual (R, n) per design of the nominal model and of the frozen
+    corrected model (corrected_model.CorrectedModel). Fits nothing."""
+    from .corrected_model import CorrectedModelError, group_params
+
+    params = group_params(corrected.effects)
+    for k, e in enumerate(corrected.effects):
+        if e.name == "stribeck_friction" and f"stribeck_friction@{float(e.params['vs_rad_s'])}" not in designs[0].cols:
+            raise CorrectedModelError(f"{corrected.path or 'corrected model'}: effects[{k}].params.vs_rad_s: "
+                                      f"{e.params['vs_rad_s']} is not one of {', '.join(map(str, STRIBECK_VELOCITIES))}")
+    return [d.y for d in designs], [design_residual(d, params) for d in designs]
+
+
+def score(model, corrected, logs):
+    """Score a frozen corrected model on logs (`diagnose --model corrected_model.yaml --check`):
+    (designs, before, after, held_out_numbers)."""
+    sc = corrected.scoring
+    designs = frozen_designs(model, logs, sc.residual_form, sc.saturation, sc.window_s)
+    before, after = score_designs(corrected, designs)
+    return designs, before, after, held_out_numbers(designs, before, after)
+
+
+def _rms_table(before, after, mask):
+    """RMS before/after and reduction, overall and per joint, over the elements in `mask`."""
+    n = before.shape[1]
+    b = [_rms(before[mask[:, j], j]) if mask[:, j].any() else 0.0 for j in range(n)]
+    a = [_rms(after[mask[:, j], j]) if mask[:, j].any() else 0.0 for j in range(n)]
+    rb, ra = (_rms(before[mask]), _rms(after[mask])) if mask.any() else (0.0, 0.0)
+    return {"rms_before": rb, "rms_after": ra, "reduction": _reduction(rb, ra),
+            "rms_before_per_joint": b, "rms_after_per_joint": a,
+            "reduction_per_joint": [_reduction(x, y) for x, y in zip(b, a)]}
+
+
+def held_out_numbers(designs, before, after):
+    """Residual RMS before/after on scored logs: every element (contract meaning) and without
+    the speed-saturated ones, overall, per joint and per log."""
+    b, a = np.concatenate(before), np.concatenate(after)
+    valid = ~np.concatenate([d.row_saturated for d in designs])
+    out = _rms_table(b, a, np.ones_like(valid))
+    out["without_saturated"] = _rms_table(b, a, valid)
+    out["logs"] = [d.source for d in designs]
+    out["rms_before_per_log"] = [_rms(x) for x in before]
+    out["rms_after_per_log"] = [_rms(x) for x in after]
+    out["residual_form"] = designs[0].form
+    return out
+
+
+def corrected_model_of(model, selection, params, form, rule, model_path="", fit_sources=()):
+    """CorrectedModel of a diagnosis: the starting model, the selected effects (most important
+    first) with their parameters refitted on all fit logs, and the frozen scoring rule."""
+    from .corrected_model import CorrectedEffect, CorrectedModel, Scoring
+
+    path = str(model_path or model.source or "")
+    effects = [CorrectedEffect(e, list(selection.joints[e]), effect_params(model, e, params, _group_of(e, params)))
+               for e in selection.effects]
+    return CorrectedModel(path, effects, Scoring(form, WINDOW_S, rule),
+                          str(Path(path).resolve()) if path else "", [str(s) for s in fit_sources])
+
+
+def diagnose(model, fit_logs, check_logs, effects=EFFECTS, form=None, max_effects=6, model_path=""):
+    """Diagnose the gap between `model` and logs; returns a Diagnosis (result = contract JSON).
+
+    Honest protocol: every selection step and threshold uses the fit logs only (inner folds:
+    leave one fit log out, time-blocked with one fit log); the parameters of the selected set
+    are refitted on all fit logs and the check logs are scored once with them (`test`)."""
+    with single_threaded_blas():
+        return _diagnose(model, list(fit_logs), list(check_logs), effects, form, max_effects, model_path)
+
+
+def _diagnose(model, fit_logs, check_logs, effects, form, max_effects, model_path):
+    form = form or choose_form(fit_logs + check_logs)
+    rule = saturation_rule(fit_logs)  # frozen on the fit logs
+    cv = inner_folds(model, fit_logs, form, rule)
+    sel = select_effects(cv, effects, max_effects)
+    check = frozen_designs(model, check_logs, form, rule)
+    final = Problem(model, cv.designs, check)
+    params, _ = final.fit_effects(sel.effects)
+    corrected_model = corrected_model_of(model, sel, params, form, rule, model_path,
+                                         [l.source for l in fit_logs])
+    before, after = score_designs(corrected_model, check)
+    test = held_out_numbers(check, before, after)
+    n = model.n
     entries = []
     for e in effects:
-        sgl = single[e]
-        sig_e = e in selected
-        params_src = cur_params if sig_e else sgl["params"]
-        g = _group_of(e, params_src)
+        alone, _ = final.fit_effects([e])
+        rms_alone = _rms(final.check_residual_all(alone))
+        chosen = e in sel.effects
+        src = params if chosen else alone
         entry = {"name": e,
-                 "joints": joints_of.get(e, _effect_joints_single(prob, sgl["params"], e, n)),
-                 "params": effect_params(model, e, params_src, g),
-                 "rms_check_after": sgl["rms"],
-                 "reduction": _reduction(rms_check, sgl["rms"]),
-                 "significant": sig_e,
-                 "params_from": "combined" if sig_e else "alone",
-                 "test_alone": _json_sig(sgl["sig"])}
-        if sig_e:
-            entry["selection_step"] = selected.index(e) + 1
+                 "joints": sel.joints[e] if chosen else _effect_joints_single(cv, sel.single[e]["params"], e, n),
+                 "params": effect_params(model, e, src, _group_of(e, src)),
+                 "rms_check_after": rms_alone,
+                 "reduction": _reduction(test["rms_before"], rms_alone),
+                 "significant": chosen,
+                 "params_from": "combined" if chosen else "alone",
+                 "test_alone": _json_sig(sel.single[e]["sig"])}
+        if chosen:
+            entry["selection_step"] = sel.effects.index(e) + 1
         entries.append(entry)
-    entries.sort(key=lambda x: (not x["significant"], x.get("selection_step", 0), -x["reduction"]))
+    entries.sort(key=lambda x: (not x["significant"], x.get("selection_step", 0),
+                                -x["test_alone"]["delta_mse"]))
 
-    r_after = prob.check_residual_all(cur_params)
-    per_joint1 = _rms(r_after.reshape(-1, n), axis=0)
-    split = np.cumsum([len(d.y) for d in check])[:-1]
-    res_check1 = np.split(r_after.reshape(-1, n), split)
-    rms_after = _rms(r_after)
-    where_joints = [int(j) + 1 for j in np.argsort(-per_joint0)]
-    result = {
-        "gap": {"rms_fit": rms_fit, "rms_check": rms_check, "rms_check_per_joint": [float(x) for x in per_joint0],
-                "where": {"joints": where_joints, "regimes": share, "regime_sample_share": samples,
-                          "time_windows": windows},
-                "residual_form": form,
-                "rms_check_per_log": [_rms(r) for r in res_check0],
-                "velocity_saturation": _saturation_summary(check, res_check0)},
-        "effects": entries,
-        "cause": list(selected),
-        "combined": {"effects": list(selected), "rms_check_after": rms_after,
-                     "reduction": _reduction(rms_check, rms_after),
-                     "rms_check_per_joint_after": [float(x) for x in per_joint1],
-                     "rms_check_per_log_after": [_rms(r) for r in res_check1],
-                     "rms_fit_after": _rms(prob.fit_residual(cur_params)),
-                     "regimes_after": regimes(check, res_check1)[0],
-                     "without_saturated": {"rms_check": _rms(r0), "rms_check_after": _rms(cur_r),
-                                           "reduction": _reduction(_rms(r0), _rms(cur_r))},
-                     "selection": steps},
+    cv_before = cv.y_check_all.reshape(-1, n)
+    cv_after = cv.check_residual(sel.params, valid_only=False).reshape(-1, n)
+    cv_valid = cv.check_valid.reshape(-1, n)
+    cross_validation = {"scheme": cv.scheme,
+                        "folds": [{"fit": [d.source for d in p.fit], "validate": [d.source for d in p.check]}
+                                  for p in cv.problems],
+                        **_rms_table(cv_before, cv_after, np.ones_like(cv_valid)),
+                        "without_saturated": _rms_table(cv_before, cv_after, cv_valid),
+                        "selection": sel.steps}
+    result = _held_out_result(check, before, after, test, entries, form)
+    result["gap"]["rms_fit"] = float(np.sqrt(final.yy / max(final.n_fit_rows, 1)))
+    result["combined"].update(rms_fit_after=_rms(final.fit_residual(params)), selection=sel.steps)
+    result.update({
+        "test": {**test, "note": "check logs, scored once with the frozen selection and parameters; "
+                                 "no selection step or threshold saw them"},
+        "cross_validation": cross_validation,
+        "protocol": {"selection_data": "fit logs only (inner cross-validation: " + cv.scheme + ")",
+                     "check_logs": "scored once (test)",
+                     "saturation_top_speed_rad_s": list(rule.top_speed_rad_s)},
         "significance_rule": {"z_block": Z_BLOCK, "p_blocks": P_BLOCKS, "min_blocks": MIN_BLOCKS,
                               "block_s": BLOCK_S, "min_relative": MIN_RELATIVE,
                               "min_effect_ratio": MIN_EFFECT_RATIO,
-                              "min_noise_fraction": MIN_NOISE_FRACTION, "information_criterion": "BIC on fit logs"},
+                              "min_noise_fraction": MIN_NOISE_FRACTION,
+                              "information_criterion": "BIC on the inner training folds",
+                              "data": "validation residuals of the inner folds on the fit logs"},
+    })
+    corrected = corrected_parameters(model, sel.effects, params)
+    return Diagnosis(result, form, cv.designs, check, before, after, params, corrected, corrected_model)
+
+
+def _held_out_result(designs, before, after, test, entries, form):
+    """The contract fields of diagnosis.json (gap, effects, cause, combined) on scored logs."""
+    named = [e["name"] for e in entries if e["significant"]]
+    share, samples, windows = regimes(designs, before)
+    return {
+        "gap": {"rms_check": test["rms_before"], "rms_check_per_joint": test["rms_before_per_joint"],
+                "where": {"joints": [int(j) + 1 for j in np.argsort(-np.array(test["rms_before_per_joint"]))],
+                          "regimes": share, "regime_sample_share": samples, "time_windows": windows},
+                "residual_form": form,
+                "rms_check_per_log": test["rms_before_per_log"],
+                "velocity_saturation": _saturation_summary(designs, before)},
+        "effects": entries,
+        "cause": named,
+        "combined": {"effects": named, "rms_check_after": test["rms_after"], "reduction": test["reduction"],
+                     "rms_check_per_joint_after": test["rms_after_per_joint"],
+                     "rms_check_per_log_after": test["rms_after_per_log"],
+                     "regimes_after": regimes(designs, after)[0],
+                     "without_saturated": {"rms_check": test["without_saturated"]["rms_before"],
+                                           "rms_check_after": test["without_saturated"]["rms_after"],
+                                           "reduction": test["without_saturated"]["reduction"]}},
     }
-    corrected = corrected_parameters(model, selected, cur_params)
-    return Diagnosis(result, form, fit, check, res_check0, res_check1, cur_params, corrected)
+
+
+def frozen_diagnosis(model, corrected, logs):
+    """Logs scored with a frozen corrected model (`diagnose --model corrected_model.yaml
+    --check`): the contract fields on those logs, each effect's own numbers with that effect of
+    the file alone; nothing is fitted or selected."""
+    from .corrected_model import group_params
+
+    with single_threaded_blas():
+        designs, before, after, test = score(model, corrected, logs)
+        entries = []
+        for k, e in enumerate(corrected.effects):
+            rms = _rms(np.concatenate([design_residual(d, group_params([e])) for d in designs]))
+            entries.append({"name": e.name, "joints": list(e.joints), "params": e.params, "rms_check_after": rms,
+                            "reduction": _reduction(test["rms_before"], rms), "significant": True,
+                            "params_from": "frozen", "selection_step": k + 1})
+        result = _held_out_result(designs, before, after, test, entries, designs[0].form)
+    sc = corrected.scoring
+    result["gap"]["rms_fit"] = None  # no fit logs
+    result["test"] = {**test, "note": "scored with the frozen corrected model; nothing fitted, nothing selected"}
+    result["frozen"] = {"corrected_model": corrected.path, "model": str(corrected.model_path()),
+                        "fitted": "nothing", "residual_form": sc.residual_form,
+                        "saturation_top_speed_rad_s": sc.saturation.top_speed_rad_s if sc.saturation else None}
+    return Diagnosis(result, designs[0].form, [], designs, before, after, group_params(corrected.effects), {},
+                     corrected)
 
 
 def leave_one_out(model, logs, **kwargs):
-    """Each log held out once, the effects fitted on the others: (fold Diagnoses, pooled)."""
+    """Each log held out once, the effects selected and fitted on the others (nested: the
+    held-out log is never seen by the inner selection): (fold Diagnoses, pooled)."""
     import time
 
     folds = []
@@ -1156,26 +1448,20 @@ def leave_one_out(model, logs, **kwargs):
 
 
 def pool_held_out(folds):
-    """Held-out numbers over folds that each check one log: RMS before/after pooled over all
-    held-out samples (per joint and overall, all samples and without speed-saturated ones), the
-    mean over folds (a per-run reduction), per fold, and the effects named in every fold."""
+    """Held-out (test) numbers over folds that each check one log: RMS before/after pooled over
+    all held-out samples (per joint and overall, all samples and without speed-saturated ones),
+    the mean over folds (a per-run reduction), per fold, and the effects named in every fold."""
     before = np.concatenate([r for d in folds for r in d.check_residual_before])
     after = np.concatenate([r for d in folds for r in d.check_residual_after])
     valid = ~np.concatenate([c.row_saturated for d in folds for c in d.check_designs])
-
-    def pooled(mask):
-        b = [_rms(before[mask[:, j], j]) for j in range(before.shape[1])]
-        a = [_rms(after[mask[:, j], j]) for j in range(before.shape[1])]
-        rb, ra = _rms(before[mask]), _rms(after[mask])
-        return {"rms_before": rb, "rms_after": ra, "reduction": _reduction(rb, ra),
-                "rms_before_per_joint": b, "rms_after_per_joint": a,
-                "reduction_per_joint": [_reduction(x, y) for x, y in zip(b, a)]}
-
     per_fold = [{"check": [c.source for c in d.check_designs], "rms_before": d.result["gap"]["rms_check"],
                  "rms_after": d.result["combined"]["rms_check_after"], "reduction": d.result["combined"]["reduction"],
                  "without_saturated": d.result["combined"]["without_saturated"], "cause": d.result["cause"],
+                 "params": {e["name"]: e["params"] for e in d.result["effects"] if e["significant"]},
                  "rms_before_per_joint": d.result["gap"]["rms_check_per_joint"],
                  "rms_after_per_joint": d.result["combined"]["rms_check_per_joint_after"],
+                 "cross_validation": {k: d.result["cross_validation"][k]
+                                      for k in ("scheme", "rms_before", "rms_after", "reduction")},
                  "wall_time_s": d.result.get("wall_time_s")}
                 for d in folds]
     mean_before = float(np.mean([f["rms_before"] for f in per_fold]))
@@ -1184,55 +1470,15 @@ def pool_held_out(folds):
     order = [e for f in per_fold for e in f["cause"]]
     every = set.intersection(*causes) if causes else set()
     some = set.union(*causes) if causes else set()
-    return {"pooled": pooled(np.ones_like(valid)), "pooled_unsaturated": pooled(valid),
+    return {"protocol": "nested: each held-out log scored once; selection on inner folds of the other logs",
+            "pooled": _rms_table(before, after, np.ones_like(valid)),
+            "pooled_unsaturated": _rms_table(before, after, valid),
             "saturated_share": float(1.0 - valid.mean()),
             "mean_over_folds": {"rms_before": mean_before, "rms_after": mean_after,
                                 "reduction": _reduction(mean_before, mean_after)},
             "folds": per_fold,
             "named_in_every_fold": sorted(every, key=order.index),
             "named_in_some_fold": sorted(some - every, key=order.index)}
-
-
-def _best_small_set(prob, effects, single, r0, sse0_fit):
-    """Exhaustive search over sets of one or two effects (greedy alone can pick one effect
-    that mimics two, e.g. a torque scale for armature + delay on an arm with large nominal
-    armature, or miss two effects that only fit together, e.g. payload + base tilt, both
-    gravity-like). A set is admissible when each member is significant against the set without
-    it; the admissible set with the lowest held-out residual wins."""
-    fits = {(): ({}, sse0_fit, r0)}
-    for e in effects:
-        p = single[e]["params"]
-        fits[(e,)] = (p, single[e]["sse"], prob.check_residual(p))
-    admissible = [()]
-    for e in effects:
-        if single[e]["sig"]["significant"]:
-            admissible.append((e,))
-    for i, e in enumerate(effects):
-        for f in effects[i + 1:]:
-            params, sse = fit_effects(prob, [e, f])
-            r = prob.check_residual(params)
-            fits[(e, f)] = (params, sse, r)
-            ok = True
-            for keep in (e, f):
-                p0, s0, rr0 = fits[(keep,)]
-                sig = significance(prob, rr0, r, s0, sse, n_params(params) - n_params(p0))
-                ok &= sig["significant"] and resolvable(prob, params)
-            if ok:
-                admissible.append((e, f))
-    best = min(admissible, key=lambda k: float(np.mean(fits[k][2] ** 2)))
-    params, sse, r = fits[best]
-    steps = []
-    prev = ()
-    order = sorted(best, key=lambda e: float(np.mean(fits[(e,)][2] ** 2)))
-    for e in order:
-        cur = tuple(x for x in best if x in prev + (e,))
-        cur = tuple(sorted(cur, key=best.index))
-        p1, s1, r1 = fits[cur]
-        p0, s0, rr0 = fits[prev]
-        sig = significance(prob, rr0, r1, s0, s1, n_params(p1) - n_params(p0))
-        steps.append({"effect": e, "rms_check_after": _rms(r1), "phase": "best pair", **sig})
-        prev = cur
-    return list(order), params, sse, r, steps
 
 
 def _saturation_summary(designs, residuals):
@@ -1259,11 +1505,11 @@ def _json_sig(sig):
     return {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in sig.items()}
 
 
-def _effect_joints_single(prob, params, e, n):
-    """Joints an insignificant effect would touch most (for information only)."""
-    r0 = prob.y_check
-    r1 = prob.check_residual(params)
-    gain = np.array([np.mean(r0[prob.check_joint == j] ** 2 - r1[prob.check_joint == j] ** 2) for j in range(n)])
+def _effect_joints_single(ev, params, e, n):
+    """Joints an insignificant effect would touch most (for information only; validation data)."""
+    r0 = ev.y_check
+    r1 = ev.check_residual(params)
+    gain = np.array([np.mean(r0[ev.check_joint == j] ** 2 - r1[ev.check_joint == j] ** 2) for j in range(n)])
     return [int(j) + 1 for j in np.argsort(-gain)[:3] if gain[j] > 0]
 
 

@@ -63,7 +63,17 @@ def test_diagnose_writes_the_contract(case, capsys):
     fixed = load_robot(params_path=out / "corrected_params.yaml")
     assert fixed.joint_params.viscous[0] == pytest.approx(1.5, abs=0.2)
     assert fixed.joint_params.viscous[1] == pytest.approx(0.0, abs=1e-12)
-    assert "held-out RMS" in capsys.readouterr().out
+    assert "held-out (test) RMS" in capsys.readouterr().out
+    # Honest protocol: the check-log numbers are `test`, the inner folds' `cross_validation`.
+    assert res["test"]["rms_after"] == comb["rms_check_after"] and res["test"]["logs"] == [str(c)]
+    assert res["cross_validation"]["scheme"] == "leave_one_fit_log_out"
+    assert [f["validate"] for f in res["cross_validation"]["folds"]] == [[str(a)], [str(b)]]
+    # The verdict opens the report: where, why (values with units), held-out shrinkage.
+    head = report.split("\n\n")[1:4]
+    assert head[0].startswith("**Where:**") and "joint" in head[0]
+    assert head[1].startswith("**Why:**") and "viscous friction Fv" in head[1] and "N·m·s/rad" in head[1]
+    assert head[2].startswith("**Held-out (test):**") and f"{100 * comb['reduction']:.1f} % less" in head[2]
+    assert (out / "corrected_model.yaml").is_file() and (out / "report.html").is_file()
 
 
 def test_corrected_model_closes_the_gap(case):
@@ -101,6 +111,7 @@ def test_leave_one_out_pools_the_folds(case, capsys):
     report = (out / "report.md").read_text()
     assert "fold1_log0/report.md" in report and f"{100 * res['pooled']['reduction']:.1f}%" in report
     assert "pooled over 3 folds" in capsys.readouterr().out
+    assert (out / "report.html").is_file() and (out / "fold1_log0" / "corrected_model.yaml").is_file()
 
 
 def _one_line_exit_2(argv, capsys, needle):
@@ -169,3 +180,77 @@ def test_scenario_yaml_as_model(tmp_path, capsys):
     res = json.loads((out / "diagnosis.json").read_text())
     assert res["cause"] == ["torque_offset"]
     assert next(e for e in res["effects"] if e["name"] == "torque_offset")["joints"] == [2]
+
+
+def test_corrected_model_is_scored_frozen_on_new_logs(case, capsys, monkeypatch):
+    """`--model corrected_model.yaml --check X` reproduces the test RMS diagnose reported for X
+    (to 1e-6, per joint too) and fits nothing (the fitting functions raise if called)."""
+    root, urdf, (a, b, c) = case
+    out = root / "frozen_src"
+    assert main(["diagnose", "--model", str(urdf), "--fit", str(a), str(b), "--check", str(c), "--out", str(out)]) == 0
+    ref = json.loads((out / "diagnosis.json").read_text())
+
+    def no_fitting(*args, **kwargs):
+        raise AssertionError("a frozen model must not be fitted")
+
+    monkeypatch.setattr(gap, "fit_effects", no_fitting)
+    monkeypatch.setattr(gap.Problem, "solve", no_fitting)
+    capsys.readouterr()
+    scored = root / "frozen_out"
+    assert main(["diagnose", "--model", str(out / "corrected_model.yaml"), "--check", str(c), "--out", str(scored)]) == 0
+    res = json.loads((scored / "diagnosis.json").read_text())
+    assert abs(res["combined"]["rms_check_after"] - ref["combined"]["rms_check_after"]) < 1e-6
+    assert np.abs(np.subtract(res["combined"]["rms_check_per_joint_after"],
+                              ref["combined"]["rms_check_per_joint_after"])).max() < 1e-6
+    assert res["cause"] == ref["cause"] and res["frozen"]["fitted"] == "nothing"
+    printed = capsys.readouterr().out
+    assert "nothing fitted" in printed and f"{ref['combined']['rms_check_after']:.6f}" in printed
+    assert "nothing fitted" in (scored / "report.md").read_text()
+
+
+def test_corrected_model_bad_input_is_one_line_exit_2(case, tmp_path, capsys):
+    """A corrected model with a missing or malformed field, a missing starting model or a joint
+    count that does not match: one line naming file and field, exit 2."""
+    import yaml
+
+    root, urdf, (a, b, c) = case
+    out = root / "bad_src"
+    assert main(["diagnose", "--model", str(urdf), "--fit", str(a), str(b), "--check", str(c), "--out", str(out)]) == 0
+    doc = yaml.safe_load((out / "corrected_model.yaml").read_text())
+    capsys.readouterr()
+
+    def run_with(mutate, needle, extra=()):
+        bad = yaml.safe_load(yaml.safe_dump(doc))
+        mutate(bad)
+        path = tmp_path / "corrected_model.yaml"
+        path.write_text(yaml.safe_dump(bad))
+        _one_line_exit_2(["diagnose", "--model", str(path), "--check", str(c), *extra, "--out", str(tmp_path / "o")],
+                         capsys, needle)
+
+    run_with(lambda d: d["effects"][0]["params"].pop("delta_Fv_Nms_rad"), "effects[0].params.delta_Fv_Nms_rad")
+    run_with(lambda d: d["effects"][0].update(name="magic"), "effects[0].name")
+    run_with(lambda d: d["effects"][0]["params"].update(delta_Fv_Nms_rad=[1.0, 2.0, 3.0]), "effects[0].params.delta_Fv_Nms_rad")
+    run_with(lambda d: d.update(model="nowhere.urdf", model_resolved=""), "model")
+    run_with(lambda d: d["scoring"].update(residual_form="magic"), "scoring.residual_form")
+    run_with(lambda d: None, "--check only", extra=("--fit", str(a)))
+
+
+def test_report_html_renders_in_headless_chromium(case):
+    """report.html is self-contained: headless Chromium decodes every embedded plot (the page
+    records the count after load) and shows the verdict."""
+    import shutil
+    import subprocess
+
+    browser = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
+    if browser is None:
+        pytest.skip("chromium not installed (apt-get install -y chromium)")
+    root, urdf, (a, b, c) = case
+    out = root / "html"
+    assert main(["diagnose", "--model", str(urdf), "--fit", str(a), str(b), "--check", str(c), "--out", str(out)]) == 0
+    page = (out / "report.html").read_text()
+    n_images = page.count("<img ")
+    assert n_images >= 5 and "src=\"data:image/png;base64," in page and ".png\"" not in page
+    dom = subprocess.run([browser, "--headless", "--no-sandbox", "--disable-gpu", "--dump-dom",
+                          (out / "report.html").as_uri()], capture_output=True, text=True, timeout=120).stdout
+    assert f'data-images-decoded="{n_images}"' in dom
+    assert "Where:" in dom and "Held-out (test):" in dom

@@ -157,15 +157,20 @@ def test_where_ranks_the_joint_and_regime_of_the_gap(two_link):
 
 
 def test_self_check_blind_confusion(kinova):
-    """Blind self-check on fixed seeds: injected effects named, few false ones, nulls empty.
-    Small sample in CI; the full >= 40 cases with SAFESYSID_FULL=1."""
-    cases, summary, table = gs.run_self_check(kinova, n_trials(6, 40), seed=11)
+    """Blind self-check on fixed seeds, honest (selection on the fit logs, check log scored
+    once): injected effects named, few false ones, nulls empty, and the named effects' values
+    close to the withheld truth. Small sample in CI; the full 40 cases with SAFESYSID_FULL=1."""
+    cases, summary, table = gs.run_self_check(kinova, n_trials(6, 40), seed=11, workers=n_trials(1, 2))
     assert summary["null_correct"] == summary["null_cases"]
     small = len(cases) < 20
-    assert summary["injected_named_rate"] >= (0.75 if small else 0.9)
-    assert summary["cases_with_false_effect_rate"] <= (0.2 if small else 0.1)
+    assert summary["injected_named_rate"] >= (0.75 if small else 0.95)
+    assert summary["cases_with_false_effect_rate"] <= (0.2 if small else 0.05)
     assert sum(table["none"].values()) == summary["null_cases"]
     assert summary["time_law_correct"] >= 0.75 * summary["time_law_named"]  # pure delay vs first-order lag
+    errors = summary["parameter_errors"]
+    assert errors and all(r["rel_median"] < 0.25 for r in errors), errors
+    if not small:
+        assert summary["near_floor"]["cases"] >= 8 and summary["same_joints"]["cases"] >= 4
 
 
 def test_reference_gen3_urdf_and_real_logs_leave_one_run_out():
@@ -181,18 +186,18 @@ def test_reference_gen3_urdf_and_real_logs_leave_one_run_out():
     # The drive's speed limit (about 1.73 rad/s on joint 1) pins run1 and run3, never run2.
     sat = gap.velocity_saturation(logs)
     assert sat[0][:, 0].any() and sat[2][:, 0].any() and not sat[1].any()
-    before, after, before_unsat, after_unsat = [], [], [], []
-    for held in range(n_trials(1, 3)):
-        d = gap.diagnose(model, [l for k, l in enumerate(logs) if k != held], [logs[held]])
+    # Nested leave-one-run-out: the held-out run is scored once; selection runs on inner folds
+    # of the other two runs only (leave one of them out). CI: the first fold; full: all three.
+    folds = [gap.diagnose(model, [l for k, l in enumerate(logs) if k != held], [logs[held]])
+             for held in range(n_trials(1, 3))]
+    for held, d in enumerate(folds):
         r = d.result
+        assert all(str(runs[held]) not in f["fit"] + f["validate"] for f in r["cross_validation"]["folds"])
         assert {"viscous_friction", "armature", "time_delay"} <= set(r["cause"][:3])
-        assert next(e for e in r["effects"] if e["name"] == "time_delay")["params"]["law"].startswith("first-order")
-        before.append(r["gap"]["rms_check"])
-        after.append(r["combined"]["rms_check_after"])
-        before_unsat.append(r["combined"]["without_saturated"]["rms_check"])
-        after_unsat.append(r["combined"]["without_saturated"]["rms_check_after"])
-    assert 1 - np.mean(after) / np.mean(before) > 0.86  # per held-out run, all samples
-    assert 1 - np.mean(after_unsat) / np.mean(before_unsat) > 0.88
+        assert next(e for e in r["effects"] if e["name"] == "time_delay")["params"]["time_law"] == "lag"
+    pooled = gap.pool_held_out(folds)
+    assert pooled["pooled"]["reduction"] >= 0.85  # all held-out samples
+    assert pooled["pooled_unsaturated"]["reduction"] >= 0.88
 
 
 def test_real_arm_logs_cross_check():
@@ -262,7 +267,7 @@ def test_speed_saturated_samples_are_found_and_left_out(two_link, monkeypatch):
     assert wo["reduction"] > 0.9
     assert r["gap"]["where"]["regimes"]["velocity_saturation"] == pytest.approx(sat["residual_share"])
 
-    monkeypatch.setattr(gap, "velocity_saturation", lambda logs: [np.zeros(l.v.shape, bool) for l in logs])
+    monkeypatch.setattr(gap, "velocity_saturation", lambda logs, rule=None: [np.zeros(l.v.shape, bool) for l in logs])
     blind = gap.diagnose(two_link, logs[:2], logs[2:]).result
     fv_blind = next(e for e in blind["effects"] if e["name"] == "viscous_friction")["params"]["Fv_Nms_rad"]
     assert abs(fv_blind[0] - truth[0]) > 0.05 * truth[0]
@@ -339,3 +344,119 @@ def test_restarted_lag_matches_the_ode_with_state_resets(integrated):
         # the reset really changes the answer (the test is not vacuous)
         plain = gap.first_order_lag(t, X, bounds, d)
         assert np.abs((plain[:300] - plain[0]) - (truth_int[:300] - truth_int[0])).max() > 1e-2
+
+
+def test_selection_never_looks_at_the_check_logs(two_link):
+    """Honest protocol: selection and parameters come from the fit logs only, so swapping the
+    check log for one where the effect is gone (tomorrow's logs) changes the test score, never
+    the diagnosis. Before (selection on the check log): check A named viscous_friction, check B
+    named nothing (RMS 0.289 -> 0.289 N·m, the effect of the fit logs silently dropped)."""
+    effect = {"viscous_friction": {"delta": np.array([1.0, 0.0])}}
+    fit_and_a = _logs(two_link, 41, effect, n=3, noise=0.5)
+    (b,) = _logs(two_link, 42, {}, n=1, noise=0.5)
+    da = gap.diagnose(two_link, fit_and_a[:2], fit_and_a[2:])
+    db = gap.diagnose(two_link, fit_and_a[:2], [b])
+    assert da.result["cause"] == db.result["cause"] == ["viscous_friction"]
+    assert da.corrected_model.to_doc() == db.corrected_model.to_doc()
+    assert da.result["cross_validation"] == db.result["cross_validation"]
+    # The test numbers tell the two check logs apart: the correction helps on A, hurts on B.
+    assert da.result["test"]["reduction"] > 0.5
+    assert db.result["test"]["rms_after"] > 1.5 * db.result["test"]["rms_before"]
+    assert da.result["cross_validation"]["scheme"] == "leave_one_fit_log_out"
+
+
+def test_one_fit_log_is_cross_validated_in_time_blocks(two_link):
+    """With a single fit log the inner folds are contiguous time pieces (leave one out); the
+    effect is still named and every fit-log sample is validated exactly once."""
+    logs = _logs(two_link, 43, {"torque_offset": {"delta": np.array([0.0, 0.8])}}, n=2, noise=0.3)
+    d = gap.diagnose(two_link, logs[:1], logs[1:])
+    cv = d.result["cross_validation"]
+    assert cv["scheme"] == "time_blocked" and len(cv["folds"]) == gap.TIME_FOLDS
+    assert d.result["cause"] == ["torque_offset"]
+    validated = sum(len(dd.y) for dd in d.fit_designs)
+    assert validated == len(logs[0].t)  # the pieces partition the log
+    assert d.result["test"]["reduction"] > 0.5
+
+
+def test_frozen_corrected_model_reproduces_the_check_scoring(two_link, tmp_path, monkeypatch):
+    """corrected_model.yaml carries everything the check scoring used — the first-order lag
+    (with its restarts), viscous friction and the speed-saturation top speeds of the fit logs —
+    so scoring the file on the check log gives the diagnosis' test residual, fitting nothing.
+    The check log's drive pins joint 1 at 0.9 of the fit logs' limit: the rule frozen on the
+    fit logs does not flag those samples while a rule re-derived on the check log would, so the
+    threshold really is frozen (not vacuous)."""
+    from safesysid.systems.corrected_model import read_corrected_model, write_corrected_model
+
+    rng = np.random.default_rng(47)
+    clean = _logs(two_link, 47, {"viscous_friction": {"delta": np.array([1.5, 0.0])}}, n=3)
+    lagged = []
+    for log in clean:
+        tau = gap.first_order_lag(log.t, log.tau, np.array(gap.segments(log.t)), 0.04)
+        lagged.append(JointLog(log.t, log.q, log.v, tau + 0.1 * rng.uniform(-1, 1, tau.shape), log.a, {}, "sim"))
+    limit = 0.8 * min(np.abs(l.v[:, 0]).max() for l in lagged)
+    fit = [_pin_at_top_speed(l, 0, limit, 4.0, rng)[0] for l in lagged[:2]]
+    check = [_pin_at_top_speed(lagged[2], 0, 0.9 * limit, 1.0, rng)[0]]
+    d = gap.diagnose(two_link, fit, check, model_path="two_link.urdf")
+    assert set(d.result["cause"]) >= {"time_delay", "viscous_friction"}
+    assert any(m[:, 0].any() for m in gap.velocity_saturation(fit, gap.saturation_rule(fit)))
+    assert not d.check_designs[0].row_saturated.any()
+    assert gap.velocity_saturation(check)[0][:, 0].any()
+    path = write_corrected_model(tmp_path / "corrected_model.yaml", d.corrected_model)
+    frozen = read_corrected_model(path)
+
+    def no_fitting(*args, **kwargs):
+        raise AssertionError("a frozen model must not be fitted")
+
+    monkeypatch.setattr(gap, "fit_effects", no_fitting)
+    monkeypatch.setattr(gap.Problem, "solve", no_fitting)
+    designs, before, after, numbers = gap.score(two_link, frozen, check)
+    assert np.abs(after[0] - d.check_residual_after[0]).max() < 1e-9
+    assert numbers["rms_after"] == pytest.approx(d.result["combined"]["rms_check_after"], abs=1e-9)
+    assert numbers["rms_after"] < 0.6 * numbers["rms_before"]
+
+
+def test_self_check_value_errors_measure_distance_to_the_truth():
+    """value_errors is a real comparison: exact values give 0, a wrong delay its difference."""
+    truth = {"params": {"delay_s": 0.02, "law": "lag"}, "injected_joints": [1, 2]}
+    (rec,) = gs.value_errors("time_delay", truth, {"delay_s": 0.03})
+    assert rec["abs_error"] == pytest.approx(0.01) and rec["rel_error"] == pytest.approx(0.5)
+    truth = {"params": {"compliance": [0.0, 1e-3, 1e-3]}, "injected_joints": [2, 3], "joints": [2]}
+    stiffness, compliance = gs.value_errors("joint_elasticity", truth, {"compliance_rad_per_Nm": [0.0, 1e-3, 0.0]})
+    assert stiffness["truth"] == pytest.approx(1000.0) and stiffness["abs_error"] == 0.0
+    assert compliance["abs_error"] == 0.0  # joint 3 is injected but invisible: not scored
+
+
+def test_detection_ladder_finds_the_smallest_reliable_size(monkeypatch):
+    """The ladder walk (stub detector) returns the smallest size found in >= 90 % of the cases
+    from either side of its starting point; 8/10 is not enough; None above the ladder."""
+    sizes = gs.DETECTION_LADDERS["torque_offset"][2]  # 0.01 ... 1.0, walk starts at 0.1
+    for threshold, partial, expected in ((0.005, None, 0.01), (0.02, None, 0.02), (0.5, None, 0.5),
+                                         (0.2, 0.2, 0.5), (3.0, None, None)):
+        def stub(job, th=threshold, part=partial):
+            size, i = job[4], job[5]
+            return {"found": size >= th and not (size == part and i < 2), "false": [], "snr": 1.0}
+
+        monkeypatch.setattr(gs, "_detection_case", stub)
+        r = gs._ladder((None, 0, "torque_offset", 0.01, 10))
+        assert r["limit"] == expected, (threshold, r)
+        assert all(t["size"] in sizes for t in r["tried"])
+
+
+def test_three_logs_of_1500_samples_in_under_10_s_cpu():
+    """Speed target: 3 Kinova logs x 1 500 samples (2 fit with their inner folds, 1 check) in
+    <= 10 s of CPU time (one BLAS thread; CPU time so a shared machine's load does not count)."""
+    import time
+
+    import scipy.optimize  # noqa: F401  (import time is not the diagnosis' time)
+    import scipy.signal  # noqa: F401
+    import scipy.stats  # noqa: F401
+
+    from safesysid.benchmarks.bench_diagnose import logs_3x1500
+
+    model = load_robot()
+    logs = logs_3x1500(model, 0, True)
+    c0 = time.process_time()
+    d = gap.diagnose(model, logs[:2], logs[2:])
+    cpu = time.process_time() - c0
+    assert set(d.result["cause"]) == {"time_delay", "viscous_friction"}
+    assert cpu <= 10.0, cpu
