@@ -124,18 +124,18 @@ def _validate(s: Scenario, where):
     need(0 < s.planner.replan_period_s <= s.planner.duration_s, "planner.replan_period_s", "must be in (0, duration_s]")
     need(s.noise.torque_ratio >= 0 and s.noise.declared_torque_ratio >= 0, "noise", "ratios must be >= 0")
     for field, text in (("robot.params", s.robot.params), ("payload.dumbbells_file", s.payload.dumbbells_file)):
-        need(resolve_path(text, Path(where).parent).is_file(), field, f"file {text!r} not found")
+        need(resolve_path(text, scenario_dir(s)).is_file(), field, f"file {text!r} not found")
     if s.robot.model:
-        need(resolve_path(s.robot.model, Path(where).parent).is_file(), "robot.model", f"file {s.robot.model!r} not found")
-    _validate_task(s, need, where)
+        need(resolve_path(s.robot.model, scenario_dir(s)).is_file(), "robot.model", f"file {s.robot.model!r} not found")
+    _validate_task(s, need)
     if s.payload.dumbbell.lower() != "none":
         from safesysid.systems.payload import load_dumbbells
 
-        names = list(load_dumbbells(resolve_path(s.payload.dumbbells_file, Path(where).parent)))
+        names = list(load_dumbbells(resolve_path(s.payload.dumbbells_file, scenario_dir(s))))
         need(s.payload.dumbbell in names, "payload.dumbbell", f"{s.payload.dumbbell!r} is not one of none, {', '.join(names)}")
 
 
-def _validate_task(s: Scenario, need, where):
+def _validate_task(s: Scenario, need):
     t = s.task
     need(len(t.goal_q_rad) in (0, len(s.q0_rad)), "task.goal_q_rad", f"needs {len(s.q0_rad)} angles or none")
     need(len(t.place_xyz_m) in (0, 3), "task.place_xyz_m", "needs 3 values or none")
@@ -154,34 +154,52 @@ def _validate_task(s: Scenario, need, where):
     if task_enabled(s):
         from safesysid.systems.payload import load_dumbbells
 
-        names = list(load_dumbbells(resolve_path(s.payload.dumbbells_file, Path(where).parent)))
+        names = list(load_dumbbells(resolve_path(s.payload.dumbbells_file, scenario_dir(s))))
         need(t.payload_model in names, "task.payload_model", f"{t.payload_model!r} is not one of {', '.join(names)}")
 
 
 def load_scenario(path=None, text=None, overrides=None) -> Scenario:
-    """Scenario from a YAML file (or text); raises ScenarioError naming file and key."""
-    import yaml
-    from pydrake.common.yaml import yaml_load_typed
-
+    """Scenario from layers, the Drake way (examples/hardware_sim): the schema's defaults, then
+    the YAML file `path` (or the YAML `text`), then each override, each layer read with
+    yaml_load_typed(defaults=previous) so that it changes only the keys it names (a deep merge;
+    a list is replaced whole). `overrides`: a mapping or YAML text, or a list of them applied in
+    order (the CLI's --scenario-text). Raises ScenarioError naming the layer (file) and the key."""
     where = str(path) if path is not None else "<built-in defaults>"
     if path is not None:
         try:
             text = Path(path).read_text()
         except OSError as err:
             raise ScenarioError(f"{path}: cannot read scenario ({err.strerror})") from err
-    text = text or "{}"
-    try:
-        raw = yaml.safe_load(text) or {}
-    except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        line = f" line {mark.line + 1}" if mark else ""
-        raise ScenarioError(f"{where}:{line} invalid YAML ({getattr(err, 'problem', err)})") from err
-    raw.update(overrides or {})
+    if overrides is None:
+        overrides = []
+    elif isinstance(overrides, (str, dict)):
+        overrides = [overrides]
+    scenario = _read_layer(Scenario(), text, where)
+    for k, layer in enumerate(overrides):
+        scenario = _read_layer(scenario, layer, "--scenario-text" if len(overrides) == 1 else f"--scenario-text[{k}]")
+    scenario.source = str(Path(path).resolve()) if path is not None else str(SCENARIOS_DIR / "defaults")
+    label = where if path is not None else str(SCENARIOS_DIR / "defaults.yaml")
+    _validate(scenario, f"{label} with --scenario-text" if overrides else label)
+    return scenario
+
+
+def _read_layer(previous: Scenario, layer, where) -> Scenario:
+    """`previous` with the keys of one layer (YAML text or a mapping) read over it."""
+    import yaml
+    from pydrake.common.yaml import yaml_load_typed
+
+    raw = layer
+    if isinstance(layer, str):
+        try:
+            raw = yaml.safe_load(layer)
+        except yaml.YAMLError as err:
+            mark = getattr(err, "problem_mark", None)
+            line = f" line {mark.line + 1}" if mark else ""
+            raise ScenarioError(f"{where}:{line} invalid YAML ({getattr(err, 'problem', err)})") from err
+    if not raw:
+        return previous
     errors = []
     _check(raw, Scenario, "", errors)
     if errors:
         raise ScenarioError(f"{where}: {errors[0]}")
-    scenario = yaml_load_typed(schema=Scenario, data=yaml.safe_dump(raw) if raw else "{}")
-    scenario.source = str(Path(path).resolve()) if path is not None else str(SCENARIOS_DIR / "defaults")
-    _validate(scenario, where if path is not None else str(SCENARIOS_DIR / "defaults.yaml"))
-    return scenario
+    return yaml_load_typed(schema=Scenario, data=yaml.safe_dump(raw), defaults=previous)

@@ -106,7 +106,7 @@ def plot_history(path, history, truth):
 
 
 def cmd_sysid(args):
-    scenario = load_scenario(args.scenario) if args.scenario else load_scenario()
+    scenario = load_scenario(args.scenario, overrides=args.scenario_text)
     robot = robot_from_scenario(scenario)
     log = read_joint_log(args.log, robot.n)
     settings = EstimatorSettings.from_scenario(scenario)
