@@ -18,7 +18,7 @@ from safesysid.cli import BadInput
 from safesysid.joint_log import read_joint_log
 from safesysid.scenario import ScenarioError, load_scenario, resolve_path, robot_from_scenario, scenario_dir
 from safesysid.systems import inertial
-from safesysid.systems.estimator import EstimatorError, EstimatorSettings, IncrementalEstimator
+from safesysid.systems.estimation import EstimatorError, EstimatorSettings, IncrementalEstimator
 
 
 def payload_truth(scenario, robot):

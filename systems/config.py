@@ -156,13 +156,13 @@ class Estimator:
     integration: str = "trapezoid"  # trapezoid | euler (paper)
     solver: str = "ipopt"  # ipopt | snopt
     max_gap_s: float = 0.05  # a segment never spans a time step longer than this
-    set_membership: str = "mass"  # LP refinement of [θ_e]: none | mass | all (estimator.py)
+    set_membership: str = "mass"  # LP refinement of [θ_e]: none | mass | all (estimation/enclosure.py)
     point_estimate: str = "map"  # θ0: map (θ_r marginalised) | paper (plain least squares)
     # Logged torque: held (zero-order hold, exact left sum) | continuous (trapezoid + rate bound).
     torque_signal: str = "held"
     hold_period_s: float = 0.0  # held: the hold period; 0 = plant.time_step_s
     torque_rate_limit_Nm_s: float = 200.0  # continuous: declared |dtau/dt|, checked on the data
-    quadrature_safety: float = 2.0  # kappa of the quadrature bound (estimator.py), >= 2
+    quadrature_safety: float = 2.0  # kappa of the quadrature bound (estimation/segments.py), >= 2
 
 
 @dc.dataclass
