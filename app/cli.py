@@ -1,4 +1,4 @@
-"""`safesysid` command line (verbs of contracts.md).
+"""`safesysid` command line (the verbs of README.md, "Commands").
 
 Exit status: 0 success, 2 bad input (one line naming file and field), 1 otherwise.
 """

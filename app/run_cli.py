@@ -1,4 +1,4 @@
-"""`safesysid run` and `safesysid compare` (contracts.md)."""
+"""`safesysid run` and `safesysid compare` (README.md, "Commands")."""
 from __future__ import annotations
 
 import csv

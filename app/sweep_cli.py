@@ -1,4 +1,4 @@
-"""`safesysid sweep`: randomized closed-loop trials on a local process pool (contracts.md).
+"""`safesysid sweep`: randomized closed-loop trials on a local process pool (README.md, "Commands").
 
 Each trial is a random scene drawn from its own seed (app/sweeps.py: start, obstacles, payload
 0-8 lb) and, unless --nominal, made adversarial: one box 1-5 cm from the arm at the start, torque
@@ -75,7 +75,7 @@ def _limit_violated(s):
 
 
 def aggregate(trials):
-    """aggregate.json of contracts.md from the trial summaries."""
+    """aggregate.json from the trial summaries (its keys are a stable interface: add, never rename)."""
     def seeds(pred):
         return sorted(int(s["trial_seed"]) for s in trials if pred(s))
 

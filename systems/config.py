@@ -113,7 +113,7 @@ class Plant:
 
 @dc.dataclass
 class Controller:
-    """ARMOUR robust passivity controller (reference-notes.md)."""
+    """ARMOUR robust passivity controller (systems/controller.py) and the baselines."""
 
     Kr: List[float] = dc.field(default_factory=lambda: [5.0, 5.0, 5.0, 5.0, 7.0, 7.0, 7.0])
     alpha: float = 20.0
@@ -167,7 +167,7 @@ class Estimator:
 
 @dc.dataclass
 class InitialInterval:
-    """End-effector prior (paper Table II): nominal and box, theta order of contracts.md."""
+    """End-effector prior (paper Table II): nominal and box, theta order of systems/inertial.py NAMES."""
 
     nominal: List[float] = dc.field(default_factory=lambda: [3.2, 0.0, 0.0, -0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
     lower: List[float] = dc.field(default_factory=lambda: [1.2, -0.4, -0.4, -1.0] + [-0.2] * 6)
