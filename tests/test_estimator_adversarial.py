@@ -19,14 +19,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from conftest import n_trials
+from helpers import CENTRE, PAYLOADS, PRIOR, PRIOR_NOMINAL, n_trials
 from safesysid.systems import estimation as E
 from safesysid.systems.estimation.enclosure import _left_inverse
 from safesysid.systems.payload import payload_theta_in_end_effector
-from test_estimator import CENTRE, PAYLOADS, dumbbells, robot  # noqa: F401 (fixtures)
 
-PRIOR = (np.array([1.2, -0.4, -0.4, -1.0] + [-0.2] * 6), np.array([5.2, 0.4, 0.4, -0.1] + [0.2] * 6))
-PRIOR_NOMINAL = np.array([3.2, 0.0, 0.0, -0.5] + [0.0] * 6)
 PATTERNS = ["uniform", "plus", "alternating", "worst_map", "worst_bound", "worst_map", "worst_bound", "uniform"]
 
 
