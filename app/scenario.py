@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from safesysid.systems.config import (  # noqa: F401  (re-exported: the schema's public names)
+from safesysid.systems.config import (
     MAX_CONTROL_STEP_S,
     METHODS,
     Controller,
@@ -32,6 +32,11 @@ from safesysid.systems.config import (  # noqa: F401  (re-exported: the schema's
 )
 
 SCENARIOS_DIR = Path(__file__).resolve().parent.parent / "scenarios"
+__all__ = [  # the loader, and the schema of systems/config.py re-exported
+    "SCENARIOS_DIR", "load_scenario", "MAX_CONTROL_STEP_S", "METHODS", "Controller", "Estimator", "InitialInterval",
+    "Noise", "Obstacle", "ParameterFloors", "Payload", "Planner", "Plant", "PlantEffects", "Robot", "Scenario",
+    "ScenarioError", "Task", "resolve_path", "robot_from_scenario", "scenario_dir", "task_enabled",
+]
 List = typing.List
 
 

@@ -308,7 +308,7 @@ class TaskConstraints:
         self.p = problem
         st = problem.settings
         robot = problem.robot
-        self.n = n = robot.n
+        self.n = robot.n
         self.param = Parametrization.make(st.num_pieces)
         self.piece = st.duration_s / st.num_pieces
         jp = robot.joint_params
