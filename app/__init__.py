@@ -1,4 +1,3 @@
 """safesysid: provably-safe online identification of robot payloads, on Drake."""
-from pathlib import Path
 
 __version__ = "0.1.0"

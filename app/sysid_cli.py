@@ -30,7 +30,7 @@ from safesysid.cli import BadInput
 from safesysid.joint_bag import read_log
 from safesysid.scenario import ScenarioError, load_scenario, resolve_path, robot_from_scenario, scenario_dir
 from safesysid.systems import inertial
-from safesysid.systems.estimator import EstimatorError, EstimatorSettings, IncrementalEstimator, torque_radius
+from safesysid.systems.estimation import EstimatorError, EstimatorSettings, IncrementalEstimator, torque_radius
 
 
 def payload_truth(scenario, robot):
@@ -147,7 +147,7 @@ def corrected_model(path):
 
 
 def cmd_sysid(args):
-    scenario = load_scenario(args.scenario) if args.scenario else load_scenario()
+    scenario = load_scenario(args.scenario, overrides=args.scenario_text)
     lag, corrections = 0.0, None
     if args.model:
         robot, lag, corrections = corrected_model(args.model)

@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 
-from safesysid.systems import inertial, regressors
+from safesysid.systems import regressors
 from safesysid.systems.robot_model import load_robot, make_plant
 
 

@@ -1,32 +1,21 @@
-"""Shared test helpers."""
-import os
-from pathlib import Path
-
+"""Fixtures shared by the tests (plain helpers are in helpers.py). A module that defines a
+fixture of the same name uses its own."""
 import pytest
 
-SHARED = Path(__file__).resolve().parents[2] / "shared"
-FULL = os.environ.get("SAFESYSID_FULL") == "1"
+from helpers import FULL, n_trials, params_with_spheres, shared_path  # noqa: F401 (test_gap.py still imports them from here)
 
 
-def n_trials(small, full):
-    """Monte-Carlo sample size: small in CI, full with SAFESYSID_FULL=1."""
-    return full if FULL else small
+@pytest.fixture(scope="module")
+def robot():
+    """The Gen3 model with the scenarios' Coulomb smoothing (0.01 rad/s)."""
+    from safesysid.systems.robot_model import load_robot
+
+    return load_robot(coulomb_smoothing=0.01)
 
 
-def shared_path(*parts):
-    """A file under ../shared, or skip the test when the shared data is absent."""
-    path = SHARED.joinpath(*parts)
-    if not path.exists():
-        pytest.skip(f"shared data not available: {path}")
-    return path
-
-
-def params_with_spheres(tmp_path, spheres_path):
-    """A copy of the Gen3 parameter file whose planner_spheres is `spheres_path` (same URDF)."""
+@pytest.fixture(scope="module")
+def dumbbells():
+    from safesysid.systems.payload import load_dumbbells
     from safesysid.systems.robot_model import MODELS_DIR
 
-    params = tmp_path / "params.yaml"
-    params.write_text((MODELS_DIR / "kinova_gen3_params.yaml").read_text()
-                      .replace("urdf: kinova_gen3.urdf", f"urdf: {MODELS_DIR / 'kinova_gen3.urdf'}")
-                      .replace("planner_spheres: kinova_gen3_spheres.yaml", f"planner_spheres: {spheres_path}"))
-    return params
+    return load_dumbbells(MODELS_DIR / "dumbbells.yaml")

@@ -12,7 +12,7 @@ import pytest
 from pydrake.geometry import Box, Capsule, Cylinder, Role, Sphere
 from pydrake.systems.framework import DiagramBuilder
 
-from conftest import params_with_spheres
+from helpers import params_with_spheres
 from safesysid.scenario import SCENARIOS_DIR, load_scenario
 from safesysid.systems import reachability as reach
 from safesysid.systems.payload import load_dumbbells

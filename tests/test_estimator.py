@@ -1,26 +1,12 @@
-"""Algorithm 1 (systems/estimator.py): data model, solver, provable interval, incremental use."""
+"""Algorithm 1 (systems/estimation/): data model, solver, provable interval, incremental use."""
 import numpy as np
 import pytest
 
-from conftest import n_trials
-from safesysid.systems import estimator as E
+from helpers import CENTRE, PAYLOADS, PRIOR, PRIOR_NOMINAL, n_trials
+from safesysid.systems import estimation as E
 from safesysid.systems import inertial
 from safesysid.systems.payload import load_dumbbells, payload_theta_in_end_effector
-from safesysid.systems.robot_model import MODELS_DIR, load_robot
-
-CENTRE = [0.0, 0.3, 0.0, 1.5, 0.0, 0.8, 0.0]
-PAYLOADS = ["4lb", "5lb", "6lb", "7lb", "8lb"]
-
-
-@pytest.fixture(scope="module")
-def robot():
-    return load_robot(coulomb_smoothing=0.01)
-
-
-@pytest.fixture(scope="module")
-def dumbbells():
-    return load_dumbbells(MODELS_DIR / "dumbbells.yaml")
-
+from safesysid.systems.robot_model import MODELS_DIR
 
 def true_theta(rng, robot, dumbbell, ratio=0.05):
     """Whole-robot truth: θ_r perturbed inside its ±ratio box, θ_e = end effector + payload."""
@@ -91,7 +77,7 @@ def test_quadrature_bound_covers_the_integration_error(robot, dumbbells, integra
     resid = lhs - rows.T
     assert np.all(np.abs(resid) <= rows.quad)
     assert np.abs(resid).max() > 1e-3 * rows.quad.max()  # a real error, not a zero
-    trapezoid_torque = E._segment_sums(tau, t, bounds, "trapezoid")
+    trapezoid_torque = E.segment_sums(tau, t, bounds, "trapezoid")
     assert np.any(np.abs(lhs - trapezoid_torque) > rows.quad)
 
 
@@ -354,7 +340,6 @@ def test_inconsistent_data_keep_the_last_consistent_box(robot, dumbbells):
     is the last consistent one from then on: never wider, never outside the prior, and still
     around the truth. (HEAD published the faulty intersection, then the hull of the two boxes:
     truth outside from 4.5 s, mass upper 5.35 kg > the prior's 5.2 kg at 7.5 s.)"""
-    from test_estimator_adversarial import PRIOR, PRIOR_NOMINAL
 
     rng = np.random.default_rng(5)
     theta, theta_e = true_theta(rng, robot, dumbbells["8lb"], ratio=0.0)
@@ -379,7 +364,6 @@ def test_inconsistent_data_keep_the_last_consistent_box(robot, dumbbells):
 def test_disjoint_enclosures_do_not_publish_the_gap(robot, dumbbells):
     """Torque noise 10x the declared bound: when the two least-squares enclosures (or the LP) do
     not meet, the published box is the prior, not the gap between them."""
-    from test_estimator_adversarial import PRIOR, PRIOR_NOMINAL
 
     for seed in range(4):
         rng = np.random.default_rng(500 + seed)

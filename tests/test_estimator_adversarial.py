@@ -14,16 +14,16 @@ a missing parameter floor) puts it outside.
 
 CI: 64 cases (a 5 % failure rate goes unseen with probability 0.95^64 = 4 %); SAFESYSID_FULL=1: 400.
 """
+import dataclasses
+
 import numpy as np
 import pytest
 
-from conftest import n_trials
-from safesysid.systems import estimator as E
+from helpers import CENTRE, PAYLOADS, PRIOR, PRIOR_NOMINAL, n_trials
+from safesysid.systems import estimation as E
+from safesysid.systems.estimation.enclosure import _left_inverse
 from safesysid.systems.payload import payload_theta_in_end_effector
-from test_estimator import CENTRE, PAYLOADS, dumbbells, robot  # noqa: F401 (fixtures)
 
-PRIOR = (np.array([1.2, -0.4, -0.4, -1.0] + [-0.2] * 6), np.array([5.2, 0.4, 0.4, -0.1] + [0.2] * 6))
-PRIOR_NOMINAL = np.array([3.2, 0.0, 0.0, -0.5] + [0.0] * 6)
 PATTERNS = ["uniform", "plus", "alternating", "worst_map", "worst_bound", "worst_map", "worst_bound", "uniform"]
 
 
@@ -34,8 +34,8 @@ def theta_r_radius(est):
 
 def left_inverse(est, rows, kind):
     """One of the estimator's two least-squares left inverses L (10, S·n)."""
-    settings = est.settings if kind == "map" else E.replace(est.settings, point_estimate="paper", row_weighting="bound")
-    return E._left_inverse(rows, est.theta_r, theta_r_radius(est), settings)[0]
+    settings = est.settings if kind == "map" else dataclasses.replace(est.settings, point_estimate="paper", row_weighting="bound")
+    return _left_inverse(rows, est.theta_r, theta_r_radius(est), settings)[0]
 
 
 def held_samples(t, bounds):

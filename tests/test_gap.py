@@ -3,7 +3,7 @@ and the withheld-effect self-check (systems/gap_simulate.py)."""
 import numpy as np
 import pytest
 
-from conftest import n_trials, shared_path
+from helpers import n_trials, shared_path
 from safesysid.joint_log import JointLog
 from safesysid.systems import gap, inertial
 from safesysid.systems import gap_simulate as gs

@@ -183,7 +183,7 @@ def test_not_a_bag(tmp_path):
 
 def test_sysid_on_a_bag_equals_the_csv(tmp_path, capsys):
     """`safesysid sysid` reads bags too (joints by the model's names): the same estimate."""
-    from safesysid.systems import estimator as E
+    from safesysid.systems import estimation as E
 
     robot = load_robot(coulomb_smoothing=0.01)
     rng = np.random.default_rng(4)

@@ -3,7 +3,7 @@ planner's separate spheres, payloads."""
 import numpy as np
 import pytest
 
-from conftest import params_with_spheres
+from helpers import params_with_spheres
 from safesysid.systems import inertial
 from safesysid.systems.payload import load_dumbbells, payload_theta_in_end_effector
 from safesysid.systems.robot_model import MODELS_DIR, ModelError, load_joint_parameters, load_robot, make_plant

@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from conftest import FULL, n_trials
+from helpers import FULL, n_trials
 from safesysid.online import run_online
 from safesysid.scenario import SCENARIOS_DIR, load_scenario
 from safesysid.sweeps import random_scene

@@ -4,7 +4,7 @@ vacuous, and the exciting cost is right."""
 import numpy as np
 import pytest
 
-from conftest import n_trials
+from helpers import n_trials
 from safesysid.scenario import Obstacle, Planner
 from safesysid.systems import controller as ctl
 from safesysid.systems import planner as P

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from pydrake.systems.framework import DiagramBuilder
 
-from conftest import FULL
+from helpers import FULL
 from safesysid.scenario import ScenarioError, load_scenario, robot_from_scenario
 from safesysid.systems import gap
 from safesysid.systems import gap_simulate as gs

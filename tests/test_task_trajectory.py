@@ -217,7 +217,7 @@ def test_cache_loads_without_solving_and_any_input_change_recomputes(tmp_path, m
 
 def test_cache_key_hashes_the_model_files(tmp_path):
     """A sphere file with the same numbers but one more comment is another input."""
-    from conftest import params_with_spheres
+    from helpers import params_with_spheres
     from safesysid.systems.robot_model import MODELS_DIR, load_robot
 
     spheres = tmp_path / "spheres.yaml"

@@ -1,0 +1,40 @@
+"""Helpers shared by the tests (imported as `from helpers import ...`; fixtures live in conftest.py)."""
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+SHARED = Path(__file__).resolve().parents[2] / "shared"
+FULL = os.environ.get("SAFESYSID_FULL") == "1"
+
+# Identification runs: the arm's centre pose and the paper's payloads.
+CENTRE = [0.0, 0.3, 0.0, 1.5, 0.0, 0.8, 0.0]
+PAYLOADS = ["4lb", "5lb", "6lb", "7lb", "8lb"]
+# The paper's Table II prior of the end effector + payload (box, nominal).
+PRIOR = (np.array([1.2, -0.4, -0.4, -1.0] + [-0.2] * 6), np.array([5.2, 0.4, 0.4, -0.1] + [0.2] * 6))
+PRIOR_NOMINAL = np.array([3.2, 0.0, 0.0, -0.5] + [0.0] * 6)
+
+
+def n_trials(small, full):
+    """Monte-Carlo sample size: small in CI, full with SAFESYSID_FULL=1."""
+    return full if FULL else small
+
+
+def shared_path(*parts):
+    """A file under ../shared, or skip the test when the shared data is absent."""
+    path = SHARED.joinpath(*parts)
+    if not path.exists():
+        pytest.skip(f"shared data not available: {path}")
+    return path
+
+
+def params_with_spheres(tmp_path, spheres_path):
+    """A copy of the Gen3 parameter file whose planner_spheres is `spheres_path` (same URDF)."""
+    from safesysid.systems.robot_model import MODELS_DIR
+
+    params = tmp_path / "params.yaml"
+    params.write_text((MODELS_DIR / "kinova_gen3_params.yaml").read_text()
+                      .replace("urdf: kinova_gen3.urdf", f"urdf: {MODELS_DIR / 'kinova_gen3.urdf'}")
+                      .replace("planner_spheres: kinova_gen3_spheres.yaml", f"planner_spheres: {spheres_path}"))
+    return params
