@@ -26,7 +26,7 @@ IDENTIFYING = {"ours": True, "random": True, "conservative": False, "wrong": Fal
 
 def prior(robot, scenario: Scenario, method):
     """(theta0, [theta]) the controller and planner start from."""
-    from safesysid.systems.controller import parameter_box
+    from safesysid.systems.armour import parameter_box
 
     ii = scenario.initial_interval
     if method == "wrong":  # the bare end effector, no uncertainty anywhere
@@ -117,8 +117,8 @@ def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> On
     from pydrake.systems.framework import DiagramBuilder
     from pydrake.systems.primitives import Multiplexer
 
-    from safesysid.systems.controller import tracking_bounds_for
-    from safesysid.systems.controllers import gains_from_scenario, make_controller
+    from safesysid.systems.armour import tracking_bounds_for
+    from safesysid.systems.controller_systems import gains_from_scenario, make_controller
     from safesysid.systems.real_arm import add_real_arm
     from safesysid.systems.safety_monitor import SafetyMonitor
 

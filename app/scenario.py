@@ -62,7 +62,7 @@ class Noise:
     theta_r_ratio: float = 0.05  # relative uncertainty of the rest-of-robot parameters
     # Absolute floor of each robot parameter's half-width, per kind (units in the names): the box
     # is nominal +- max(theta_r_ratio |nominal|, floor), shared by controller, planner, estimator
-    # and the drawn real arm (systems/controller.py ParameterFloors has the defaults).
+    # and the drawn real arm (systems/armour.py ParameterFloors has the defaults).
     theta_r_floor: ParameterFloors = dc.field(default_factory=ParameterFloors)
 
 
@@ -99,7 +99,7 @@ class Controller:
     # planner refuses to move); 0.005 halves eps (|e| <= 0.0072 rad at Kr = 5) and plans start.
     V_max: float = 0.005
     kind: str = "armour"  # armour | pid | adaptive | adaptive_robust
-    # Baselines (systems/controllers.py), per joint; Gen3 inertia with armature is ~9-14 kg m^2,
+    # Baselines (systems/controller_systems.py), per joint; Gen3 inertia with armature is ~9-14 kg m^2,
     # so Kp ~ M (10 rad/s)^2 and Kd ~ 2 M 10 rad/s.
     pid_kp_Nm_rad: List[float] = dc.field(default_factory=lambda: [1000.0] * 7)
     pid_ki_Nm_rad_s: List[float] = dc.field(default_factory=lambda: [1000.0] * 7)
@@ -283,7 +283,7 @@ def _validate(s: Scenario, where):
     need(np.all(np.array(ii.lower) <= np.array(ii.nominal)) and np.all(np.array(ii.nominal) <= np.array(ii.upper)),
          "initial_interval", "needs lower <= nominal <= upper")
     # The tube's invariance is argued and measured for a controller step of at most 1 ms
-    # (systems/controller.py "Sampling"; docs/guarantees.md).
+    # (systems/armour.py "Sampling"; docs/guarantees.md).
     need(0 < s.plant.time_step_s <= MAX_CONTROL_STEP_S, "plant.time_step_s",
          f"must be in (0, {MAX_CONTROL_STEP_S}] s (the tracking guarantee assumes a >= 1 kHz controller)")
     need(s.plant.effects.time_delay_s >= 0, "plant.effects.time_delay_s", "must be >= 0")

@@ -51,7 +51,7 @@ import numpy as np
 
 from . import reachability as reach
 from .bezier import _bernstein, _difference, restriction_matrix
-from .controller import TrackingBounds
+from .armour import TrackingBounds
 
 VERSION = "task_trajectory/1"  # part of the cache key: bump when the formulation changes
 DEGREE = 5
@@ -261,8 +261,8 @@ def task_problem_from_scenario(scenario, q_start=None):
     """
     from safesysid.online import prior
     from safesysid.scenario import ScenarioError, resolve_path, robot_from_scenario, scenario_dir, task_enabled
-    from .controller import tracking_bounds_for
-    from .controllers import gains_from_scenario
+    from .armour import tracking_bounds_for
+    from .controller_systems import gains_from_scenario
     from .payload import load_dumbbells
     from .real_arm import true_theta
 

@@ -6,7 +6,7 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
 
 from safesysid.scenario import Planner
-from safesysid.systems import controller as ctl
+from safesysid.systems import armour as ctl
 from safesysid.systems.planner import PlanResult, SafePlanner
 from safesysid.systems.planner_system import ExcitingPlanner
 from safesysid.systems.robot_model import load_robot

@@ -7,7 +7,7 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
 
 from safesysid.scenario import load_scenario, robot_from_scenario
-from safesysid.systems.controller import ControllerDynamics
+from safesysid.systems.armour import ControllerDynamics
 from safesysid.systems.real_arm import add_real_arm, scenario_dumbbell, true_theta
 from safesysid.systems.regressors import friction_columns
 

@@ -167,7 +167,7 @@ def test_samples_are_what_the_discrete_arm_applies():
     from pydrake.systems.primitives import VectorLogSink
 
     from safesysid.scenario import robot_from_scenario
-    from safesysid.systems.controller import ControllerDynamics
+    from safesysid.systems.armour import ControllerDynamics
     from safesysid.systems.real_arm import add_real_arm
 
     s = load_scenario(overrides={"payload": {"dumbbell": "none"}})

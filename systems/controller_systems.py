@@ -4,7 +4,7 @@ Inputs:  desired (3 n: q_d, qd_d, qdd_d), state (2 n: q, v), theta0 (14 n),
          theta_lower (14 n), theta_upper (14 n).       Output: torque (n), commanded.
 All laws evaluate at the step's inputs (direct feedthrough, cached once per step).
 
-- ArmourController: the robust passivity law of systems/controller.py (extra output
+- ArmourController: the robust passivity law of systems/armour.py (extra output
   'diagnostics' = [V_bar, h, lambda, |r|, |w_bar|]).
 - GravityPidController ("grav-pid"): u = g(q; theta0) + beta + Kp e + Ki int e + Kd edot, the
   handbook PID with gravity compensation (Siciliano et al., Robotics, sec. 8.5.2 + integral).
@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .controller import ArmourGains, ControllerDynamics, armour_control, tracking_errors, wrap_error
+from .armour import ArmourGains, ControllerDynamics, armour_control, tracking_errors, wrap_error
 from .intervals import Interval
 
 _log = logging.getLogger(__name__)
