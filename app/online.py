@@ -52,17 +52,12 @@ class OnlineDiagram:
     tracking: object
     extras: dict = field(default_factory=dict)
 
-    @property
-    def planner_results(self):
-        return self.extras["planner_results"]
-
 
 def _add_logger(builder, port, period, name):
-    from pydrake.systems.primitives import VectorLogSink
+    from pydrake.systems.primitives import LogVectorOutput
 
-    sink = builder.AddSystem(VectorLogSink(port.size(), period))
+    sink = LogVectorOutput(port, builder, period)
     sink.set_name(f"log_{name}")
-    builder.Connect(port, sink.get_input_port())
     return sink
 
 
@@ -74,29 +69,12 @@ def _constant(builder, value, name):
     return src.get_output_port()
 
 
-class RecordingPlanner:
-    """Proxy that keeps every PlanResult (the LeafSystem keeps only the current plan)."""
-
-    def __init__(self, planner):
-        self.inner = planner
-        self.results = []
-
-    def plan(self, *args, **kwargs):
-        result = self.inner.plan(*args, **kwargs)
-        self.results.append(result)
-        return result
-
-    def __getattr__(self, name):
-        return getattr(self.inner, name)
-
-
 def make_planner_system(robot, scenario, method, tracking, dumbbell, theta_prior, seed):
     from safesysid.systems.planner import SafePlanner
     from safesysid.systems.planner_system import ExcitingPlanner
 
     mode = "random" if method == "random" else scenario.planner.cost
-    planner = RecordingPlanner(SafePlanner(robot, scenario.planner, obstacles=scenario.obstacles, payload=dumbbell,
-                                           tracking=tracking))
+    planner = SafePlanner(robot, scenario.planner, obstacles=scenario.obstacles, payload=dumbbell, tracking=tracking)
     theta0, box = theta_prior
     return ExcitingPlanner(planner, np.asarray(scenario.q0_rad, float), theta0, box.lo, box.hi, mode=mode, seed=seed)
 
@@ -163,8 +141,8 @@ def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> On
 
     monitor = builder.AddSystem(SafetyMonitor(arm.plant, arm.scene_graph, robot, period_s=h))
     monitor.set_name("safety_monitor")
-    builder.Connect(arm.scene_graph.get_query_output_port(), monitor.query_port)
-    builder.Connect(arm.plant.get_state_output_port(arm.instance), monitor.state_port)
+    builder.Connect(arm.query_output, monitor.query_port)
+    builder.Connect(arm.plant_state_output, monitor.state_port)
     builder.Connect(arm.motor_torque_output, monitor.torque_port)
     builder.Connect(controller.GetOutputPort("torque"), monitor.command_port)
 
@@ -178,11 +156,11 @@ def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> On
     if meshcat is not None:
         from safesysid.viz import add_visualizer
 
-        visualizer = add_visualizer(builder, arm.scene_graph, meshcat)
+        visualizer = add_visualizer(builder, arm.query_output, meshcat)
     diagram = builder.Build()
     diagram.set_name(f"safesysid_{method}")
     return OnlineDiagram(diagram, arm, controller, planner, estimator, monitor, loggers, visualizer, meshcat,
-                         (theta0, box), tracking, {"planner_results": planner._planner.results})
+                         (theta0, box), tracking)
 
 
 def _log(sink, context):
@@ -251,15 +229,17 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
     error = desired[:, :n] - q
     cont = robot.joint_params.continuous
     error[:, cont] = np.angle(np.exp(1j * error[:, cont]))
-    safety = built.monitor.record.summary()
+    record = built.monitor.record(built.monitor.GetMyContextFromRoot(ctx))
+    safety = record.summary()
     truth = arm.true_theta()[robot.ee_slice]
     est = built.estimator
     if est is not None:
-        theta_e0, lo, hi = est.final_estimate(robot.ee_slice)
-        history = est.history()
+        est_ctx = est.GetMyContextFromRoot(ctx)
+        theta_e0, lo, hi = est.final_estimate(est_ctx, robot.ee_slice)
+        history = est.history(est_ctx)
         cond_y = history[-1]["cond_Y"] if history else float("nan")
         update_times = [h["update_time_s"] for h in history]
-        consistent, estimator_events = est.consistent, est.events()
+        consistent, estimator_events = est.consistent(est_ctx), est.events(est_ctx)
     else:
         theta0, box = built.theta_prior
         theta_e0, lo, hi = theta0[robot.ee_slice], box.lo[robot.ee_slice], box.hi[robot.ee_slice]
@@ -314,7 +294,7 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
         for k, pname in enumerate(NAMES):
             extra[f"est_{pname}{name}"] = vals[idx + 1, k]
     write_joint_log(out / "log.csv", JointLog(t, q, v, tau_meas), extra)
-    rec = built.monitor.record
+    rec = record
     report.plot_tracking(out / "tracking.png", t, error, built.tracking.position, np.max(np.abs(command) / robot.joint_params.torque_limit, 1))
     report.plot_clearance(out / "clearance.png", np.array(rec.times), np.array(rec.clearance))
     report.plot_intervals(out / "intervals.png", theta_e0, lo, hi, truth, title=f"{scenario.name} / {method}")
@@ -322,7 +302,7 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
         report.plot_estimate_history(out / "mass.png", [h["t"] for h in history], [h["nominal"] for h in history],
                                      [h["lower"] for h in history], [h["upper"] for h in history], truth)
     if built.visualizer is not None:
-        draw_plans(meshcat, robot, built.planner_results)
+        draw_plans(meshcat, robot, built.planner.results(planner_context))
         viz.save_replay(meshcat, built.visualizer, out / "replay.html")
     return summary
 

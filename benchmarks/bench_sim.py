@@ -14,7 +14,7 @@ import numpy as np
 from safesysid.scenario import load_scenario, robot_from_scenario
 from safesysid.systems import armour as C
 from safesysid.systems.bezier import QuinticBezier
-from safesysid.systems.controller_systems import build_closed_loop, simulate_closed_loop
+from safesysid.closed_loop import build_closed_loop, simulate_closed_loop
 
 TARGET_RTF = 1.0
 

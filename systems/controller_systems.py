@@ -24,6 +24,8 @@ import logging
 from dataclasses import dataclass, field
 
 import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import BasicVector, LeafSystem, ValueProducer
 
 from .armour import ArmourGains, ControllerDynamics, armour_control, tracking_errors, wrap_error
 from .intervals import Interval
@@ -66,235 +68,159 @@ def gains_from_scenario(scenario, n):
         robust_boundary=float(c.adaptive_boundary_rad_s))
 
 
-def _base_class():
-    from pydrake.systems.framework import BasicVector, LeafSystem
+class ControllerBase(LeafSystem):
+    """Common ports; subclasses implement _torque(context, q, v, q_d, qd_d, qdd_d, theta0, box)."""
 
-    class ControllerBase(LeafSystem):
-        """Common ports; subclasses implement _torque(context, q, v, qd_all, theta0, box)."""
+    def __init__(self, robot, gains: ControllerGains):
+        super().__init__()
+        self.robot, self.gains, self.n = robot, gains, robot.n
+        n, p = robot.n, 14 * robot.n
+        self.dyn = ControllerDynamics(robot)
+        self.desired = self.DeclareVectorInputPort("desired", 3 * n)
+        self.state = self.DeclareVectorInputPort("state", 2 * n)
+        self.theta0 = self.DeclareVectorInputPort("theta0", p)
+        self.theta_lower = self.DeclareVectorInputPort("theta_lower", p)
+        self.theta_upper = self.DeclareVectorInputPort("theta_upper", p)
+        self.torque_output = self.DeclareVectorOutputPort("torque", BasicVector(n), self._calc_torque)
 
-        def __init__(self, robot, gains: ControllerGains):
-            super().__init__()
-            self.robot, self.gains, self.n = robot, gains, robot.n
-            n, p = robot.n, 14 * robot.n
-            self.dyn = ControllerDynamics(robot)
-            self.desired = self.DeclareVectorInputPort("desired", 3 * n)
-            self.state = self.DeclareVectorInputPort("state", 2 * n)
-            self.theta0 = self.DeclareVectorInputPort("theta0", p)
-            self.theta_lower = self.DeclareVectorInputPort("theta_lower", p)
-            self.theta_upper = self.DeclareVectorInputPort("theta_upper", p)
-            self.torque_output = self.DeclareVectorOutputPort("torque", BasicVector(n), self._calc_torque)
+    def _raw_inputs(self, context):
+        """(q, v, q_d, qd_d, qdd_d, theta0, theta_lower, theta_upper), unchecked."""
+        n = self.n
+        x = self.state.Eval(context)
+        d = self.desired.Eval(context)
+        return (x[:n], x[n:], d[:n], d[n:2 * n], d[2 * n:], self.theta0.Eval(context),
+                self.theta_lower.Eval(context), self.theta_upper.Eval(context))
 
-        def _raw_inputs(self, context):
-            """(q, v, q_d, qd_d, qdd_d, theta0, theta_lower, theta_upper), unchecked."""
-            n = self.n
-            x = self.state.Eval(context)
-            d = self.desired.Eval(context)
-            return (x[:n], x[n:], d[:n], d[n:2 * n], d[2 * n:], self.theta0.Eval(context),
-                    self.theta_lower.Eval(context), self.theta_upper.Eval(context))
+    def _inputs(self, context):
+        *signals, lo, hi = self._raw_inputs(context)
+        return (*signals, Interval(lo, hi))
 
-        def _inputs(self, context):
-            *signals, lo, hi = self._raw_inputs(context)
-            return (*signals, Interval(lo, hi))
+    def _declare_step_cache(self, name, calc):
+        """A cache entry holding any Python object, recomputed when an input changes."""
+        return self.DeclareCacheEntry(name, ValueProducer(allocate=lambda: AbstractValue.Make(object()), calc=calc),
+                                      {self.all_input_ports_ticket()})
 
-        def _declare_step_cache(self, name, calc):
-            """A cache entry holding any Python object, recomputed when an input changes."""
-            from pydrake.common.value import AbstractValue
-            from pydrake.systems.framework import ValueProducer
-
-            return self.DeclareCacheEntry(name, ValueProducer(allocate=lambda: AbstractValue.Make(object()), calc=calc),
-                                          {self.all_input_ports_ticket()})
-
-        def _calc_torque(self, context, output):
-            output.SetFromVector(self._torque(context, *self._inputs(context)))
-
-    return ControllerBase, BasicVector
+    def _calc_torque(self, context, output):
+        output.SetFromVector(self._torque(context, *self._inputs(context)))
 
 
-def make_armour_controller(robot, gains: ControllerGains):
-    ControllerBase, BasicVector = _base_class()
+class ArmourController(ControllerBase):
+    """The robust passivity law (armour.armour_control); extra output 'diagnostics'."""
 
-    class ArmourController(ControllerBase):
-        def __init__(self):
-            super().__init__(robot, gains)
-            # One evaluation of the law per step, shared by the torque and diagnostics outputs.
-            self._law = self._declare_step_cache("law", self._calc_law)
-            self.DeclareVectorOutputPort("diagnostics", BasicVector(5), self._calc_diag)
+    def __init__(self, robot, gains: ControllerGains):
+        super().__init__(robot, gains)
+        # One evaluation of the law per step, shared by the torque and diagnostics outputs.
+        self._law = self._declare_step_cache("law", self._calc_law)
+        self.DeclareVectorOutputPort("diagnostics", BasicVector(5), self._calc_diag)
 
-        def _calc_law(self, context, value):
-            *args, theta0, lo, hi = self._raw_inputs(context)
-            if np.all(np.isfinite(theta0)) and np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(lo <= hi):
-                out = armour_control(self.dyn, gains.armour, *args, theta0, Interval(lo, hi))
-            else:
-                out = None
-            if out is None or not np.all(np.isfinite(out.u)):
-                # Bad parameter input (an estimator failure): never command NaN. Fall back to the
-                # model's nominal parameters, logged; the guarantee is void until inputs recover.
-                _log.warning("ArmourController at t=%.4f s: invalid theta inputs, nominal model used", context.get_time())
-                out = armour_control(self.dyn, gains.armour, *args, robot.theta, Interval(robot.theta))
-            value.set_value(out)
+    def _calc_law(self, context, value):
+        *args, theta0, lo, hi = self._raw_inputs(context)
+        armour = self.gains.armour
+        if np.all(np.isfinite(theta0)) and np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(lo <= hi):
+            out = armour_control(self.dyn, armour, *args, theta0, Interval(lo, hi))
+        else:
+            out = None
+        if out is None or not np.all(np.isfinite(out.u)):
+            # Bad parameter input (an estimator failure): never command NaN. Fall back to the
+            # model's nominal parameters, logged; the guarantee is void until inputs recover.
+            _log.warning("ArmourController at t=%.4f s: invalid theta inputs, nominal model used", context.get_time())
+            out = armour_control(self.dyn, armour, *args, self.robot.theta, Interval(self.robot.theta))
+        value.set_value(out)
 
-        def law(self, context):
-            """ArmourOutput of the current step (u, tau_nom, v, w_bar, V_bar, h, lam, err)."""
-            return self._law.Eval(context)
+    def law(self, context):
+        """ArmourOutput of the current step (u, tau_nom, v, w_bar, V_bar, h, lam, err)."""
+        return self._law.Eval(context)
 
-        def _torque(self, context, *args):
-            return self.law(context).u
+    def _torque(self, context, *args):
+        return self.law(context).u
 
-        def _calc_diag(self, context, output):
-            out = self.law(context)
-            output.SetFromVector([out.V_bar, out.h, out.lam, np.linalg.norm(out.err.r), np.linalg.norm(out.w_bar)])
-
-    return ArmourController()
+    def _calc_diag(self, context, output):
+        out = self.law(context)
+        output.SetFromVector([out.V_bar, out.h, out.lam, np.linalg.norm(out.err.r), np.linalg.norm(out.w_bar)])
 
 
-def make_gravity_pid_controller(robot, gains: ControllerGains, time_step):
-    ControllerBase, _ = _base_class()
+class GravityPidController(ControllerBase):
+    """u = g(q; theta0) + Kp e + Ki int e + Kd edot; the integral is discrete state, stepped every time_step."""
 
-    class GravityPidController(ControllerBase):
-        def __init__(self):
-            super().__init__(robot, gains)
-            self._integral = self.DeclareDiscreteState(robot.n)
-            self.DeclarePeriodicDiscreteUpdateEvent(time_step, 0.0, self._update)
+    def __init__(self, robot, gains: ControllerGains, time_step):
+        super().__init__(robot, gains)
+        self.time_step = float(time_step)
+        self._integral = self.DeclareDiscreteState(robot.n)
+        self.DeclarePeriodicDiscreteUpdateEvent(self.time_step, 0.0, self._update)
 
-        def _errors(self, q, v, q_d, qd_d):
-            return wrap_error(q_d - q, robot.joint_params.continuous), qd_d - v
+    def _errors(self, q, v, q_d, qd_d):
+        return wrap_error(q_d - q, self.robot.joint_params.continuous), qd_d - v
 
-        def _torque(self, context, q, v, q_d, qd_d, qdd_d, theta0, box):
-            e, edot = self._errors(q, v, q_d, qd_d)
-            z = context.get_discrete_state(self._integral).get_value()
-            return self.dyn.gravity(q, theta0) + gains.pid_kp * e + gains.pid_ki * z + gains.pid_kd * edot
+    def _torque(self, context, q, v, q_d, qd_d, qdd_d, theta0, box):
+        g = self.gains
+        e, edot = self._errors(q, v, q_d, qd_d)
+        z = context.get_discrete_state(self._integral).get_value()
+        return self.dyn.gravity(q, theta0) + g.pid_kp * e + g.pid_ki * z + g.pid_kd * edot
 
-        def _update(self, context, discrete_state):
-            q, v, q_d, qd_d, *_ = self._inputs(context)
-            e, _ = self._errors(q, v, q_d, qd_d)
-            z = context.get_discrete_state(self._integral).get_value()
-            discrete_state.set_value(self._integral, z + time_step * e)
-
-    return GravityPidController()
+    def _update(self, context, discrete_state):
+        q, v, q_d, qd_d, *_ = self._inputs(context)
+        e, _ = self._errors(q, v, q_d, qd_d)
+        z = context.get_discrete_state(self._integral).get_value()
+        discrete_state.set_value(self._integral, z + self.time_step * e)
 
 
-def make_adaptive_controller(robot, gains: ControllerGains, time_step, robust=False):
-    """adap-1 (robust=False) or adap-2 (robust=True)."""
-    ControllerBase, _ = _base_class()
-    ee = robot.ee_slice
+class AdaptiveController(ControllerBase):
+    """adap-1 (robust=False) or adap-2 (robust=True); the adapted offset theta_hat_e - theta0_e
+    is discrete state, stepped every time_step."""
 
-    class AdaptiveController(ControllerBase):
-        def __init__(self):
-            super().__init__(robot, gains)
-            self._delta = self.DeclareDiscreteState(10)  # theta_hat_e - theta0_e
-            self.DeclarePeriodicDiscreteUpdateEvent(time_step, 0.0, self._update)
-            # Errors and regressor depend on the inputs only: shared by output and update.
-            self._regressor = self._declare_step_cache("errors_and_regressor", self._calc_regressor)
+    def __init__(self, robot, gains: ControllerGains, time_step, robust=False):
+        super().__init__(robot, gains)
+        self.time_step, self.robust, self.ee = float(time_step), bool(robust), robot.ee_slice
+        self._delta = self.DeclareDiscreteState(10)  # theta_hat_e - theta0_e
+        self.DeclarePeriodicDiscreteUpdateEvent(self.time_step, 0.0, self._update)
+        # Errors and regressor depend on the inputs only: shared by output and update.
+        self._regressor = self._declare_step_cache("errors_and_regressor", self._calc_regressor)
+        self.set_name("adaptive_robust_controller" if robust else "adaptive_controller")
 
-        def _calc_regressor(self, context, value):
-            q, v, q_d, qd_d, qdd_d, _, _ = self._inputs(context)
-            err = tracking_errors(gains.armour.Kr, q, v, q_d, qd_d, qdd_d, robot.joint_params.continuous)
-            wp, _ = self.dyn.regressors(q, v, err.qd_a, err.qdd_a, np.zeros(self.n))
-            value.set_value((err, wp))
+    def _calc_regressor(self, context, value):
+        q, v, q_d, qd_d, qdd_d, _, _ = self._inputs(context)
+        err = tracking_errors(self.gains.armour.Kr, q, v, q_d, qd_d, qdd_d, self.robot.joint_params.continuous)
+        wp, _ = self.dyn.regressors(q, v, err.qd_a, err.qdd_a, np.zeros(self.n))
+        value.set_value((err, wp))
 
-        def estimate(self, context, theta0, box):
-            """theta_hat (14 n): theta0 with the adapted end effector, projected on the box."""
-            theta = theta0.copy()
-            delta = context.get_discrete_state(self._delta).get_value()
-            theta[ee] = np.clip(theta0[ee] + delta, box.lo[ee], box.hi[ee])
-            return theta
+    def estimate(self, context, theta0, box):
+        """theta_hat (14 n): theta0 with the adapted end effector, projected on the box."""
+        ee = self.ee
+        theta = theta0.copy()
+        delta = context.get_discrete_state(self._delta).get_value()
+        theta[ee] = np.clip(theta0[ee] + delta, box.lo[ee], box.hi[ee])
+        return theta
 
-        def _terms(self, context, q, v, q_d, qd_d, qdd_d, theta0, box):
-            err, wp = self._regressor.Eval(context)
-            return err, wp, self.estimate(context, theta0, box)
+    def _terms(self, context, q, v, q_d, qd_d, qdd_d, theta0, box):
+        err, wp = self._regressor.Eval(context)
+        return err, wp, self.estimate(context, theta0, box)
 
-        def _torque(self, context, *inputs):
-            err, wp, theta_hat = self._terms(context, *inputs)
-            u = wp @ theta_hat + gains.adaptive_kd * err.r
-            if robust:
-                box = inputs[-1]
-                spread = np.maximum(box.hi - theta_hat, theta_hat - box.lo)
-                w_bar = np.abs(wp) @ np.maximum(spread, 0.0)
-                u = u + w_bar * np.clip(err.r / gains.robust_boundary, -1.0, 1.0)
-            return u
+    def _torque(self, context, *inputs):
+        err, wp, theta_hat = self._terms(context, *inputs)
+        u = wp @ theta_hat + self.gains.adaptive_kd * err.r
+        if self.robust:
+            box = inputs[-1]
+            spread = np.maximum(box.hi - theta_hat, theta_hat - box.lo)
+            w_bar = np.abs(wp) @ np.maximum(spread, 0.0)
+            u = u + w_bar * np.clip(err.r / self.gains.robust_boundary, -1.0, 1.0)
+        return u
 
-        def _update(self, context, discrete_state):
-            inputs = self._inputs(context)
-            err, wp, theta_hat = self._terms(context, *inputs)
-            theta0, box = inputs[-2], inputs[-1]
-            new = np.clip(theta_hat[ee] + time_step * gains.adaptive_gamma * (wp[:, ee].T @ err.r), box.lo[ee], box.hi[ee])
-            discrete_state.set_value(self._delta, new - theta0[ee])
-
-    system = AdaptiveController()
-    system.set_name("adaptive_robust_controller" if robust else "adaptive_controller")
-    return system
+    def _update(self, context, discrete_state):
+        ee = self.ee
+        inputs = self._inputs(context)
+        err, wp, theta_hat = self._terms(context, *inputs)
+        theta0, box = inputs[-2], inputs[-1]
+        step = self.time_step * self.gains.adaptive_gamma * (wp[:, ee].T @ err.r)
+        new = np.clip(theta_hat[ee] + step, box.lo[ee], box.hi[ee])
+        discrete_state.set_value(self._delta, new - theta0[ee])
 
 
 def make_controller(kind, robot, gains: ControllerGains, time_step):
     """kind: armour | pid | adaptive | adaptive_robust (scenario.controller.kind)."""
     if kind == "armour":
-        return make_armour_controller(robot, gains)
+        return ArmourController(robot, gains)
     if kind == "pid":
-        return make_gravity_pid_controller(robot, gains, time_step)
+        return GravityPidController(robot, gains, time_step)
     if kind in ("adaptive", "adaptive_robust"):
-        return make_adaptive_controller(robot, gains, time_step, robust=kind == "adaptive_robust")
+        return AdaptiveController(robot, gains, time_step, robust=kind == "adaptive_robust")
     raise ValueError(f"controller.kind: unknown controller {kind!r}")
-
-
-# ---- closed loop: real arm + controller + trajectory (tests, benchmarks, the run command) -----------
-@dataclass
-class ClosedLoop:
-    diagram: object
-    arm: object  # RealArm
-    controller: object
-    source: object
-    loggers: dict  # name -> VectorLogSink (state, desired, torque, measured_torque, diagnostics)
-
-
-def build_closed_loop(scenario, trajectory, theta0, theta_box: Interval, kind=None, robot=None,
-                      dumbbell="scenario", log=True, seed=None):
-    """Real arm + controller (scenario.controller.kind unless `kind`) + trajectory source, with
-    fixed theta0 / [theta] (an estimator can be connected instead by building by hand)."""
-    from pydrake.systems.framework import DiagramBuilder
-    from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
-
-    from .real_arm import add_real_arm
-    from .trajectory_source import make_trajectory_source
-
-    builder = DiagramBuilder()
-    arm = add_real_arm(builder, scenario, robot=robot, dumbbell=dumbbell, seed=seed)
-    robot = arm.robot
-    h = scenario.plant.time_step_s
-    gains = gains_from_scenario(scenario, robot.n)
-    ctrl = builder.AddSystem(make_controller(kind or scenario.controller.kind, robot, gains, h))
-    src = builder.AddSystem(make_trajectory_source(robot.n, trajectory))
-    src.set_name("trajectory_source")
-    builder.Connect(src.get_output_port(), ctrl.desired)
-    builder.Connect(arm.state_output, ctrl.state)
-    builder.Connect(ctrl.torque_output, arm.commanded_torque_input)
-    for port, value in ((ctrl.theta0, theta0), (ctrl.theta_lower, theta_box.lo), (ctrl.theta_upper, theta_box.hi)):
-        const = builder.AddSystem(ConstantVectorSource(np.asarray(value, float)))
-        builder.Connect(const.get_output_port(), port)
-    loggers = {}
-    if log:
-        outputs = {"state": arm.state_output, "desired": src.get_output_port(), "torque": ctrl.torque_output,
-                   "measured_torque": arm.measured_torque_output}
-        if ctrl.HasOutputPort("diagnostics"):
-            outputs["diagnostics"] = ctrl.GetOutputPort("diagnostics")
-        for name, port in outputs.items():
-            sink = builder.AddSystem(VectorLogSink(port.size(), h))
-            sink.set_name(f"log_{name}")
-            builder.Connect(port, sink.get_input_port())
-            loggers[name] = sink
-    return ClosedLoop(builder.Build(), arm, ctrl, src, loggers)
-
-
-def simulate_closed_loop(loop: ClosedLoop, q0, duration_s, v0=None):
-    """Run from (q0, v0); returns {name: (t, data (N, size))} from the loggers."""
-    from pydrake.systems.analysis import Simulator
-
-    sim = Simulator(loop.diagram)
-    ctx = sim.get_mutable_context()
-    loop.arm.set_state(ctx, q0, v0)
-    sim.Initialize()
-    sim.AdvanceTo(duration_s)
-    out = {}
-    for name, sink in loop.loggers.items():
-        data = sink.FindLog(ctx)
-        out[name] = (data.sample_times().copy(), data.data().T.copy())
-    return out

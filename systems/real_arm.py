@@ -46,16 +46,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from pydrake.systems.framework import BasicVector, LeafSystem
 
 from .payload import Dumbbell, load_dumbbells, payload_theta_in_end_effector
 
 _NOISE_CHUNK = 4096
-
-
-def _leaf_system():
-    from pydrake.systems.framework import LeafSystem
-
-    return LeafSystem
 
 
 def scenario_dumbbell(scenario):
@@ -79,92 +74,87 @@ def true_theta(robot, dumbbell, theta=None):
     return theta
 
 
-def _make_friction_system(n, coulomb, viscous, offset, smoothing, stiffness):
-    from pydrake.systems.framework import BasicVector
+class JointFriction(LeafSystem):
+    """Generalized force on the joints: applied torque minus joint friction
+    (Fc tanh(v / vs) + Fv v + beta, per joint; sign(v) when vs = 0)."""
 
-    LeafSystem = _leaf_system()
+    def __init__(self, coulomb, viscous, offset, smoothing):
+        super().__init__()
+        self.coulomb, self.viscous, self.offset = (np.asarray(x, float) for x in (coulomb, viscous, offset))
+        self.smoothing = float(smoothing)
+        n = self.n = len(self.coulomb)
+        self.applied = self.DeclareVectorInputPort("applied_torque", n)
+        self.state = self.DeclareVectorInputPort("state", 2 * n)
+        self.DeclareVectorOutputPort("actuation", BasicVector(n), self._calc,
+                                     prerequisites_of_calc={self.all_input_ports_ticket()})
 
-    class JointFriction(LeafSystem):
-        """Generalized force on the joints: applied torque minus joint friction."""
-
-        def __init__(self):
-            super().__init__()
-            self.applied = self.DeclareVectorInputPort("applied_torque", n)
-            self.state = self.DeclareVectorInputPort("state", 2 * n)
-            self.DeclareVectorOutputPort("actuation", BasicVector(n), self._calc,
-                                         prerequisites_of_calc={self.all_input_ports_ticket()})
-
-        def _calc(self, context, output):
-            v = self.state.Eval(context)[n:]
-            law = np.tanh(v / smoothing) if smoothing > 0 else np.sign(v)
-            output.SetFromVector(self.applied.Eval(context) - (coulomb * law + viscous * v + offset))
-
-    class SeriesElasticEncoders(LeafSystem):
-        """Motor-side encoders: q + tau_s / K (quasi-static series elasticity), v unchanged."""
-
-        def __init__(self):
-            super().__init__()
-            self.state = self.DeclareVectorInputPort("state", 2 * n)
-            self.transmitted = self.DeclareVectorInputPort("transmitted_torque", n)
-            self.DeclareVectorOutputPort("measured_state", BasicVector(2 * n), self._calc)
-
-        def _calc(self, context, output):
-            x = self.state.Eval(context).copy()
-            x[:n] += self.transmitted.Eval(context) / stiffness
-            output.SetFromVector(x)
-
-    return JointFriction(), (SeriesElasticEncoders() if stiffness is not None else None)
+    def _calc(self, context, output):
+        v = self.state.Eval(context)[self.n:]
+        law = np.tanh(v / self.smoothing) if self.smoothing > 0 else np.sign(v)
+        output.SetFromVector(self.applied.Eval(context) - (self.coulomb * law + self.viscous * v + self.offset))
 
 
-def _make_torque_sensor(n, time_step, ratio, floor, scale, offset, seed, noisy, lag_s=0.0):
-    from pydrake.systems.framework import BasicVector
+class SeriesElasticEncoders(LeafSystem):
+    """Motor-side encoders: q + tau_s / K (quasi-static series elasticity), v unchanged."""
 
-    LeafSystem = _leaf_system()
+    def __init__(self, stiffness):
+        super().__init__()
+        self.stiffness = np.asarray(stiffness, float)
+        n = self.n = len(self.stiffness)
+        self.state = self.DeclareVectorInputPort("state", 2 * n)
+        self.transmitted = self.DeclareVectorInputPort("transmitted_torque", n)
+        self.DeclareVectorOutputPort("measured_state", BasicVector(2 * n), self._calc)
 
-    class TorqueSensor(LeafSystem):
-        """scale * (tau + n) + offset, n uniform inside +-(ratio |tau| + floor), one draw per step;
-        with lag_s > 0 the signal is first low-passed, lag_s y' + y = raw, exact for a torque held
-        over each step: y_k = a y_(k-1) + (1 - a) raw_k, a = exp(-h / lag_s), starting steady."""
+    def _calc(self, context, output):
+        x = self.state.Eval(context).copy()
+        x[:self.n] += self.transmitted.Eval(context) / self.stiffness
+        output.SetFromVector(x)
 
-        def __init__(self):
-            super().__init__()
-            self.torque = self.DeclareVectorInputPort("torque", n)
-            self.DeclareVectorOutputPort("measured_torque", BasicVector(n), self._calc)
-            self._rng = np.random.default_rng(seed)
-            self._unit = np.empty((0, n))
-            self._keep = np.exp(-time_step / lag_s) if lag_s > 0 else 0.0
-            if lag_s > 0:
-                self._filtered = self.DeclareDiscreteState(n)
-                self.DeclareInitializationDiscreteUpdateEvent(self._start)
-                self.DeclarePeriodicDiscreteUpdateEvent(time_step, 0.0, self._step)
 
-        def _raw(self, context):
-            tau = self.torque.Eval(context)
-            if noisy:
-                step = int(round(context.get_time() / time_step))
-                tau = tau + self.unit_noise(step) * (ratio * np.abs(tau) + floor)
-            return scale * tau + offset
+class TorqueSensor(LeafSystem):
+    """scale * (tau + n) + offset, n uniform inside +-(ratio |tau| + floor), one draw per step;
+    with lag_s > 0 the signal is first low-passed, lag_s y' + y = raw, exact for a torque held
+    over each step: y_k = a y_(k-1) + (1 - a) raw_k, a = exp(-h / lag_s), starting steady."""
 
-        def _lagged(self, context):
-            previous = context.get_discrete_state(self._filtered).get_value()
-            return self._keep * previous + (1.0 - self._keep) * self._raw(context)
+    def __init__(self, n, time_step, ratio, floor, scale, offset, seed, noisy, lag_s=0.0):
+        super().__init__()
+        self.time_step, self.ratio, self.floor, self.noisy = float(time_step), float(ratio), float(floor), bool(noisy)
+        self.scale, self.offset = np.asarray(scale, float), np.asarray(offset, float)
+        self.torque = self.DeclareVectorInputPort("torque", n)
+        self.DeclareVectorOutputPort("measured_torque", BasicVector(n), self._calc)
+        self._rng = np.random.default_rng(seed)
+        self._unit = np.empty((0, n))
+        self._keep = np.exp(-time_step / lag_s) if lag_s > 0 else 0.0
+        if lag_s > 0:
+            self._filtered = self.DeclareDiscreteState(n)
+            self.DeclareInitializationDiscreteUpdateEvent(self._start)
+            self.DeclarePeriodicDiscreteUpdateEvent(time_step, 0.0, self._step)
 
-        def _start(self, context, state):
-            state.get_mutable_vector(self._filtered).SetFromVector(self._raw(context))
+    def _raw(self, context):
+        tau = self.torque.Eval(context)
+        if self.noisy:
+            step = int(round(context.get_time() / self.time_step))
+            tau = tau + self.unit_noise(step) * (self.ratio * np.abs(tau) + self.floor)
+        return self.scale * tau + self.offset
 
-        def _step(self, context, state):
-            state.get_mutable_vector(self._filtered).SetFromVector(self._lagged(context))
+    def _lagged(self, context):
+        previous = context.get_discrete_state(self._filtered).get_value()
+        return self._keep * previous + (1.0 - self._keep) * self._raw(context)
 
-        def unit_noise(self, step):
-            # Deterministic per (seed, step): a table of U(-1, 1) extended on demand.
-            while step >= len(self._unit):
-                self._unit = np.vstack([self._unit, self._rng.uniform(-1.0, 1.0, (_NOISE_CHUNK, n))])
-            return self._unit[step]
+    def _start(self, context, state):
+        state.get_mutable_vector(self._filtered).SetFromVector(self._raw(context))
 
-        def _calc(self, context, output):
-            output.SetFromVector(self._lagged(context) if self._keep else self._raw(context))
+    def _step(self, context, state):
+        state.get_mutable_vector(self._filtered).SetFromVector(self._lagged(context))
 
-    return TorqueSensor()
+    def unit_noise(self, step):
+        # Deterministic per (seed, step): a table of U(-1, 1) extended on demand.
+        while step >= len(self._unit):
+            self._unit = np.vstack([self._unit, self._rng.uniform(-1.0, 1.0, (_NOISE_CHUNK, self._unit.shape[1]))])
+        return self._unit[step]
+
+    def _calc(self, context, output):
+        output.SetFromVector(self._lagged(context) if self._keep else self._raw(context))
 
 
 def _per_joint(values, n, default, field):
@@ -283,7 +273,9 @@ def _make_real_plant(robot, inertials, time_step, builder):
 
 @dataclass
 class RealArm:
-    """Handles to the real arm's systems inside a DiagramBuilder (connect to the ports)."""
+    """The real arm station: `system` is the sub-Diagram "real_arm" added to the caller's builder
+    (as manipulation's MakeHardwareStation), the ports are its exported ones, and plant,
+    scene_graph, instance, payload_body are handles into it (their contexts: from the root's)."""
 
     robot: object  # RobotModel
     plant: object
@@ -301,6 +293,9 @@ class RealArm:
     payload_collision: tuple = ()  # ((GeometryId, ProximityProperties), ...) of the dumbbell
     robot_geometries: object = None  # GeometrySet of the arm + payload (no self-contact)
     theta: np.ndarray = None  # the robot's 14 n parameters the plant uses (no payload)
+    system: object = None  # the Diagram "real_arm"
+    plant_state_output: object = None  # OutputPort (2n): the plant's true q, v (not the encoders')
+    query_output: object = None  # OutputPort: SceneGraph's QueryObject (true geometry)
 
     @property
     def n(self):
@@ -389,7 +384,9 @@ def _register_obstacles(plant, scenario):
 
 
 def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
-    """Add the real arm to `builder`; returns a RealArm with its ports.
+    """Add the real arm station to `builder` as one sub-Diagram named "real_arm"; returns a
+    RealArm with its exported ports: input commanded_torque; outputs state (encoders),
+    measured_torque, motor_torque, applied_torque, plant_state, query_object.
 
     dumbbell: "scenario" (the scenario's payload), a Dumbbell, or None (no payload at start).
     """
@@ -397,6 +394,7 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
     from pydrake.math import RollPitchYaw
     from pydrake.multibody.tree import SpatialInertia
     from pydrake.math import RigidTransform
+    from pydrake.systems.framework import DiagramBuilder
     from pydrake.systems.primitives import DiscreteTimeDelay, Saturation
 
     from safesysid.scenario import ScenarioError, robot_from_scenario
@@ -410,7 +408,8 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
     seed = scenario.seed if seed is None else seed
     theta, inertials = real_robot_theta(robot, scenario, seed)
     fric = theta[10 * n:].reshape(n, 4)  # [Fc, Fv, Ia, beta] per joint
-    plant, scene_graph, instance = _make_real_plant(robot, inertials, h, builder)
+    station = DiagramBuilder()
+    plant, scene_graph, instance = _make_real_plant(robot, inertials, h, station)
     plant.set_name("real_arm_plant")
     jp = robot.joint_params
     joints = [plant.GetJointByName(name, instance) for name in jp.names]
@@ -448,42 +447,52 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
     payload_collision = tuple((gid, ProximityProperties(inspector.GetProximityProperties(gid)))
                               for gid in plant.GetCollisionGeometriesForBody(payload_body))
 
-    sat = builder.AddSystem(Saturation(-jp.torque_limit, jp.torque_limit))
+    sat = station.AddSystem(Saturation(-jp.torque_limit, jp.torque_limit))
     sat.set_name("actuator_saturation")
     delay_steps = int(round(eff.time_delay_s / h))
     applied_port = sat.get_output_port()
     if delay_steps > 0:
-        delay = builder.AddSystem(DiscreteTimeDelay(h, delay_steps, n))
+        delay = station.AddSystem(DiscreteTimeDelay(h, delay_steps, n))
         delay.set_name("actuation_delay")
-        builder.Connect(sat.get_output_port(), delay.get_input_port())
+        station.Connect(sat.get_output_port(), delay.get_input_port())
         applied_port = delay.get_output_port()
     stiffness = _per_joint(eff.joint_stiffness_Nm_rad, n, 0.0, "joint_stiffness_Nm_rad") if eff.joint_stiffness_Nm_rad else None
     if stiffness is not None and np.any(stiffness <= 0):
         raise ScenarioError("plant.effects.joint_stiffness_Nm_rad: values must be > 0")
-    friction, encoders = _make_friction_system(n, fric[:, 0], fric[:, 1], fric[:, 3], robot.coulomb_smoothing, stiffness)
-    builder.AddSystem(friction)
+    friction = station.AddSystem(JointFriction(fric[:, 0], fric[:, 1], fric[:, 3], robot.coulomb_smoothing))
     friction.set_name("joint_friction")
-    builder.Connect(applied_port, friction.applied)
-    builder.Connect(plant.get_state_output_port(instance), friction.state)
-    builder.Connect(friction.get_output_port(), plant.get_actuation_input_port(instance))
+    station.Connect(applied_port, friction.applied)
+    station.Connect(plant.get_state_output_port(instance), friction.state)
+    station.Connect(friction.get_output_port(), plant.get_actuation_input_port(instance))
     state_out = plant.get_state_output_port(instance)
-    if encoders is not None:
-        builder.AddSystem(encoders)
+    if stiffness is not None:
+        encoders = station.AddSystem(SeriesElasticEncoders(stiffness))
         encoders.set_name("motor_side_encoders")
-        builder.Connect(plant.get_state_output_port(instance), encoders.state)
-        builder.Connect(friction.get_output_port(), encoders.transmitted)
+        station.Connect(plant.get_state_output_port(instance), encoders.state)
+        station.Connect(friction.get_output_port(), encoders.transmitted)
         state_out = encoders.get_output_port()
     noise = scenario.noise
-    sensor = _make_torque_sensor(
+    sensor = station.AddSystem(TorqueSensor(
         n, h, noise.torque_ratio, noise.torque_floor_Nm,
         _per_joint(eff.torque_sensor_scale, n, 1.0, "torque_sensor_scale"),
         _per_joint(eff.torque_sensor_offset_Nm, n, 0.0, "torque_sensor_offset_Nm"),
-        seed, noise.distribution == "uniform", eff.torque_sensor_lag_s)
-    builder.AddSystem(sensor)
+        seed, noise.distribution == "uniform", eff.torque_sensor_lag_s))
     sensor.set_name("torque_sensor")
-    builder.Connect(sat.get_output_port(), sensor.torque)
+    station.Connect(sat.get_output_port(), sensor.torque)
+
+    station.ExportInput(sat.get_input_port(), "commanded_torque")
+    for port, name in ((state_out, "state"), (sensor.get_output_port(), "measured_torque"),
+                       (sat.get_output_port(), "motor_torque"), (applied_port, "applied_torque"),
+                       (plant.get_state_output_port(instance), "plant_state"),
+                       (scene_graph.get_query_output_port(), "query_object")):
+        station.ExportOutput(port, name)
+    system = builder.AddSystem(station.Build())
+    system.set_name("real_arm")
+    out = system.GetOutputPort
     return RealArm(robot=robot, plant=plant, scene_graph=scene_graph, instance=instance, payload_body=payload_body,
-                   dumbbell=db, commanded_torque_input=sat.get_input_port(), state_output=state_out,
-                   measured_torque_output=sensor.get_output_port(), applied_torque_output=applied_port,
-                   motor_torque_output=sat.get_output_port(), torque_sensor=sensor, time_step=h,
-                   payload_collision=payload_collision, robot_geometries=robot_geometries, theta=theta)
+                   dumbbell=db, commanded_torque_input=system.GetInputPort("commanded_torque"),
+                   state_output=out("state"), measured_torque_output=out("measured_torque"),
+                   applied_torque_output=out("applied_torque"), motor_torque_output=out("motor_torque"),
+                   torque_sensor=sensor, time_step=h, payload_collision=payload_collision,
+                   robot_geometries=robot_geometries, theta=theta, system=system,
+                   plant_state_output=out("plant_state"), query_output=out("query_object"))

@@ -38,18 +38,17 @@ class StubEstimator(LeafSystem):
         k = context.get_discrete_state(self._index).get_value()[0]
         state.get_mutable_vector(self._index).SetFromVector([min(k + 1, len(self.boxes) - 1)])
 
-    # what run_online asks of an estimator
-    def history(self):
+    # what run_online asks of an estimator (about its context)
+    def history(self, context):
         return []
 
-    @property
-    def consistent(self):
+    def consistent(self, context):
         return bool(self.boxes[-1][3])
 
-    def events(self):
+    def events(self, context):
         return []
 
-    def final_estimate(self, ee_slice):
+    def final_estimate(self, context, ee_slice):
         theta0, lo, hi, _ = self.boxes[-1]
         return theta0[ee_slice], lo[ee_slice], hi[ee_slice]
 

@@ -94,7 +94,7 @@ def test_friction_uses_the_regressor_law(robot):
     b = DiagramBuilder()
     add_real_arm(b, s, robot=robot)
     diagram = b.Build()
-    friction = diagram.GetSubsystemByName("joint_friction")
+    friction = diagram.GetSubsystemByName("real_arm").GetSubsystemByName("joint_friction")
     ctx = friction.CreateDefaultContext()
     rng = np.random.default_rng(1)
     v = rng.normal(scale=0.02, size=7)  # around the smoothing velocity: tanh matters
@@ -295,7 +295,7 @@ def test_drawn_robot_parameters_stay_in_the_box_and_are_what_the_plant_uses(mode
         beta = theta[10 * n + 3::4]
         np.testing.assert_allclose(-arm.plant.CalcGravityGeneralizedForces(plant_ctx) + beta, dyn.gravity(q, theta),
                                    atol=1e-10)
-    friction = diagram.GetSubsystemByName("joint_friction")
+    friction = diagram.GetSubsystemByName("real_arm").GetSubsystemByName("joint_friction")
     fctx = friction.CreateDefaultContext()
     v = rng.normal(scale=0.3, size=n)
     friction.applied.FixValue(fctx, np.zeros(n))

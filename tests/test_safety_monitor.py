@@ -30,8 +30,10 @@ def run_with_box(box_center, command=None, size=(0.1, 0.1, 0.1), name="box", q=N
     ctx = plant.GetMyContextFromRoot(sim.get_mutable_context())
     plant.SetPositions(ctx, np.zeros(robot.n) if q is None else q)
     sim.Initialize()
-    sim.AdvanceTo(0.0)
-    return monitor.record, plant, ctx
+    sim.AdvanceTo(0.001)  # the sample at t = 0 is taken as time moves past it
+    record = monitor.record(monitor.GetMyContextFromRoot(sim.get_context()))
+    assert record.times == [0.0]
+    return record, plant, ctx
 
 
 def test_box_on_the_gripper_is_a_collision():

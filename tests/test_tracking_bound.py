@@ -13,7 +13,7 @@ import pytest
 from safesysid.scenario import load_scenario, robot_from_scenario
 from safesysid.systems import armour as C
 from safesysid.systems.bezier import QuinticBezier
-from safesysid.systems.controller_systems import build_closed_loop, simulate_closed_loop
+from safesysid.closed_loop import build_closed_loop, simulate_closed_loop
 from safesysid.systems.intervals import Interval
 from safesysid.systems.real_arm import scenario_dumbbell, true_theta
 
