@@ -1,4 +1,4 @@
-"""`safesysid` command line (verbs of contracts.md).
+"""`safesysid` command line (the verbs of README.md, "Commands").
 
 Exit status: 0 success, 2 bad input (one line naming file and field), 1 otherwise.
 """
@@ -21,6 +21,12 @@ def _bad_input_types():
     return (BadInput, LogError, ScenarioError, ModelError)
 
 
+def _add_scenario_text(p):
+    p.add_argument("--scenario-text", action="append", default=[], metavar="YAML",
+                   help="YAML layered over the scenario, changing only the keys it names "
+                        "(repeatable; e.g. --scenario-text 'noise: {torque_floor_Nm: 0.1}')")
+
+
 def build_parser():
     parser = argparse.ArgumentParser(prog="safesysid", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="verb", metavar="VERB")
@@ -32,12 +38,14 @@ def build_parser():
     p.add_argument("--method", help="ours | random | conservative | wrong")
     p.add_argument("--seed", type=int)
     p.add_argument("--meshcat", action="store_true", help="show live in Meshcat (prints the URL)")
+    _add_scenario_text(p)
 
     p = sub.add_parser("compare", help="run several methods and trials; write a table")
     p.add_argument("scenario")
     p.add_argument("--methods", default="ours,random")
     p.add_argument("--trials", type=int, default=1)
     p.add_argument("--out", default="out/compare")
+    _add_scenario_text(p)
 
     p = sub.add_parser("sweep", help="randomized adversarial closed-loop trials; aggregate safety evidence")
     p.add_argument("scenario")
@@ -48,11 +56,13 @@ def build_parser():
     p.add_argument("--nominal", action="store_true",
                    help="plain random scenes (default: noise at the declared bound, robot parameters drawn in their box)")
     p.add_argument("--out", default="out/sweep")
+    _add_scenario_text(p)
 
     p = sub.add_parser("sysid", help="Algorithm 1 offline on a joint log")
     p.add_argument("log")
     p.add_argument("--scenario", help="scenario YAML (robot, noise, estimator settings)")
     p.add_argument("--out", default="out/sysid")
+    _add_scenario_text(p)
 
     p = sub.add_parser("diagnose", help="where and why a model and logs disagree")
     p.add_argument("--model", help="URDF/SDF of a fixed-base arm, or a scenario YAML")

@@ -1,4 +1,4 @@
-"""Joint log CSV (contracts.md): t, q1..qn, v1..vn, optional a1..an, tau1..taun, extra columns."""
+"""Joint log CSV: t, q1..qn, v1..vn, optional a1..an, tau1..taun, extra columns."""
 from __future__ import annotations
 
 import csv

@@ -1,4 +1,4 @@
-"""`safesysid run` and `safesysid compare` (contracts.md)."""
+"""`safesysid run` and `safesysid compare` (README.md, "Commands")."""
 from __future__ import annotations
 
 import csv
@@ -14,8 +14,9 @@ SUMMARY_COLUMNS = ["method", "trial", "seed", "success", "failure", "collisions"
                    "mass_width_kg", "brakes", "median_solve_s", "wall_time_s"]
 
 
-def _scenario(path):
-    return load_scenario(Path(path) if path else SCENARIOS_DIR / "quickstart.yaml")
+def _scenario(args):
+    path = Path(args.scenario) if args.scenario else SCENARIOS_DIR / "quickstart.yaml"
+    return load_scenario(path, overrides=args.scenario_text)
 
 
 def _method(name, scenario):
@@ -38,7 +39,7 @@ def _headline(s):
 def cmd_run(args):
     from safesysid.online import run_online
 
-    scenario = _scenario(args.scenario)
+    scenario = _scenario(args)
     method = _method(args.method, scenario)
     summary = run_online(scenario, args.out, method=method, seed=args.seed, live_meshcat=args.meshcat)
     print(_headline(summary))
@@ -64,7 +65,7 @@ def cmd_compare(args):
     from safesysid.online import run_online
     from safesysid.report import markdown_table
 
-    scenario = _scenario(args.scenario)
+    scenario = _scenario(args)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     for m in methods:
         _method(m, scenario)

@@ -1,4 +1,4 @@
-"""`safesysid sweep`: randomized closed-loop trials on a local process pool (contracts.md).
+"""`safesysid sweep`: randomized closed-loop trials on a local process pool (README.md, "Commands").
 
 Each trial is a random scene drawn from its own seed (app/sweeps.py: start, obstacles, payload
 0-8 lb) and, unless --nominal, made adversarial: one box 1-5 cm from the arm at the start, torque
@@ -45,12 +45,12 @@ def trial_scene(base, seed, adversarial=True):
     return make_adversarial(scene) if adversarial else scene
 
 
-def run_trial(scenario_path, seed, method, adversarial=True):
+def run_trial(scenario_path, seed, method, adversarial=True, scenario_text=()):
     """One closed-loop trial (a worker process): its summary, with the seed that replays it."""
     from safesysid.online import run_online
     from safesysid.scenario import load_scenario
 
-    scene = trial_scene(load_scenario(scenario_path), seed, adversarial)
+    scene = trial_scene(load_scenario(scenario_path, overrides=list(scenario_text)), seed, adversarial)
     summary = run_online(scene, None, method=method, seed=seed, write=False)
     summary["trial_seed"] = seed
     summary["obstacles"] = [{"xyz_m": o.xyz_m, "rpy_rad": o.rpy_rad, "size_m": o.size_m} for o in scene.obstacles]
@@ -75,7 +75,7 @@ def _limit_violated(s):
 
 
 def aggregate(trials):
-    """aggregate.json of contracts.md from the trial summaries."""
+    """aggregate.json from the trial summaries (its keys are a stable interface: add, never rename)."""
     def seeds(pred):
         return sorted(int(s["trial_seed"]) for s in trials if pred(s))
 
@@ -134,7 +134,7 @@ def cmd_sweep(args):
     from safesysid.scenario import METHODS, load_scenario
 
     path = Path(args.scenario)
-    scenario = load_scenario(path)  # validates (exit 2 on bad input) before any worker starts
+    scenario = load_scenario(path, overrides=args.scenario_text)  # validates (exit 2 on bad input) before any worker starts
     methods = [m.strip() for m in (args.methods or scenario.method).split(",") if m.strip()]
     for m in methods:
         if m not in METHODS:
@@ -150,7 +150,7 @@ def cmd_sweep(args):
     print(f"sweep: {len(have)} trials already in {jsonl}, {len(todo)} to run on {args.workers} worker(s)", file=sys.stderr)
     wall0 = time.perf_counter()
     with jsonl.open("a") as fh, ProcessPoolExecutor(max_workers=args.workers) as pool:
-        futures = {pool.submit(run_trial, str(path), seed, m, not args.nominal): (m, seed) for m, seed in todo}
+        futures = {pool.submit(run_trial, str(path), seed, m, not args.nominal, args.scenario_text): (m, seed) for m, seed in todo}
         for k, fut in enumerate(as_completed(futures), 1):
             summary = fut.result()
             fh.write(json.dumps(summary, default=float) + "\n")

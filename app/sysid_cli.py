@@ -18,7 +18,7 @@ from safesysid.cli import BadInput
 from safesysid.joint_log import read_joint_log
 from safesysid.scenario import ScenarioError, load_scenario, resolve_path, robot_from_scenario, scenario_dir
 from safesysid.systems import inertial
-from safesysid.systems.estimator import EstimatorError, EstimatorSettings, IncrementalEstimator
+from safesysid.systems.estimation import EstimatorError, EstimatorSettings, IncrementalEstimator
 
 
 def payload_truth(scenario, robot):
@@ -106,7 +106,7 @@ def plot_history(path, history, truth):
 
 
 def cmd_sysid(args):
-    scenario = load_scenario(args.scenario) if args.scenario else load_scenario()
+    scenario = load_scenario(args.scenario, overrides=args.scenario_text)
     robot = robot_from_scenario(scenario)
     log = read_joint_log(args.log, robot.n)
     settings = EstimatorSettings.from_scenario(scenario)

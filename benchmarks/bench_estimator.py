@@ -12,7 +12,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from safesysid.systems import estimator as est_mod
+from safesysid.systems import estimation as est_mod
 from safesysid.systems.payload import load_dumbbells, payload_theta_in_end_effector
 from safesysid.systems.robot_model import MODELS_DIR, load_robot
 

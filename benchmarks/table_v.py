@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 
-from safesysid.systems import estimator as est_mod
+from safesysid.systems import estimation as est_mod
 from safesysid.systems import regressors
 from safesysid.systems.robot_model import load_robot
 

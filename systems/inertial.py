@@ -1,6 +1,6 @@
 """Inertial parameters of one rigid body, their physical consistency and log-Cholesky map.
 
-Parameter order everywhere (contracts.md), inertia about the body-frame origin:
+Parameter order everywhere (NAMES below), inertia about the body-frame origin:
     theta = [m, m*cx, m*cy, m*cz, Ixx, Iyy, Izz, Ixy, Iyz, Ixz]
 """
 from __future__ import annotations

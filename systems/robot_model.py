@@ -3,7 +3,7 @@
 Everything above (plant, controller, planner, estimator, diagnosis) gets its kinematics,
 nominal parameters, limits and friction from a RobotModel, so there is one source of truth.
 
-Parameter vector theta (length 14 n), contracts.md order:
+Parameter vector theta (length 14 n), in this order everywhere:
     [theta_body_1 (10), ..., theta_body_n (10), friction_1 (4), ..., friction_n (4)]
 body i = composite child of joint i (bodies welded to it merged), about its frame origin;
 friction_j = [Fc, Fv, Ia, beta].

@@ -1,6 +1,6 @@
 """SysIdEstimator: Algorithm 1 as a Drake LeafSystem, refreshed every t_p as in Algorithm 2.
 
-Thin wrapper: the math is in estimator.py. Inputs: `state` (q, v; the plant's state port, 2n)
+Thin wrapper: the math is in estimation/. Inputs: `state` (q, v; the plant's state port, 2n)
 and `measured_torque` (n): the torque held over [t_k, t_k+1] as sampled at t_k (in the real
 arm the sensor reads the command the plant applies over the next step). Outputs (whole robot,
 14n each): `theta0` (θ_r nominal with the identified θ_e), `theta_lower`, `theta_upper` (θ_r box
@@ -27,7 +27,7 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import BasicVector, EventStatus, LeafSystem
 
-from .estimator import EstimatorError, EstimatorSettings, IncrementalEstimator
+from .estimation import EstimatorError, EstimatorSettings, IncrementalEstimator
 
 
 @dataclass(frozen=True)

@@ -260,8 +260,8 @@ def task_problem_from_scenario(scenario, q_start=None):
     scenario's gains and prior (as app/online.py gives the planner).
     """
     from safesysid.online import prior
-    from safesysid.scenario import ScenarioError, resolve_path, robot_from_scenario, scenario_dir, task_enabled
     from .armour import tracking_bounds_for
+    from .config import ScenarioError, resolve_path, robot_from_scenario, scenario_dir, task_enabled
     from .controller_systems import gains_from_scenario
     from .payload import load_dumbbells
     from .real_arm import true_theta
@@ -884,7 +884,7 @@ def verify_task_trajectory(problem: TaskProblem, trajectory: PiecewiseBezier, ra
     from pydrake.multibody.tree import MultibodyForces
     from pydrake.systems.framework import DiagramBuilder
 
-    from safesysid.scenario import Planner, Scenario
+    from .config import Planner, Scenario
     from .real_arm import add_real_arm
     from .regressors import coulomb_shape
     from .safety_monitor import SafetyMonitor, limit_ratio

@@ -36,3 +36,26 @@ def test_bad_scenario_exits_2_with_one_line(tmp_path, yaml_text, field):
 def test_bad_method_exits_2(tmp_path, capsys):
     assert main(["run", "--method", "best", "--out", str(tmp_path)]) == 2
     assert "--method" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("verb", [["run"], ["compare", "scenarios/quickstart.yaml"], ["sweep", "scenarios/quickstart.yaml"],
+                                  ["sysid", "no_log.csv"]])
+def test_scenario_text_is_a_layer_on_every_scenario_verb(tmp_path, capsys, verb):
+    """--scenario-text reaches the loader (a bad key in it exits 2 naming it) on each verb."""
+    from safesysid.scenario import SCENARIOS_DIR
+
+    args = [a.replace("scenarios/", f"{SCENARIOS_DIR}/") for a in verb]
+    code = main([*args, "--out", str(tmp_path), "--scenario-text", "seed: 4", "--scenario-text", "noise: {torque_rato: 0.1}"])
+    err = capsys.readouterr().err
+    assert code == 2 and "--scenario-text[1]: noise.torque_rato: unknown key" in err, err
+
+
+def test_scenario_text_changes_only_the_keys_it_names():
+    from safesysid.cli import build_parser
+    from safesysid.run_cli import _scenario
+
+    args = build_parser().parse_args(["run", "--scenario-text", "noise: {torque_floor_Nm: 0.1}",
+                                      "--scenario-text", "seed: 7"])
+    s = _scenario(args)
+    assert s.name == "quickstart" and s.seed == 7 and s.payload.dumbbell == "4lb"
+    assert (s.noise.torque_ratio, s.noise.torque_floor_Nm) == (0.025, 0.1)

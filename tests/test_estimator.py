@@ -1,9 +1,9 @@
-"""Algorithm 1 (systems/estimator.py): data model, solver, provable interval, incremental use."""
+"""Algorithm 1 (systems/estimation/): data model, solver, provable interval, incremental use."""
 import numpy as np
 import pytest
 
 from conftest import n_trials
-from safesysid.systems import estimator as E
+from safesysid.systems import estimation as E
 from safesysid.systems import inertial
 from safesysid.systems.payload import load_dumbbells, payload_theta_in_end_effector
 from safesysid.systems.robot_model import MODELS_DIR, load_robot
@@ -91,7 +91,7 @@ def test_quadrature_bound_covers_the_integration_error(robot, dumbbells, integra
     resid = lhs - rows.T
     assert np.all(np.abs(resid) <= rows.quad)
     assert np.abs(resid).max() > 1e-3 * rows.quad.max()  # a real error, not a zero
-    trapezoid_torque = E._segment_sums(tau, t, bounds, "trapezoid")
+    trapezoid_torque = E.segment_sums(tau, t, bounds, "trapezoid")
     assert np.any(np.abs(lhs - trapezoid_torque) > rows.quad)
 
 

@@ -14,11 +14,14 @@ a missing parameter floor) puts it outside.
 
 CI: 64 cases (a 5 % failure rate goes unseen with probability 0.95^64 = 4 %); SAFESYSID_FULL=1: 400.
 """
+import dataclasses
+
 import numpy as np
 import pytest
 
 from conftest import n_trials
-from safesysid.systems import estimator as E
+from safesysid.systems import estimation as E
+from safesysid.systems.estimation.enclosure import _left_inverse
 from safesysid.systems.payload import payload_theta_in_end_effector
 from test_estimator import CENTRE, PAYLOADS, dumbbells, robot  # noqa: F401 (fixtures)
 
@@ -34,8 +37,8 @@ def theta_r_radius(est):
 
 def left_inverse(est, rows, kind):
     """One of the estimator's two least-squares left inverses L (10, S·n)."""
-    settings = est.settings if kind == "map" else E.replace(est.settings, point_estimate="paper", row_weighting="bound")
-    return E._left_inverse(rows, est.theta_r, theta_r_radius(est), settings)[0]
+    settings = est.settings if kind == "map" else dataclasses.replace(est.settings, point_estimate="paper", row_weighting="bound")
+    return _left_inverse(rows, est.theta_r, theta_r_radius(est), settings)[0]
 
 
 def held_samples(t, bounds):

@@ -321,7 +321,7 @@ def test_logged_torque_is_the_torque_held_over_the_next_step(robot):
     the right sum (a log lagged by one step) and the trapezoid (the old rule)."""
     from pydrake.systems.framework import LeafSystem
 
-    from safesysid.systems import estimator as E
+    from safesysid.systems import estimation as E
 
     s = load_scenario(overrides={"payload": {"dumbbell": "8lb"}, "noise": {"distribution": "none"}})
     theta = true_theta(robot, scenario_dumbbell(s))
@@ -355,6 +355,6 @@ def test_logged_torque_is_the_torque_held_over_the_next_step(robot):
     lhs = rows.Y @ theta[robot.ee_slice] + np.einsum("snk,k->sn", rows.D_r, theta[robot.rest_mask()])
     left = np.abs(lhs - rows.T).max()
     right = np.abs(lhs - np.stack([tau[a + 1:b + 1].T @ np.diff(t[a:b + 1]) for a, b in bounds])).max()
-    trapezoid = np.abs(lhs - E._segment_sums(tau, t, bounds, "trapezoid")).max()
+    trapezoid = np.abs(lhs - E.segment_sums(tau, t, bounds, "trapezoid")).max()
     print(f"momentum residual max: left sum {left:.3g}, trapezoid {trapezoid:.3g}, right sum {right:.3g} N·m·s")
     assert left < 0.5 * trapezoid < 0.5 * right

@@ -6,7 +6,7 @@ import pytest
 
 from safesysid.cli import main
 from safesysid.joint_log import JointLog, write_joint_log
-from safesysid.systems import estimator as E
+from safesysid.systems import estimation as E
 from safesysid.systems.payload import load_dumbbells, payload_theta_in_end_effector
 from safesysid.systems.robot_model import MODELS_DIR, load_robot
 

@@ -7,7 +7,7 @@ from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import Adder, ConstantVectorSource, MatrixGain, ZeroOrderHold
 
 from safesysid.scenario import load_scenario
-from safesysid.systems.estimator import EstimatorSettings
+from safesysid.systems.estimation import EstimatorSettings
 from safesysid.systems.robot_model import load_robot, make_plant
 from safesysid.systems.sysid_system import SysIdEstimator
 

@@ -20,7 +20,7 @@ from safesysid.systems.real_arm import scenario_dumbbell, true_theta
 from conftest import n_trials
 
 PAYLOADS = ["none", "4lb", "5lb", "6lb", "7lb", "8lb"]
-HARDWARE_V_MAX = 0.02  # J, the reference's value on the Gen3 (reference-notes.md)
+HARDWARE_V_MAX = 0.02  # J, the ARMOUR authors' value on the Gen3 hardware
 SCENARIO_V_MAX = load_scenario().controller.V_max
 
 

@@ -1,0 +1,286 @@
+"""Algorithm 1 chunk by chunk: the Estimate it publishes and the IncrementalEstimator that keeps
+per-segment rows, latches consistency and intersects each update with the published box.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from .. import inertial
+from ..uncertainty import parameter_radius
+from .enclosure import box_is_consistent, torque_row_radius, interval_hull, set_membership_bounds
+from .log_cholesky import cost_grad_hess, nearest_consistent, solve_log_cholesky
+from .segments import SegmentRows, build_segment_rows, segment_bounds
+from .settings import EstimatorError, EstimatorSettings
+
+
+@dataclass
+class Estimate:
+    theta_e: np.ndarray  # θ0 = P(η*) of the end effector (10)
+    lower: np.ndarray  # [θ_e] (10), intersected with the previous interval
+    upper: np.ndarray
+    theta: np.ndarray  # whole robot nominal (14 n)
+    theta_lower: np.ndarray  # whole robot interval (14 n)
+    theta_upper: np.ndarray
+    eta: np.ndarray
+    theta_ls: np.ndarray  # unconstrained least squares Y⁺U(m) (centre of this update's box)
+    update_lower: np.ndarray  # this update's box before intersection
+    update_upper: np.ndarray
+    radius_torque: np.ndarray
+    radius_theta_r: np.ndarray
+    radius_quadrature: np.ndarray
+    radius_rounding: np.ndarray
+    case: str  # interior | interior_at_m | lmi_active | not_identifiable | prior
+    consistent: bool  # False from the first update whose data contradict a declared bound (latched)
+    cond_Y: float
+    num_segments: int
+    num_samples: int
+    solver: dict = field(default_factory=dict)
+    message: str = ""
+    problems: list = field(default_factory=list)  # this update's evidence that an assumption failed
+    quadrature_ratio: float = 0.0  # max over rows of quadrature bound / torque radius
+    update_time_s: float = 0.0
+
+    @property
+    def widths(self):
+        return self.upper - self.lower
+
+    def contains(self, theta_e, tol=0.0):
+        return bool(np.all((self.lower - tol <= theta_e) & (theta_e <= self.upper + tol)))
+
+    def to_json(self, names=inertial.NAMES):
+        f = lambda x: [float(v) for v in np.asarray(x).ravel()]  # noqa: E731
+        return {"nominal": f(self.theta_e), "lower": f(self.lower), "upper": f(self.upper), "names": list(names),
+                "widths": f(self.widths), "theta_ls": f(self.theta_ls), "update_lower": f(self.update_lower),
+                "update_upper": f(self.update_upper), "radius": {"torque": f(self.radius_torque),
+                "theta_r": f(self.radius_theta_r), "quadrature": f(self.radius_quadrature),
+                "rounding": f(self.radius_rounding)}, "case": self.case, "consistent": self.consistent,
+                "cond_Y": float(self.cond_Y), "num_segments": int(self.num_segments),
+                "num_samples": int(self.num_samples), "solver": self.solver, "message": self.message,
+                "problems": list(self.problems), "quadrature_ratio": float(self.quadrature_ratio),
+                "update_time_s": float(self.update_time_s)}
+
+class IncrementalEstimator:
+    """Accepts joint-log chunks; keeps per-segment rows so old segments are never recomputed.
+
+    prior: optional (lower, upper) of θ_e to intersect with (e.g. the paper's Table II box). It
+    also bounds θ_e in the quadrature term; without one that term takes |θ_e − θ_e0| ≤ |θ_e0|
+    (θ_e0 = prior_nominal, or the model's end effector).
+
+    Consistency is latched: the first update whose data contradict a declared bound (two
+    enclosures that do not meet, an infeasible set-membership LP, a box disjoint from the
+    published one, a torque faster than declared) sets `consistent` False for good, and from then
+    on the last consistent box (or the prior) is published unchanged: a published box is never
+    outside the previous one, nor outside the prior.
+    """
+
+    def __init__(self, robot, settings: EstimatorSettings | None = None, prior=None, prior_nominal=None):
+        self.robot = robot
+        self.settings = st = settings or EstimatorSettings()
+        if st.integration not in ("trapezoid", "euler"):
+            raise EstimatorError(f"estimator.integration: {st.integration!r} is not trapezoid or euler")
+        if st.torque_signal not in ("held", "continuous"):
+            raise EstimatorError(f"estimator.torque_signal: {st.torque_signal!r} is not held or continuous")
+        if st.quadrature_safety < 2:
+            raise EstimatorError(f"estimator.quadrature_safety: {st.quadrature_safety} must be >= 2")
+        self.n = robot.n
+        rest = robot.rest_mask()
+        self.theta_r = robot.theta[rest].copy()
+        self.theta_r_radius = parameter_radius(robot, st.theta_r_ratio, st.theta_r_ratio, st.theta_r_floor)[rest]
+        self.rows = SegmentRows.empty(self.n, len(self.theta_r))
+        self._pending = None  # (t, q, v, tau) of the unfinished tail
+        self._consumed = 0  # global index of the first pending sample
+        self.num_samples = 0
+        self.prior = None if prior is None else (np.asarray(prior[0], float), np.asarray(prior[1], float))
+        nominal = robot.theta_e if prior_nominal is None else np.asarray(prior_nominal, float)
+        self.prior_nominal = nominal.copy()  # published before the first update (need not be consistent)
+        self.eta = inertial.theta_to_log_cholesky(nominal) if inertial.is_physically_consistent(nominal) \
+            else np.zeros(10)
+        self.estimate: Estimate | None = None
+        self.consistent = True  # latched: False from the first inconsistent update on
+        self.update_times_s = []
+        self.messages = []
+
+    # -- data -------------------------------------------------------------------------------
+    def add(self, t, q, v, tau):
+        """Append samples (any chunk size); builds the segments that became complete."""
+        t = np.atleast_1d(np.asarray(t, float))
+        q, v, tau = (np.atleast_2d(np.asarray(x, float)) for x in (q, v, tau))
+        if q.shape != (len(t), self.n) or v.shape != q.shape or tau.shape != q.shape:
+            raise EstimatorError(f"expected {self.n} joints per sample, got q {q.shape}, v {v.shape}, tau {tau.shape}")
+        if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q)) and np.all(np.isfinite(v)) and np.all(np.isfinite(tau))):
+            raise EstimatorError("NaN or inf in the estimator input")
+        if self._pending is not None:
+            if len(t) and t[0] <= self._pending[0][-1]:
+                raise EstimatorError(f"time is not strictly increasing at t={t[0]:.6g}")
+            t, q, v, tau = (np.concatenate([a, b]) for a, b in zip(self._pending, (t, q, v, tau)))
+        if np.any(np.diff(t) <= 0):
+            raise EstimatorError("time is not strictly increasing")
+        self.num_samples += len(t) - (0 if self._pending is None else len(self._pending[0]))
+        bounds, next_start = segment_bounds(t, self.settings.horizon_s, self.settings.segment_gap_s())
+        if len(bounds):
+            new = build_segment_rows(self.robot, t, q, v, tau, bounds, self.settings, self.theta_box(), self._consumed)
+            if len(self.rows) and len(new) and new.start_index[0] == self.rows.end_index[-1]:
+                new.shared_prev[0] = True
+            self.rows = self.rows.concat(new)
+        self._consumed += next_start
+        self._pending = tuple(x[next_start:] for x in (t, q, v, tau))
+        return len(bounds)
+
+    def theta_box(self):
+        """(centre, radius) of the box the whole-robot θ lies in: [θ_r] and the published [θ_e]
+        (or the prior), for the quadrature bound."""
+        centre, radius = self.robot.theta.copy(), np.zeros(14 * self.n)
+        radius[self.robot.rest_mask()] = self.theta_r_radius
+        ee = self.robot.ee_slice
+        box = (self.estimate.lower, self.estimate.upper) if self.estimate is not None else self.prior
+        if box is not None and np.all(np.isfinite(box[0])) and np.all(np.isfinite(box[1])):
+            centre[ee], radius[ee] = 0.5 * (box[0] + box[1]), 0.5 * (box[1] - box[0])
+        else:
+            centre[ee], radius[ee] = self.prior_nominal, np.abs(self.prior_nominal)
+        return centre, radius
+
+    # -- estimate ---------------------------------------------------------------------------
+    def update(self):
+        """Algorithm 1 on all segments so far; returns the Estimate (also kept in .estimate)."""
+        start = time.perf_counter()
+        robot, st = self.robot, self.settings
+        S = len(self.rows)
+        if S * self.n < 10:
+            hint = "" if st.segment_gap_s() == st.max_gap_s else (
+                f" (held torque: a step longer than {st.segment_gap_s():.3g} s, 1.5 hold periods, ends a segment; "
+                "for a log sampled slower than its controller set estimator.hold_period_s or "
+                "estimator.torque_signal: continuous)")
+            raise EstimatorError(f"too little data: {S} segment(s) of {st.horizon_s} s; need at least "
+                                 f"{int(np.ceil(10 / self.n))} gap-free segments{hint}")
+        hull, cond = interval_hull(self.rows, self.theta_r, self.theta_r_radius, st)
+        prev = self.estimate
+        if hull is None or cond > st.max_condition:
+            return self._finish(self._prior_estimate(cond, S, f"not identifiable yet (cond(Y) = {cond:.3g})"), start)
+        centre = hull["centre"]
+        A, b, c = hull["A"], hull["b"], hull["c"]
+        # Warm start: previous η, or P⁻¹ of the unconstrained solution when it is consistent
+        # (then it is the optimum and the NLP only confirms it) — whichever costs less.
+        starts = [self.eta, inertial.theta_to_log_cholesky(nearest_consistent(centre))]
+        eta0 = min(starts, key=lambda e: cost_grad_hess(e, A, b, c)[0])
+        sol = solve_log_cholesky(A, b, c, eta0, st.solver, st.newton_steps)
+        if not np.all(np.isfinite(sol.theta)):
+            sol.eta, sol.theta = self.eta, inertial.log_cholesky_to_theta(self.eta)
+            self.messages.append("solver failed; kept the previous estimate")
+        radius = hull["rad_torque"] + hull["rad_theta_r"] + hull["rad_quad"] + hull["rad_round"]
+        lo = np.nextafter(centre - radius, -np.inf)
+        hi = np.nextafter(centre + radius, np.inf)
+        # Evidence that a declared assumption failed (each one empties the set the truth is in).
+        problems = []
+        if np.any(self.rows.violated):
+            problems.append(f"the measured torque changes faster than the declared {st.torque_rate_limit_Nm_s} N·m/s "
+                            f"in {int(self.rows.violated.sum())} segment(s)")
+        # The same hull with the other left inverse (rows scaled by their declared bound): also
+        # an enclosure, often tighter on the mass; keep the intersection.
+        if st.point_estimate == "map":
+            alt, _ = interval_hull(self.rows, self.theta_r, self.theta_r_radius,
+                                   replace(st, point_estimate="paper", row_weighting="bound"))
+            if alt is not None:
+                r_alt = alt["rad_torque"] + alt["rad_theta_r"] + alt["rad_quad"] + alt["rad_round"]
+                lo_alt = np.maximum(lo, np.nextafter(alt["centre"] - r_alt, -np.inf))
+                hi_alt = np.minimum(hi, np.nextafter(alt["centre"] + r_alt, np.inf))
+                if np.any(lo_alt > hi_alt):
+                    problems.append("the two least-squares enclosures do not meet in "
+                                    f"{[inertial.NAMES[k] for k in np.flatnonzero(lo_alt > hi_alt)]}")
+                else:
+                    lo, hi = lo_alt, hi_alt
+        params = {"none": [], "mass": [0], "all": list(range(10))}[st.set_membership]
+        if params and not problems:
+            sm_lo, sm_hi, feasible = set_membership_bounds(self.rows, self.theta_r, self.theta_r_radius, st, lo, hi,
+                                                           params)
+            if not feasible:
+                problems.append("the set-membership LP is infeasible")
+            else:
+                lo = np.where(np.isnan(sm_lo), lo, np.maximum(lo, sm_lo))
+                hi = np.where(np.isnan(sm_hi), hi, np.minimum(hi, sm_hi))
+        box_ok, lam = box_is_consistent(centre, radius)
+        at_centre = np.abs(sol.theta - centre) <= 1e-6 * (np.abs(centre) + radius + 1e-9)
+        if box_ok:
+            case = "interior"  # exact hull of θ*([m]); θ* linear in m on the whole box
+        elif lam > 0 and np.all(at_centre):
+            case = "interior_at_m"  # LMI inactive at m but reachable inside [m]; box encloses truth
+        else:
+            case = "lmi_active"  # θ0 near the LMI boundary; box around Y⁺U(m) still encloses truth
+        # Intersect with the published interval (or the prior).
+        old = (prev.lower, prev.upper) if prev is not None else self.prior
+        new_lo, new_hi = (lo, hi) if old is None else (np.maximum(lo, old[0]), np.minimum(hi, old[1]))
+        if np.any(new_lo > new_hi):
+            problems.append("the new interval does not meet the published one in "
+                            f"{[inertial.NAMES[k] for k in np.flatnonzero(new_lo > new_hi)]}")
+        notes = []
+        quad_ratio = float(np.max(self.rows.quad / np.maximum(torque_row_radius(self.rows), 1e-300)))
+        if quad_ratio > st.quadrature_warn_ratio:
+            notes.append(f"quadrature term up to {quad_ratio:.2f} of a row's torque radius: the motion is not "
+                         "resolved by the sampling")
+        if problems:
+            if self.consistent:
+                notes.insert(0, "inconsistent data (" + "; ".join(problems) + "): torque noise or θ_r outside the "
+                             "declared bounds, or the model is wrong; keeping the last consistent interval")
+            self.consistent = False
+        self.messages.extend(notes)
+        if not self.consistent:  # latched: publish the last consistent box (or the prior) unchanged
+            keep = prev or self._prior_estimate(np.inf, 0, "")
+            theta_e, new_lo, new_hi = keep.theta_e.copy(), keep.lower.copy(), keep.upper.copy()
+        else:
+            self.eta = sol.eta  # the consistent least-squares solution stays the warm start
+            # Publish the nominal clipped into the interval: the truth is inside it, so per parameter
+            # the projection is never farther from the truth (it matters for barely excited inertias).
+            theta_e = np.clip(sol.theta, new_lo, new_hi)
+        theta = robot.theta.copy()
+        theta[robot.ee_slice] = theta_e
+        t_lo, t_hi = self._robot_box()
+        t_lo[robot.ee_slice], t_hi[robot.ee_slice] = new_lo, new_hi
+        est = Estimate(theta_e=theta_e, lower=new_lo, upper=new_hi, theta=theta, theta_lower=t_lo, theta_upper=t_hi,
+                       eta=sol.eta, theta_ls=centre, update_lower=lo, update_upper=hi,
+                       radius_torque=hull["rad_torque"], radius_theta_r=hull["rad_theta_r"],
+                       radius_quadrature=hull["rad_quad"], radius_rounding=hull["rad_round"], case=case,
+                       consistent=self.consistent, cond_Y=cond, num_segments=S, num_samples=self.num_samples,
+                       solver={"name": sol.solver, "success": sol.success, "result": sol.message,
+                               "cost": sol.cost, "grad_norm": sol.grad_norm, "newton_steps": sol.newton_steps},
+                       message="; ".join(notes), problems=problems, quadrature_ratio=quad_ratio)
+        return self._finish(est, start)
+
+    def _finish(self, est, start):
+        est.update_time_s = time.perf_counter() - start
+        self.update_times_s.append(est.update_time_s)
+        self.estimate = est
+        return est
+
+    def _robot_box(self):
+        lo, hi = self.robot.theta.copy(), self.robot.theta.copy()
+        mask = self.robot.rest_mask()
+        lo[mask], hi[mask] = self.theta_r - self.theta_r_radius, self.theta_r + self.theta_r_radius
+        return lo, hi
+
+    def _prior_estimate(self, cond, S, message):
+        prev = self.estimate
+        if prev is not None and prev.case != "prior":
+            prev.message = message
+            return prev
+        theta_e = self.prior_nominal.copy()
+        lo, hi = self.prior if self.prior is not None else (np.full(10, -np.inf), np.full(10, np.inf))
+        t_lo, t_hi = self._robot_box()
+        t_lo[self.robot.ee_slice], t_hi[self.robot.ee_slice] = lo, hi
+        theta = self.robot.theta.copy()
+        theta[self.robot.ee_slice] = theta_e
+        z = np.zeros(10)
+        return Estimate(theta_e, lo.copy(), hi.copy(), theta, t_lo, t_hi, self.eta, theta_e, lo.copy(), hi.copy(),
+                        z, z, z, z, "prior", self.consistent, cond, S, self.num_samples, {}, message)
+
+    def prior_estimate(self):
+        """What to publish before the first identification (nominal θ_e, prior box)."""
+        return self._prior_estimate(np.inf, 0, "no data yet")
+
+
+def identify(robot, t, q, v, tau, settings: EstimatorSettings | None = None, prior=None, prior_nominal=None):
+    """Algorithm 1 on a whole log (pure function): returns an Estimate."""
+    est = IncrementalEstimator(robot, settings, prior, prior_nominal)
+    est.add(t, q, v, tau)
+    return est.update()

@@ -1,0 +1,74 @@
+"""Estimator settings (from a scenario's estimator and noise sections) and its error type."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..uncertainty import ParameterFloors
+
+EPS = np.finfo(float).eps
+
+
+class EstimatorError(ValueError):
+    """Bad estimator input (too little data, wrong shapes, non-finite values)."""
+
+
+@dataclass
+class EstimatorSettings:
+    horizon_s: float = 0.1
+    max_gap_s: float = 0.05
+    integration: str = "trapezoid"  # quadrature of ∫W_c dt: trapezoid | euler (paper's left sum)
+    # What the logged torque is. "held": each sample is the torque a zero-order hold applies until
+    # the next sample (the simulated arm, a digital controller logged at its own rate): ∫τ dt is
+    # the left sum, exactly. "continuous": a signal sampled at the log instants whose rate is at
+    # most torque_rate_limit_Nm_s (checked on the data): trapezoid plus its error bound.
+    torque_signal: str = "held"
+    hold_period_s: float | None = None  # held: a step longer than 1.5 hold periods is a gap
+    torque_rate_limit_Nm_s: float = 200.0  # continuous: declared |dτ/dt| of the applied torque
+    solver: str = "ipopt"  # ipopt | snopt
+    torque_ratio: float = 0.025  # declared |τ_meas − τ| ≤ ratio·|τ| + floor
+    torque_floor_Nm: float = 0.05
+    theta_r_ratio: float = 0.05  # [θ_r] = θ_r ± max(ratio·|θ_r|, floor of its kind)
+    theta_r_floor: ParameterFloors = field(default_factory=ParameterFloors)
+    # κ of the quadrature bound (`quadrature_bound`, its assumption); ≥ 2 covers any integrand
+    # that is monotone on each step, whatever its slope.
+    quadrature_safety: float = 2.0
+    # Above this share of a row's torque radius the quadrature term is reported as "motion not
+    # resolved by the sampling" (an event; the bound still holds under its assumption).
+    quadrature_warn_ratio: float = 1.0
+    newton_steps: int = 50  # max iterations of the exact-Hessian trust-region polish after the NLP
+    max_condition: float = 1e10  # above: not identifiable yet, keep the previous estimate
+    # Rows scaled by 1 / (their declared error bound) before the least squares ("bound"), or the
+    # paper's unweighted problem ("none"). Theorem 2 holds verbatim for the scaled problem
+    # (any left inverse L of Y gives θ_e = L(U(m_true) − e)); scaling shrinks the worst case.
+    row_weighting: str = "bound"
+    # Set-membership refinement (beyond the paper): the exact projection of the polytope
+    # {θ_e : ∃θ_r ∈ [θ_r], |Y θ_e + D_r θ_r − ∫τ| ≤ row bound} on the listed parameters, by LP,
+    # certified by weak duality. "mass" (2 LPs), "all" (20 LPs) or "none".
+    set_membership: str = "mass"
+    lp_generators: int = 40  # θ_r entries kept as LP variables (the rest bounded per row)
+    # Point estimate θ0: "map" (θ_r marginalised with its box as prior, rows whitened) or
+    # "paper" (the paper's ‖Y P(η) − U‖², rows scaled per `row_weighting`); see _left_inverse.
+    point_estimate: str = "map"
+
+    @classmethod
+    def from_scenario(cls, s):
+        e = s.estimator
+        return cls(horizon_s=e.horizon_s, max_gap_s=e.max_gap_s, integration=e.integration, solver=e.solver,
+                   torque_signal=e.torque_signal, hold_period_s=e.hold_period_s or s.plant.time_step_s,
+                   torque_rate_limit_Nm_s=e.torque_rate_limit_Nm_s, quadrature_safety=e.quadrature_safety,
+                   torque_ratio=s.noise.declared_torque_ratio, torque_floor_Nm=s.noise.declared_torque_floor_Nm,
+                   theta_r_ratio=s.noise.theta_r_ratio, theta_r_floor=s.noise.theta_r_floor,
+                   set_membership=e.set_membership, point_estimate=e.point_estimate)
+
+    def segment_gap_s(self):
+        """Longest step a segment may span: max_gap_s, and for a held torque 1.5 hold periods
+        (a longer step lost held samples whose torque is unknown)."""
+        if self.torque_signal == "held" and self.hold_period_s:
+            return min(self.max_gap_s, 1.5 * self.hold_period_s)
+        return self.max_gap_s
+
+    def torque_rule(self):
+        """Quadrature of ∫τ dt: the exact left sum of a held torque, else the trapezoid."""
+        return "euler" if self.torque_signal == "held" else "trapezoid"
