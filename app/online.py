@@ -19,22 +19,16 @@ from pathlib import Path
 import numpy as np
 
 from safesysid.scenario import Scenario, robot_from_scenario
-from safesysid.systems.intervals import Interval
 
 IDENTIFYING = {"ours": True, "random": True, "conservative": False, "wrong": False}
 
 
 def prior(robot, scenario: Scenario, method):
-    """(theta0, [theta]) the controller and planner start from."""
-    from safesysid.systems.armour import parameter_box
+    """(theta0, [theta]) the controller and planner start from ("wrong": the bare end effector,
+    no uncertainty anywhere)."""
+    from safesysid.systems.armour import prior_box
 
-    ii = scenario.initial_interval
-    if method == "wrong":  # the bare end effector, no uncertainty anywhere
-        theta0 = robot.theta.copy()
-        return theta0, Interval(theta0, theta0)
-    ratio = scenario.noise.theta_r_ratio
-    return parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper), rest_ratio=ratio, friction_ratio=ratio,
-                         floors=scenario.noise.theta_r_floor)
+    return prior_box(robot, scenario.initial_interval, scenario.noise, exact=method == "wrong")
 
 
 @dataclass

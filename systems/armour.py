@@ -375,3 +375,15 @@ def parameter_box(robot, theta_e_nominal, theta_e_lower, theta_e_upper, rest_rat
     lo, hi = theta0 - rad, theta0 + rad
     lo[robot.ee_slice], hi[robot.ee_slice] = theta_e_lower, theta_e_upper
     return theta0, Interval(lo, hi)
+
+
+def prior_box(robot, initial_interval, noise, exact=False):
+    """(theta0, [theta]) a run starts from: the end effector's scenario.initial_interval, the rest
+    of the robot nominal +- max(noise.theta_r_ratio |theta|, noise.theta_r_floor). exact: the
+    model's own theta with zero width (the "wrong"-model baseline)."""
+    if exact:
+        theta0 = robot.theta.copy()
+        return theta0, Interval(theta0, theta0)
+    ii, ratio = initial_interval, noise.theta_r_ratio
+    return parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper), rest_ratio=ratio,
+                         friction_ratio=ratio, floors=noise.theta_r_floor)

@@ -28,6 +28,7 @@ from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import BasicVector, LeafSystem, ValueProducer
 
 from .armour import ArmourGains, ControllerDynamics, armour_control, tracking_errors, wrap_error
+from .config import ScenarioError
 from .intervals import Interval
 
 _log = logging.getLogger(__name__)
@@ -49,14 +50,12 @@ def _fit(values, n, name):
     if arr.size == 1:
         return np.full(n, float(arr.reshape(-1)[0]))
     if arr.shape != (n,):
-        from safesysid.scenario import ScenarioError
-
         raise ScenarioError(f"controller.{name}: needs {n} values, got {arr.size}")
     return arr
 
 
 def gains_from_scenario(scenario, n):
-    """Gains from scenario.controller (defaults and units: app/scenario.py, class Controller)."""
+    """Gains from scenario.controller (defaults and units: systems/config.py, class Controller)."""
     c = scenario.controller
     return ControllerGains(
         armour=ArmourGains(_fit(c.Kr, n, "Kr"), float(c.alpha), float(c.V_max)),

@@ -43,19 +43,30 @@ Unmodelled effects (scenario.plant.effects, each off by default):
 """
 from __future__ import annotations
 
+import tempfile
+import xml.etree.ElementTree as ET
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
-from pydrake.systems.framework import BasicVector, LeafSystem
+from pydrake.geometry import Box, CollisionFilterDeclaration, Cylinder, ProximityProperties, Role
+from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
+from pydrake.multibody.plant import CoulombFriction
+from pydrake.multibody.tree import SpatialInertia
+from pydrake.systems.framework import BasicVector, DiagramBuilder, LeafSystem
+from pydrake.systems.primitives import DiscreteTimeDelay, Saturation
 
+from . import inertial
+from .config import ScenarioError, resolve_path, robot_from_scenario, scenario_dir
 from .payload import Dumbbell, load_dumbbells, payload_theta_in_end_effector
+from .robot_model import make_plant
+from .uncertainty import parameter_radius
 
 _NOISE_CHUNK = 4096
 
 
 def scenario_dumbbell(scenario):
     """The Dumbbell the scenario names, or None for payload.dumbbell == 'none'."""
-    from safesysid.scenario import ScenarioError, resolve_path, scenario_dir
 
     name = scenario.payload.dumbbell
     if name.lower() == "none":
@@ -158,7 +169,6 @@ class TorqueSensor(LeafSystem):
 
 
 def _per_joint(values, n, default, field):
-    from safesysid.scenario import ScenarioError
 
     if not values:
         return np.full(n, default, float)
@@ -176,7 +186,6 @@ def draw_robot_theta(robot, radius, rng, mode="drawn", link_theta=None):
     vertex ("corner"). link_theta (n, 10): each moving link's OWN inertial parameters (the body a
     deviation is applied to; default: robot.theta's bodies); a link deviation that would make its
     pseudo-inertia lose positive definiteness is halved until it does not."""
-    from . import inertial
 
     n = robot.n
     theta0 = robot.theta
@@ -192,14 +201,12 @@ def draw_robot_theta(robot, radius, rng, mode="drawn", link_theta=None):
 
 
 def _robot_parameter_box(robot, scenario):
-    from .uncertainty import parameter_radius
 
     ratio = scenario.noise.theta_r_ratio
     return parameter_radius(robot, ratio, ratio, scenario.noise.theta_r_floor)
 
 
 def _link_inertials(plant, names):
-    from . import inertial
 
     return np.array([inertial.from_spatial_inertia(plant.GetBodyByName(name).default_spatial_inertia())
                      for name in names])
@@ -208,10 +215,7 @@ def _link_inertials(plant, names):
 def _urdf_with_inertials(source, inertials, directory):
     """A copy of the URDF at `source` whose named links carry the given inertials ({link: theta
     about the link origin}); relative mesh paths made absolute. Returns its path."""
-    import xml.etree.ElementTree as ET
-    from pathlib import Path
 
-    from . import inertial
 
     source = Path(source)
     tree = ET.parse(source)
@@ -241,10 +245,7 @@ def _urdf_with_inertials(source, inertials, directory):
 def real_robot_theta(robot, scenario, seed):
     """(theta, link inertials) of the real arm: the nominal model (inertials None), or parameters
     drawn in the box (plant.robot_parameters) with {link name: its own drawn inertial theta}."""
-    from pathlib import Path
 
-    from safesysid.scenario import ScenarioError
-    from .robot_model import make_plant
 
     mode = scenario.plant.robot_parameters
     if mode == "nominal":
@@ -261,9 +262,7 @@ def real_robot_theta(robot, scenario, seed):
 
 def _make_real_plant(robot, inertials, time_step, builder):
     """make_plant of the model, or of a temporary copy of its URDF with the drawn inertials."""
-    import tempfile
 
-    from .robot_model import make_plant
 
     if inertials is None:
         return make_plant(robot.source, time_step, builder=builder)
@@ -306,7 +305,6 @@ class RealArm:
 
     def set_payload(self, root_context, dumbbell: Dumbbell | None):
         """Grasp (a Dumbbell) or release (None) at run time."""
-        from pydrake.multibody.tree import SpatialInertia
 
         ctx = self.plant_context(root_context)
         spatial = _dumbbell_spatial_inertia(dumbbell) if dumbbell is not None else SpatialInertia.Zero()
@@ -315,7 +313,6 @@ class RealArm:
 
     def _set_payload_collision(self, root_context, present):
         """A released dumbbell stops colliding (its proximity role leaves the context's model)."""
-        from pydrake.geometry import CollisionFilterDeclaration, Role
 
         if not self.payload_collision:
             return
@@ -344,15 +341,11 @@ class RealArm:
 
 
 def _dumbbell_spatial_inertia(db: Dumbbell):
-    from . import inertial
 
     return inertial.to_spatial_inertia(db.theta_about_centre())
 
 
 def _register_dumbbell_geometry(plant, body, db: Dumbbell):
-    from pydrake.geometry import Cylinder
-    from pydrake.math import RigidTransform, RotationMatrix
-    from pydrake.multibody.plant import CoulombFriction
 
     along_x = RotationMatrix.MakeYRotation(np.pi / 2)  # Drake cylinders run along z
     friction = CoulombFriction(0.8, 0.6)
@@ -364,9 +357,6 @@ def _register_dumbbell_geometry(plant, body, db: Dumbbell):
 
 
 def _register_obstacles(plant, scenario):
-    from pydrake.geometry import Box
-    from pydrake.math import RigidTransform, RollPitchYaw
-    from pydrake.multibody.plant import CoulombFriction
 
     world = plant.world_body()
     friction = CoulombFriction(0.8, 0.6)
@@ -390,14 +380,7 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
 
     dumbbell: "scenario" (the scenario's payload), a Dumbbell, or None (no payload at start).
     """
-    from pydrake.geometry import CollisionFilterDeclaration, ProximityProperties
-    from pydrake.math import RollPitchYaw
-    from pydrake.multibody.tree import SpatialInertia
-    from pydrake.math import RigidTransform
-    from pydrake.systems.framework import DiagramBuilder
-    from pydrake.systems.primitives import DiscreteTimeDelay, Saturation
 
-    from safesysid.scenario import ScenarioError, robot_from_scenario
 
     robot = robot or robot_from_scenario(scenario)
     n = robot.n
