@@ -60,6 +60,7 @@ def simulate_closed_loop(loop: ClosedLoop, q0, duration_s, v0=None):
     """Run from (q0, v0); returns {name: (t, data (N, size))} from the loggers."""
     sim = Simulator(loop.diagram)
     ctx = sim.get_mutable_context()
+    loop.arm.seed_noise(ctx)
     loop.arm.set_state(ctx, q0, v0)
     sim.Initialize()
     sim.AdvanceTo(duration_s)

@@ -205,6 +205,7 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
     arm, robot = built.arm, built.arm.robot
     sim = Simulator(built.diagram)
     ctx = sim.get_mutable_context()
+    arm.seed_noise(ctx)
     arm.set_state(ctx, np.asarray(scenario.q0_rad, float))
     if built.visualizer is not None:
         built.visualizer.StartRecording()

@@ -18,7 +18,9 @@ Signal path (everything from the scenario and the RobotModel; nothing hard-coded
   the body's spatial inertia in the context; a released payload is massless and loses its
   collision role in the context (the shape stays the one the arm was built with; visual stays).
 - Torque sensor: tau_meas = scale * (tau_m + n) + offset, n uniform in +-(ratio |tau_m| + floor)
-  per sample and joint (noise.distribution "none": n = 0); scale = 1, offset = 0 by default.
+  per sample and joint (noise.distribution "none": n = 0); scale = 1, offset = 0 by default. The
+  draws come from a Drake RandomSource inside the station: seed them per context with
+  RealArm.seed_noise(root_context, seed) (SetRandomContext with RandomGenerator(seed)).
 
 Robot parameters (scenario.plant.robot_parameters): "nominal" uses the model's theta exactly;
 "drawn" draws every link's inertial parameters and every joint's friction, armature and offset
@@ -54,7 +56,8 @@ from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
 from pydrake.multibody.plant import CoulombFriction
 from pydrake.multibody.tree import SpatialInertia
 from pydrake.systems.framework import BasicVector, DiagramBuilder, LeafSystem
-from pydrake.systems.primitives import DiscreteTimeDelay, Saturation
+from pydrake.common import RandomDistribution, RandomGenerator
+from pydrake.systems.primitives import DiscreteTimeDelay, RandomSource, Saturation
 
 from . import inertial
 from .config import ScenarioError, resolve_path, robot_from_scenario, scenario_dir
@@ -62,7 +65,6 @@ from .payload import Dumbbell, load_dumbbells, payload_theta_in_end_effector
 from .robot_model import make_plant
 from .uncertainty import parameter_radius
 
-_NOISE_CHUNK = 4096
 
 
 def scenario_dumbbell(scenario):
@@ -123,29 +125,30 @@ class SeriesElasticEncoders(LeafSystem):
 
 
 class TorqueSensor(LeafSystem):
-    """scale * (tau + n) + offset, n uniform inside +-(ratio |tau| + floor), one draw per step;
-    with lag_s > 0 the signal is first low-passed, lag_s y' + y = raw, exact for a torque held
-    over each step: y_k = a y_(k-1) + (1 - a) raw_k, a = exp(-h / lag_s), starting steady."""
+    """scale * (tau + w) + offset, w = (2 u - 1)(ratio |tau| + floor), u the `unit_noise` input
+    (n draws of U(0, 1) per step, from Drake's RandomSource in the station; the input exists only
+    when noisy); with lag_s > 0 the signal is first low-passed, lag_s y' + y = raw, exact for a
+    torque held over each step: y_k = a y_(k-1) + (1 - a) raw_k, a = exp(-h / lag_s), starting steady."""
 
-    def __init__(self, n, time_step, ratio, floor, scale, offset, seed, noisy, lag_s=0.0):
+    def __init__(self, n, time_step, ratio, floor, scale, offset, noisy, lag_s=0.0):
         super().__init__()
-        self.time_step, self.ratio, self.floor, self.noisy = float(time_step), float(ratio), float(floor), bool(noisy)
+        self.ratio, self.floor = float(ratio), float(floor)
         self.scale, self.offset = np.asarray(scale, float), np.asarray(offset, float)
         self.torque = self.DeclareVectorInputPort("torque", n)
+        self.unit_noise = self.DeclareVectorInputPort("unit_noise", n) if noisy else None
         self.DeclareVectorOutputPort("measured_torque", BasicVector(n), self._calc)
-        self._rng = np.random.default_rng(seed)
-        self._unit = np.empty((0, n))
         self._keep = np.exp(-time_step / lag_s) if lag_s > 0 else 0.0
         if lag_s > 0:
+            # Unrestricted (not discrete) updates: at t_k they run before the noise source redraws,
+            # so the filter sees the reading a logger or the estimator sees at t_k.
             self._filtered = self.DeclareDiscreteState(n)
-            self.DeclareInitializationDiscreteUpdateEvent(self._start)
-            self.DeclarePeriodicDiscreteUpdateEvent(time_step, 0.0, self._step)
+            self.DeclareInitializationUnrestrictedUpdateEvent(self._start)
+            self.DeclarePeriodicUnrestrictedUpdateEvent(time_step, 0.0, self._step)
 
     def _raw(self, context):
         tau = self.torque.Eval(context)
-        if self.noisy:
-            step = int(round(context.get_time() / self.time_step))
-            tau = tau + self.unit_noise(step) * (self.ratio * np.abs(tau) + self.floor)
+        if self.unit_noise is not None:
+            tau = tau + (2.0 * self.unit_noise.Eval(context) - 1.0) * (self.ratio * np.abs(tau) + self.floor)
         return self.scale * tau + self.offset
 
     def _lagged(self, context):
@@ -153,16 +156,10 @@ class TorqueSensor(LeafSystem):
         return self._keep * previous + (1.0 - self._keep) * self._raw(context)
 
     def _start(self, context, state):
-        state.get_mutable_vector(self._filtered).SetFromVector(self._raw(context))
+        state.get_mutable_discrete_state(self._filtered).SetFromVector(self._raw(context))
 
     def _step(self, context, state):
-        state.get_mutable_vector(self._filtered).SetFromVector(self._lagged(context))
-
-    def unit_noise(self, step):
-        # Deterministic per (seed, step): a table of U(-1, 1) extended on demand.
-        while step >= len(self._unit):
-            self._unit = np.vstack([self._unit, self._rng.uniform(-1.0, 1.0, (_NOISE_CHUNK, self._unit.shape[1]))])
-        return self._unit[step]
+        state.get_mutable_discrete_state(self._filtered).SetFromVector(self._lagged(context))
 
     def _calc(self, context, output):
         output.SetFromVector(self._lagged(context) if self._keep else self._raw(context))
@@ -295,6 +292,8 @@ class RealArm:
     system: object = None  # the Diagram "real_arm"
     plant_state_output: object = None  # OutputPort (2n): the plant's true q, v (not the encoders')
     query_output: object = None  # OutputPort: SceneGraph's QueryObject (true geometry)
+    noise_source: object = None  # RandomSource of the torque sensor's noise (None: noiseless)
+    seed: int = 0  # the run's seed: drawn parameters at build, sensor noise via seed_noise
 
     @property
     def n(self):
@@ -330,6 +329,14 @@ class RealArm:
         if changed:  # a re-assigned role starts unfiltered: no contact with the arm, again
             self.scene_graph.collision_filter_manager(sg_ctx).Apply(
                 CollisionFilterDeclaration().ExcludeWithin(self.robot_geometries))
+
+    def seed_noise(self, root_context, seed=None):
+        """Seed the sensor noise of this context (the station's seed unless given): Drake's
+        SetRandomContext(RandomGenerator(seed)) on the noise source only, so the rest of the
+        context is kept. Unseeded, a RandomSource draws from a default seed of its own."""
+        if self.noise_source is not None:
+            self.noise_source.SetRandomContext(self.noise_source.GetMyMutableContextFromRoot(root_context),
+                                               RandomGenerator(int(self.seed if seed is None else seed)))
 
     def set_state(self, root_context, q, v=None):
         ctx = self.plant_context(root_context)
@@ -455,13 +462,19 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
         station.Connect(friction.get_output_port(), encoders.transmitted)
         state_out = encoders.get_output_port()
     noise = scenario.noise
+    noisy = noise.distribution == "uniform"
     sensor = station.AddSystem(TorqueSensor(
         n, h, noise.torque_ratio, noise.torque_floor_Nm,
         _per_joint(eff.torque_sensor_scale, n, 1.0, "torque_sensor_scale"),
         _per_joint(eff.torque_sensor_offset_Nm, n, 0.0, "torque_sensor_offset_Nm"),
-        seed, noise.distribution == "uniform", eff.torque_sensor_lag_s))
+        noisy, eff.torque_sensor_lag_s))
     sensor.set_name("torque_sensor")
     station.Connect(sat.get_output_port(), sensor.torque)
+    noise_source = None
+    if noisy:  # one U(0, 1) draw per joint and step, seeded through the context (RealArm.seed_noise)
+        noise_source = station.AddSystem(RandomSource(RandomDistribution.kUniform, n, h))
+        noise_source.set_name("torque_noise")
+        station.Connect(noise_source.get_output_port(), sensor.unit_noise)
 
     station.ExportInput(sat.get_input_port(), "commanded_torque")
     for port, name in ((state_out, "state"), (sensor.get_output_port(), "measured_torque"),
@@ -478,4 +491,5 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
                    applied_torque_output=out("applied_torque"), motor_torque_output=out("motor_torque"),
                    torque_sensor=sensor, time_step=h, payload_collision=payload_collision,
                    robot_geometries=robot_geometries, theta=theta, system=system,
-                   plant_state_output=out("plant_state"), query_output=out("query_object"))
+                   plant_state_output=out("plant_state"), query_output=out("query_object"), noise_source=noise_source,
+                   seed=int(seed))

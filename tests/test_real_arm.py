@@ -110,6 +110,7 @@ def test_saturation_and_noisy_torque_sensor(robot):
     s = load_scenario(overrides={"noise": {"torque_ratio": 0.05, "torque_floor_Nm": 0.1}, "payload": {"dumbbell": "none"}})
     command = np.array([500.0, -500.0, 10.0, -10.0, 100.0, 1.0, 0.0])
     sim, arm, logs = _rig(s, robot, command)
+    arm.seed_noise(sim.get_mutable_context())
     arm.set_state(sim.get_mutable_context(), s.q0_rad)
     sim.AdvanceTo(0.3)
     limit = robot.joint_params.torque_limit
@@ -123,11 +124,13 @@ def test_saturation_and_noisy_torque_sensor(robot):
     ratio = noise / bound
     assert np.all(np.abs(ratio) <= 1.0)
     assert np.abs(ratio).max() > 0.95 and abs(ratio.mean()) < 0.1  # uniform, filling the bound
-    # Deterministic per seed.
-    sim2, arm2, logs2 = _rig(s, robot, command)
-    arm2.set_state(sim2.get_mutable_context(), s.q0_rad)
-    sim2.AdvanceTo(0.3)
-    np.testing.assert_array_equal(_log(sim2, logs2["measured"]), _log(sim, logs["measured"]))
+    # Deterministic per seed (Drake's SetRandomContext through RealArm.seed_noise), new per seed.
+    for seed, same in ((s.seed, True), (s.seed + 1, False)):
+        sim2, arm2, logs2 = _rig(s, robot, command)
+        arm2.seed_noise(sim2.get_mutable_context(), seed)
+        arm2.set_state(sim2.get_mutable_context(), s.q0_rad)
+        sim2.AdvanceTo(0.3)
+        assert np.array_equal(_log(sim2, logs2["measured"]), _log(sim, logs["measured"])) == same
 
 
 def test_sensor_offset_scale_and_delay(robot):
@@ -159,6 +162,7 @@ def test_lagged_torque_sensor(robot):
     runs = {}
     for name, scen in (("lag", s), ("plain", plain)):
         sim, arm, logs = _rig(scen, robot, hold)
+        arm.seed_noise(sim.get_mutable_context())  # the same draws in both runs
         arm.set_state(sim.get_mutable_context(), q0)
         sim.AdvanceTo(0.1)
         runs[name] = {k: _log(sim, logs[k]) for k in ("measured", "state")}
