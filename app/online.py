@@ -79,10 +79,16 @@ def identification_horizon_s(scenario):
     return (p.num_plans - 1) * p.replan_period_s + p.duration_s
 
 
-def make_estimator_system(robot, scenario):
+def make_estimator_system(robot, scenario, update_period_s=None):
+    """The SysIdEstimator of a scenario: its estimator settings and initial interval, sampling at
+    the plant step, updating every t_p (planner.replan_period_s unless given)."""
+    from safesysid.systems.estimation import EstimatorSettings
     from safesysid.systems.sysid_system import SysIdEstimator
 
-    return SysIdEstimator(robot, scenario)
+    ii = scenario.initial_interval
+    return SysIdEstimator(robot, EstimatorSettings.from_scenario(scenario), scenario.plant.time_step_s,
+                          update_period_s or scenario.planner.replan_period_s,
+                          (np.array(ii.lower, float), np.array(ii.upper, float)), np.array(ii.nominal, float))
 
 
 def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> OnlineDiagram:

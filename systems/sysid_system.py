@@ -44,20 +44,15 @@ class SysIdState:
 
 
 class SysIdEstimator(LeafSystem):
-    def __init__(self, robot, scenario=None, settings: EstimatorSettings | None = None, sample_period_s=None,
-                 update_period_s=None, prior=None, prior_nominal=None):
+    def __init__(self, robot, settings: EstimatorSettings, sample_period_s, update_period_s, prior, prior_nominal):
+        """settings: the estimator's (EstimatorSettings.from_scenario); sample_period_s: the plant
+        step; update_period_s: t_p; prior: (lower, upper) of θ_e; prior_nominal: θ_e published
+        before the first update. app/online.py make_estimator_system takes them from a scenario."""
         super().__init__()
-        if scenario is not None:
-            settings = settings or EstimatorSettings.from_scenario(scenario)
-            sample_period_s = sample_period_s or scenario.plant.time_step_s
-            update_period_s = update_period_s or scenario.planner.replan_period_s
-            ii = scenario.initial_interval
-            prior = prior if prior is not None else (np.array(ii.lower, float), np.array(ii.upper, float))
-            prior_nominal = prior_nominal if prior_nominal is not None else np.array(ii.nominal, float)
         self.robot = robot
-        self.settings = settings or EstimatorSettings()
-        self.sample_period_s = float(sample_period_s or 1e-3)
-        self.update_period_s = float(update_period_s or 1.5)
+        self.settings = settings
+        self.sample_period_s = float(sample_period_s)
+        self.update_period_s = float(update_period_s)
         self._samples_per_update = int(round(self.update_period_s / self.sample_period_s))
         if abs(self._samples_per_update * self.sample_period_s - self.update_period_s) > 1e-9 * self.update_period_s:
             raise ValueError(f"estimator update period {self.update_period_s} s is not a multiple of the sample "

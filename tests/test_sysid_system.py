@@ -168,6 +168,7 @@ def test_samples_are_what_the_discrete_arm_applies():
 
     from safesysid.scenario import robot_from_scenario
     from safesysid.systems.armour import ControllerDynamics
+    from safesysid.online import make_estimator_system
     from safesysid.systems.real_arm import add_real_arm
 
     s = load_scenario(overrides={"payload": {"dumbbell": "none"}})
@@ -192,7 +193,7 @@ def test_samples_are_what_the_discrete_arm_applies():
     ctrl = b.AddSystem(Feedback())
     b.Connect(arm.state_output, ctrl.x)
     b.Connect(ctrl.get_output_port(), arm.commanded_torque_input)
-    est = b.AddSystem(SysIdEstimator(robot, s, update_period_s=10.0))
+    est = b.AddSystem(make_estimator_system(robot, s, update_period_s=10.0))
     b.Connect(arm.state_output, est.GetInputPort("state"))
     b.Connect(arm.measured_torque_output, est.GetInputPort("measured_torque"))
     logs = {name: b.AddSystem(VectorLogSink(port.size(), s.plant.time_step_s))
