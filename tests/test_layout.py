@@ -38,3 +38,24 @@ def test_the_check_sees_a_function_local_import(tmp_path):
     probe = tmp_path / "probe.py"
     probe.write_text("def f():\n    from safesysid.scenario import load_scenario\n    from safesysid import online\n")
     assert app_imports(probe) == [(2, "safesysid.scenario"), (3, "safesysid.online")]
+
+
+def test_every_system_of_the_online_diagram_is_a_module_level_class():
+    """GetSystemType() names a module-level class (a class made inside a factory is a new class
+    per call: '...<locals>.ArmourController'), for every controller kind."""
+    from pydrake.systems.framework import Diagram
+
+    from safesysid.online import build_online
+    from safesysid.scenario import SCENARIOS_DIR, load_scenario
+
+    def leaves(system):
+        if isinstance(system, Diagram):
+            for sub in system.GetSystems():
+                yield from leaves(sub)
+        yield system
+
+    for kind in ("armour", "pid", "adaptive", "adaptive_robust"):
+        built = build_online(load_scenario(SCENARIOS_DIR / "quickstart.yaml", overrides=f"controller: {{kind: {kind}}}"))
+        types = {s.GetSystemType() for s in leaves(built.diagram)}
+        assert not [t for t in types if "<locals>" in t]
+        assert any(t.endswith("real_arm.TorqueSensor") for t in types)
