@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +44,6 @@ class OnlineDiagram:
     meshcat: object | None
     theta_prior: tuple
     tracking: object
-    extras: dict = field(default_factory=dict)
 
 
 def _add_logger(builder, port, period, name):
