@@ -16,6 +16,20 @@ from safesysid.systems.real_arm import add_real_arm
 from safesysid.systems.trajectory_source import make_trajectory_source
 
 
+def add_controller(builder, arm, scenario, kind=None):
+    """The scenario's controller (scenario.controller.kind unless `kind`) closing the loop on the
+    arm station: station state -> controller -> commanded torque. Its inputs desired, theta0,
+    theta_lower, theta_upper are the caller's to connect. Returns (controller, gains)."""
+    robot = arm.robot
+    gains = controller_systems.gains_from_scenario(scenario, robot.n)
+    ctrl = builder.AddSystem(controller_systems.make_controller(kind or scenario.controller.kind, robot, gains,
+                                                                scenario.plant.time_step_s))
+    ctrl.set_name("controller")
+    builder.Connect(arm.state_output, ctrl.GetInputPort("state"))
+    builder.Connect(ctrl.GetOutputPort("torque"), arm.commanded_torque_input)
+    return ctrl, gains
+
+
 @dataclass
 class ClosedLoop:
     diagram: object
@@ -31,15 +45,11 @@ def build_closed_loop(scenario, trajectory, theta0, theta_box: Interval, kind=No
     fixed theta0 / [theta] (an estimator can be connected instead by building by hand)."""
     builder = DiagramBuilder()
     arm = add_real_arm(builder, scenario, robot=robot, dumbbell=dumbbell, seed=seed)
-    robot = arm.robot
     h = scenario.plant.time_step_s
-    gains = controller_systems.gains_from_scenario(scenario, robot.n)
-    ctrl = builder.AddSystem(controller_systems.make_controller(kind or scenario.controller.kind, robot, gains, h))
-    src = builder.AddSystem(make_trajectory_source(robot.n, trajectory))
+    ctrl, _ = add_controller(builder, arm, scenario, kind)
+    src = builder.AddSystem(make_trajectory_source(arm.n, trajectory))
     src.set_name("trajectory_source")
     builder.Connect(src.get_output_port(), ctrl.GetInputPort("desired"))
-    builder.Connect(arm.state_output, ctrl.GetInputPort("state"))
-    builder.Connect(ctrl.GetOutputPort("torque"), arm.commanded_torque_input)
     for name, value in (("theta0", theta0), ("theta_lower", theta_box.lo), ("theta_upper", theta_box.hi)):
         const = builder.AddSystem(ConstantVectorSource(np.asarray(value, float)))
         const.set_name(name)

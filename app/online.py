@@ -1,5 +1,6 @@
-"""Algorithm 2 as one Drake diagram: real arm <- ArmourController <- ExcitingPlanner, with the
-SysIdEstimator feeding (theta0, [theta]) back to the planner, refereed by the SafetyMonitor.
+"""Algorithm 2 as one Drake diagram: real arm station <- controller (closed_loop.add_controller)
+<- ExcitingPlanner, with the SysIdEstimator feeding (theta0, [theta]) back to the planner,
+refereed by the SafetyMonitor.
 The controller takes its (theta0, [theta]) from the planner: those the executing plan was
 certified with (systems/planner_system.py), never the estimator's latest.
 
@@ -94,8 +95,8 @@ def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> On
     from pydrake.systems.framework import DiagramBuilder
     from pydrake.systems.primitives import Multiplexer
 
+    from safesysid.closed_loop import add_controller
     from safesysid.systems.armour import tracking_bounds_for
-    from safesysid.systems.controller_systems import gains_from_scenario, make_controller
     from safesysid.systems.real_arm import add_real_arm
     from safesysid.systems.safety_monitor import SafetyMonitor
 
@@ -105,9 +106,7 @@ def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> On
     builder = DiagramBuilder()
     arm = add_real_arm(builder, scenario, robot=robot, seed=seed)
     theta0, box = prior(robot, scenario, method)
-    gains = gains_from_scenario(scenario, robot.n)
-    controller = builder.AddSystem(make_controller(scenario.controller.kind, robot, gains, h))
-    controller.set_name("controller")
+    controller, gains = add_controller(builder, arm, scenario)
     # The controller's certified bound (per-joint Kr; sigma_min from the armature lower bounds,
     # which identification never changes) is the tube the planner must respect.
     tracking = tracking_bounds_for(robot, gains.armour, box.lo)
@@ -135,8 +134,6 @@ def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> On
     else:
         builder.Connect(_constant(builder, [1.0], "estimate_consistent"), planner.GetInputPort("estimate_consistent"))
     builder.Connect(desired.get_output_port(), controller.GetInputPort("desired"))
-    builder.Connect(arm.state_output, controller.GetInputPort("state"))
-    builder.Connect(controller.GetOutputPort("torque"), arm.commanded_torque_input)
 
     monitor = builder.AddSystem(SafetyMonitor(arm.plant, arm.scene_graph, robot, period_s=h))
     monitor.set_name("safety_monitor")
