@@ -1,5 +1,6 @@
-"""Algorithm 2 as one Drake diagram: real arm <- ArmourController <- ExcitingPlanner, with the
-SysIdEstimator feeding (theta0, [theta]) back to the planner, refereed by the SafetyMonitor.
+"""Algorithm 2 as one Drake diagram: real arm station <- controller (closed_loop.add_controller)
+<- ExcitingPlanner, with the SysIdEstimator feeding (theta0, [theta]) back to the planner,
+refereed by the SafetyMonitor.
 The controller takes its (theta0, [theta]) from the planner: those the executing plan was
 certified with (systems/planner_system.py), never the estimator's latest.
 
@@ -13,28 +14,22 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from safesysid.scenario import Scenario, robot_from_scenario
-from safesysid.systems.intervals import Interval
 
 IDENTIFYING = {"ours": True, "random": True, "conservative": False, "wrong": False}
 
 
 def prior(robot, scenario: Scenario, method):
-    """(theta0, [theta]) the controller and planner start from."""
-    from safesysid.systems.controller import parameter_box
+    """(theta0, [theta]) the controller and planner start from ("wrong": the bare end effector,
+    no uncertainty anywhere)."""
+    from safesysid.systems.armour import prior_box
 
-    ii = scenario.initial_interval
-    if method == "wrong":  # the bare end effector, no uncertainty anywhere
-        theta0 = robot.theta.copy()
-        return theta0, Interval(theta0, theta0)
-    ratio = scenario.noise.theta_r_ratio
-    return parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper), rest_ratio=ratio, friction_ratio=ratio,
-                         floors=scenario.noise.theta_r_floor)
+    return prior_box(robot, scenario.initial_interval, scenario.noise, exact=method == "wrong")
 
 
 @dataclass
@@ -50,19 +45,13 @@ class OnlineDiagram:
     meshcat: object | None
     theta_prior: tuple
     tracking: object
-    extras: dict = field(default_factory=dict)
-
-    @property
-    def planner_results(self):
-        return self.extras["planner_results"]
 
 
 def _add_logger(builder, port, period, name):
-    from pydrake.systems.primitives import VectorLogSink
+    from pydrake.systems.primitives import LogVectorOutput
 
-    sink = builder.AddSystem(VectorLogSink(port.size(), period))
+    sink = LogVectorOutput(port, builder, period)
     sink.set_name(f"log_{name}")
-    builder.Connect(port, sink.get_input_port())
     return sink
 
 
@@ -74,29 +63,12 @@ def _constant(builder, value, name):
     return src.get_output_port()
 
 
-class RecordingPlanner:
-    """Proxy that keeps every PlanResult (the LeafSystem keeps only the current plan)."""
-
-    def __init__(self, planner):
-        self.inner = planner
-        self.results = []
-
-    def plan(self, *args, **kwargs):
-        result = self.inner.plan(*args, **kwargs)
-        self.results.append(result)
-        return result
-
-    def __getattr__(self, name):
-        return getattr(self.inner, name)
-
-
 def make_planner_system(robot, scenario, method, tracking, dumbbell, theta_prior, seed):
     from safesysid.systems.planner import SafePlanner
     from safesysid.systems.planner_system import ExcitingPlanner
 
     mode = "random" if method == "random" else scenario.planner.cost
-    planner = RecordingPlanner(SafePlanner(robot, scenario.planner, obstacles=scenario.obstacles, payload=dumbbell,
-                                           tracking=tracking))
+    planner = SafePlanner(robot, scenario.planner, obstacles=scenario.obstacles, payload=dumbbell, tracking=tracking)
     theta0, box = theta_prior
     return ExcitingPlanner(planner, np.asarray(scenario.q0_rad, float), theta0, box.lo, box.hi, mode=mode, seed=seed)
 
@@ -107,18 +79,24 @@ def identification_horizon_s(scenario):
     return (p.num_plans - 1) * p.replan_period_s + p.duration_s
 
 
-def make_estimator_system(robot, scenario):
+def make_estimator_system(robot, scenario, update_period_s=None):
+    """The SysIdEstimator of a scenario: its estimator settings and initial interval, sampling at
+    the plant step, updating every t_p (planner.replan_period_s unless given)."""
+    from safesysid.systems.estimation import EstimatorSettings
     from safesysid.systems.sysid_system import SysIdEstimator
 
-    return SysIdEstimator(robot, scenario)
+    ii = scenario.initial_interval
+    return SysIdEstimator(robot, EstimatorSettings.from_scenario(scenario), scenario.plant.time_step_s,
+                          update_period_s or scenario.planner.replan_period_s,
+                          (np.array(ii.lower, float), np.array(ii.upper, float)), np.array(ii.nominal, float))
 
 
 def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> OnlineDiagram:
     from pydrake.systems.framework import DiagramBuilder
     from pydrake.systems.primitives import Multiplexer
 
-    from safesysid.systems.controller import tracking_bounds_for
-    from safesysid.systems.controllers import gains_from_scenario, make_controller
+    from safesysid.closed_loop import add_controller
+    from safesysid.systems.armour import tracking_bounds_for
     from safesysid.systems.real_arm import add_real_arm
     from safesysid.systems.safety_monitor import SafetyMonitor
 
@@ -128,9 +106,7 @@ def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> On
     builder = DiagramBuilder()
     arm = add_real_arm(builder, scenario, robot=robot, seed=seed)
     theta0, box = prior(robot, scenario, method)
-    gains = gains_from_scenario(scenario, robot.n)
-    controller = builder.AddSystem(make_controller(scenario.controller.kind, robot, gains, h))
-    controller.set_name("controller")
+    controller, gains = add_controller(builder, arm, scenario)
     # The controller's certified bound (per-joint Kr; sigma_min from the armature lower bounds,
     # which identification never changes) is the tube the planner must respect.
     tracking = tracking_bounds_for(robot, gains.armour, box.lo)
@@ -158,13 +134,11 @@ def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> On
     else:
         builder.Connect(_constant(builder, [1.0], "estimate_consistent"), planner.GetInputPort("estimate_consistent"))
     builder.Connect(desired.get_output_port(), controller.GetInputPort("desired"))
-    builder.Connect(arm.state_output, controller.GetInputPort("state"))
-    builder.Connect(controller.GetOutputPort("torque"), arm.commanded_torque_input)
 
     monitor = builder.AddSystem(SafetyMonitor(arm.plant, arm.scene_graph, robot, period_s=h))
     monitor.set_name("safety_monitor")
-    builder.Connect(arm.scene_graph.get_query_output_port(), monitor.query_port)
-    builder.Connect(arm.plant.get_state_output_port(arm.instance), monitor.state_port)
+    builder.Connect(arm.query_output, monitor.query_port)
+    builder.Connect(arm.plant_state_output, monitor.state_port)
     builder.Connect(arm.motor_torque_output, monitor.torque_port)
     builder.Connect(controller.GetOutputPort("torque"), monitor.command_port)
 
@@ -178,11 +152,11 @@ def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> On
     if meshcat is not None:
         from safesysid.viz import add_visualizer
 
-        visualizer = add_visualizer(builder, arm.scene_graph, meshcat)
+        visualizer = add_visualizer(builder, arm.query_output, meshcat)
     diagram = builder.Build()
     diagram.set_name(f"safesysid_{method}")
     return OnlineDiagram(diagram, arm, controller, planner, estimator, monitor, loggers, visualizer, meshcat,
-                         (theta0, box), tracking, {"planner_results": planner._planner.results})
+                         (theta0, box), tracking)
 
 
 def _log(sink, context):
@@ -233,6 +207,7 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
     arm, robot = built.arm, built.arm.robot
     sim = Simulator(built.diagram)
     ctx = sim.get_mutable_context()
+    arm.seed_noise(ctx)
     arm.set_state(ctx, np.asarray(scenario.q0_rad, float))
     if built.visualizer is not None:
         built.visualizer.StartRecording()
@@ -251,15 +226,17 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
     error = desired[:, :n] - q
     cont = robot.joint_params.continuous
     error[:, cont] = np.angle(np.exp(1j * error[:, cont]))
-    safety = built.monitor.record.summary()
+    record = built.monitor.record(built.monitor.GetMyContextFromRoot(ctx))
+    safety = record.summary()
     truth = arm.true_theta()[robot.ee_slice]
     est = built.estimator
     if est is not None:
-        theta_e0, lo, hi = est.final_estimate(robot.ee_slice)
-        history = est.history()
+        est_ctx = est.GetMyContextFromRoot(ctx)
+        theta_e0, lo, hi = est.final_estimate(est_ctx, robot.ee_slice)
+        history = est.history(est_ctx)
         cond_y = history[-1]["cond_Y"] if history else float("nan")
         update_times = [h["update_time_s"] for h in history]
-        consistent, estimator_events = est.consistent, est.events()
+        consistent, estimator_events = est.consistent(est_ctx), est.events(est_ctx)
     else:
         theta0, box = built.theta_prior
         theta_e0, lo, hi = theta0[robot.ee_slice], box.lo[robot.ee_slice], box.hi[robot.ee_slice]
@@ -314,7 +291,7 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
         for k, pname in enumerate(NAMES):
             extra[f"est_{pname}{name}"] = vals[idx + 1, k]
     write_joint_log(out / "log.csv", JointLog(t, q, v, tau_meas), extra)
-    rec = built.monitor.record
+    rec = record
     report.plot_tracking(out / "tracking.png", t, error, built.tracking.position, np.max(np.abs(command) / robot.joint_params.torque_limit, 1))
     report.plot_clearance(out / "clearance.png", np.array(rec.times), np.array(rec.clearance))
     report.plot_intervals(out / "intervals.png", theta_e0, lo, hi, truth, title=f"{scenario.name} / {method}")
@@ -322,7 +299,7 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
         report.plot_estimate_history(out / "mass.png", [h["t"] for h in history], [h["nominal"] for h in history],
                                      [h["lower"] for h in history], [h["upper"] for h in history], truth)
     if built.visualizer is not None:
-        draw_plans(meshcat, robot, built.planner_results)
+        draw_plans(meshcat, robot, built.planner.results(planner_context))
         viz.save_replay(meshcat, built.visualizer, out / "replay.html")
     return summary
 

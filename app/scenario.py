@@ -116,7 +116,7 @@ def _validate(s: Scenario, where):
     need(np.all(np.array(ii.lower) <= np.array(ii.nominal)) and np.all(np.array(ii.nominal) <= np.array(ii.upper)),
          "initial_interval", "needs lower <= nominal <= upper")
     # The tube's invariance is argued and measured for a controller step of at most 1 ms
-    # (systems/controller.py "Sampling"; docs/guarantees.md).
+    # (systems/armour.py "Sampling"; docs/guarantees.md).
     need(0 < s.plant.time_step_s <= MAX_CONTROL_STEP_S, "plant.time_step_s",
          f"must be in (0, {MAX_CONTROL_STEP_S}] s (the tracking guarantee assumes a >= 1 kHz controller)")
     need(s.plant.effects.time_delay_s >= 0, "plant.effects.time_delay_s", "must be >= 0")

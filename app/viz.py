@@ -30,12 +30,13 @@ def start_meshcat(live):
     return meshcat
 
 
-def add_visualizer(builder, scene_graph, meshcat):
+def add_visualizer(builder, query_object_port, meshcat):
+    """Meshcat on a station's exported SceneGraph query port (the SceneGraph is inside it)."""
     from pydrake.geometry import MeshcatVisualizer, MeshcatVisualizerParams, Role
 
     params = MeshcatVisualizerParams()
     params.role = Role.kIllustration
-    return MeshcatVisualizer.AddToBuilder(builder, scene_graph, meshcat, params)
+    return MeshcatVisualizer.AddToBuilder(builder, query_object_port, meshcat, params)
 
 
 def draw_plan(meshcat, points_world, index, rgba=(0.1, 0.4, 1.0, 1.0)):

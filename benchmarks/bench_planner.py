@@ -42,7 +42,7 @@ def parameter_box(robot, payload, ee_ratio=0.2):
 def table_ii_box(robot):
     """The paper's Table II end-effector interval (what `safesysid run` starts from), rest +-5 %."""
     from safesysid.scenario import InitialInterval
-    from safesysid.systems.controller import parameter_box as box_of
+    from safesysid.systems.armour import parameter_box as box_of
 
     ii = InitialInterval()
     theta0, box = box_of(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper))

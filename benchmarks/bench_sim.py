@@ -12,9 +12,9 @@ import time
 import numpy as np
 
 from safesysid.scenario import load_scenario, robot_from_scenario
-from safesysid.systems import controller as C
+from safesysid.systems import armour as C
 from safesysid.systems.bezier import QuinticBezier
-from safesysid.systems.controllers import build_closed_loop, simulate_closed_loop
+from safesysid.closed_loop import build_closed_loop, simulate_closed_loop
 
 TARGET_RTF = 1.0
 

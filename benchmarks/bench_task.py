@@ -18,7 +18,7 @@ import time
 def _certified(prob, scenario, trajectory):
     from safesysid.online import prior
     from safesysid.systems import task_trajectory as tt
-    from safesysid.systems.controller import parameter_box
+    from safesysid.systems.armour import parameter_box
 
     ee = prob.theta[prob.robot.ee_slice]
     exact0, exact = parameter_box(prob.robot, ee, ee, ee, rest_ratio=0.05, friction_ratio=0.05)

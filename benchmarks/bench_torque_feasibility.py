@@ -19,7 +19,7 @@ def run():
 
     from safesysid.benchmarks.bench_planner import Q0, near_boxes, table_ii_box
     from safesysid.scenario import Planner
-    from safesysid.systems import controller as ctl
+    from safesysid.systems import armour as ctl
     from safesysid.systems.payload import load_dumbbells
     from safesysid.systems.planner import SafePlanner
     from safesysid.systems.robot_model import MODELS_DIR, load_robot

@@ -60,6 +60,7 @@ def track_trajectory(scenario, plant_robot, controller_robot, traj, seed, durati
     ctx = sim.get_mutable_context()
     q0, v0, _ = traj(np.array([0.0]))
     arm.set_state(ctx, q0[0], v0[0])
+    arm.seed_noise(ctx)  # the log depends on `seed`, not on how many sources were built before
     sim.AdvanceTo(duration_s)
     lx, lu = log_x.FindLog(ctx), log_u.FindLog(ctx)
     t, x, tau = lx.sample_times(), lx.data().T, lu.data().T

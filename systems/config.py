@@ -124,7 +124,7 @@ class Plant:
 
 @dc.dataclass
 class Controller:
-    """ARMOUR robust passivity controller (systems/controller.py) and the baselines."""
+    """ARMOUR robust passivity controller (systems/armour.py) and the baselines."""
 
     Kr: List[float] = dc.field(default_factory=lambda: [5.0, 5.0, 5.0, 5.0, 7.0, 7.0, 7.0])
     alpha: float = 20.0
@@ -133,7 +133,7 @@ class Controller:
     # planner refuses to move); 0.005 halves eps (|e| <= 0.0072 rad at Kr = 5) and plans start.
     V_max: float = 0.005
     kind: str = "armour"  # armour | pid | adaptive | adaptive_robust
-    # Baselines (systems/controllers.py), per joint; Gen3 inertia with armature is ~9-14 kg m^2,
+    # Baselines (systems/controller_systems.py), per joint; Gen3 inertia with armature is ~9-14 kg m^2,
     # so Kp ~ M (10 rad/s)^2 and Kd ~ 2 M 10 rad/s.
     pid_kp_Nm_rad: List[float] = dc.field(default_factory=lambda: [1000.0] * 7)
     pid_ki_Nm_rad_s: List[float] = dc.field(default_factory=lambda: [1000.0] * 7)

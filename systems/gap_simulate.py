@@ -697,6 +697,7 @@ def real_arm_log(effects, seed, duration_s=10.0, rate_hz=RATE_HZ, noise_ratio=0.
     ctx = sim.get_mutable_context()
     q0, v0, _ = traj(np.array([0.0]))
     arm.set_state(ctx, q0[0], v0[0])
+    arm.seed_noise(ctx)  # the log depends on `seed`, not on how many sources were built before
     sim.AdvanceTo(duration_s)
     lx = log_x.FindLog(ctx)
     lu = log_u.FindLog(ctx)

@@ -27,8 +27,9 @@ import numpy as np
 from . import reachability as reach
 from . import regressors
 from .bezier import QuinticBezier, restriction_matrix
-from .controller import TrackingBounds
+from .armour import TrackingBounds
 from .intervals import Interval, _up
+from .spatial import cross, to_body
 
 COLLISION_SOLVER_MARGIN_M = 1e-4  # the solver aims this far inside; verification asks >= 0
 
@@ -58,23 +59,10 @@ def _linear(x, selection, shape):
     return (x[..., comp] * sign).reshape(x.shape[:-1] + shape)
 
 
-def _cross(a, b):
-    """a x b over the last axis, any dtype (np.cross's overhead: ~3 ms per W_e call here)."""
-    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
-                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], -1)
-
-
 def _motion_cross(v, m):
-    """regressors.cross_motion on _cross."""
+    """regressors.cross_motion on spatial.cross (np.cross's overhead: ~3 ms per W_e call here)."""
     w, u = v[..., :3], v[..., 3:]
-    return np.concatenate([_cross(w, m[..., :3]), _cross(w, m[..., 3:]) + _cross(u, m[..., :3])], -1)
-
-
-def _to_body(R, p, x):
-    """regressors._to_body on _cross."""
-    w, u = x[..., :3], x[..., 3:]
-    rt = np.swapaxes(R, -1, -2)
-    return np.concatenate([(rt @ w[..., None])[..., 0], (rt @ (u + _cross(w, p))[..., None])[..., 0]], -1)
+    return np.concatenate([cross(w, m[..., :3]), cross(w, m[..., 3:]) + cross(u, m[..., :3])], -1)
 
 
 def ee_standard_regressor(tree, body, q, v, a):
@@ -112,16 +100,16 @@ def ee_standard_regressor(tree, body, q, v, a):
             s, c = np.sin(q[:, i])[:, None], np.cos(q[:, i])[:, None]
             x_, y_ = r_f[..., 0], r_f[..., 1]
             r_m, p_m = np.stack([c * x_ + s * y_, c * y_ - s * x_, z], -1), p_f  # r_f @ Rz(q)
-            S[:, i] = np.concatenate([z, _cross(p_f, z)], -1)
+            S[:, i] = np.concatenate([z, cross(p_f, z)], -1)
         R[i] = regressors._times_const(r_m, rjc)
         p[i] = p_m + r_m @ tjc
         V[i] = v_par + S[:, i] * v[:, i, None]
         A[i] = a_par + S[:, i] * a[:, i, None] + _motion_cross(v_par, S[:, i]) * v[:, i, None]
     e = body
-    vb = _to_body(R[e], p[e], V[e])
-    ab = _to_body(R[e], p[e], A[e])
+    vb = to_body(R[e], p[e], V[e])
+    ab = to_body(R[e], p[e], A[e])
     anc = np.flatnonzero(tree.ancestors()[:, e])
-    sb = _to_body(R[e][:, None], p[e][:, None], S[:, anc])  # (N, k, 6) screws in the body frame
+    sb = to_body(R[e][:, None], p[e][:, None], S[:, anc])  # (N, k, 6) screws in the body frame
     y = _linear(ab, _K_MAP, (6, 10)) + _linear(vb, _FORCE_CROSS_MAP, (6, 6)) @ _linear(vb, _K_MAP, (6, 10))  # I a + v x* I v
     out = np.zeros((nsamp, n, 10), dtype)
     out[:, anc] = sb @ y

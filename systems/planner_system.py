@@ -20,9 +20,13 @@ Input estimate_consistent (1.0 / 0.0; 1.0 when unconnected): at a planning insta
 reads 0 the planner does not plan again (the identified box is no longer trusted); the robot
 finishes, and so brakes on, its verified plan. Events (plan_failed, plan_refused, brake) are kept
 as {t, kind, detail} in the state for summary.json.
+
+Everything a run accumulates (the plans, their records and results, the random generator) is in
+the abstract state PlannerState, so two contexts of one diagram never share it.
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import time
 
@@ -40,6 +44,8 @@ class PlannerState:
     calls: int = 0  # planning calls made
     done: bool = False  # no more planning (num_plans reached, a call failed or was refused)
     records: tuple = ()  # one dict per planning call
+    results: tuple = ()  # the PlanResult of every planning call (failed ones too)
+    rng: object = None  # numpy Generator of the random plans and starts; advanced by each call
     thetas: tuple = ()  # (theta0, lower, upper) `plan` was certified with (before any plan: the last call's)
     events: tuple = ()  # {t, kind, detail}: plan_failed, plan_refused, brake
 
@@ -56,7 +62,7 @@ class ExcitingPlanner(LeafSystem):
         self._num_plans = int(cfg.num_plans if num_plans is None else num_plans)
         self._period = float(cfg.replan_period_s if replan_period_s is None else replan_period_s)
         self._mode = mode
-        self._rng = np.random.default_rng(seed)
+        self._seed = seed
         p = 14 * n
         self._theta0 = self.DeclareVectorInputPort("theta0", p)
         self._theta_lo = self.DeclareVectorInputPort("theta_lower", p)
@@ -88,6 +94,10 @@ class ExcitingPlanner(LeafSystem):
     def events(self, context):
         return list(self._get(context).events)
 
+    def results(self, context):
+        """Every planning call's PlanResult, in order (failed ones too)."""
+        return list(self._get(context).results)
+
     def _desired_at(self, st: PlannerState, t):
         if st.plan is None:
             return at_rest(self._q0)
@@ -108,7 +118,7 @@ class ExcitingPlanner(LeafSystem):
 
     # -- events ----------------------------------------------------------------------------------
     def _on_init(self, context, state):
-        self._plan_into(context, state, PlannerState(thetas=tuple(self._defaults)))
+        self._plan_into(context, state, PlannerState(thetas=tuple(self._defaults), rng=np.random.default_rng(self._seed)))
         return EventStatus.Succeeded()
 
     def _on_period(self, context, state):
@@ -127,8 +137,9 @@ class ExcitingPlanner(LeafSystem):
         q, v, a = self._desired_at(st, t)
         thetas = tuple(np.array(x, float) for x in self._thetas(context))
         k_prev = None if st.plan is None else st.plan.k
+        rng = copy.deepcopy(st.rng)  # the stored one may be shared with other copies of this state
         wall = time.perf_counter()
-        res = self._planner.plan(q, v, a, *thetas, k_init=k_prev, rng=self._rng, mode=self._mode)
+        res = self._planner.plan(q, v, a, *thetas, k_init=k_prev, rng=rng, mode=self._mode)
         wall = time.perf_counter() - wall
         calls = st.calls + 1
         record = dict(t_s=t, index=calls - 1, ok=res.ok, status=res.status, reason=res.reason, cost=res.cost,
@@ -136,7 +147,7 @@ class ExcitingPlanner(LeafSystem):
                       solver_status=res.solver_status, braking=not res.ok and st.plan is not None,
                       k=None if res.k is None else res.k.tolist(), min_clearance_m=res.min_clearance_m,
                       max_torque_ratio=res.max_torque_ratio, constraints=res.num_collision_constraints)
-        new = dataclasses.replace(st, calls=calls, records=st.records + (record,))
+        new = dataclasses.replace(st, calls=calls, records=st.records + (record,), results=st.results + (res,), rng=rng)
         if res.ok:
             new.plan, new.t_start, new.thetas = res, t, thetas
         else:

@@ -42,8 +42,8 @@ import numpy as np
 
 from . import regressors
 from .bezier import QuinticBezier, restriction_matrix
-from .controller import TrackingBounds  # the controller's certified bounds (position, velocity, qd_a, qdd_a)
-from .controller import robust_gain_bound, spectral_bound
+from .armour import TrackingBounds  # the controller's certified bounds (position, velocity, qd_a, qdd_a)
+from .armour import robust_gain_bound, spectral_bound
 from .intervals import Interval, _down, _up
 
 # ---------------------------------------------------------------------------------------------

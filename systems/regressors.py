@@ -20,6 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .spatial import to_body
+
 
 def skew(v):
     """(..., 3) -> (..., 3, 3) cross-product matrices."""
@@ -171,13 +173,6 @@ def forward_kinematics(tree: KinematicTree, q, v=None):
     return Kinematics(R, p, S, V, Sdot)
 
 
-def _to_body(R, p, x):
-    """Motion vectors about O in world (..., 6) -> body frames at (R, p)."""
-    w, u = x[..., :3], x[..., 3:]
-    rt = np.swapaxes(R, -1, -2)
-    return np.concatenate([(rt @ w[..., None])[..., 0], (rt @ (u + np.cross(w, p))[..., None])[..., 0]], -1)
-
-
 def _accelerations(tree, kin, a, base):
     """Spatial accelerations about O (N, n, 6) for joint accelerations a, base acceleration."""
     acc = np.empty_like(kin.S)
@@ -209,7 +204,7 @@ def _project(tree, kin, wrench_reg_body, screws_world, bodies=None):
     anc = tree.ancestors()
     for col, i in enumerate(bodies):
         js = np.flatnonzero(anc[:, i])
-        s_body = _to_body(kin.R[:, i, None], kin.p[:, i, None], screws_world[:, js])  # (N, k, 6)
+        s_body = to_body(kin.R[:, i, None], kin.p[:, i, None], screws_world[:, js])  # (N, k, 6)
         out[:, js, 10 * col:10 * col + 10] = s_body @ wrench_reg_body[:, col]
     return out
 
@@ -235,11 +230,11 @@ def passivity_regressor(tree, q, v, va, aa, bodies=None):
     acc_a = _accelerations(tree, kin, aa, _gravity_accel(tree, nsamp)) + _velocity_product_terms(tree, kin, va)
     sel = _selection(tree, bodies)
     R, p = kin.R[:, sel], kin.p[:, sel]
-    vb, ab = _to_body(R, p, kin.V[:, sel]), _to_body(R, p, acc_a[:, sel])
+    vb, ab = to_body(R, p, kin.V[:, sel]), to_body(R, p, acc_a[:, sel])
     if same:  # B(v) v = v x* I v
         y = inertia_times(ab) + cross_force_matrix(vb) @ inertia_times(vb)
     else:
-        y = body_wrench_regressor(vb, _to_body(R, p, vel_a[:, sel]), ab)
+        y = body_wrench_regressor(vb, to_body(R, p, vel_a[:, sel]), ab)
     return _project(tree, kin, y, kin.S, sel)
 
 
@@ -252,7 +247,7 @@ def momentum_regressor(tree, q, v, bodies=None):
     """Wm (N, n, 10n): Wm theta = M(q) v."""
     kin = forward_kinematics(tree, q, v)
     sel = _selection(tree, bodies)
-    vb = _to_body(kin.R[:, sel], kin.p[:, sel], kin.V[:, sel])
+    vb = to_body(kin.R[:, sel], kin.p[:, sel], kin.V[:, sel])
     return _project(tree, kin, inertia_times(vb), kin.S, sel)
 
 
@@ -262,8 +257,8 @@ def momentum_rate_regressor(tree, q, v, bodies=None):
     kin = forward_kinematics(tree, q, v)
     sel = _selection(tree, bodies)
     R, p = kin.R[:, sel], kin.p[:, sel]
-    vb = _to_body(R, p, kin.V[:, sel])
-    gb = _to_body(R, p, np.broadcast_to(-_gravity_accel(tree, q.shape[0])[:, None], vb.shape))
+    vb = to_body(R, p, kin.V[:, sel])
+    gb = to_body(R, p, np.broadcast_to(-_gravity_accel(tree, q.shape[0])[:, None], vb.shape))
     return _project(tree, kin, inertia_times(vb), kin.Sdot, sel) + _project(tree, kin, inertia_times(gb), kin.S, sel)
 
 

@@ -13,19 +13,24 @@ collision); the base standing on its support (the floor) is not.
 Torque is read twice: the controller's command (before the actuator saturation: this is what
 the planner's torque bound certifies, and it may exceed the limit) and the motor torque after
 saturation (what reaches the joints, never above the limit).
+
+The record lives in the Context (abstract state, appended by a periodic unrestricted update at
+t_k, which sees the state and inputs of t_k as a logger does): `record(context)`.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.geometry import QueryObject
-from pydrake.systems.framework import LeafSystem
+from pydrake.systems.framework import EventStatus, LeafSystem
 
 
 @dataclass
 class SafetyRecord:
+    """One entry per sample in each list."""
+
     times: list = field(default_factory=list)
     clearance: list = field(default_factory=list)  # min signed distance [m]
     joint_ratio: list = field(default_factory=list)  # max over joints of limit usage (1 = at limit)
@@ -45,6 +50,25 @@ class SafetyRecord:
             "max_torque_ratio": float(arr(self.torque_ratio).max()),
             "max_commanded_torque_ratio": float(arr(self.commanded_ratio).max()),
         }
+
+
+@dataclass(frozen=True)
+class _Samples:
+    """The monitor's abstract state: a persistent list of sample tuples (newest first), so
+    appending one at each step copies nothing; immutable, so Drake's state copies share it."""
+
+    head: tuple = ()  # (sample, rest) or ()
+
+    def __deepcopy__(self, memo):
+        return self
+
+    def record(self) -> SafetyRecord:
+        rows, node = [], self.head
+        while node:
+            rows.append(node[0])
+            node = node[1]
+        columns = zip(*reversed(rows)) if rows else [[] for _ in fields(SafetyRecord)]
+        return SafetyRecord(*(list(c) for c in columns))
 
 
 def limit_ratio(x, lower, upper):
@@ -68,14 +92,18 @@ class SafetyMonitor(LeafSystem):
         self._world = plant.GetBodyFrameIdOrThrow(plant.world_body().index())
         self._max_distance = max_distance_m
         self._fixed_pairs = self._base_environment_pairs(plant, set(supports))
-        self.record = SafetyRecord()
         n = robot.n
         self.query_port = self.DeclareAbstractInputPort("query", AbstractValue.Make(QueryObject()))
         self.state_port = self.DeclareVectorInputPort("state", 2 * n)
         self.torque_port = self.DeclareVectorInputPort("applied_torque", n)
         self.command_port = self.DeclareVectorInputPort("commanded_torque", n)
-        self.DeclarePeriodicPublishEvent(period_s, 0.0, self._publish)
-        self.DeclareForcedPublishEvent(self._publish)
+        self._samples = self.DeclareAbstractState(AbstractValue.Make(_Samples()))
+        self.DeclareInitializationUnrestrictedUpdateEvent(self._clear)
+        self.DeclarePeriodicUnrestrictedUpdateEvent(period_s, 0.0, self._record)
+
+    def record(self, context) -> SafetyRecord:
+        """Every sample of the run so far (this system's context)."""
+        return context.get_abstract_state(int(self._samples)).get_value().record()
 
     def _is_environment(self, geometry_id):
         return self._inspector.GetFrameId(geometry_id) == self._world
@@ -102,18 +130,23 @@ class SafetyMonitor(LeafSystem):
                 pair = (self._inspector.GetName(d.id_A), self._inspector.GetName(d.id_B))
         return (self._max_distance if pair is None else best), pair
 
-    def _publish(self, context):
+    def measure(self, context):
+        """One sample (t, clearance, joint, velocity, torque and command ratios, closest pair),
+        in SafetyRecord's field order."""
         jp = self._robot.joint_params
         n = self._robot.n
-        query = self.query_port.Eval(context)
         x = self.state_port.Eval(context)
         u = self.torque_port.Eval(context)
-        clearance, pair = self.min_clearance(query)
-        rec = self.record
-        rec.times.append(context.get_time())
-        rec.clearance.append(clearance)
-        rec.closest_pair.append(pair)
-        rec.joint_ratio.append(float(limit_ratio(x[:n], jp.position_lower, jp.position_upper)))
-        rec.velocity_ratio.append(float(np.max(np.abs(x[n:]) / jp.velocity_limit)))
-        rec.torque_ratio.append(float(np.max(np.abs(u) / jp.torque_limit)))
-        rec.commanded_ratio.append(float(np.max(np.abs(self.command_port.Eval(context)) / jp.torque_limit)))
+        clearance, pair = self.min_clearance(self.query_port.Eval(context))
+        return (context.get_time(), clearance, float(limit_ratio(x[:n], jp.position_lower, jp.position_upper)),
+                float(np.max(np.abs(x[n:]) / jp.velocity_limit)), float(np.max(np.abs(u) / jp.torque_limit)),
+                float(np.max(np.abs(self.command_port.Eval(context)) / jp.torque_limit)), pair)
+
+    def _clear(self, context, state):
+        state.get_mutable_abstract_state(int(self._samples)).set_value(_Samples())
+        return EventStatus.Succeeded()
+
+    def _record(self, context, state):
+        old = context.get_abstract_state(int(self._samples)).get_value()
+        state.get_mutable_abstract_state(int(self._samples)).set_value(_Samples((self.measure(context), old.head)))
+        return EventStatus.Succeeded()

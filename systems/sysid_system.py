@@ -8,46 +8,64 @@ with [θ_e]); `consistent` (1: every enclosure so far met the others; 0 from the
 inconsistency on, latched — the published box is then the last consistent one, and a planner
 should stop planning); plus `update_info` [updates, last update wall time s, cond(Y), consistent].
 
-Samples are stored at the sampling period (the plant rate) by a periodic PUBLISH event: it
-sees what a logger sees, (x_k, τ_k) with τ_k applied over [t_k, t_k+1]. (A discrete update at
-t_k would read the discrete MultibodyPlant's state already advanced to x_k+1, paired with the
-command of t_k: tests/test_sysid_system.py.) At every multiple of t_p a discrete update hands
-the new samples (the one at t_p included) to the incremental estimator (old segments are not
-recomputed) and refreshes the outputs (discrete state). The sample buffer and the estimator
-live in this system object (not in the Context): one simulation per instance at a time; an
-initialization event resets them.
+Everything a run accumulates lives in the Context (abstract state `SysIdState`: the incremental
+estimator, the samples since the last update, the update history), so two contexts of one diagram
+never share data. One periodic unrestricted update at the sampling period (the plant rate) stores
+(x_k, τ_k), τ_k applied over [t_k, t_k+1]: unrestricted updates run before the discrete ones at t_k,
+so it sees what a logger sees (a discrete update would read the discrete MultibodyPlant's state
+already advanced to x_k+1, paired with the command of t_k: tests/test_sysid_system.py). At every
+multiple of t_p the same event hands the new samples (the one at t_p included) to the incremental
+estimator (old segments are not recomputed) and refreshes the outputs (discrete state).
+History, consistency, events and the final estimate are functions of the context.
 """
 from __future__ import annotations
 
+import copy
+from dataclasses import dataclass, replace
+
 import numpy as np
+from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import BasicVector, EventStatus, LeafSystem
 
 from .estimation import EstimatorError, EstimatorSettings, IncrementalEstimator
 
 
+@dataclass(frozen=True)
+class SysIdState:
+    """The estimator's run data. Immutable once stored: an update replaces it with a new one
+    built on a copy of the estimator, so Drake's state copies may share it."""
+
+    estimator: IncrementalEstimator
+    samples: tuple = ()  # rows [t, q (n), v (n), τ (n)] since the last update
+    history: tuple = ()  # one dict per update instant (a skipped one has "skipped")
+
+    def __deepcopy__(self, memo):
+        return self
+
+
 class SysIdEstimator(LeafSystem):
-    def __init__(self, robot, scenario=None, settings: EstimatorSettings | None = None, sample_period_s=None,
-                 update_period_s=None, prior=None, prior_nominal=None):
+    def __init__(self, robot, settings: EstimatorSettings, sample_period_s, update_period_s, prior, prior_nominal):
+        """settings: the estimator's (EstimatorSettings.from_scenario); sample_period_s: the plant
+        step; update_period_s: t_p; prior: (lower, upper) of θ_e; prior_nominal: θ_e published
+        before the first update. app/online.py make_estimator_system takes them from a scenario."""
         super().__init__()
-        if scenario is not None:
-            settings = settings or EstimatorSettings.from_scenario(scenario)
-            sample_period_s = sample_period_s or scenario.plant.time_step_s
-            update_period_s = update_period_s or scenario.planner.replan_period_s
-            ii = scenario.initial_interval
-            prior = prior if prior is not None else (np.array(ii.lower, float), np.array(ii.upper, float))
-            prior_nominal = prior_nominal if prior_nominal is not None else np.array(ii.nominal, float)
         self.robot = robot
-        self.settings = settings or EstimatorSettings()
-        self.sample_period_s = float(sample_period_s or 1e-3)
-        self.update_period_s = float(update_period_s or 1.5)
+        self.settings = settings
+        self.sample_period_s = float(sample_period_s)
+        self.update_period_s = float(update_period_s)
+        self._samples_per_update = int(round(self.update_period_s / self.sample_period_s))
+        if abs(self._samples_per_update * self.sample_period_s - self.update_period_s) > 1e-9 * self.update_period_s:
+            raise ValueError(f"estimator update period {self.update_period_s} s is not a multiple of the sample "
+                             f"period {self.sample_period_s} s")
         self.prior = prior
         self.prior_nominal = prior_nominal
         n = robot.n
         self.n = n
-        self.DeclareVectorInputPort("state", 2 * n)
-        self.DeclareVectorInputPort("measured_torque", n)
-        self._reset()
-        first = self._estimator.prior_estimate()
+        self._state_input = self.DeclareVectorInputPort("state", 2 * n)
+        self._torque_input = self.DeclareVectorInputPort("measured_torque", n)
+        initial = self._initial_state()
+        self._run = self.DeclareAbstractState(AbstractValue.Make(initial))
+        first = initial.estimator.prior_estimate()
         self._groups = {
             "theta0": self.DeclareDiscreteState(BasicVector(first.theta)),
             "theta_lower": self.DeclareDiscreteState(BasicVector(np.nan_to_num(first.theta_lower, neginf=-1e30))),
@@ -57,80 +75,91 @@ class SysIdEstimator(LeafSystem):
         }
         for name, index in self._groups.items():
             self.DeclareStateOutputPort(name, index)
-        self.DeclareInitializationDiscreteUpdateEvent(self._on_initialize)
-        self.DeclarePeriodicPublishEvent(self.sample_period_s, 0.0, self._on_sample)
-        self.DeclarePeriodicDiscreteUpdateEvent(self.update_period_s, self.update_period_s, self._on_update)
+        self.DeclareInitializationUnrestrictedUpdateEvent(self._on_initialize)
+        self.DeclarePeriodicUnrestrictedUpdateEvent(self.sample_period_s, 0.0, self._on_sample)
 
-    # -- state kept outside the Context ------------------------------------------------------------
-    def _reset(self):
-        self._estimator = IncrementalEstimator(self.robot, self.settings, self.prior, self.prior_nominal)
-        self._buffer = []
-        self._history = []
+    def _initial_state(self):
+        return SysIdState(IncrementalEstimator(self.robot, self.settings, self.prior, self.prior_nominal))
 
-    def _write(self, discrete_state, est):
-        groups = self._groups
-        discrete_state.get_mutable_vector(groups["theta0"]).SetFromVector(est.theta)
-        discrete_state.get_mutable_vector(groups["theta_lower"]).SetFromVector(np.nan_to_num(est.theta_lower, neginf=-1e30))
-        discrete_state.get_mutable_vector(groups["theta_upper"]).SetFromVector(np.nan_to_num(est.theta_upper, posinf=1e30))
-        info = [len(self._history), est.update_time_s, est.cond_Y, float(est.consistent)]
-        discrete_state.get_mutable_vector(groups["update_info"]).SetFromVector(np.array(info, float))
-        discrete_state.get_mutable_vector(groups["consistent"]).SetFromVector(np.array([float(est.consistent)]))
+    def _write(self, state, est, updates):
+        discrete, groups = state.get_mutable_discrete_state(), self._groups
+        discrete.get_mutable_vector(groups["theta0"]).SetFromVector(est.theta)
+        discrete.get_mutable_vector(groups["theta_lower"]).SetFromVector(np.nan_to_num(est.theta_lower, neginf=-1e30))
+        discrete.get_mutable_vector(groups["theta_upper"]).SetFromVector(np.nan_to_num(est.theta_upper, posinf=1e30))
+        info = [updates, est.update_time_s, est.cond_Y, float(est.consistent)]
+        discrete.get_mutable_vector(groups["update_info"]).SetFromVector(np.array(info, float))
+        discrete.get_mutable_vector(groups["consistent"]).SetFromVector(np.array([float(est.consistent)]))
 
-    def _on_initialize(self, context, discrete_state):
-        self._reset()
-        self._write(discrete_state, self._estimator.prior_estimate())
+    # -- events ------------------------------------------------------------------------------------
+    def _on_initialize(self, context, state):
+        initial = self._initial_state()
+        state.get_mutable_abstract_state(int(self._run)).set_value(initial)
+        self._write(state, initial.estimator.prior_estimate(), 0)
         return EventStatus.Succeeded()
 
-    def _on_sample(self, context):
-        x = self.get_input_port(0).Eval(context)
-        tau = self.get_input_port(1).Eval(context)
-        n = self.n
-        self._buffer.append(np.concatenate([[context.get_time()], x[:n], x[n:2 * n], tau]))
-        return EventStatus.Succeeded()
-
-    def _on_update(self, context, discrete_state):
+    def _on_sample(self, context, state):
         t = context.get_time()
-        if not self._buffer:
-            return EventStatus.DidNothing()
-        data = np.array(self._buffer)
-        self._buffer = []
+        x = self._state_input.Eval(context)
+        tau = self._torque_input.Eval(context)
         n = self.n
-        try:
-            self._estimator.add(data[:, 0], data[:, 1:1 + n], data[:, 1 + n:1 + 2 * n], data[:, 1 + 2 * n:])
-            est = self._estimator.update()
-        except EstimatorError as err:  # not enough data yet (or bad samples): keep the outputs
-            self._history.append({"t": t, "skipped": str(err)})
-            return EventStatus.DidNothing()
-        self._history.append({"t": t, "update_time_s": est.update_time_s, "cond_Y": est.cond_Y, "case": est.case,
-                              "consistent": est.consistent, "nominal": est.theta_e.tolist(),
-                              "lower": est.lower.tolist(), "upper": est.upper.tolist(), "message": est.message,
-                              "problems": list(est.problems), "quadrature_ratio": est.quadrature_ratio})
-        self._write(discrete_state, est)
+        run = self._get(context)
+        run = replace(run, samples=run.samples + (np.concatenate([[t], x[:n], x[n:2 * n], tau]),))
+        step = int(round(t / self.sample_period_s))
+        if step > 0 and step % self._samples_per_update == 0:
+            run = self._update(t, run, state)
+        state.get_mutable_abstract_state(int(self._run)).set_value(run)
         return EventStatus.Succeeded()
 
-    # -- results for reports -----------------------------------------------------------------------
-    @property
-    def estimator(self):
-        return self._estimator
+    def _update(self, t, run: SysIdState, state) -> SysIdState:
+        """Algorithm 1 on the new samples, on a copy of the estimator (the stored one is shared)."""
+        data = np.array(run.samples)
+        n = self.n
+        old = run.estimator
+        estimator = copy.deepcopy(old, {id(old.robot): old.robot, id(old.settings): old.settings})
+        try:
+            estimator.add(data[:, 0], data[:, 1:1 + n], data[:, 1 + n:1 + 2 * n], data[:, 1 + 2 * n:])
+            est = estimator.update()
+        except EstimatorError as err:  # not enough data yet (or bad samples): keep the outputs
+            return SysIdState(estimator, (), run.history + ({"t": t, "skipped": str(err)},))
+        record = {"t": t, "update_time_s": est.update_time_s, "cond_Y": est.cond_Y, "case": est.case,
+                  "consistent": est.consistent, "nominal": est.theta_e.tolist(),
+                  "lower": est.lower.tolist(), "upper": est.upper.tolist(), "message": est.message,
+                  "problems": list(est.problems), "quadrature_ratio": est.quadrature_ratio}
+        new = SysIdState(estimator, (), run.history + (record,))
+        self._write(state, est, len(self.history_of(new)))
+        return new
 
-    @property
-    def update_times_s(self):
-        return [h["update_time_s"] for h in self.history()]
+    def _get(self, context) -> SysIdState:
+        return context.get_abstract_state(int(self._run)).get_value()
 
-    def history(self):
+    @staticmethod
+    def history_of(run: SysIdState):
+        return [h for h in run.history if "skipped" not in h]
+
+    # -- results for reports (functions of this system's context) ---------------------------------
+    def estimator(self, context) -> IncrementalEstimator:
+        return self._get(context).estimator
+
+    def samples(self, context):
+        """Samples not yet handed to the estimator: (N, 1 + 3 n) rows [t, q, v, τ]."""
+        return np.array(self._get(context).samples).reshape(-1, 1 + 3 * self.n)
+
+    def update_times_s(self, context):
+        return [h["update_time_s"] for h in self.history(context)]
+
+    def history(self, context):
         """One dict per completed update (t, update_time_s, cond_Y, case, consistent, θ_e box)."""
-        return [h for h in self._history if "skipped" not in h]
+        return self.history_of(self._get(context))
 
-    @property
-    def consistent(self):
+    def consistent(self, context):
         """False from the first update whose data contradicted a declared bound (latched)."""
-        return self._estimator.consistent
+        return self._get(context).estimator.consistent
 
-    def events(self):
+    def events(self, context):
         """[{t, kind, detail}]: the first inconsistent update ("inconsistent_estimate") and
         updates whose quadrature term was large ("quadrature_unresolved")."""
         out, seen = [], False
-        for h in self.history():
+        for h in self.history(context):
             if not h["consistent"] and not seen:
                 seen = True
                 out.append({"t": h["t"], "kind": "inconsistent_estimate", "detail": h["message"]})
@@ -139,7 +168,8 @@ class SysIdEstimator(LeafSystem):
                             "detail": f"quadrature bound up to {h['quadrature_ratio']:.2f} of a row's torque radius"})
         return out
 
-    def final_estimate(self, ee_slice=None):
+    def final_estimate(self, context, ee_slice=None):
         """(θ_e0, lower, upper) of the last update, or the prior before the first one."""
-        est = self._estimator.estimate or self._estimator.prior_estimate()
+        estimator = self._get(context).estimator
+        est = estimator.estimate or estimator.prior_estimate()
         return est.theta_e.copy(), est.lower.copy(), est.upper.copy()

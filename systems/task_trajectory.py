@@ -51,7 +51,7 @@ import numpy as np
 
 from . import reachability as reach
 from .bezier import _bernstein, _difference, restriction_matrix
-from .controller import TrackingBounds
+from .armour import TrackingBounds
 
 VERSION = "task_trajectory/1"  # part of the cache key: bump when the formulation changes
 DEGREE = 5
@@ -259,10 +259,9 @@ def task_problem_from_scenario(scenario, q_start=None):
     the planner's spheres + that dumbbell's; tube: the ARMOUR controller's TrackingBounds for the
     scenario's gains and prior (as app/online.py gives the planner).
     """
-    from safesysid.online import prior
+    from .armour import prior_box, tracking_bounds_for
     from .config import ScenarioError, resolve_path, robot_from_scenario, scenario_dir, task_enabled
-    from .controller import tracking_bounds_for
-    from .controllers import gains_from_scenario
+    from .controller_systems import gains_from_scenario
     from .payload import load_dumbbells
     from .real_arm import true_theta
 
@@ -272,7 +271,7 @@ def task_problem_from_scenario(scenario, q_start=None):
     task = scenario.task
     robot = robot_from_scenario(scenario)
     dumbbell = load_dumbbells(resolve_path(scenario.payload.dumbbells_file, scenario_dir(scenario)))[task.payload_model]
-    _, box = prior(robot, scenario, "ours")
+    _, box = prior_box(robot, scenario.initial_interval, scenario.noise)
     tracking = tracking_bounds_for(robot, gains_from_scenario(scenario, robot.n).armour, box.lo)
     place = None
     if not task.goal_q_rad:

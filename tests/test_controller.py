@@ -3,7 +3,7 @@ the certified sigma_min and the per-joint tracking bounds."""
 import numpy as np
 import pytest
 
-from safesysid.systems import controller as C
+from safesysid.systems import armour as C
 from safesysid.systems.intervals import Interval
 from safesysid.systems.payload import load_dumbbells, payload_theta_in_end_effector
 from safesysid.systems.robot_model import MODELS_DIR, load_robot
@@ -297,7 +297,7 @@ def test_parameter_box_contains_model(robot):
 
 def test_all_controllers_share_ports(robot):
     from safesysid.scenario import load_scenario
-    from safesysid.systems.controllers import gains_from_scenario, make_controller
+    from safesysid.systems.controller_systems import gains_from_scenario, make_controller
 
     gains = gains_from_scenario(load_scenario(), robot.n)
     n, p = robot.n, 14 * robot.n
@@ -320,7 +320,7 @@ def test_all_controllers_share_ports(robot):
 
 def test_armour_controller_never_commands_nan(robot, caplog):
     from safesysid.scenario import load_scenario
-    from safesysid.systems.controllers import gains_from_scenario, make_controller
+    from safesysid.systems.controller_systems import gains_from_scenario, make_controller
 
     system = make_controller("armour", robot, gains_from_scenario(load_scenario(), robot.n), 0.001)
     ctx = system.CreateDefaultContext()

@@ -92,9 +92,9 @@ def test_a_command_beyond_the_torque_limit_is_a_failure(quickstart, monkeypatch)
     """The referee reads the controller's command BEFORE the actuator saturation: a controller
     that commands 1.2x the limit on joint 7 for 20 ms fails on torque_limit, although the torque
     that reaches the joint (saturated) never exceeds the limit."""
-    from safesysid.systems import controllers
+    from safesysid.systems import controller_systems
 
-    make = controllers.make_controller
+    make = controller_systems.make_controller
 
     def overdriven(kind, robot, gains, time_step):
         ctrl = make(kind, robot, gains, time_step)
@@ -109,7 +109,7 @@ def test_a_command_beyond_the_torque_limit_is_a_failure(quickstart, monkeypatch)
         ctrl._torque = torque
         return ctrl
 
-    monkeypatch.setattr(controllers, "make_controller", overdriven)
+    monkeypatch.setattr(controller_systems, "make_controller", overdriven)
     scene = load_scenario(SCENARIOS_DIR / "quickstart.yaml")
     scene.planner.num_plans = 1  # one plan, 3 s: enough to see the spike
     summary = run_online(scene, None, method="ours", write=False)

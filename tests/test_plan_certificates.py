@@ -38,18 +38,17 @@ class StubEstimator(LeafSystem):
         k = context.get_discrete_state(self._index).get_value()[0]
         state.get_mutable_vector(self._index).SetFromVector([min(k + 1, len(self.boxes) - 1)])
 
-    # what run_online asks of an estimator
-    def history(self):
+    # what run_online asks of an estimator (about its context)
+    def history(self, context):
         return []
 
-    @property
-    def consistent(self):
+    def consistent(self, context):
         return bool(self.boxes[-1][3])
 
-    def events(self):
+    def events(self, context):
         return []
 
-    def final_estimate(self, ee_slice):
+    def final_estimate(self, context, ee_slice):
         theta0, lo, hi, _ = self.boxes[-1]
         return theta0[ee_slice], lo[ee_slice], hi[ee_slice]
 
@@ -76,7 +75,7 @@ def run(tmp_path_factory):
     """One closed-loop run (4 plans, 7.5 s) with the stub estimator; what the planner was asked to
     certify at each call and what the controller used at each step."""
     from safesysid import online
-    from safesysid.systems import controllers, planner
+    from safesysid.systems import controller_systems, planner
 
     mp = pytest.MonkeyPatch()
     scenario = load_scenario(SCENARIOS_DIR / "quickstart.yaml")
@@ -89,7 +88,7 @@ def run(tmp_path_factory):
         return res
 
     used = []  # (t, theta0 | lower | upper) each time the controller's parameters change
-    make = controllers.make_controller
+    make = controller_systems.make_controller
 
     def spying_controller(kind, robot, gains, time_step):
         ctrl = make(kind, robot, gains, time_step)
@@ -109,7 +108,7 @@ def run(tmp_path_factory):
         return StubEstimator(robot, stub_boxes(robot, scen, prior), scen.planner.replan_period_s)
 
     mp.setattr(planner.SafePlanner, "plan", recording_plan)
-    mp.setattr(controllers, "make_controller", spying_controller)
+    mp.setattr(controller_systems, "make_controller", spying_controller)
     mp.setattr(online, "make_estimator_system", stub_estimator)
     try:
         summary = online.run_online(scenario, None, method="ours", write=False)

@@ -6,7 +6,7 @@ import pytest
 
 from helpers import n_trials
 from safesysid.scenario import Obstacle, Planner
-from safesysid.systems import controller as ctl
+from safesysid.systems import armour as ctl
 from safesysid.systems import planner as P
 from safesysid.systems import reachability as reach
 from safesysid.systems.intervals import Interval

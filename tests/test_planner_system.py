@@ -6,7 +6,7 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
 
 from safesysid.scenario import Planner
-from safesysid.systems import controller as ctl
+from safesysid.systems import armour as ctl
 from safesysid.systems.planner import PlanResult, SafePlanner
 from safesysid.systems.planner_system import ExcitingPlanner
 from safesysid.systems.robot_model import load_robot
@@ -162,3 +162,32 @@ def test_an_inconsistent_estimate_is_never_planned_with(setup):
     assert recording.calls == [] and st.plan is None and st.done
     assert [e["kind"] for e in st.events] == ["plan_refused"]
     assert np.allclose(logs[0].data().T, Q0) and np.allclose(logs[1].data(), 0)
+
+
+def test_two_contexts_do_not_share_plans_or_the_random_generator(setup):
+    """Every PlanResult and the random generator live in PlannerState: two simulations of ONE
+    diagram advanced alternately each draw the same random plans as a simulation alone (with the
+    generator on the system object, the second would continue the first's stream)."""
+    robot, planner, thetas = setup
+    system = ExcitingPlanner(planner, Q0, *thetas, num_plans=3, mode="random", seed=3)
+    builder = DiagramBuilder()
+    builder.AddSystem(system)
+    for k, value in enumerate(thetas):
+        builder.Connect(builder.AddSystem(ConstantVectorSource(value)).get_output_port(), system.get_input_port(k))
+    diagram = builder.Build()
+
+    def plans(sim):
+        results = system.results(system.GetMyContextFromRoot(sim.get_context()))
+        assert len(results) == system.planner_state(system.GetMyContextFromRoot(sim.get_context())).calls
+        return [r.k.tolist() for r in results]
+
+    stops = (0.1, 1.6, 3.1)
+    together = [Simulator(diagram), Simulator(diagram)]
+    for stop in stops:
+        for sim in together:
+            sim.AdvanceTo(stop)
+    alone = Simulator(diagram)
+    for stop in stops:
+        alone.AdvanceTo(stop)
+    assert len(plans(alone)) == 3 and all(r.ok for r in system.results(system.GetMyContextFromRoot(alone.get_context())))
+    assert plans(together[0]) == plans(together[1]) == plans(alone)

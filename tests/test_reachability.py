@@ -226,12 +226,12 @@ def planner_torque_bound(robot, boxes, theta0, box, bounds):
 @pytest.mark.parametrize("V_max", [0.005, 0.02])
 def test_torque_bound_covers_the_controller_command_on_the_whole_tube(robot, V_max):
     """The planner's robust term and sup|u| >= |v_j|, |u_j| of the actual ARMOUR law
-    (systems/controller.py) on the BOUNDARY of the tube (true V = V_max), where the box bound
+    (systems/armour.py) on the BOUNDARY of the tube (true V = V_max), where the box bound
     V_bar exceeds V_max (h < 0) and lambda exceeds |w_bar|. Quickstart Table II prior, desired
     states of random plans; the planner's bound evaluated on two boxes that contain each state:
     the tube alone around its desired state, and the state itself (a degenerate box: no slack)."""
     from safesysid.scenario import load_scenario
-    from safesysid.systems import controller as ctl
+    from safesysid.systems import armour as ctl
 
     s = load_scenario()
     rng = np.random.default_rng(7)
@@ -294,7 +294,7 @@ def test_interval_mass_spread_encloses_the_point_spread(robot):
     """interval_mass_spread over a configuration box >= controller.mass_spread at every sampled
     configuration of it (corners included); equal to it on degenerate boxes; tight on small boxes."""
     from safesysid.scenario import InitialInterval
-    from safesysid.systems import controller as ctl
+    from safesysid.systems import armour as ctl
 
     rng = np.random.default_rng(11)
     n = robot.n

@@ -7,7 +7,7 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
 
 from safesysid.scenario import load_scenario, robot_from_scenario
-from safesysid.systems.controller import ControllerDynamics
+from safesysid.systems.armour import ControllerDynamics
 from safesysid.systems.real_arm import add_real_arm, scenario_dumbbell, true_theta
 from safesysid.systems.regressors import friction_columns
 
@@ -94,7 +94,7 @@ def test_friction_uses_the_regressor_law(robot):
     b = DiagramBuilder()
     add_real_arm(b, s, robot=robot)
     diagram = b.Build()
-    friction = diagram.GetSubsystemByName("joint_friction")
+    friction = diagram.GetSubsystemByName("real_arm").GetSubsystemByName("joint_friction")
     ctx = friction.CreateDefaultContext()
     rng = np.random.default_rng(1)
     v = rng.normal(scale=0.02, size=7)  # around the smoothing velocity: tanh matters
@@ -110,6 +110,7 @@ def test_saturation_and_noisy_torque_sensor(robot):
     s = load_scenario(overrides={"noise": {"torque_ratio": 0.05, "torque_floor_Nm": 0.1}, "payload": {"dumbbell": "none"}})
     command = np.array([500.0, -500.0, 10.0, -10.0, 100.0, 1.0, 0.0])
     sim, arm, logs = _rig(s, robot, command)
+    arm.seed_noise(sim.get_mutable_context())
     arm.set_state(sim.get_mutable_context(), s.q0_rad)
     sim.AdvanceTo(0.3)
     limit = robot.joint_params.torque_limit
@@ -123,11 +124,13 @@ def test_saturation_and_noisy_torque_sensor(robot):
     ratio = noise / bound
     assert np.all(np.abs(ratio) <= 1.0)
     assert np.abs(ratio).max() > 0.95 and abs(ratio.mean()) < 0.1  # uniform, filling the bound
-    # Deterministic per seed.
-    sim2, arm2, logs2 = _rig(s, robot, command)
-    arm2.set_state(sim2.get_mutable_context(), s.q0_rad)
-    sim2.AdvanceTo(0.3)
-    np.testing.assert_array_equal(_log(sim2, logs2["measured"]), _log(sim, logs["measured"]))
+    # Deterministic per seed (Drake's SetRandomContext through RealArm.seed_noise), new per seed.
+    for seed, same in ((s.seed, True), (s.seed + 1, False)):
+        sim2, arm2, logs2 = _rig(s, robot, command)
+        arm2.seed_noise(sim2.get_mutable_context(), seed)
+        arm2.set_state(sim2.get_mutable_context(), s.q0_rad)
+        sim2.AdvanceTo(0.3)
+        assert np.array_equal(_log(sim2, logs2["measured"]), _log(sim, logs["measured"])) == same
 
 
 def test_sensor_offset_scale_and_delay(robot):
@@ -160,6 +163,7 @@ def test_lagged_torque_sensor(robot):
     runs = {}
     for name, scen in (("lag", s), ("plain", plain)):
         sim, arm, logs = _rig(scen, robot, hold)
+        arm.seed_noise(sim.get_mutable_context())  # the same draws in both runs
         arm.set_state(sim.get_mutable_context(), q0)
         sim.AdvanceTo(0.1)
         runs[name] = {k: _log(sim, logs[k]) for k in ("measured", "state")}
@@ -296,7 +300,7 @@ def test_drawn_robot_parameters_stay_in_the_box_and_are_what_the_plant_uses(mode
         beta = theta[10 * n + 3::4]
         np.testing.assert_allclose(-arm.plant.CalcGravityGeneralizedForces(plant_ctx) + beta, dyn.gravity(q, theta),
                                    atol=1e-10)
-    friction = diagram.GetSubsystemByName("joint_friction")
+    friction = diagram.GetSubsystemByName("real_arm").GetSubsystemByName("joint_friction")
     fctx = friction.CreateDefaultContext()
     v = rng.normal(scale=0.3, size=n)
     friction.applied.FixValue(fctx, np.zeros(n))

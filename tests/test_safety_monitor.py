@@ -30,8 +30,10 @@ def run_with_box(box_center, command=None, size=(0.1, 0.1, 0.1), name="box", q=N
     ctx = plant.GetMyContextFromRoot(sim.get_mutable_context())
     plant.SetPositions(ctx, np.zeros(robot.n) if q is None else q)
     sim.Initialize()
-    sim.AdvanceTo(0.0)
-    return monitor.record, plant, ctx
+    sim.AdvanceTo(0.001)  # the sample at t = 0 is taken as time moves past it
+    record = monitor.record(monitor.GetMyContextFromRoot(sim.get_context()))
+    assert record.times == [0.0]
+    return record, plant, ctx
 
 
 def test_box_on_the_gripper_is_a_collision():
@@ -89,3 +91,42 @@ def test_the_command_before_saturation_is_judged():
     record, _, _ = run_with_box([2.0, 0.0, 0.0], command)
     summary = record.summary()
     assert summary["max_commanded_torque_ratio"] == 1.5 and summary["max_torque_ratio"] == 0.0
+
+
+def test_two_contexts_keep_their_own_record():
+    """The record is state in the Context: two simulations of ONE diagram, the arm at different
+    poses, advanced alternately, record what each records alone."""
+    robot = load_robot()
+    builder = DiagramBuilder()
+    plant, sg, _ = make_plant(robot.source, time_step=0.001, builder=builder)
+    plant.RegisterCollisionGeometry(plant.world_body(), RigidTransform([0.6, 0.0, 0.3]), Box(0.1, 0.1, 0.1), "box",
+                                    CoulombFriction(0.5, 0.5))
+    plant.Finalize()
+    monitor = builder.AddSystem(SafetyMonitor(plant, sg, robot, period_s=0.001))
+    zero = builder.AddSystem(ConstantVectorSource(np.zeros(robot.n)))
+    builder.Connect(zero.get_output_port(), plant.get_actuation_input_port())
+    for source, port in ((sg.get_query_output_port(), monitor.query_port), (plant.get_state_output_port(), monitor.state_port),
+                         (zero.get_output_port(), monitor.torque_port), (zero.get_output_port(), monitor.command_port)):
+        builder.Connect(source, port)
+    diagram = builder.Build()
+
+    def start(q):
+        sim = Simulator(diagram)
+        plant.SetPositions(plant.GetMyMutableContextFromRoot(sim.get_mutable_context()), q)
+        sim.Initialize()
+        return sim
+
+    def record(sim):
+        return monitor.record(monitor.GetMyContextFromRoot(sim.get_context()))
+
+    poses = (np.zeros(robot.n), np.full(robot.n, 0.3))
+    together = [start(q) for q in poses]
+    for stop in (0.0055, 0.0105):
+        for sim in together:
+            sim.AdvanceTo(stop)
+    for sim, q in zip(together, poses):
+        alone = start(q)
+        for stop in (0.0055, 0.0105):
+            alone.AdvanceTo(stop)
+        assert len(record(sim).times) == 11 and record(sim) == record(alone)
+    assert record(together[0]).clearance != record(together[1]).clearance

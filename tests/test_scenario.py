@@ -139,4 +139,4 @@ def test_every_scenario_builds_and_simulates_10_ms(name, kind):
     sim.AdvanceTo(0.01)
     state = built.loggers["state"].FindLog(ctx).data()
     assert ctx.get_time() == pytest.approx(0.01) and state.shape[1] >= 10 and np.all(np.isfinite(state))
-    assert built.monitor.record.summary()["collisions"] == 0
+    assert built.monitor.record(built.monitor.GetMyContextFromRoot(ctx)).summary()["collisions"] == 0

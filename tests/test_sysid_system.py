@@ -115,7 +115,7 @@ def test_estimator_system_in_a_diagram(rigid_robot):
     sim.AdvanceTo(3.0005)  # the event at t = 3 s is handled when time moves past it
     info = est.GetOutputPort("update_info").Eval(est_ctx)
     assert info[0] == 3 and info[3] == 1.0  # three updates at t = 1, 2, 3 s, consistent
-    assert est.GetOutputPort("consistent").Eval(est_ctx)[0] == 1.0 and est.consistent and est.events() == []
+    assert est.GetOutputPort("consistent").Eval(est_ctx)[0] == 1.0 and est.consistent(est_ctx) and est.events(est_ctx) == []
     theta0 = est.GetOutputPort("theta0").Eval(est_ctx)
     lo = est.GetOutputPort("theta_lower").Eval(est_ctx)
     hi = est.GetOutputPort("theta_upper").Eval(est_ctx)
@@ -125,11 +125,11 @@ def test_estimator_system_in_a_diagram(rigid_robot):
     assert hi[ee][0] - lo[ee][0] < 1.0  # much tighter than the 4 kg prior
     rest = rigid_robot.rest_mask()
     assert np.allclose(theta0[rest], rigid_robot.theta[rest])
-    hist = est.history()
+    hist = est.history(est_ctx)
     assert [round(h["t"], 6) for h in hist] == [1.0, 2.0, 3.0]
     assert all(h["update_time_s"] > 0 for h in hist)
-    assert len(est.update_times_s) == 3
-    th_e0, lo_e, hi_e = est.final_estimate(ee)
+    assert len(est.update_times_s(est_ctx)) == 3
+    th_e0, lo_e, hi_e = est.final_estimate(est_ctx, ee)
     assert np.allclose(lo_e, lo[ee])
     # A re-initialised simulation starts from the prior again.
     ctx.SetTime(0.0)
@@ -152,8 +152,8 @@ def test_consistent_port_latches_off_and_the_box_is_kept(rigid_robot):
         boxes.append((est.GetOutputPort("theta_lower").Eval(est_ctx)[ee], est.GetOutputPort("theta_upper").Eval(est_ctx)[ee]))
     for (lo0, hi0), (lo1, hi1) in zip(boxes, boxes[1:]):
         assert np.all(lo1 >= lo0) and np.all(hi1 <= hi0)
-    assert est.GetOutputPort("consistent").Eval(est_ctx)[0] == 0.0 and not est.consistent
-    events = est.events()
+    assert est.GetOutputPort("consistent").Eval(est_ctx)[0] == 0.0 and not est.consistent(est_ctx)
+    events = est.events(est_ctx)
     assert [e["kind"] for e in events if e["kind"] == "inconsistent_estimate"] == ["inconsistent_estimate"]
     assert "inconsistent" in events[0]["detail"]
 
@@ -167,7 +167,8 @@ def test_samples_are_what_the_discrete_arm_applies():
     from pydrake.systems.primitives import VectorLogSink
 
     from safesysid.scenario import robot_from_scenario
-    from safesysid.systems.controller import ControllerDynamics
+    from safesysid.systems.armour import ControllerDynamics
+    from safesysid.online import make_estimator_system
     from safesysid.systems.real_arm import add_real_arm
 
     s = load_scenario(overrides={"payload": {"dumbbell": "none"}})
@@ -192,7 +193,7 @@ def test_samples_are_what_the_discrete_arm_applies():
     ctrl = b.AddSystem(Feedback())
     b.Connect(arm.state_output, ctrl.x)
     b.Connect(ctrl.get_output_port(), arm.commanded_torque_input)
-    est = b.AddSystem(SysIdEstimator(robot, s, update_period_s=10.0))
+    est = b.AddSystem(make_estimator_system(robot, s, update_period_s=10.0))
     b.Connect(arm.state_output, est.GetInputPort("state"))
     b.Connect(arm.measured_torque_output, est.GetInputPort("measured_torque"))
     logs = {name: b.AddSystem(VectorLogSink(port.size(), s.plant.time_step_s))
@@ -203,7 +204,7 @@ def test_samples_are_what_the_discrete_arm_applies():
     arm.set_state(sim.get_mutable_context(), q0)
     sim.Initialize()
     sim.AdvanceTo(0.05)
-    samples = np.array(est._buffer)
+    samples = est.samples(est.GetMyContextFromRoot(sim.get_context()))
     t = logs["state"].FindLog(sim.get_context()).sample_times()
     x = logs["state"].FindLog(sim.get_context()).data().T
     tau = logs["torque"].FindLog(sim.get_context()).data().T
@@ -211,3 +212,38 @@ def test_samples_are_what_the_discrete_arm_applies():
     assert len(k) >= 50 and np.allclose(t[k], samples[:, 0])
     np.testing.assert_array_equal(samples[:, 1:1 + 2 * n], x[k])
     np.testing.assert_array_equal(samples[:, 1 + 2 * n:], tau[k])
+
+
+def test_two_contexts_of_one_diagram_do_not_share_run_data(rigid_robot):
+    """The samples, the estimator and the history live in the Context: two simulations of ONE
+    diagram advanced alternately give exactly what each gives alone (with the run data on the
+    system object they would feed each other's samples to one estimator)."""
+    sim_a, diagram, plant, est = build(rigid_robot, update_period_s=1.0)
+    x0 = plant.GetPositionsAndVelocities(plant.GetMyContextFromRoot(sim_a.get_context())).copy()
+
+    def start(sim, shift):
+        ctx = plant.GetMyMutableContextFromRoot(sim.get_mutable_context())
+        plant.SetPositionsAndVelocities(ctx, x0 + np.r_[np.full(plant.num_positions(), shift), np.zeros(plant.num_velocities())])
+        sim.get_mutable_integrator().set_target_accuracy(1e-6)
+        sim.Initialize()
+        return sim
+
+    def result(sim):
+        ctx = est.GetMyContextFromRoot(sim.get_context())
+        return est.history(ctx), est.GetOutputPort("theta_lower").Eval(ctx), est.GetOutputPort("theta_upper").Eval(ctx)
+
+    sims = [start(sim_a, 0.0), start(Simulator(diagram), 0.05)]
+    for stop in (1.0005, 2.0005):
+        for sim in sims:
+            sim.AdvanceTo(stop)
+    together = [result(sim) for sim in sims]
+    for shift, (history, lo, hi) in zip((0.0, 0.05), together):
+        alone = start(Simulator(diagram), shift)
+        for stop in (1.0005, 2.0005):  # the same stops: they shape the integrator's steps
+            alone.AdvanceTo(stop)
+        history_alone, lo_alone, hi_alone = result(alone)
+        assert [h["t"] for h in history] == [h["t"] for h in history_alone] and len(history) == 2
+        assert [h["lower"] for h in history] == [h["lower"] for h in history_alone]
+        np.testing.assert_array_equal(lo, lo_alone)
+        np.testing.assert_array_equal(hi, hi_alone)
+    assert together[0][0][-1]["lower"] != together[1][0][-1]["lower"]  # the two runs did differ

@@ -9,7 +9,7 @@ import pytest
 from safesysid.scenario import SCENARIOS_DIR, ScenarioError, load_scenario
 from safesysid.systems import reachability as reach
 from safesysid.systems import task_trajectory as tt
-from safesysid.systems.controller import TrackingBounds, parameter_box
+from safesysid.systems.armour import TrackingBounds, parameter_box
 
 EXPERIMENTS = ("experiment_a", "experiment_b", "experiment_c")
 

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from safesysid.scenario import load_scenario, robot_from_scenario
-from safesysid.systems import controller as C
+from safesysid.systems import armour as C
 from safesysid.systems.bezier import QuinticBezier
-from safesysid.systems.controllers import build_closed_loop, simulate_closed_loop
+from safesysid.closed_loop import build_closed_loop, simulate_closed_loop
 from safesysid.systems.intervals import Interval
 from safesysid.systems.real_arm import scenario_dumbbell, true_theta
 
@@ -103,7 +103,7 @@ def run(s, robot, theta0, box, q0, trajectory, kind="armour", duration=None, the
     if "diagnostics" in logs:
         out["h0"] = logs["diagnostics"][1][0, 1] / gains.V_max
         if theta_true is not None:
-            # leading-order step limit of the sampled robust input (controller.py, "Sampling")
+            # leading-order step limit of the sampled robust input (armour.py, "Sampling")
             top = np.linalg.eigvalsh(m_true)[:, -1].max()
             out["step_estimate"] = bounds.eps * np.sqrt(C.mass_matrix_lower_bound(n, box.lo) / top) \
                 * C.mass_matrix_lower_bound(n, box.lo) / logs["diagnostics"][1][:, 2].max()
@@ -148,7 +148,7 @@ COARSE_STEP_S = 0.04  # s; the same adversarial starts break the tube here (meas
 
 def test_coarse_control_step_breaks_the_tube():
     """The invariance argument is continuous-time; sampled with a zero-order hold it needs a short
-    step (systems/controller.py, 'Sampling'). The same adversarial starts at a 40 ms step leave
+    step (systems/armour.py, 'Sampling'). The same adversarial starts at a 40 ms step leave
     the tube: the check above can fail, and it is the step that it guards."""
     runs = [run_from_boundary("8lb", SCENARIO_V_MAX, seed=trial, time_step=COARSE_STEP_S, duration=1.5) for trial in range(4)]
     worst = max(float(out["lyapunov"].max()) for out in runs)

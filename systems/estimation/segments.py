@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import regressors
+from ..spatial import cross
 from .settings import EstimatorError
 
 
@@ -61,17 +62,12 @@ def _inertia_basis():
 _K_BASIS = _inertia_basis()
 
 
-def _cross(a, b):
-    """a × b on the last axis (np.cross is several times slower on small stacked vectors)."""
-    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
-                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], -1)
-
-
 def _to_body(R, p, x):
-    """Motion vectors about the world origin (N, k, 6) -> body frame at (R (N,3,3), p (N,3))."""
+    """Motion vectors about the world origin (N, k, 6) -> body frame at (R (N,3,3), p (N,3)):
+    spatial.to_body for k vectors per pose, as one matrix product per pose (faster here)."""
     k = x.shape[1]
     w = x[..., :3]
-    both = np.concatenate([w, x[..., 3:] + _cross(w, p[:, None, :])], 1) @ R  # rows times R = Rᵀ·
+    both = np.concatenate([w, x[..., 3:] + cross(w, p[:, None, :])], 1) @ R  # rows times R = Rᵀ·
     return np.concatenate([both[:, :k], both[:, k:]], -1)
 
 

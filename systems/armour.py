@@ -1,5 +1,5 @@
 """ARMOUR robust passivity controller: the control law, its interval bounds and the ultimate
-tracking bound (pure math; the LeafSystems in controllers.py are thin wrappers).
+tracking bound (pure math; the LeafSystems in controller_systems.py are thin wrappers).
 
 Law (reference-notes.md, "Robust passivity controller"):
     e = q_d - q (wrapped on continuous joints), edot = qd_d - qd,
@@ -56,6 +56,7 @@ import numpy as np
 
 from . import regressors
 from .intervals import Interval, matmul
+from .spatial import cross_rows
 from .uncertainty import ParameterFloors, parameter_radius
 
 _TINY_R = 1e-9  # below this |r| the direction r/|r| is meaningless and lambda is 0 anyway
@@ -76,13 +77,7 @@ _INERTIA = regressors.inertia_times(_E6).reshape(6, 60)  # K(x) = x @ _INERTIA  
 # B(v) va = 1/2 [v x* K(va) + va x* K(v) - K(v x va)]  (Christoffel form, regressors.py)
 _BILINEAR = regressors.body_wrench_regressor(_E6[:, None].repeat(6, 1), _E6[None, :].repeat(6, 0),
                                              np.zeros((6, 6, 6))).reshape(36, 60)
-_CROSS3 = np.cross(np.eye(3)[:, None], np.eye(3)[None, :]).reshape(9, 3)
 _SKEW = regressors.skew(np.eye(3)).reshape(3, 9)  # [p]x = p @ _SKEW (as 3 x 3; linear in p)
-
-
-def _cross(a, b):
-    """Row-wise a x b for (m, 3) arrays (np.cross's overhead dominates at one sample)."""
-    return (a[:, :, None] * b[:, None, :]).reshape(len(a), 9) @ _CROSS3
 
 
 def _outer(a, b):
@@ -137,7 +132,7 @@ class ControllerDynamics:
                 H[i] = G[i] if self.parent[i] < 0 else H[self.parent[i]] @ G[i]
         F = np.where(self.has_parent[:, :, None], H[self.parent_idx], np.eye(4)) @ self.x_pj  # joint frames
         z = (F[:, :3, :3] @ self.axis[:, :, None])[:, :, 0]
-        S = np.concatenate([z, _cross(F[:, :3, 3], z)], -1)
+        S = np.concatenate([z, cross_rows(F[:, :3, 3], z)], -1)
         return H[:, :3, :3], H[:, :3, 3], S
 
     def regressors(self, q, v, va, aa, x):
@@ -380,3 +375,15 @@ def parameter_box(robot, theta_e_nominal, theta_e_lower, theta_e_upper, rest_rat
     lo, hi = theta0 - rad, theta0 + rad
     lo[robot.ee_slice], hi[robot.ee_slice] = theta_e_lower, theta_e_upper
     return theta0, Interval(lo, hi)
+
+
+def prior_box(robot, initial_interval, noise, exact=False):
+    """(theta0, [theta]) a run starts from: the end effector's scenario.initial_interval, the rest
+    of the robot nominal +- max(noise.theta_r_ratio |theta|, noise.theta_r_floor). exact: the
+    model's own theta with zero width (the "wrong"-model baseline)."""
+    if exact:
+        theta0 = robot.theta.copy()
+        return theta0, Interval(theta0, theta0)
+    ii, ratio = initial_interval, noise.theta_r_ratio
+    return parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper), rest_ratio=ratio,
+                         friction_ratio=ratio, floors=noise.theta_r_floor)

@@ -1,0 +1,81 @@
+"""Closed loop for tests, benchmarks and the run command: the real arm station <- a controller
+(systems/controller_systems.py) <- one fixed trajectory, with fixed theta0 / [theta] (the online
+diagram, with planner and estimator, is app/online.py)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput
+
+from safesysid.systems import controller_systems
+from safesysid.systems.intervals import Interval
+from safesysid.systems.real_arm import add_real_arm
+from safesysid.systems.trajectory_source import make_trajectory_source
+
+
+def add_controller(builder, arm, scenario, kind=None):
+    """The scenario's controller (scenario.controller.kind unless `kind`) closing the loop on the
+    arm station: station state -> controller -> commanded torque. Its inputs desired, theta0,
+    theta_lower, theta_upper are the caller's to connect. Returns (controller, gains)."""
+    robot = arm.robot
+    gains = controller_systems.gains_from_scenario(scenario, robot.n)
+    ctrl = builder.AddSystem(controller_systems.make_controller(kind or scenario.controller.kind, robot, gains,
+                                                                scenario.plant.time_step_s))
+    ctrl.set_name("controller")
+    builder.Connect(arm.state_output, ctrl.GetInputPort("state"))
+    builder.Connect(ctrl.GetOutputPort("torque"), arm.commanded_torque_input)
+    return ctrl, gains
+
+
+@dataclass
+class ClosedLoop:
+    diagram: object
+    arm: object  # RealArm
+    controller: object
+    source: object
+    loggers: dict  # name -> VectorLogSink (state, desired, torque, measured_torque, diagnostics)
+
+
+def build_closed_loop(scenario, trajectory, theta0, theta_box: Interval, kind=None, robot=None,
+                      dumbbell="scenario", log=True, seed=None):
+    """Real arm + controller (scenario.controller.kind unless `kind`) + trajectory source, with
+    fixed theta0 / [theta] (an estimator can be connected instead by building by hand)."""
+    builder = DiagramBuilder()
+    arm = add_real_arm(builder, scenario, robot=robot, dumbbell=dumbbell, seed=seed)
+    h = scenario.plant.time_step_s
+    ctrl, _ = add_controller(builder, arm, scenario, kind)
+    src = builder.AddSystem(make_trajectory_source(arm.n, trajectory))
+    src.set_name("trajectory_source")
+    builder.Connect(src.get_output_port(), ctrl.GetInputPort("desired"))
+    for name, value in (("theta0", theta0), ("theta_lower", theta_box.lo), ("theta_upper", theta_box.hi)):
+        const = builder.AddSystem(ConstantVectorSource(np.asarray(value, float)))
+        const.set_name(name)
+        builder.Connect(const.get_output_port(), ctrl.GetInputPort(name))
+    loggers = {}
+    if log:
+        outputs = {"state": arm.state_output, "desired": src.get_output_port(), "torque": ctrl.GetOutputPort("torque"),
+                   "measured_torque": arm.measured_torque_output}
+        if ctrl.HasOutputPort("diagnostics"):
+            outputs["diagnostics"] = ctrl.GetOutputPort("diagnostics")
+        for name, port in outputs.items():
+            loggers[name] = LogVectorOutput(port, builder, h)
+            loggers[name].set_name(f"log_{name}")
+    return ClosedLoop(builder.Build(), arm, ctrl, src, loggers)
+
+
+def simulate_closed_loop(loop: ClosedLoop, q0, duration_s, v0=None):
+    """Run from (q0, v0); returns {name: (t, data (N, size))} from the loggers."""
+    sim = Simulator(loop.diagram)
+    ctx = sim.get_mutable_context()
+    loop.arm.seed_noise(ctx)
+    loop.arm.set_state(ctx, q0, v0)
+    sim.Initialize()
+    sim.AdvanceTo(duration_s)
+    out = {}
+    for name, sink in loop.loggers.items():
+        data = sink.FindLog(ctx)
+        out[name] = (data.sample_times().copy(), data.data().T.copy())
+    return out
