@@ -78,12 +78,12 @@ it is significant, i.e. all of
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from . import inertial, regressors
 
@@ -112,46 +112,11 @@ SATURATION_LEVEL = 0.97  # ... at the joint's top speed over all logs (fraction 
 
 
 # ---- BLAS threads ---------------------------------------------------------------------------
-def _openblas_handles():
-    """(get, set) thread-count functions of the OpenBLAS libraries numpy/scipy load, if any."""
-    import ctypes
-
-    import numpy
-    import scipy
-
-    out = []
-    for pkg in (numpy, scipy):
-        libs = Path(pkg.__file__).resolve().parent.parent / f"{pkg.__name__}.libs"
-        for lib in sorted(libs.glob("*openblas*.so*")):
-            try:
-                handle = ctypes.CDLL(str(lib))
-            except OSError:
-                continue
-            for get, put in (("scipy_openblas_get_num_threads64_", "scipy_openblas_set_num_threads64_"),
-                             ("scipy_openblas_get_num_threads", "scipy_openblas_set_num_threads"),
-                             ("openblas_get_num_threads", "openblas_set_num_threads")):
-                if hasattr(handle, get) and hasattr(handle, put):
-                    out.append((getattr(handle, get), getattr(handle, put)))
-                    break
-    return out
-
-
-@contextlib.contextmanager
 def single_threaded_blas():
-    """Run with one OpenBLAS thread: the design matrices are tall and thin, and on a shared
-    machine a threaded GEMM of that shape measured ~500x slower (spinning threads)."""
-    try:
-        handles = _openblas_handles()
-        saved = [get() for get, _ in handles]
-        for _, put in handles:
-            put(1)
-    except Exception:  # no OpenBLAS found: nothing to do
-        handles, saved = [], []
-    try:
-        yield
-    finally:
-        for (_, put), n in zip(handles, saved):
-            put(n)
+    """Run with one BLAS thread (threadpoolctl, as a context manager): the design matrices are
+    tall and thin, and on a shared machine a threaded GEMM of that shape measured ~500x slower
+    (spinning threads)."""
+    return threadpool_limits(limits=1, user_api="blas")
 
 
 # ---- per-log preparation --------------------------------------------------------------------
