@@ -644,14 +644,9 @@ def real_arm_log(effects, seed, duration_s=10.0, rate_hz=RATE_HZ, noise_ratio=0.
     sensor and effect laws) tracking a random smooth trajectory with computed torque + PD on the
     nominal model. `effects`: {scenario.plant.effects field: value}. No acceleration column
     (the real arm has no acceleration sensor): the diagnosis uses the momentum form."""
-    from pydrake.systems.analysis import Simulator
-    from pydrake.systems.framework import DiagramBuilder, LeafSystem
-    from pydrake.systems.primitives import VectorLogSink
-
-    from safesysid.joint_log import JointLog
     from safesysid.scenario import load_scenario
 
-    from .real_arm import add_real_arm
+    from .arm_tracking import track_trajectory
     from .robot_model import load_robot
 
     overrides = {"payload": {"dumbbell": "none"}, "seed": int(seed),
@@ -662,52 +657,9 @@ def real_arm_log(effects, seed, duration_s=10.0, rate_hz=RATE_HZ, noise_ratio=0.
     robot = load_robot(coulomb_smoothing=scenario.robot.coulomb_smoothing_rad_s)
     rng = np.random.default_rng(seed)
     traj = random_trajectory(robot, rng)
-    n = robot.n
-    builder = DiagramBuilder()
-    arm = add_real_arm(builder, scenario, robot, dumbbell=None, seed=seed)
-
-    h = scenario.plant.time_step_s
-
-    class ComputedTorque(LeafSystem):
-        """Computed torque + PD, sampled every plant step and held (no direct feedthrough, so
-        the loop through real_arm's series-elastic encoders stays causal)."""
-
-        def __init__(self):
-            super().__init__()
-            self.state = self.DeclareVectorInputPort("state", 2 * n)
-            u_index = self.DeclareDiscreteState(n)
-            self.DeclarePeriodicDiscreteUpdateEvent(h, 0.0, self._update)
-            self.DeclareStateOutputPort("u", u_index)
-
-        def _update(self, context, discrete_state):
-            x = self.state.Eval(context)
-            qd, vd, ad = traj(np.array([context.get_time() + h]))
-            u = robot.inverse_dynamics(qd, vd, ad)[0] + kp * (qd[0] - x[:n]) + kd * (vd[0] - x[n:])
-            discrete_state.get_mutable_vector().SetFromVector(u)
-
-    ctrl = builder.AddSystem(ComputedTorque())
-    builder.Connect(arm.state_output, ctrl.state)
-    builder.Connect(ctrl.get_output_port(), arm.commanded_torque_input)
-    log_x = builder.AddSystem(VectorLogSink(2 * n, 1.0 / rate_hz))
-    log_u = builder.AddSystem(VectorLogSink(n, 1.0 / rate_hz))
-    builder.Connect(arm.state_output, log_x.get_input_port())
-    builder.Connect(arm.measured_torque_output, log_u.get_input_port())
-    diagram = builder.Build()
-    sim = Simulator(diagram)
-    ctx = sim.get_mutable_context()
-    q0, v0, _ = traj(np.array([0.0]))
-    arm.set_state(ctx, q0[0], v0[0])
-    arm.seed_noise(ctx)  # the log depends on `seed`, not on how many sources were built before
-    sim.AdvanceTo(duration_s)
-    lx = log_x.FindLog(ctx)
-    lu = log_u.FindLog(ctx)
-    t = lx.sample_times()
-    x = lx.data().T
-    tau = lu.data().T
-    keep = t > 0.2  # skip the start-up transient
+    log = track_trajectory(scenario, robot, robot, traj, seed, duration_s, rate_hz, kp, kd, skip_s=0.2)
     g0 = rng.uniform(0.3, 0.7) * duration_s
-    keep &= (t < g0) | (t > g0 + GAP_S)
-    return JointLog(t[keep], x[keep, :n], x[keep, n:], tau[keep], None, {}, "real_arm"), robot
+    return log.slice((log.t < g0) | (log.t > g0 + GAP_S)), robot
 
 
 def run_real_arm_check(seed=0, progress=None, duration_s=6.0, only=None):
