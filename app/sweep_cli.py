@@ -24,12 +24,11 @@ PARAMETERS = ("m", "mcx", "mcy", "mcz", "Ixx", "Iyy", "Izz", "Ixy", "Iyz", "Ixz"
 
 
 def make_adversarial(scene):
-    """Noise at the declared bound, robot parameters drawn inside their box (where supported)."""
+    """Noise at the declared bound, robot parameters drawn inside their box."""
     scene.noise.torque_ratio = scene.noise.declared_torque_ratio
     scene.noise.torque_floor_Nm = scene.noise.declared_torque_floor_Nm
     scene.noise.distribution = "uniform"
-    if hasattr(scene.plant, "robot_parameters"):
-        scene.plant.robot_parameters = "drawn"
+    scene.plant.robot_parameters = "drawn"
     return scene
 
 
