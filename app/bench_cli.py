@@ -1,4 +1,5 @@
 """`safesysid bench --out DIR`: every benchmarks/bench_*.py module's run(quick) into bench.json."""
+
 import importlib
 import json
 import pkgutil
@@ -18,7 +19,7 @@ def cmd_bench(args):
     for info in sorted(pkgutil.iter_modules(benchmarks.__path__), key=lambda m: m.name):
         if not info.name.startswith("bench_"):
             continue
-        name = info.name[len("bench_"):]
+        name = info.name[len("bench_") :]
         print(f"bench {name} ...", file=sys.stderr, flush=True)
         t0 = time.perf_counter()
         try:
@@ -30,6 +31,12 @@ def cmd_bench(args):
         results[name]["bench_wall_time_s"] = time.perf_counter() - t0
     path = out / "bench.json"
     path.write_text(json.dumps(results, indent=2, default=float))
-    print(json.dumps({k: {kk: vv for kk, vv in v.items() if kk != "traceback"} for k, v in results.items()}, indent=2, default=float))
+    print(
+        json.dumps(
+            {k: {kk: vv for kk, vv in v.items() if kk != "traceback"} for k, v in results.items()},
+            indent=2,
+            default=float,
+        )
+    )
     print(f"wrote {path}", file=sys.stderr)
     return 1 if failed else 0

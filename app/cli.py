@@ -2,12 +2,14 @@
 
 Exit status: 0 success, 2 bad input (one line naming file and field), 1 otherwise.
 """
+
 from __future__ import annotations
 
 import argparse
 import importlib
 import os
 import sys
+
 
 class BadInput(ValueError):
     """Raised for user-input problems; printed as one line, exit code 2."""
@@ -23,14 +25,22 @@ def _bad_input_types():
 
 def _bag_options(p):
     p.add_argument("--topic", default="/joint_states", help="ROS bag logs: the sensor_msgs/JointState topic")
-    p.add_argument("--joints", type=lambda text: [x.strip() for x in text.split(",") if x.strip()],
-                   help="ROS bag logs: joint names in model order, comma separated (default: the model's)")
+    p.add_argument(
+        "--joints",
+        type=lambda text: [x.strip() for x in text.split(",") if x.strip()],
+        help="ROS bag logs: joint names in model order, comma separated (default: the model's)",
+    )
 
 
 def _add_scenario_text(p):
-    p.add_argument("--scenario-text", action="append", default=[], metavar="YAML",
-                   help="YAML layered over the scenario, changing only the keys it names "
-                        "(repeatable; e.g. --scenario-text 'noise: {torque_floor_Nm: 0.1}')")
+    p.add_argument(
+        "--scenario-text",
+        action="append",
+        default=[],
+        metavar="YAML",
+        help="YAML layered over the scenario, changing only the keys it names "
+        "(repeatable; e.g. --scenario-text 'noise: {torque_floor_Nm: 0.1}')",
+    )
 
 
 def build_parser():
@@ -59,8 +69,11 @@ def build_parser():
     p.add_argument("--methods", help="comma-separated methods (default: the scenario's)")
     p.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     p.add_argument("--seed", type=int, default=0, help="trial k uses seed SEED + k")
-    p.add_argument("--nominal", action="store_true",
-                   help="plain random scenes (default: noise at the declared bound, robot parameters drawn in their box)")
+    p.add_argument(
+        "--nominal",
+        action="store_true",
+        help="plain random scenes (default: noise at the declared bound, robot parameters drawn in their box)",
+    )
     p.add_argument("--out", default="out/sweep")
     _add_scenario_text(p)
 
@@ -77,8 +90,11 @@ def build_parser():
     p.add_argument("--fit", nargs="+", default=[], help="logs to fit effects on")
     p.add_argument("--check", nargs="+", default=[], help="held-out logs to score on")
     p.add_argument("--out", default="out/diagnose")
-    p.add_argument("--leave-one-out", action="store_true",
-                   help="hold each log (--fit and --check) out once, fit on the others; pooled held-out report")
+    p.add_argument(
+        "--leave-one-out",
+        action="store_true",
+        help="hold each log (--fit and --check) out once, fit on the others; pooled held-out report",
+    )
     p.add_argument("--self-check", action="store_true", help="blind test on simulated logs with withheld effects")
     p.add_argument("--cases", type=int, default=40, help="self-check: number of blind cases")
     p.add_argument("--workers", type=int, default=1, help="self-check: parallel processes")

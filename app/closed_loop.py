@@ -1,6 +1,7 @@
 """Closed loop for tests, benchmarks and the run command: the real arm station <- a controller
 (systems/controller_systems.py) <- one fixed trajectory, with fixed theta0 / [theta] (the online
 diagram, with planner and estimator, is app/online.py)."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -9,7 +10,6 @@ import numpy as np
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput
-
 from safesysid.systems import controller_systems
 from safesysid.systems.intervals import Interval
 from safesysid.systems.real_arm import add_real_arm
@@ -22,8 +22,9 @@ def add_controller(builder, arm, scenario, kind=None):
     theta_lower, theta_upper are the caller's to connect. Returns (controller, gains)."""
     robot = arm.robot
     gains = controller_systems.gains_from_scenario(scenario, robot.n)
-    ctrl = builder.AddSystem(controller_systems.make_controller(kind or scenario.controller.kind, robot, gains,
-                                                                scenario.plant.time_step_s))
+    ctrl = builder.AddSystem(
+        controller_systems.make_controller(kind or scenario.controller.kind, robot, gains, scenario.plant.time_step_s)
+    )
     ctrl.set_name("controller")
     builder.Connect(arm.state_output, ctrl.GetInputPort("state"))
     builder.Connect(ctrl.GetOutputPort("torque"), arm.commanded_torque_input)
@@ -39,8 +40,9 @@ class ClosedLoop:
     loggers: dict  # name -> VectorLogSink (state, desired, torque, measured_torque, diagnostics)
 
 
-def build_closed_loop(scenario, trajectory, theta0, theta_box: Interval, kind=None, robot=None,
-                      dumbbell="scenario", log=True, seed=None):
+def build_closed_loop(
+    scenario, trajectory, theta0, theta_box: Interval, kind=None, robot=None, dumbbell="scenario", log=True, seed=None
+):
     """Real arm + controller (scenario.controller.kind unless `kind`) + trajectory source, with
     fixed theta0 / [theta] (an estimator can be connected instead by building by hand)."""
     builder = DiagramBuilder()
@@ -56,8 +58,12 @@ def build_closed_loop(scenario, trajectory, theta0, theta_box: Interval, kind=No
         builder.Connect(const.get_output_port(), ctrl.GetInputPort(name))
     loggers = {}
     if log:
-        outputs = {"state": arm.state_output, "desired": src.get_output_port(), "torque": ctrl.GetOutputPort("torque"),
-                   "measured_torque": arm.measured_torque_output}
+        outputs = {
+            "state": arm.state_output,
+            "desired": src.get_output_port(),
+            "torque": ctrl.GetOutputPort("torque"),
+            "measured_torque": arm.measured_torque_output,
+        }
         if ctrl.HasOutputPort("diagnostics"):
             outputs["diagnostics"] = ctrl.GetOutputPort("diagnostics")
         for name, port in outputs.items():

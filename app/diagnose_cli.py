@@ -10,6 +10,7 @@ Honest protocol: selection uses the fit logs only (inner cross-validation); the 
 scored once (`test` in diagnosis.json) with the frozen selection and parameters, which
 `corrected_model.yaml` carries.
 """
+
 from __future__ import annotations
 
 import json
@@ -97,14 +98,22 @@ def run_diagnosis(model, fit_paths, check_paths, out, model_path="", plots=True,
         d.result["gap"]["residual_forms"] = {log.source: gap.residual_forms(model, log) for log in check}
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    write_corrected_model(out / "corrected_model.yaml", d.corrected_model,
-                          "# Corrected model from `safesysid diagnose` (selected and fitted on "
-                          + ", ".join(Path(p).name for p in fit_paths) + "); score it on new logs with\n"
-                          "# `safesysid diagnose --model corrected_model.yaml --check NEW.csv` (fits nothing).\n")
+    write_corrected_model(
+        out / "corrected_model.yaml",
+        d.corrected_model,
+        "# Corrected model from `safesysid diagnose` (selected and fitted on "
+        + ", ".join(Path(p).name for p in fit_paths)
+        + "); score it on new logs with\n"
+        "# `safesysid diagnose --model corrected_model.yaml --check NEW.csv` (fits nothing).\n",
+    )
     params_file = out / "corrected_params.yaml"
-    _write_yaml(params_file, corrected_params_doc(model, d),
-                "# Corrected joint parameters from `safesysid diagnose` (fit logs: "
-                + ", ".join(Path(p).name for p in fit_paths) + ").\n")
+    _write_yaml(
+        params_file,
+        corrected_params_doc(model, d),
+        "# Corrected joint parameters from `safesysid diagnose` (fit logs: "
+        + ", ".join(Path(p).name for p in fit_paths)
+        + ").\n",
+    )
     _write_outputs(out, d, model_path, fit_paths, check_paths, t0, plots, params_file.name)
     return d
 
@@ -146,28 +155,37 @@ def score_corrected(path, check_paths, out, plots=True, bag_args=None):
     out.mkdir(parents=True, exist_ok=True)
     _write_outputs(out, d, path, [], check_paths, t0, plots, frozen=True)
     r = d.result
-    print(f"frozen corrected model {path} (nothing fitted): RMS {r['gap']['rms_check']:.6f} -> "
-          f"{r['combined']['rms_check_after']:.6f} N·m ({100 * r['combined']['reduction']:.1f}% less) on "
-          + ", ".join(Path(p).name for p in check_paths) + f"; effects {', '.join(r['cause']) or 'none'}")
+    print(
+        f"frozen corrected model {path} (nothing fitted): RMS {r['gap']['rms_check']:.6f} -> "
+        f"{r['combined']['rms_check_after']:.6f} N·m ({100 * r['combined']['reduction']:.1f}% less) on "
+        + ", ".join(Path(p).name for p in check_paths)
+        + f"; effects {', '.join(r['cause']) or 'none'}"
+    )
     print(f"wrote {out}/diagnosis.json, report.md, report.html")
     return 0
 
 
 def _print_summary(d, out):
     r = d.result
-    print(f"held-out (test) RMS {r['gap']['rms_check']:.6f} N·m -> {r['combined']['rms_check_after']:.6f} N·m "
-          f"({100 * r['combined']['reduction']:.1f}% less); cause: {', '.join(r['cause']) or 'no significant effect'}")
+    print(
+        f"held-out (test) RMS {r['gap']['rms_check']:.6f} N·m -> {r['combined']['rms_check_after']:.6f} N·m "
+        f"({100 * r['combined']['reduction']:.1f}% less); cause: {', '.join(r['cause']) or 'no significant effect'}"
+    )
     print("per joint before: " + " ".join(f"{x:.2f}" for x in r["gap"]["rms_check_per_joint"]))
     print("per joint after:  " + " ".join(f"{x:.2f}" for x in r["combined"]["rms_check_per_joint_after"]))
     sat = r["gap"]["velocity_saturation"]
     if sat["spans"]:
         wo = r["combined"]["without_saturated"]
-        print(f"speed-saturated (drive at its limit, torque not delivered): {100 * sat['element_share']:.1f}% of "
-              f"samples, {100 * sat['residual_share']:.1f}% of the residual^2; without them "
-              f"{wo['rms_check']:.3f} -> {wo['rms_check_after']:.3f} N·m ({100 * wo['reduction']:.1f}% less)")
+        print(
+            f"speed-saturated (drive at its limit, torque not delivered): {100 * sat['element_share']:.1f}% of "
+            f"samples, {100 * sat['residual_share']:.1f}% of the residual^2; without them "
+            f"{wo['rms_check']:.3f} -> {wo['rms_check_after']:.3f} N·m ({100 * wo['reduction']:.1f}% less)"
+        )
     cv = r["cross_validation"]
-    print(f"selection on the fit logs only ({cv['scheme']}): validation RMS {cv['rms_before']:.3f} -> "
-          f"{cv['rms_after']:.3f} N·m ({100 * cv['reduction']:.1f}% less); the check logs were scored once (test)")
+    print(
+        f"selection on the fit logs only ({cv['scheme']}): validation RMS {cv['rms_before']:.3f} -> "
+        f"{cv['rms_after']:.3f} N·m ({100 * cv['reduction']:.1f}% less); the check logs were scored once (test)"
+    )
     print(f"wrote {out}/diagnosis.json, report.md, report.html, corrected_model.yaml, corrected_params.yaml")
 
 
@@ -181,41 +199,60 @@ def self_check(args):
     t0 = time.perf_counter()
 
     def progress(c):
-        print(f"case {c['case']:3d} ({'a' if c['with_acceleration'] else 'no a'}): injected "
-              f"{', '.join(c['injected']) or 'none'} -> named {', '.join(c['named']) or 'none'}", file=sys.stderr, flush=True)
+        print(
+            f"case {c['case']:3d} ({'a' if c['with_acceleration'] else 'no a'}): injected "
+            f"{', '.join(c['injected']) or 'none'} -> named {', '.join(c['named']) or 'none'}",
+            file=sys.stderr,
+            flush=True,
+        )
 
     cases, summary, table = gs.run_self_check(model, args.cases, args.seed, progress, getattr(args, "workers", 1))
     summary["wall_time_s"] = time.perf_counter() - t0
-    summary["targets"] = {"injected_named_rate>=0.95": summary["injected_named_rate"] >= 0.95,
-                          "cases_with_false_effect_rate<=0.05": summary["cases_with_false_effect_rate"] <= 0.05,
-                          "null_cases_all_none": summary["null_correct"] == summary["null_cases"]}
+    summary["targets"] = {
+        "injected_named_rate>=0.95": summary["injected_named_rate"] >= 0.95,
+        "cases_with_false_effect_rate<=0.05": summary["cases_with_false_effect_rate"] <= 0.05,
+        "null_cases_all_none": summary["null_correct"] == summary["null_cases"],
+    }
     md = gs.confusion_markdown(table)
     errors = gs.error_markdown(summary["parameter_errors"])
-    (out / "self_check.json").write_text(json.dumps(_clean({"summary": summary, "confusion": table, "cases": cases,
-                                                            "seed": args.seed, "model": model.source}), indent=2))
+    (out / "self_check.json").write_text(
+        json.dumps(
+            _clean({"summary": summary, "confusion": table, "cases": cases, "seed": args.seed, "model": model.source}),
+            indent=2,
+        )
+    )
     near, same = summary["near_floor"], summary["same_joints"]
-    text = ["# Diagnosis self-check (withheld effects, blind)", "",
-            f"{summary['cases']} cases, seed {args.seed}, model `{model.source}`. Logs: exact inverse dynamics of "
-            "the model along random smooth trajectories plus the withheld effects (systems/gap_simulate.py), "
-            "bounded noise up to 3% of each joint's torque range, half of the cases without accelerations. "
-            "Honest protocol: effects are selected on the two fit logs only (inner cross-validation) and the "
-            "check log is scored once.", "",
-            md, "",
-            f"- injected effects named: {summary['injected_named']}/{summary['injected_effects']} "
-            f"({100 * summary['injected_named_rate']:.1f}%)",
-            f"- false effects: {summary['false_effects']} of {summary['named_effects']} named; cases with a false "
-            f"effect {summary['cases_with_false_effect']}/{summary['cases']} ({100 * summary['cases_with_false_effect_rate']:.1f}%)",
-            f"- null cases answered 'no significant effect': {summary['null_correct']}/{summary['null_cases']}",
-            f"- close to the noise floor (SNR 1–1.3): named {near['injected_named']}/{near['injected_effects']} "
-            f"in {near['cases']} cases; two effects on the same joints: named {same['injected_named']}/"
-            f"{same['injected_effects']} in {same['cases']} cases",
-            f"- time law (pure delay / first-order lag) right where a delay was named: "
-            f"{summary['time_law_correct']}/{summary['time_law_named']}",
-            "- missed (effect, achieved SNR after physical caps): "
-            + (", ".join(f"case {m['case']} {m['effect']} {m['snr']:.2f}" for m in summary["missed"]) or "none"),
-            f"- wall time {summary['wall_time_s']:.0f} s", "",
-            "Parameter errors of the named injected effects against the withheld truth (per injected joint):", "",
-            errors, ""]
+    text = [
+        "# Diagnosis self-check (withheld effects, blind)",
+        "",
+        f"{summary['cases']} cases, seed {args.seed}, model `{model.source}`. Logs: exact inverse dynamics of "
+        "the model along random smooth trajectories plus the withheld effects (systems/gap_simulate.py), "
+        "bounded noise up to 3% of each joint's torque range, half of the cases without accelerations. "
+        "Honest protocol: effects are selected on the two fit logs only (inner cross-validation) and the "
+        "check log is scored once.",
+        "",
+        md,
+        "",
+        f"- injected effects named: {summary['injected_named']}/{summary['injected_effects']} "
+        f"({100 * summary['injected_named_rate']:.1f}%)",
+        f"- false effects: {summary['false_effects']} of {summary['named_effects']} named; cases with a false "
+        f"effect {summary['cases_with_false_effect']}/{summary['cases']} "
+        f"({100 * summary['cases_with_false_effect_rate']:.1f}%)",
+        f"- null cases answered 'no significant effect': {summary['null_correct']}/{summary['null_cases']}",
+        f"- close to the noise floor (SNR 1–1.3): named {near['injected_named']}/{near['injected_effects']} "
+        f"in {near['cases']} cases; two effects on the same joints: named {same['injected_named']}/"
+        f"{same['injected_effects']} in {same['cases']} cases",
+        f"- time law (pure delay / first-order lag) right where a delay was named: "
+        f"{summary['time_law_correct']}/{summary['time_law_named']}",
+        "- missed (effect, achieved SNR after physical caps): "
+        + (", ".join(f"case {m['case']} {m['effect']} {m['snr']:.2f}" for m in summary["missed"]) or "none"),
+        f"- wall time {summary['wall_time_s']:.0f} s",
+        "",
+        "Parameter errors of the named injected effects against the withheld truth (per injected joint):",
+        "",
+        errors,
+        "",
+    ]
     (out / "confusion.md").write_text("\n".join(text))
     print(md)
     print("\n".join(line for line in text if line.startswith("- ")))
@@ -233,15 +270,18 @@ def leave_one_out(model, paths, out, model_path, bag=None):
 
     out = Path(out)
     dirs = [out / f"fold{k + 1}_{Path(p).stem}" for k, p in enumerate(paths)]
-    folds = [run_diagnosis(model, paths[:k] + paths[k + 1:], [paths[k]], d, model_path, bag=bag)
-             for k, d in enumerate(dirs)]
+    folds = [
+        run_diagnosis(model, paths[:k] + paths[k + 1 :], [paths[k]], d, model_path, bag=bag) for k, d in enumerate(dirs)
+    ]
     pooled = gap.pool_held_out(folds)
     (out / "leave_one_out.json").write_text(json.dumps(_clean(pooled), indent=2))
     write_leave_one_out_report(out, pooled, model_path, dirs)
     p, m = pooled["pooled"], pooled["mean_over_folds"]
-    print(f"held-out (test) RMS pooled over {len(paths)} folds {p['rms_before']:.3f} -> {p['rms_after']:.3f} N·m "
-          f"({100 * p['reduction']:.1f}% less; mean over folds {100 * m['reduction']:.1f}%); named in every fold: "
-          f"{', '.join(pooled['named_in_every_fold']) or 'none'}")
+    print(
+        f"held-out (test) RMS pooled over {len(paths)} folds {p['rms_before']:.3f} -> {p['rms_after']:.3f} N·m "
+        f"({100 * p['reduction']:.1f}% less; mean over folds {100 * m['reduction']:.1f}%); named in every fold: "
+        f"{', '.join(pooled['named_in_every_fold']) or 'none'}"
+    )
     print(f"wrote {out}/leave_one_out.json, report.md and one folder per fold")
     return 0
 
@@ -262,8 +302,10 @@ def cmd_diagnose(args):
 
     if is_corrected_model_file(args.model):
         if args.fit or args.leave_one_out:
-            raise BadInput(f"{args.model}: a corrected model is scored as it is (--check only, fits nothing); "
-                           "to diagnose again give the starting model to --model")
+            raise BadInput(
+                f"{args.model}: a corrected model is scored as it is (--check only, fits nothing); "
+                "to diagnose again give the starting model to --model"
+            )
         return score_corrected(args.model, list(args.check), args.out, bag_args=args)
     if args.leave_one_out:
         paths = list(args.fit) + list(args.check)

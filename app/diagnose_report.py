@@ -1,4 +1,5 @@
 """report.md and plots (matplotlib, Agg) of a gap diagnosis."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -31,8 +32,11 @@ def write_plots(out, diagnosis):
     before = np.concatenate(d.check_residual_before)
     after = np.concatenate(d.check_residual_after)
     files = {}
-    feats = {"velocity": ("v", "velocity [rad/s]"), "acceleration": ("a", "acceleration [rad/s²]"),
-             "gravity": ("g", "gravity torque [N·m]")}
+    feats = {
+        "velocity": ("v", "velocity [rad/s]"),
+        "acceleration": ("a", "acceleration [rad/s²]"),
+        "gravity": ("g", "gravity torque [N·m]"),
+    }
     for key, (f, label) in feats.items():
         x = np.concatenate([c.features[f] for c in check])
         rows, cols = _grid(n)
@@ -64,8 +68,16 @@ def write_plots(out, diagnosis):
         ax.plot(c0.row_time, d.check_residual_before[0][:, j], lw=0.6, c="0.5", label="nominal")
         ax.plot(c0.row_time, d.check_residual_after[0][:, j], lw=0.6, c="tab:blue", label="corrected")
         if c0.row_saturated[:, j].any():
-            ax.fill_between(c0.row_time, 0, 1, where=c0.row_saturated[:, j], color="tab:orange", alpha=0.25,
-                            transform=ax.get_xaxis_transform(), label="speed-saturated")
+            ax.fill_between(
+                c0.row_time,
+                0,
+                1,
+                where=c0.row_saturated[:, j],
+                color="tab:orange",
+                alpha=0.25,
+                transform=ax.get_xaxis_transform(),
+                label="speed-saturated",
+            )
         ax.set_ylabel(f"j{j + 1} [N·m]", fontsize=8)
         ax.tick_params(labelsize=7)
     handles = {h.get_label(): h for ax in axes[:, 0] for h in ax.get_legend_handles_labels()[0]}
@@ -78,8 +90,12 @@ def write_plots(out, diagnosis):
     files["timeseries"] = "residual_timeseries.png"
     # Per-joint bars.
     res = d.result
-    files["bars"] = joint_bars(out / "joint_rms.png", res["gap"]["rms_check_per_joint"],
-                               res["combined"]["rms_check_per_joint_after"], "corrected")
+    files["bars"] = joint_bars(
+        out / "joint_rms.png",
+        res["gap"]["rms_check_per_joint"],
+        res["combined"]["rms_check_per_joint_after"],
+        "corrected",
+    )
     return files
 
 
@@ -153,8 +169,11 @@ def effect_text(entry):
     if name == "torque_scale":
         return "torque scale " + _per_joint(p["scale"], joints, "")
     if name == "payload":
-        return (f"payload {p['mass_kg']:.3g} kg at CoM [" + ", ".join(f"{x:.3f}" for x in p["com_m"])
-                + "] m (end-effector frame)")
+        return (
+            f"payload {p['mass_kg']:.3g} kg at CoM ["
+            + ", ".join(f"{x:.3f}" for x in p["com_m"])
+            + "] m (end-effector frame)"
+        )
     if name == "time_delay":
         d = p["delay_s"]
         if p.get("time_law") == "lag" or p["law"].startswith("first-order"):
@@ -171,47 +190,76 @@ def effect_text(entry):
 def _regime_text(gap):
     """Regimes holding clearly more of the residual² than of the samples, worst first."""
     share, samples = gap["where"]["regimes"], gap["where"]["regime_sample_share"]
-    excess = sorted(((share[k] - samples[k], k) for k in share if samples[k] > 0 and share[k] > 1.2 * samples[k]),
-                    reverse=True)[:2]
-    return [f"{k.replace('_', ' ')} ({100 * share[k]:.0f} % of the residual² on {100 * samples[k]:.0f} % of "
-            f"the samples)" for _, k in excess]
+    excess = sorted(
+        ((share[k] - samples[k], k) for k in share if samples[k] > 0 and share[k] > 1.2 * samples[k]), reverse=True
+    )[:2]
+    return [
+        f"{k.replace('_', ' ')} ({100 * share[k]:.0f} % of the residual² on {100 * samples[k]:.0f} % of the samples)"
+        for _, k in excess
+    ]
 
 
 def verdict_lines(result, frozen=False):
     """The three lines report.md opens with: where the model fails, the effects that explain
     it with fitted values and units, and the shrinkage on held-out (test) logs."""
-    gap, comb, test = result["gap"], result["combined"], result["test"]
+    gap, test = result["gap"], result["test"]
     per_joint = gap["rms_check_per_joint"]
     worst = gap["where"]["joints"][:3]
     regimes = _regime_text(gap)
-    where = ("**Where:** the model fails most on joint" + ("s " if len(worst) > 1 else " ")
-             + ", ".join(f"{j} ({per_joint[j - 1]:.2f} N·m RMS)" for j in worst)
-             + f" of {len(per_joint)} (all joints {gap['rms_check']:.2f} N·m)"
-             + ("; the residual concentrates at " + " and ".join(regimes) if regimes else
-                "; spread over the motion (no regime stands out)") + ".")
+    where = (
+        "**Where:** the model fails most on joint"
+        + ("s " if len(worst) > 1 else " ")
+        + ", ".join(f"{j} ({per_joint[j - 1]:.2f} N·m RMS)" for j in worst)
+        + f" of {len(per_joint)} (all joints {gap['rms_check']:.2f} N·m)"
+        + (
+            "; the residual concentrates at " + " and ".join(regimes)
+            if regimes
+            else "; spread over the motion (no regime stands out)"
+        )
+        + "."
+    )
     named = [e for e in result["effects"] if e["significant"]]
     if named:
-        why = ("**Why:** " + "; ".join(effect_text(e) for e in named)
-               + (" (the frozen corrected model, nothing fitted)." if frozen else
-                  " (selected on the fit logs only, inner cross-validation)."))
+        why = (
+            "**Why:** "
+            + "; ".join(effect_text(e) for e in named)
+            + (
+                " (the frozen corrected model, nothing fitted)."
+                if frozen
+                else " (selected on the fit logs only, inner cross-validation)."
+            )
+        )
     else:
         why = "**Why:** no effect of the vocabulary explains a significant part of it on the fit logs."
     logs = ", ".join(f"`{Path(p).name}`" for p in test["logs"])
     wo = test["without_saturated"]
-    change = (f"**{100 * test['reduction']:.1f} % less**" if test["rms_after"] <= test["rms_before"] else
-              f"**{100 * (test['rms_after'] / test['rms_before'] - 1):.1f} % more**: the correction does not "
-              "carry over to these logs")
-    shrink = (f"**Held-out (test):** RMS {test['rms_before']:.3f} → {test['rms_after']:.3f} N·m "
-              f"({change}) on {logs}, "
-              + ("scored with the frozen model, nothing fitted" if frozen else "never used by any selection step")
-              + (f"; without speed-saturated samples {100 * wo['reduction']:.1f} %" if gap["velocity_saturation"]["spans"] else "")
-              + (f"; inner cross-validation on the fit logs {100 * result['cross_validation']['reduction']:.1f} %."
-                 if "cross_validation" in result else "."))
+    change = (
+        f"**{100 * test['reduction']:.1f} % less**"
+        if test["rms_after"] <= test["rms_before"]
+        else f"**{100 * (test['rms_after'] / test['rms_before'] - 1):.1f} % more**: the correction does not "
+        "carry over to these logs"
+    )
+    shrink = (
+        f"**Held-out (test):** RMS {test['rms_before']:.3f} → {test['rms_after']:.3f} N·m "
+        f"({change}) on {logs}, "
+        + ("scored with the frozen model, nothing fitted" if frozen else "never used by any selection step")
+        + (
+            f"; without speed-saturated samples {100 * wo['reduction']:.1f} %"
+            if gap["velocity_saturation"]["spans"]
+            else ""
+        )
+        + (
+            f"; inner cross-validation on the fit logs {100 * result['cross_validation']['reduction']:.1f} %."
+            if "cross_validation" in result
+            else "."
+        )
+    )
     return [where, why, shrink]
 
 
-def write_report(out, diagnosis, model_path, fit_paths, check_paths, plots, wall_time_s, params_file=None,
-                 frozen=False):
+def write_report(
+    out, diagnosis, model_path, fit_paths, check_paths, plots, wall_time_s, params_file=None, frozen=False
+):
     """report.md (verdict first, then tables and plots) and report.html (the same, plots embedded)."""
     res = diagnosis.result
     gap = res["gap"]
@@ -222,30 +270,51 @@ def write_report(out, diagnosis, model_path, fit_paths, check_paths, plots, wall
     for v in verdict_lines(res, frozen):
         lines += [v, ""]
     lines += [
-        "## Inputs", "",
+        "## Inputs",
+        "",
         f"- model: `{model_path}`",
-        (f"- frozen corrected model: nothing fitted, no selection made" if frozen
-         else f"- fit logs (all selection and fitting): {', '.join(f'`{p}`' for p in fit_paths)}"),
+        (
+            "- frozen corrected model: nothing fitted, no selection made"
+            if frozen
+            else f"- fit logs (all selection and fitting): {', '.join(f'`{p}`' for p in fit_paths)}"
+        ),
         f"- check logs (scored once, `test`): {', '.join(f'`{p}`' for p in check_paths)}",
         f"- residual form: **{gap['residual_form']}** "
-        + ("(inverse dynamics with the logged accelerations)" if gap["residual_form"] == "inverse_dynamics"
-           else "(momentum form: window-mean torque residual, no differentiated accelerations)"),
-        f"- wall time: {wall_time_s:.1f} s", "",
-        "## Gap on the check logs (test)", "",
+        + (
+            "(inverse dynamics with the logged accelerations)"
+            if gap["residual_form"] == "inverse_dynamics"
+            else "(momentum form: window-mean torque residual, no differentiated accelerations)"
+        ),
+        f"- wall time: {wall_time_s:.1f} s",
+        "",
+        "## Gap on the check logs (test)",
+        "",
         f"Held-out RMS residual of the nominal model: **{gap['rms_check']:.3f} N·m**"
         + (f" (fit logs: {gap['rms_fit']:.3f} N·m)." if gap.get("rms_fit") is not None else "."),
-        f"Largest on joints {', '.join(map(str, gap['where']['joints'][:3]))}.", "",
-        "| joint | RMS before [N·m] | RMS after [N·m] | reduction |", "|---|---|---|---|",
+        f"Largest on joints {', '.join(map(str, gap['where']['joints'][:3]))}.",
+        "",
+        "| joint | RMS before [N·m] | RMS after [N·m] | reduction |",
+        "|---|---|---|---|",
     ]
     for j in range(n):
         b, a = gap["rms_check_per_joint"][j], comb["rms_check_per_joint_after"][j]
         lines.append(f"| {j + 1} | {b:.3f} | {a:.3f} | {100 * (1 - a / b) if b > 0 else 0:.0f}% |")
-    lines += ["", "### Where (share of the squared held-out residual)", "",
-              "| regime | share of residual² | share of samples |", "|---|---|---|"]
+    lines += [
+        "",
+        "### Where (share of the squared held-out residual)",
+        "",
+        "| regime | share of residual² | share of samples |",
+        "|---|---|---|",
+    ]
     for k, v in gap["where"]["regimes"].items():
         lines.append(f"| {k} | {100 * v:.1f}% | {100 * gap['where']['regime_sample_share'][k]:.1f}% |")
-    lines += ["", "A regime whose residual share clearly exceeds its sample share is where the model fails.", "",
-              "Worst 1-s time windows:", ""]
+    lines += [
+        "",
+        "A regime whose residual share clearly exceeds its sample share is where the model fails.",
+        "",
+        "Worst 1-s time windows:",
+        "",
+    ]
     for w in gap["where"]["time_windows"]:
         lines.append(f"- `{Path(w['log']).name}` {w['t_start']:.1f}–{w['t_end']:.1f} s: {100 * w['share']:.1f}%")
     if "residual_forms" in gap:
@@ -255,36 +324,60 @@ def write_report(out, diagnosis, model_path, fit_paths, check_paths, plots, wall
     sat = gap.get("velocity_saturation")
     if sat and sat["spans"]:
         wo = comb["without_saturated"]
-        lines += ["", f"Velocity saturation: joints ran pinned at their top speed on "
-                  f"{100 * sat['element_share']:.1f}% of the held-out joint samples, which carry "
-                  f"{100 * sat['residual_share']:.1f}% of the nominal residual². There the drive does not "
-                  "deliver the logged torque (it swings while velocity and acceleration stay flat), so no "
-                  "model of the arm can follow it: these samples are left out of fitting and selection "
-                  "(the top speeds are those of the fit logs, frozen in corrected_model.yaml). "
-                  f"On the other samples: {wo['rms_check']:.3f} → {wo['rms_check_after']:.3f} N·m "
-                  f"({100 * wo['reduction']:.1f}% reduction; all samples {100 * comb['reduction']:.1f}%).", "",
-                  "| log | joint | from [s] | to [s] | speed [rad/s] |", "|---|---|---|---|---|"]
+        lines += [
+            "",
+            f"Velocity saturation: joints ran pinned at their top speed on "
+            f"{100 * sat['element_share']:.1f}% of the held-out joint samples, which carry "
+            f"{100 * sat['residual_share']:.1f}% of the nominal residual². There the drive does not "
+            "deliver the logged torque (it swings while velocity and acceleration stay flat), so no "
+            "model of the arm can follow it: these samples are left out of fitting and selection "
+            "(the top speeds are those of the fit logs, frozen in corrected_model.yaml). "
+            f"On the other samples: {wo['rms_check']:.3f} → {wo['rms_check_after']:.3f} N·m "
+            f"({100 * wo['reduction']:.1f}% reduction; all samples {100 * comb['reduction']:.1f}%).",
+            "",
+            "| log | joint | from [s] | to [s] | speed [rad/s] |",
+            "|---|---|---|---|---|",
+        ]
         for sp in sat["spans"]:
-            lines.append(f"| `{Path(sp['log']).name}` | {sp['joint']} | {sp['t_start']:.2f} | {sp['t_end']:.2f} "
-                         f"| {sp['speed_rad_s']:.3f} |")
-    lines += ["", "Where the residual left after the correction lies (share of its square):", "",
-              "| regime | share after | share of samples |", "|---|---|---|"]
+            lines.append(
+                f"| `{Path(sp['log']).name}` | {sp['joint']} | {sp['t_start']:.2f} | {sp['t_end']:.2f} "
+                f"| {sp['speed_rad_s']:.3f} |"
+            )
+    lines += [
+        "",
+        "Where the residual left after the correction lies (share of its square):",
+        "",
+        "| regime | share after | share of samples |",
+        "|---|---|---|",
+    ]
     for k, v in comb.get("regimes_after", {}).items():
         lines.append(f"| {k} | {100 * v:.1f}% | {100 * gap['where']['regime_sample_share'][k]:.1f}% |")
     lines += _effects_section(res, frozen)
-    lines += ["## Combined", "",
-              f"Effects {', '.join(comb['effects']) or '(none)'}: held-out (test) RMS **{gap['rms_check']:.3f} → "
-              f"{comb['rms_check_after']:.3f} N·m** (reduction {100 * comb['reduction']:.1f}%).", ""]
-    if any(e["name"] == "time_delay" and e["significant"] and e["params"]["law"].startswith("first-order")
-           for e in res["effects"]):
-        lines += ["The first-order lag has a state: at each segment start and after each speed-saturated span "
-                  "(where its history is unknown) the lagged model restarts from the measured torque.", ""]
+    lines += [
+        "## Combined",
+        "",
+        f"Effects {', '.join(comb['effects']) or '(none)'}: held-out (test) RMS **{gap['rms_check']:.3f} → "
+        f"{comb['rms_check_after']:.3f} N·m** (reduction {100 * comb['reduction']:.1f}%).",
+        "",
+    ]
+    if any(
+        e["name"] == "time_delay" and e["significant"] and e["params"]["law"].startswith("first-order")
+        for e in res["effects"]
+    ):
+        lines += [
+            "The first-order lag has a state: at each segment start and after each speed-saturated span "
+            "(where its history is unknown) the lagged model restarts from the measured torque.",
+            "",
+        ]
     if params_file:
-        lines += ["Corrected model: `corrected_model.yaml` (the starting model, every selected effect with its "
-                  "parameters and the frozen scoring rule); score it on new logs with `safesysid diagnose --model "
-                  "corrected_model.yaml --check NEW.csv` (fits nothing). "
-                  f"Joint parameters alone: `{params_file}` (joint-parameter YAML, loadable by "
-                  "`load_robot(params_path=...)` / a scenario's `robot.params`).", ""]
+        lines += [
+            "Corrected model: `corrected_model.yaml` (the starting model, every selected effect with its "
+            "parameters and the frozen scoring rule); score it on new logs with `safesysid diagnose --model "
+            "corrected_model.yaml --check NEW.csv` (fits nothing). "
+            f"Joint parameters alone: `{params_file}` (joint-parameter YAML, loadable by "
+            "`load_robot(params_path=...)` / a scenario's `robot.params`).",
+            "",
+        ]
     lines += ["## Plots", ""] + [f"![{k}]({v})" for k, v in plots.items()] + [""]
     text = "\n".join(lines)
     Path(out, "report.md").write_text(text)
@@ -293,44 +386,74 @@ def write_report(out, diagnosis, model_path, fit_paths, check_paths, plots, wall
 
 def _effects_section(res, frozen):
     if frozen:
-        lines = ["", "## Effects (frozen)", "",
-                 "| effect | joints | test RMS with this effect alone [N·m] | reduction alone | parameters |",
-                 "|---|---|---|---|---|"]
+        lines = [
+            "",
+            "## Effects (frozen)",
+            "",
+            "| effect | joints | test RMS with this effect alone [N·m] | reduction alone | parameters |",
+            "|---|---|---|---|---|",
+        ]
         for e in res["effects"]:
-            lines.append(f"| {e['name']} | {', '.join(map(str, e['joints']))} | {e['rms_check_after']:.3f} "
-                         f"| {100 * e['reduction']:.1f}% | {_params_text(e['params'])} |")
+            lines.append(
+                f"| {e['name']} | {', '.join(map(str, e['joints']))} | {e['rms_check_after']:.3f} "
+                f"| {100 * e['reduction']:.1f}% | {_params_text(e['params'])} |"
+            )
         return lines + [""]
     cv = res["cross_validation"]
-    lines = ["", "## Effects", "",
-             f"Cause: **{', '.join(res['cause']) if res['cause'] else 'no significant effect'}**", "",
-             "| effect | significant | joints | test RMS alone [N·m] | test reduction alone | parameters |",
-             "|---|---|---|---|---|---|"]
+    lines = [
+        "",
+        "## Effects",
+        "",
+        f"Cause: **{', '.join(res['cause']) if res['cause'] else 'no significant effect'}**",
+        "",
+        "| effect | significant | joints | test RMS alone [N·m] | test reduction alone | parameters |",
+        "|---|---|---|---|---|---|",
+    ]
     for e in res["effects"]:
-        lines.append(f"| {e['name']} | {'yes' if e['significant'] else 'no'} | {', '.join(map(str, e['joints']))} | "
-                     f"{e['rms_check_after']:.3f} | {100 * e['reduction']:.1f}% | {_params_text(e['params'])} |")
-    lines += ["", f"Selection on the fit logs only ({cv['scheme'].replace('_', ' ')}; "
-              "the validation residuals of the inner folds, each fit-log sample validated once): "
-              "best set of one or two effects by exhaustive search, then forward-greedy.", "",
-              "| fold | fit on | validated on |", "|---|---|---|"]
+        lines.append(
+            f"| {e['name']} | {'yes' if e['significant'] else 'no'} | {', '.join(map(str, e['joints']))} | "
+            f"{e['rms_check_after']:.3f} | {100 * e['reduction']:.1f}% | {_params_text(e['params'])} |"
+        )
+    lines += [
+        "",
+        f"Selection on the fit logs only ({cv['scheme'].replace('_', ' ')}; "
+        "the validation residuals of the inner folds, each fit-log sample validated once): "
+        "best set of one or two effects by exhaustive search, then forward-greedy.",
+        "",
+        "| fold | fit on | validated on |",
+        "|---|---|---|",
+    ]
     for k, f in enumerate(cv["folds"], 1):
-        lines.append(f"| {k} | {', '.join(f'`{Path(p).name}`' for p in f['fit'])} "
-                     f"| {', '.join(f'`{Path(p).name}`' for p in f['validate'])} |")
-    lines += ["", "| step | effect | validation RMS after [N·m] | z (block) | p (block ranks) | relative MSE drop "
-              "| BIC change |", "|---|---|---|---|---|---|---|"]
+        lines.append(
+            f"| {k} | {', '.join(f'`{Path(p).name}`' for p in f['fit'])} "
+            f"| {', '.join(f'`{Path(p).name}`' for p in f['validate'])} |"
+        )
+    lines += [
+        "",
+        "| step | effect | validation RMS after [N·m] | z (block) | p (block ranks) | relative MSE drop | BIC change |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for k, s in enumerate(cv["selection"], 1):
-        lines.append(f"| {k} | {s['effect']} | {s['rms_after']:.3f} | {s['z']:.1f} | {s['p_blocks']:.1e} "
-                     f"| {100 * s['relative']:.1f}% | {s['bic_change']:.0f} |")
+        lines.append(
+            f"| {k} | {s['effect']} | {s['rms_after']:.3f} | {s['z']:.1f} | {s['p_blocks']:.1e} "
+            f"| {100 * s['relative']:.1f}% | {s['bic_change']:.0f} |"
+        )
     rule = res["significance_rule"]
-    lines += ["", f"Cross-validation (`cross_validation`): {cv['rms_before']:.3f} → {cv['rms_after']:.3f} N·m "
-              f"({100 * cv['reduction']:.1f}%); test (`test`, the check logs): {res['test']['rms_before']:.3f} → "
-              f"{res['test']['rms_after']:.3f} N·m ({100 * res['test']['reduction']:.1f}%).", "",
-              f"Significance (on validation residuals): squared-residual drop > {rule['z_block']} standard errors "
-              f"of its random part (block sums over {rule['block_s']} s) or consistent over blocks (Wilcoxon "
-              f"signed-rank of the block gains, p ≤ {rule['p_blocks']:.2g}, ≥ {rule['min_blocks']} blocks), "
-              f"> {100 * rule['min_relative']:.0f}% of the current MSE and > {100 * rule['min_noise_fraction']:.0f}% "
-              "of the noise variance (robust, first differences), and BIC on the inner training folds decreases. "
-              "The final set is ordered by the validation loss when each effect is left out; its parameters are "
-              "then refitted on all fit logs and the check logs are scored once.", ""]
+    lines += [
+        "",
+        f"Cross-validation (`cross_validation`): {cv['rms_before']:.3f} → {cv['rms_after']:.3f} N·m "
+        f"({100 * cv['reduction']:.1f}%); test (`test`, the check logs): {res['test']['rms_before']:.3f} → "
+        f"{res['test']['rms_after']:.3f} N·m ({100 * res['test']['reduction']:.1f}%).",
+        "",
+        f"Significance (on validation residuals): squared-residual drop > {rule['z_block']} standard errors "
+        f"of its random part (block sums over {rule['block_s']} s) or consistent over blocks (Wilcoxon "
+        f"signed-rank of the block gains, p ≤ {rule['p_blocks']:.2g}, ≥ {rule['min_blocks']} blocks), "
+        f"> {100 * rule['min_relative']:.0f}% of the current MSE and > {100 * rule['min_noise_fraction']:.0f}% "
+        "of the noise variance (robust, first differences), and BIC on the inner training folds decreases. "
+        "The final set is ordered by the validation loss when each effect is left out; its parameters are "
+        "then refitted on all fit logs and the check logs are scored once.",
+        "",
+    ]
     return lines
 
 
@@ -372,9 +495,13 @@ def markdown_to_html(text, folder, title):
             items.clear()
         if table:
             head, rows = table[0], table[2:]
-            body.append("<table><thead><tr>" + "".join(f"<th>{_inline(c)}</th>" for c in head) + "</tr></thead><tbody>"
-                        + "".join("<tr>" + "".join(f"<td>{_inline(c)}</td>" for c in r) + "</tr>" for r in rows)
-                        + "</tbody></table>")
+            body.append(
+                "<table><thead><tr>"
+                + "".join(f"<th>{_inline(c)}</th>" for c in head)
+                + "</tr></thead><tbody>"
+                + "".join("<tr>" + "".join(f"<td>{_inline(c)}</td>" for c in r) + "</tr>" for r in rows)
+                + "</tbody></table>"
+            )
             table.clear()
 
     for line in text.splitlines():
@@ -395,13 +522,26 @@ def markdown_to_html(text, folder, title):
         else:
             para.append(line.strip())
     flush()
-    style = ("body{font-family:sans-serif;max-width:72em;margin:1em auto;padding:0 1em;line-height:1.4}"
-             "table{border-collapse:collapse;margin:0.5em 0}td,th{border:1px solid #ccc;padding:2px 6px;"
-             "font-size:0.9em}th{background:#eee}img{max-width:100%}code{background:#f4f4f4}")
-    script = ("window.addEventListener('load',function(){var n=0;document.querySelectorAll('img').forEach("
-              "function(i){if(i.complete&&i.naturalWidth>0)n++});document.body.dataset.imagesDecoded=n;});")
-    return ("<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>" + html.escape(title) + "</title><style>"
-            + style + "</style><script>" + script + "</script></head><body>" + "\n".join(body) + "</body></html>")
+    style = (
+        "body{font-family:sans-serif;max-width:72em;margin:1em auto;padding:0 1em;line-height:1.4}"
+        "table{border-collapse:collapse;margin:0.5em 0}td,th{border:1px solid #ccc;padding:2px 6px;"
+        "font-size:0.9em}th{background:#eee}img{max-width:100%}code{background:#f4f4f4}"
+    )
+    script = (
+        "window.addEventListener('load',function(){var n=0;document.querySelectorAll('img').forEach("
+        "function(i){if(i.complete&&i.naturalWidth>0)n++});document.body.dataset.imagesDecoded=n;});"
+    )
+    return (
+        '<!DOCTYPE html><html><head><meta charset="utf-8"><title>'
+        + html.escape(title)
+        + "</title><style>"
+        + style
+        + "</style><script>"
+        + script
+        + "</script></head><body>"
+        + "\n".join(body)
+        + "</body></html>"
+    )
 
 
 def write_html(path, markdown_text, folder, title):
@@ -415,38 +555,66 @@ def write_leave_one_out_report(out, pooled, model_path, fold_dirs):
     effects named in every fold."""
     p, u, m = pooled["pooled"], pooled["pooled_unsaturated"], pooled["mean_over_folds"]
     named = ", ".join(pooled["named_in_every_fold"]) or "none"
-    lines = ["# Sim-to-real gap diagnosis, leave one log out (nested)", "",
-             f"**Held-out (test):** pooled over {len(pooled['folds'])} folds RMS {p['rms_before']:.2f} → "
-             f"{p['rms_after']:.2f} N·m (**{100 * p['reduction']:.1f} % less**; without speed-saturated samples "
-             f"{100 * u['reduction']:.1f} %); effects named in every fold: **{named}**.", "",
-             f"- model: `{model_path}`",
-             f"- each of {len(pooled['folds'])} logs held out once; selection on inner folds of the other logs "
-             "only (leave one of them out), parameters refitted on them, the held-out log scored once "
-             "(fold reports linked below)", "",
-             "## Held-out RMS pooled over the folds [N·m]", "",
-             "| joint | before | after | reduction | before, unsaturated | after, unsaturated | reduction |",
-             "|---|---|---|---|---|---|---|"]
-    rows = list(zip(p["rms_before_per_joint"], p["rms_after_per_joint"], p["reduction_per_joint"],
-                    u["rms_before_per_joint"], u["rms_after_per_joint"], u["reduction_per_joint"]))
+    lines = [
+        "# Sim-to-real gap diagnosis, leave one log out (nested)",
+        "",
+        f"**Held-out (test):** pooled over {len(pooled['folds'])} folds RMS {p['rms_before']:.2f} → "
+        f"{p['rms_after']:.2f} N·m (**{100 * p['reduction']:.1f} % less**; without speed-saturated samples "
+        f"{100 * u['reduction']:.1f} %); effects named in every fold: **{named}**.",
+        "",
+        f"- model: `{model_path}`",
+        f"- each of {len(pooled['folds'])} logs held out once; selection on inner folds of the other logs "
+        "only (leave one of them out), parameters refitted on them, the held-out log scored once "
+        "(fold reports linked below)",
+        "",
+        "## Held-out RMS pooled over the folds [N·m]",
+        "",
+        "| joint | before | after | reduction | before, unsaturated | after, unsaturated | reduction |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    rows = list(
+        zip(
+            p["rms_before_per_joint"],
+            p["rms_after_per_joint"],
+            p["reduction_per_joint"],
+            u["rms_before_per_joint"],
+            u["rms_after_per_joint"],
+            u["reduction_per_joint"],
+        )
+    )
     for j, (b, a, r, bu, au, ru) in enumerate(rows, start=1):
         lines.append(f"| {j} | {b:.2f} | {a:.2f} | {100 * r:.1f}% | {bu:.2f} | {au:.2f} | {100 * ru:.1f}% |")
-    lines += [f"| all | {p['rms_before']:.2f} | {p['rms_after']:.2f} | **{100 * p['reduction']:.1f}%** "
-              f"| {u['rms_before']:.2f} | {u['rms_after']:.2f} | **{100 * u['reduction']:.1f}%** |", "",
-              f"Mean over folds (a per-log reduction): {m['rms_before']:.3f} → {m['rms_after']:.3f} N·m "
-              f"(**{100 * m['reduction']:.1f}%**). Speed-saturated joint samples (drive at its limit, left out "
-              f"of fitting): {100 * pooled['saturated_share']:.1f}%.", "",
-              f"Effects named in every fold: **{named}**; in some folds only: "
-              + (", ".join(pooled["named_in_some_fold"]) or "none") + ".", "",
-              "## Folds", "",
-              "| held-out log | before [N·m] | after [N·m] | test reduction | unsaturated | inner CV reduction "
-              "| cause | report |", "|---|---|---|---|---|---|---|---|"]
+    lines += [
+        f"| all | {p['rms_before']:.2f} | {p['rms_after']:.2f} | **{100 * p['reduction']:.1f}%** "
+        f"| {u['rms_before']:.2f} | {u['rms_after']:.2f} | **{100 * u['reduction']:.1f}%** |",
+        "",
+        f"Mean over folds (a per-log reduction): {m['rms_before']:.3f} → {m['rms_after']:.3f} N·m "
+        f"(**{100 * m['reduction']:.1f}%**). Speed-saturated joint samples (drive at its limit, left out "
+        f"of fitting): {100 * pooled['saturated_share']:.1f}%.",
+        "",
+        f"Effects named in every fold: **{named}**; in some folds only: "
+        + (", ".join(pooled["named_in_some_fold"]) or "none")
+        + ".",
+        "",
+        "## Folds",
+        "",
+        "| held-out log | before [N·m] | after [N·m] | test reduction | unsaturated | inner CV reduction "
+        "| cause | report |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for f, d in zip(pooled["folds"], fold_dirs):
-        lines.append(f"| {', '.join(Path(c).name for c in f['check'])} | {f['rms_before']:.3f} | {f['rms_after']:.3f} "
-                     f"| {100 * f['reduction']:.1f}% | {100 * f['without_saturated']['reduction']:.1f}% "
-                     f"| {100 * f['cross_validation']['reduction']:.1f}% "
-                     f"| {', '.join(f['cause']) or 'none'} | [{Path(d).name}]({Path(d).name}/report.md) |")
-    bars = joint_bars(Path(out) / "pooled_joint_rms.png", p["rms_before_per_joint"], p["rms_after_per_joint"],
-                      "corrected (each log held out once)")
+        lines.append(
+            f"| {', '.join(Path(c).name for c in f['check'])} | {f['rms_before']:.3f} | {f['rms_after']:.3f} "
+            f"| {100 * f['reduction']:.1f}% | {100 * f['without_saturated']['reduction']:.1f}% "
+            f"| {100 * f['cross_validation']['reduction']:.1f}% "
+            f"| {', '.join(f['cause']) or 'none'} | [{Path(d).name}]({Path(d).name}/report.md) |"
+        )
+    bars = joint_bars(
+        Path(out) / "pooled_joint_rms.png",
+        p["rms_before_per_joint"],
+        p["rms_after_per_joint"],
+        "corrected (each log held out once)",
+    )
     lines += ["", "## Plots", "", f"![pooled per joint]({bars})", ""]
     text = "\n".join(lines)
     Path(out, "report.md").write_text(text)

@@ -9,6 +9,7 @@ JointState on the same topic, are skipped); time is the header stamp, or the bag
 when the stamp is zero. JointState has no acceleration: the log has no `a` columns (the
 diagnosis then uses its momentum form, as for a CSV without them).
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -74,8 +75,10 @@ def read_joint_bag(path, topic="/joint_states", joints=None, n_joints=None) -> J
     bad = np.flatnonzero(np.diff(t) <= 0)
     if len(bad):
         k = int(bad[0]) + 1
-        raise LogError(f"{where}: message {k + 1}, field header.stamp: time is not strictly increasing "
-                       f"({t[k]:.9f} s after {t[k - 1]:.9f} s)")
+        raise LogError(
+            f"{where}: message {k + 1}, field header.stamp: time is not strictly increasing "
+            f"({t[k]:.9f} s after {t[k - 1]:.9f} s)"
+        )
     n = q.shape[1]
     if n_joints is not None and n != n_joints:
         raise LogError(f"{where}: field name: {n} joints selected, the model has {n_joints} (give --joints)")

@@ -1,4 +1,5 @@
 """Joint log CSV: t, q1..qn, v1..vn, optional a1..an, tau1..taun, extra columns."""
+
 from __future__ import annotations
 
 import csv
@@ -31,8 +32,15 @@ class JointLog:
 
     def slice(self, sl):
         pick = lambda x: None if x is None else x[sl]  # noqa: E731
-        return JointLog(self.t[sl], self.q[sl], self.v[sl], self.tau[sl], pick(self.a),
-                        {k: x[sl] for k, x in self.extra.items()}, self.source)
+        return JointLog(
+            self.t[sl],
+            self.q[sl],
+            self.v[sl],
+            self.tau[sl],
+            pick(self.a),
+            {k: x[sl] for k, x in self.extra.items()},
+            self.source,
+        )
 
 
 def _joint_count(header):

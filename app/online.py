@@ -10,6 +10,7 @@ Methods (paper Table III):
   conservative  exciting plans, Table II interval throughout, no identification
   wrong         no payload in the model, zero-width interval, no identification
 """
+
 from __future__ import annotations
 
 import json
@@ -18,7 +19,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-
 from safesysid.scenario import Scenario, robot_from_scenario
 
 IDENTIFYING = {"ours": True, "random": True, "conservative": False, "wrong": False}
@@ -86,15 +86,19 @@ def make_estimator_system(robot, scenario, update_period_s=None):
     from safesysid.systems.sysid_system import SysIdEstimator
 
     ii = scenario.initial_interval
-    return SysIdEstimator(robot, EstimatorSettings.from_scenario(scenario), scenario.plant.time_step_s,
-                          update_period_s or scenario.planner.replan_period_s,
-                          (np.array(ii.lower, float), np.array(ii.upper, float)), np.array(ii.nominal, float))
+    return SysIdEstimator(
+        robot,
+        EstimatorSettings.from_scenario(scenario),
+        scenario.plant.time_step_s,
+        update_period_s or scenario.planner.replan_period_s,
+        (np.array(ii.lower, float), np.array(ii.upper, float)),
+        np.array(ii.nominal, float),
+    )
 
 
 def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> OnlineDiagram:
     from pydrake.systems.framework import DiagramBuilder
     from pydrake.systems.primitives import Multiplexer
-
     from safesysid.closed_loop import add_controller
     from safesysid.systems.armour import tracking_bounds_for
     from safesysid.systems.real_arm import add_real_arm
@@ -110,8 +114,11 @@ def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> On
     # The controller's certified bound (per-joint Kr; sigma_min from the armature lower bounds,
     # which identification never changes) is the tube the planner must respect.
     tracking = tracking_bounds_for(robot, gains.armour, box.lo)
-    planner = builder.AddSystem(make_planner_system(robot, scenario, method, tracking, arm.dumbbell, (theta0, box),
-                                                    scenario.seed if seed is None else seed))
+    planner = builder.AddSystem(
+        make_planner_system(
+            robot, scenario, method, tracking, arm.dumbbell, (theta0, box), scenario.seed if seed is None else seed
+        )
+    )
     planner.set_name("planner")
     desired = builder.AddSystem(Multiplexer([robot.n] * 3))
     desired.set_name("desired_q_v_a")
@@ -155,8 +162,9 @@ def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> On
         visualizer = add_visualizer(builder, arm.query_output, meshcat)
     diagram = builder.Build()
     diagram.set_name(f"safesysid_{method}")
-    return OnlineDiagram(diagram, arm, controller, planner, estimator, monitor, loggers, visualizer, meshcat,
-                         (theta0, box), tracking)
+    return OnlineDiagram(
+        diagram, arm, controller, planner, estimator, monitor, loggers, visualizer, meshcat, (theta0, box), tracking
+    )
 
 
 def _log(sink, context):
@@ -191,7 +199,6 @@ def classify_failure(safety, plans, tracking_ratio):
 def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat=False, write=True):
     """Run Algorithm 2 on a scenario; write summary.json, log.csv, plots, replay.html."""
     from pydrake.systems.analysis import Simulator
-
     from safesysid import report, viz
     from safesysid.joint_log import JointLog, write_joint_log
     from safesysid.systems.inertial import NAMES
@@ -254,25 +261,44 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
     worst_ratio = float(np.max(np.abs(error) / bound))  # per joint: Kr differs between joints
     failure = classify_failure(safety, plans, worst_ratio)
     summary = {
-        "scenario": scenario.name, "method": method, "seed": seed,
-        "success": failure is None, "failure": failure,
-        "collisions": safety["collisions"], "min_clearance_m": safety["min_clearance_m"],
-        "max_torque_ratio": safety["max_torque_ratio"], "max_commanded_torque_ratio": safety["max_commanded_torque_ratio"],
+        "scenario": scenario.name,
+        "method": method,
+        "seed": seed,
+        "success": failure is None,
+        "failure": failure,
+        "collisions": safety["collisions"],
+        "min_clearance_m": safety["min_clearance_m"],
+        "max_torque_ratio": safety["max_torque_ratio"],
+        "max_commanded_torque_ratio": safety["max_commanded_torque_ratio"],
         "max_joint_limit_ratio": safety["max_joint_limit_ratio"],
         "max_velocity_ratio": safety["max_velocity_ratio"],
-        "max_tracking_error_rad": max_err, "tracking_bound_rad": tracking_bound,
-        "max_tracking_error_ratio": worst_ratio, "tracking_bound_per_joint_rad": bound.tolist(),
+        "max_tracking_error_rad": max_err,
+        "tracking_bound_rad": tracking_bound,
+        "max_tracking_error_ratio": worst_ratio,
+        "tracking_bound_per_joint_rad": bound.tolist(),
         "payload_true": {"theta": truth.tolist(), "dumbbell": arm.dumbbell.name if arm.dumbbell else None},
-        "estimate": {"nominal": np.asarray(theta_e0).tolist(), "lower": np.asarray(lo).tolist(), "upper": np.asarray(hi).tolist(),
-                     "consistent": bool(consistent)},
+        "estimate": {
+            "nominal": np.asarray(theta_e0).tolist(),
+            "lower": np.asarray(lo).tolist(),
+            "upper": np.asarray(hi).tolist(),
+            "consistent": bool(consistent),
+        },
         "events": events,
-        "contains_truth": contains, "cond_Y": cond_y,
-        "planner": {"iterations": len(plans), "solve_time_s": solve_times, "deadline_s": deadline,
-                    "missed_deadlines": int(sum(t_ > deadline for t_ in solve_times)),
-                    "brakes": sum(e["kind"] == "brake" for e in events), "solver": scenario.planner.solver if method != "random" else "random",
-                    "status": [p["status"] for p in plans], "cond_W": [p.get("cond") for p in plans]},
+        "contains_truth": contains,
+        "cond_Y": cond_y,
+        "planner": {
+            "iterations": len(plans),
+            "solve_time_s": solve_times,
+            "deadline_s": deadline,
+            "missed_deadlines": int(sum(t_ > deadline for t_ in solve_times)),
+            "brakes": sum(e["kind"] == "brake" for e in events),
+            "solver": scenario.planner.solver if method != "random" else "random",
+            "status": [p["status"] for p in plans],
+            "cond_W": [p.get("cond") for p in plans],
+        },
         "sysid": {"updates": len(history), "update_time_s": update_times},
-        "wall_time_s": wall, "sim_time_s": float(horizon),
+        "wall_time_s": wall,
+        "sim_time_s": float(horizon),
     }
     if not write:
         return summary
@@ -292,12 +318,24 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
             extra[f"est_{pname}{name}"] = vals[idx + 1, k]
     write_joint_log(out / "log.csv", JointLog(t, q, v, tau_meas), extra)
     rec = record
-    report.plot_tracking(out / "tracking.png", t, error, built.tracking.position, np.max(np.abs(command) / robot.joint_params.torque_limit, 1))
+    report.plot_tracking(
+        out / "tracking.png",
+        t,
+        error,
+        built.tracking.position,
+        np.max(np.abs(command) / robot.joint_params.torque_limit, 1),
+    )
     report.plot_clearance(out / "clearance.png", np.array(rec.times), np.array(rec.clearance))
     report.plot_intervals(out / "intervals.png", theta_e0, lo, hi, truth, title=f"{scenario.name} / {method}")
     if history:
-        report.plot_estimate_history(out / "mass.png", [h["t"] for h in history], [h["nominal"] for h in history],
-                                     [h["lower"] for h in history], [h["upper"] for h in history], truth)
+        report.plot_estimate_history(
+            out / "mass.png",
+            [h["t"] for h in history],
+            [h["nominal"] for h in history],
+            [h["lower"] for h in history],
+            [h["upper"] for h in history],
+            truth,
+        )
     if built.visualizer is not None:
         draw_plans(meshcat, robot, built.planner.results(planner_context))
         viz.save_replay(meshcat, built.visualizer, out / "replay.html")

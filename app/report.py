@@ -1,4 +1,5 @@
 """Plots and tables of a closed-loop run (matplotlib, Agg backend)."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -8,7 +9,6 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-
 from safesysid.systems.inertial import NAMES, UNITS  # noqa: E402
 
 
@@ -61,7 +61,9 @@ def plot_intervals(path, nominal, lower, upper, truth=None, title=""):
 def plot_estimate_history(path, times, nominal, lower, upper, truth=None, index=0):
     """Evolution of one parameter's estimate and interval over the updates (default: mass)."""
     fig, ax = plt.subplots(figsize=(8, 3))
-    ax.fill_between(times, np.asarray(lower)[:, index], np.asarray(upper)[:, index], step="post", alpha=0.3, label="interval")
+    ax.fill_between(
+        times, np.asarray(lower)[:, index], np.asarray(upper)[:, index], step="post", alpha=0.3, label="interval"
+    )
     ax.step(times, np.asarray(nominal)[:, index], where="post", label="estimate")
     if truth is not None:
         ax.axhline(truth[index], color="r", ls="--", label="truth")

@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-
 from safesysid.systems.config import (
     MAX_CONTROL_STEP_S,
     METHODS,
@@ -34,11 +33,30 @@ from safesysid.systems.config import (
 
 SCENARIOS_DIR = Path(__file__).resolve().parent.parent / "scenarios"
 __all__ = [  # the loader, and the schema of systems/config.py re-exported
-    "SCENARIOS_DIR", "load_scenario", "MAX_CONTROL_STEP_S", "METHODS", "Controller", "Estimator", "InitialInterval",
-    "Noise", "Obstacle", "ParameterFloors", "Payload", "Planner", "Plant", "PlantEffects", "Robot", "Scenario",
-    "ScenarioError", "Task", "resolve_path", "robot_from_scenario", "scenario_dir", "task_enabled",
+    "SCENARIOS_DIR",
+    "load_scenario",
+    "MAX_CONTROL_STEP_S",
+    "METHODS",
+    "Controller",
+    "Estimator",
+    "InitialInterval",
+    "Noise",
+    "Obstacle",
+    "ParameterFloors",
+    "Payload",
+    "Planner",
+    "Plant",
+    "PlantEffects",
+    "Robot",
+    "Scenario",
+    "ScenarioError",
+    "Task",
+    "resolve_path",
+    "robot_from_scenario",
+    "scenario_dir",
+    "task_enabled",
 ]
-List = typing.List
+List = list
 
 
 _CHOICES = {
@@ -113,12 +131,18 @@ def _validate(s: Scenario, where):
     ii = s.initial_interval
     for name in ("nominal", "lower", "upper"):
         need(len(getattr(ii, name)) == 10, f"initial_interval.{name}", "needs 10 values")
-    need(np.all(np.array(ii.lower) <= np.array(ii.nominal)) and np.all(np.array(ii.nominal) <= np.array(ii.upper)),
-         "initial_interval", "needs lower <= nominal <= upper")
+    need(
+        np.all(np.array(ii.lower) <= np.array(ii.nominal)) and np.all(np.array(ii.nominal) <= np.array(ii.upper)),
+        "initial_interval",
+        "needs lower <= nominal <= upper",
+    )
     # The tube's invariance is argued and measured for a controller step of at most 1 ms
     # (systems/armour.py "Sampling"; docs/guarantees.md).
-    need(0 < s.plant.time_step_s <= MAX_CONTROL_STEP_S, "plant.time_step_s",
-         f"must be in (0, {MAX_CONTROL_STEP_S}] s (the tracking guarantee assumes a >= 1 kHz controller)")
+    need(
+        0 < s.plant.time_step_s <= MAX_CONTROL_STEP_S,
+        "plant.time_step_s",
+        f"must be in (0, {MAX_CONTROL_STEP_S}] s (the tracking guarantee assumes a >= 1 kHz controller)",
+    )
     need(s.plant.effects.time_delay_s >= 0, "plant.effects.time_delay_s", "must be >= 0")
     need(s.plant.effects.torque_sensor_lag_s >= 0, "plant.effects.torque_sensor_lag_s", "must be >= 0")
     eff = s.plant.effects
@@ -143,7 +167,11 @@ def _validate(s: Scenario, where):
         from safesysid.systems.payload import load_dumbbells
 
         names = list(load_dumbbells(resolve_path(s.payload.dumbbells_file, scenario_dir(s))))
-        need(s.payload.dumbbell in names, "payload.dumbbell", f"{s.payload.dumbbell!r} is not one of none, {', '.join(names)}")
+        need(
+            s.payload.dumbbell in names,
+            "payload.dumbbell",
+            f"{s.payload.dumbbell!r} is not one of none, {', '.join(names)}",
+        )
 
 
 def _validate_task(s: Scenario, need):
@@ -152,7 +180,11 @@ def _validate_task(s: Scenario, need):
     need(len(t.place_xyz_m) in (0, 3), "task.place_xyz_m", "needs 3 values or none")
     need(not (t.goal_q_rad and t.place_xyz_m), "task", "give goal_q_rad or place_xyz_m, not both")
     names = [ob.name for ob in s.obstacles]
-    need(not t.platform or t.platform in names, "task.platform", f"{t.platform!r} is not an obstacle name ({', '.join(names) or 'none'})")
+    need(
+        not t.platform or t.platform in names,
+        "task.platform",
+        f"{t.platform!r} is not an obstacle name ({', '.join(names) or 'none'})",
+    )
     need(t.release_height_m >= 0, "task.release_height_m", "must be >= 0")
     need(t.placement_tolerance_m > 0, "task.placement_tolerance_m", "must be > 0")
     need(t.duration_s > 0, "task.duration_s", "must be > 0")
@@ -197,6 +229,7 @@ def load_scenario(path=None, text=None, overrides=None) -> Scenario:
 
 def _given_keys(layers):
     """The keys the layers set, deep-merged (a later layer wins): what the user wrote."""
+
     def merge(into, layer):
         for key, value in layer.items():
             if isinstance(value, dict) and isinstance(into.get(key), dict):
@@ -230,7 +263,7 @@ def _apply_corrected_model(s: Scenario, given, where):
         fields = plant_effects(read_correction(path))
     except CorrectionError as err:
         raise ScenarioError(f"{where}: robot.corrected_model: {err}") from err
-    set_by_user = ((given.get("plant") or {}).get("effects") or {})
+    set_by_user = (given.get("plant") or {}).get("effects") or {}
     for key, value in fields.items():
         if key in set_by_user:
             raise ScenarioError(f"{where}: plant.effects.{key}: also set by robot.corrected_model ({path.name})")

@@ -2,10 +2,12 @@
 
 Each trial is a random scene drawn from its own seed (app/sweeps.py: start, obstacles, payload
 0-8 lb) and, unless --nominal, made adversarial: one box 1-5 cm from the arm at the start, torque
-noise at the declared bound and the real arm's parameters drawn inside their box. Summaries stream to DIR/trials.jsonl, one line per
-finished trial, so an interrupted sweep resumes where it stopped; aggregate.json and report.md
-count every failure with the seeds that reproduce it (`safesysid run` on the scene).
+noise at the declared bound and the real arm's parameters drawn inside their box. Summaries
+stream to DIR/trials.jsonl, one line per finished trial, so an interrupted sweep resumes where it
+stopped; aggregate.json and report.md count every failure with the seeds that reproduce it
+(`safesysid run` on the scene).
 """
+
 from __future__ import annotations
 
 import json
@@ -16,7 +18,6 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
-
 from safesysid.cli import BadInput
 
 LIMIT_KEYS = ("max_commanded_torque_ratio", "max_joint_limit_ratio", "max_velocity_ratio")
@@ -75,6 +76,7 @@ def _limit_violated(s):
 
 def aggregate(trials):
     """aggregate.json from the trial summaries (its keys are a stable interface: add, never rename)."""
+
     def seeds(pred):
         return sorted(int(s["trial_seed"]) for s in trials if pred(s))
 
@@ -82,7 +84,11 @@ def aggregate(trials):
     for s in trials:
         if s.get("failure"):
             failures.setdefault(s["failure"], []).append(int(s["trial_seed"]))
-    widths = np.array([np.subtract(s["estimate"]["upper"], s["estimate"]["lower"]) for s in trials]) if trials else np.zeros((0, 10))
+    widths = (
+        np.array([np.subtract(s["estimate"]["upper"], s["estimate"]["lower"]) for s in trials])
+        if trials
+        else np.zeros((0, 10))
+    )
     return {
         "trials": len(trials),
         "collisions": len(seeds(lambda s: s["collisions"] > 0)),
@@ -102,23 +108,35 @@ def aggregate(trials):
         "min_clearance_m": min((s["min_clearance_m"] for s in trials), default=float("nan")),
         **{k: max((s[k] for s in trials), default=float("nan")) for k in LIMIT_KEYS},
         "max_tracking_error_ratio": max((s["max_tracking_error_ratio"] for s in trials), default=float("nan")),
-        "width_per_parameter": {name: {"median": float(np.median(widths[:, k])), "p90": float(np.percentile(widths[:, k], 90))}
-                                for k, name in enumerate(PARAMETERS)} if len(widths) else {},
+        "width_per_parameter": {
+            name: {"median": float(np.median(widths[:, k])), "p90": float(np.percentile(widths[:, k], 90))}
+            for k, name in enumerate(PARAMETERS)
+        }
+        if len(widths)
+        else {},
     }
 
 
 def report_markdown(agg, scenario, methods, wall_s):
-    lines = [f"# Sweep: {scenario}, methods {', '.join(methods)}", "",
-             f"{agg['trials']} trials in {wall_s:.0f} s ({60 * agg['trials'] / max(wall_s, 1e-9):.1f} trials/min).", "",
-             "| check | count | worst |", "|---|---|---|",
-             f"| collisions (independent geometry) | {agg['collisions']} | min clearance {agg['min_clearance_m']:.3f} m |",
-             f"| limit violations (commanded torque before saturation, joints, velocities) | {agg['limit_violations']} | "
-             f"torque {agg['max_commanded_torque_ratio']:.2f}, joint {agg['max_joint_limit_ratio']:.2f}, "
-             f"velocity {agg['max_velocity_ratio']:.2f} of the limit |",
-             f"| tracking-tube violations | {agg['tracking_bound_violations']} | {agg['max_tracking_error_ratio']:.2f} of the bound |",
-             f"| truth outside the final interval | {len(agg['seeds']['truth_outside'])} | containment {agg['containment_rate']:.3f} |",
-             f"| inconsistent estimates | {agg['inconsistent_estimates']} | |",
-             f"| planner deadline misses / brakes | {agg['deadline_misses']} / {agg['brakes']} | |", ""]
+    lines = [
+        f"# Sweep: {scenario}, methods {', '.join(methods)}",
+        "",
+        f"{agg['trials']} trials in {wall_s:.0f} s ({60 * agg['trials'] / max(wall_s, 1e-9):.1f} trials/min).",
+        "",
+        "| check | count | worst |",
+        "|---|---|---|",
+        f"| collisions (independent geometry) | {agg['collisions']} | min clearance {agg['min_clearance_m']:.3f} m |",
+        f"| limit violations (commanded torque before saturation, joints, velocities) | {agg['limit_violations']} | "
+        f"torque {agg['max_commanded_torque_ratio']:.2f}, joint {agg['max_joint_limit_ratio']:.2f}, "
+        f"velocity {agg['max_velocity_ratio']:.2f} of the limit |",
+        f"| tracking-tube violations | {agg['tracking_bound_violations']} "
+        f"| {agg['max_tracking_error_ratio']:.2f} of the bound |",
+        f"| truth outside the final interval | {len(agg['seeds']['truth_outside'])} "
+        f"| containment {agg['containment_rate']:.3f} |",
+        f"| inconsistent estimates | {agg['inconsistent_estimates']} | |",
+        f"| planner deadline misses / brakes | {agg['deadline_misses']} / {agg['brakes']} | |",
+        "",
+    ]
     if agg["failures_by_reason"]:
         lines += ["Failures by reason (trial seeds):", ""]
         lines += [f"- {k}: {v}" for k, v in agg["failures_by_reason"].items()]
@@ -133,7 +151,9 @@ def cmd_sweep(args):
     from safesysid.scenario import METHODS, load_scenario
 
     path = Path(args.scenario)
-    scenario = load_scenario(path, overrides=args.scenario_text)  # validates (exit 2 on bad input) before any worker starts
+    scenario = load_scenario(
+        path, overrides=args.scenario_text
+    )  # validates (exit 2 on bad input) before any worker starts
     methods = [m.strip() for m in (args.methods or scenario.method).split(",") if m.strip()]
     for m in methods:
         if m not in METHODS:
@@ -146,10 +166,15 @@ def cmd_sweep(args):
     done = _read_done(jsonl)
     have = {(s["method"], int(s["trial_seed"])) for s in done}
     todo = [(m, args.seed + k) for k in range(args.trials) for m in methods if (m, args.seed + k) not in have]
-    print(f"sweep: {len(have)} trials already in {jsonl}, {len(todo)} to run on {args.workers} worker(s)", file=sys.stderr)
+    print(
+        f"sweep: {len(have)} trials already in {jsonl}, {len(todo)} to run on {args.workers} worker(s)", file=sys.stderr
+    )
     wall0 = time.perf_counter()
     with jsonl.open("a") as fh, ProcessPoolExecutor(max_workers=args.workers) as pool:
-        futures = {pool.submit(run_trial, str(path), seed, m, not args.nominal, args.scenario_text): (m, seed) for m, seed in todo}
+        futures = {
+            pool.submit(run_trial, str(path), seed, m, not args.nominal, args.scenario_text): (m, seed)
+            for m, seed in todo
+        }
         for k, fut in enumerate(as_completed(futures), 1):
             summary = fut.result()
             fh.write(json.dumps(summary, default=float) + "\n")
@@ -157,9 +182,14 @@ def cmd_sweep(args):
             os.fsync(fh.fileno())
             done.append(summary)
             m, seed = futures[fut]
-            print(f"[{k}/{len(todo)}] {m} seed {seed}: {'ok' if summary['success'] else summary['failure']}", file=sys.stderr)
+            print(
+                f"[{k}/{len(todo)}] {m} seed {seed}: {'ok' if summary['success'] else summary['failure']}",
+                file=sys.stderr,
+            )
     wall = time.perf_counter() - wall0
-    agg = aggregate([s for s in done if s["method"] in methods and args.seed <= s["trial_seed"] < args.seed + args.trials])
+    agg = aggregate(
+        [s for s in done if s["method"] in methods and args.seed <= s["trial_seed"] < args.seed + args.trials]
+    )
     agg["wall_time_s"] = wall
     (out / "aggregate.json").write_text(json.dumps(agg, indent=2, default=float))
     text = report_markdown(agg, scenario.name, methods, wall)

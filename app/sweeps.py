@@ -3,12 +3,12 @@
 With near_clearance_m=(lo, hi) the first box is placed at a clearance drawn in [lo, hi] from the
 planner's spheres (arm and payload) at the start: adversarially close, yet outside them, so the
 planner can start (the real link shapes are inside the spheres: their clearance is at least that)."""
+
 from __future__ import annotations
 
 import copy
 
 import numpy as np
-
 from safesysid.scenario import Obstacle, Scenario, robot_from_scenario
 
 PAYLOADS = ("none", "4lb", "5lb", "6lb", "7lb", "8lb")
@@ -59,7 +59,9 @@ def near_box(points, radii, rng, clearance_m, attempts=50):
         yaw = rng.uniform(-np.pi, np.pi)
 
         def gap(dist):
-            return _clearance(points, radii, _box_on_floor("near", anchor + dist * direction, size, yaw)) - clearance_m
+            # called only within this iteration, so the loop variables are the current ones
+            box = _box_on_floor("near", anchor + dist * direction, size, yaw)  # noqa: B023
+            return _clearance(points, radii, box) - clearance_m
 
         lo, hi = 0.0, 2.0
         if gap(lo) >= 0 or gap(hi) <= 0:
@@ -72,8 +74,9 @@ def near_box(points, radii, rng, clearance_m, attempts=50):
     return None
 
 
-def random_scene(base: Scenario, rng, start_spread_rad=0.15, min_start_clearance_m=0.08, seed=None,
-                 near_clearance_m=None) -> Scenario:
+def random_scene(
+    base: Scenario, rng, start_spread_rad=0.15, min_start_clearance_m=0.08, seed=None, near_clearance_m=None
+) -> Scenario:
     """A copy of `base` with a random start, random boxes near the arm and a random payload
     (near_clearance_m: (lo, hi) of the first box's clearance from the planner's spheres)."""
     scene = copy.deepcopy(base)
@@ -91,7 +94,7 @@ def random_scene(base: Scenario, rng, start_spread_rad=0.15, min_start_clearance
 
         near = near_box(*_sphere_centres(robot, q0, scenario_dumbbell(scene)), rng, rng.uniform(*near_clearance_m))
         boxes += [] if near is None else [near]
-    for attempt in range(200):
+    for _ in range(200):
         if len(boxes) >= rng.integers(1, 5):
             break
         anchor = points[rng.integers(len(points))]
@@ -100,8 +103,12 @@ def random_scene(base: Scenario, rng, start_spread_rad=0.15, min_start_clearance
         centre = anchor + direction * (np.max(size) / 2 + rng.uniform(0.12, 0.35))
         if centre[2] - size[2] / 2 < 0.0:  # rest on or above the floor
             centre[2] = size[2] / 2 + rng.uniform(0.0, 0.05)
-        box = Obstacle(name=f"box{len(boxes)}", xyz_m=centre.tolist(), rpy_rad=[0.0, 0.0, float(rng.uniform(-np.pi, np.pi))],
-                       size_m=size.tolist())
+        box = Obstacle(
+            name=f"box{len(boxes)}",
+            xyz_m=centre.tolist(),
+            rpy_rad=[0.0, 0.0, float(rng.uniform(-np.pi, np.pi))],
+            size_m=size.tolist(),
+        )
         if _clearance(points, radii, box) >= min_start_clearance_m + 0.15:  # 0.15: dumbbell reach beyond the spheres
             boxes.append(box)
     scene.obstacles = boxes

@@ -18,6 +18,7 @@ initial_interval on). Writes DIR/estimate.json and DIR/intervals.png (each of th
 with θ0, the prior nominal and the truth when the scenario names the payload, like the paper's
 Fig. 5) and DIR/history.png (the intervals over the updates).
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -25,7 +26,6 @@ import json
 from pathlib import Path
 
 import numpy as np
-
 from safesysid.cli import BadInput
 from safesysid.joint_bag import read_log
 from safesysid.scenario import ScenarioError, load_scenario, resolve_path, robot_from_scenario, scenario_dir
@@ -76,9 +76,19 @@ def run_sysid(log, robot, settings, period_s, prior=None, prior_nominal=None, to
             e = est.update()
         except EstimatorError:
             continue  # not one segment yet: wait for more data
-        history.append({"t": float(t[stop - 1]), "nominal": e.theta_e.tolist(), "lower": e.lower.tolist(),
-                        "upper": e.upper.tolist(), "case": e.case, "consistent": e.consistent,
-                        "cond_Y": float(e.cond_Y), "update_time_s": e.update_time_s, "message": e.message})
+        history.append(
+            {
+                "t": float(t[stop - 1]),
+                "nominal": e.theta_e.tolist(),
+                "lower": e.lower.tolist(),
+                "upper": e.upper.tolist(),
+                "case": e.case,
+                "consistent": e.consistent,
+                "cond_Y": float(e.cond_Y),
+                "update_time_s": e.update_time_s,
+                "message": e.message,
+            }
+        )
     return est, history
 
 
@@ -141,8 +151,13 @@ def corrected_model(path):
     except mc.CorrectionError as err:
         raise BadInput(f"--model: {err}") from err
     applied = [e.name for e in corr.effects if e.name in mc.ROBOT_SIDE or (e.name == "time_delay" and lag > 0)]
-    summary = {"file": str(Path(path).resolve()), "starting_model": str(corr.model_path()), "applied": applied,
-               "torque_lag_s": lag, "not_applied": [e.name for e in corr.effects if e.name not in applied]}
+    summary = {
+        "file": str(Path(path).resolve()),
+        "starting_model": str(corr.model_path()),
+        "applied": applied,
+        "torque_lag_s": lag,
+        "not_applied": [e.name for e in corr.effects if e.name not in applied],
+    }
     return robot, lag, summary
 
 
@@ -172,35 +187,53 @@ def cmd_sysid(args):
         raise BadInput(f"{args.log}: {err}") from err
     if not history:
         span = float(log.t[-1] - log.t[0])
-        raise BadInput(f"{args.log}: too little data: {len(log)} samples over {span:.3g} s do not make two gap-free "
-                       f"segments of estimator.horizon_s = {settings.horizon_s} s (gaps > {settings.max_gap_s} s split them)")
+        raise BadInput(
+            f"{args.log}: too little data: {len(log)} samples over {span:.3g} s do not make two gap-free "
+            f"segments of estimator.horizon_s = {settings.horizon_s} s (gaps > {settings.max_gap_s} s split them)"
+        )
     final = est.estimate
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     doc = final.to_json()
-    doc.update({
-        "log": str(Path(args.log).resolve()), "scenario": scenario.source, "samples": int(len(log)),
-        "estimate": {"nominal": doc["nominal"], "lower": doc["lower"], "upper": doc["upper"]},
-        "prior": {"nominal": prior_nominal.tolist(), "lower": None if prior is None else prior[0].tolist(),
-                  "upper": None if prior is None else prior[1].tolist()},
-        "model": corrections,
-        "truth": None if truth is None else {"theta": truth.tolist(), "dumbbell": scenario.payload.dumbbell},
-        "contains_truth": None if truth is None else final.contains(truth),
-        "mass_error_rel": None if truth is None else float((final.theta_e[0] - truth[0]) / truth[0]),
-        "settings": dataclasses.asdict(settings), "update_period_s": scenario.planner.replan_period_s,
-        "sysid": {"updates": len(history), "update_time_s": [h["update_time_s"] for h in history]},
-        "history": history, "messages": est.messages,
-    })
+    doc.update(
+        {
+            "log": str(Path(args.log).resolve()),
+            "scenario": scenario.source,
+            "samples": int(len(log)),
+            "estimate": {"nominal": doc["nominal"], "lower": doc["lower"], "upper": doc["upper"]},
+            "prior": {
+                "nominal": prior_nominal.tolist(),
+                "lower": None if prior is None else prior[0].tolist(),
+                "upper": None if prior is None else prior[1].tolist(),
+            },
+            "model": corrections,
+            "truth": None if truth is None else {"theta": truth.tolist(), "dumbbell": scenario.payload.dumbbell},
+            "contains_truth": None if truth is None else final.contains(truth),
+            "mass_error_rel": None if truth is None else float((final.theta_e[0] - truth[0]) / truth[0]),
+            "settings": dataclasses.asdict(settings),
+            "update_period_s": scenario.planner.replan_period_s,
+            "sysid": {"updates": len(history), "update_time_s": [h["update_time_s"] for h in history]},
+            "history": history,
+            "messages": est.messages,
+        }
+    )
     (out / "estimate.json").write_text(json.dumps(doc, indent=2, default=float))
     title = f"{Path(args.log).name}: {len(history)} updates, cond(Y) = {final.cond_Y:.3g}, case {final.case}"
     plot_intervals(out / "intervals.png", final, prior_nominal, truth, title)
     plot_history(out / "history.png", history, truth)
     verdict = "truth: unknown (no payload given)" if truth is None else f"truth inside: {final.contains(truth)}"
     if corrections:
-        print(f"model: {corrections['starting_model']} corrected by {', '.join(corrections['applied']) or 'nothing'}"
-              + (f"; not applied (no term in the estimator's model): {', '.join(corrections['not_applied'])}"
-                 if corrections["not_applied"] else ""))
-    print(f"m = {final.theta_e[0]:.4g} kg in [{final.lower[0]:.4g}, {final.upper[0]:.4g}], "
-          f"{'consistent' if final.consistent else 'INCONSISTENT with the declared bounds'}; {verdict}; "
-          f"wrote {out / 'estimate.json'}")
+        print(
+            f"model: {corrections['starting_model']} corrected by {', '.join(corrections['applied']) or 'nothing'}"
+            + (
+                f"; not applied (no term in the estimator's model): {', '.join(corrections['not_applied'])}"
+                if corrections["not_applied"]
+                else ""
+            )
+        )
+    print(
+        f"m = {final.theta_e[0]:.4g} kg in [{final.lower[0]:.4g}, {final.upper[0]:.4g}], "
+        f"{'consistent' if final.consistent else 'INCONSISTENT with the declared bounds'}; {verdict}; "
+        f"wrote {out / 'estimate.json'}"
+    )
     return 0

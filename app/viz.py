@@ -1,6 +1,7 @@
 """Meshcat: the arm, payload and obstacles (from SceneGraph), the planned trajectory of the end
 effector, and (toggle "planner/swept" in the Meshcat controls) the over-approximated spheres
 the planner certified. Every run is recorded and saved as a self-contained replay.html."""
+
 from __future__ import annotations
 
 from pathlib import Path

@@ -5,6 +5,7 @@ inner cross-validation (target <= 10 s), the real Kinova Gen3 nested leave-one-r
 and the withheld-effect self-check (full run only: 40 blind cases x seeds 1, 2, 11, with
 parameter errors). `python benchmarks/bench_diagnose.py --detection-limits` adds the
 detection-limit table (slow: about 700 blind diagnoses)."""
+
 from __future__ import annotations
 
 import sys
@@ -12,7 +13,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-
 from safesysid.joint_log import JointLog, read_joint_log
 from safesysid.systems import gap
 from safesysid.systems import gap_simulate as gs
@@ -49,9 +49,12 @@ def timing_3x1500(seed=0):
         t0, c0 = time.perf_counter(), time.process_time()
         d = gap.diagnose(model, logs[:2], logs[2:])
         out["inverse_dynamics" if with_a else "momentum"] = {
-            "wall_time_s": time.perf_counter() - t0, "cpu_time_s": time.process_time() - c0,
-            "cause": d.result["cause"], "test_reduction": d.result["test"]["reduction"],
-            "cross_validation_reduction": d.result["cross_validation"]["reduction"]}
+            "wall_time_s": time.perf_counter() - t0,
+            "cpu_time_s": time.process_time() - c0,
+            "cause": d.result["cause"],
+            "test_reduction": d.result["test"]["reduction"],
+            "cross_validation_reduction": d.result["cross_validation"]["reduction"],
+        }
     return out
 
 
@@ -95,12 +98,19 @@ if __name__ == "__main__":
     import json
 
     if "--detection-limits" in sys.argv:  # optionally followed by KEY,KEY (DETECTION_LADDERS keys)
-        rest = sys.argv[sys.argv.index("--detection-limits") + 1:]
+        rest = sys.argv[sys.argv.index("--detection-limits") + 1 :]
         keys = rest[0].split(",") if rest and not rest[0].startswith("--") else None
         t0 = time.perf_counter()
-        limits = gs.detection_limits(load_robot(), workers=2, seed=0, keys=keys,
-                                     progress=lambda r: print(json.dumps(r, default=float), file=sys.stderr, flush=True))
+        limits = gs.detection_limits(
+            load_robot(),
+            workers=2,
+            seed=0,
+            keys=keys,
+            progress=lambda r: print(json.dumps(r, default=float), file=sys.stderr, flush=True),
+        )
         print(gs.detection_markdown(limits))
-        print(json.dumps({"detection_limits": limits, "wall_time_s": time.perf_counter() - t0}, indent=2, default=float))
+        print(
+            json.dumps({"detection_limits": limits, "wall_time_s": time.perf_counter() - t0}, indent=2, default=float)
+        )
     else:
         print(json.dumps(run(quick="--quick" in sys.argv), indent=2, default=float))

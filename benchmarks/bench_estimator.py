@@ -4,6 +4,7 @@ on 1.5 s of new data after 6 s already processed (Algorithm 2's cadence).
 Targets (2-core machine): full update <= 0.25 s, incremental <= 0.1 s. Best of `repeat`, since
 other processes share the cores.
 """
+
 from __future__ import annotations
 
 import copy
@@ -11,7 +12,6 @@ import time
 from dataclasses import replace
 
 import numpy as np
-
 from safesysid.systems import estimation as est_mod
 from safesysid.systems.payload import load_dumbbells, payload_theta_in_end_effector
 from safesysid.systems.robot_model import MODELS_DIR, load_robot

@@ -9,6 +9,7 @@ placed 6-12 cm from the arm's spheres, 4 receding-horizon plans per scene. Two p
 end effector +-20 % around the truth (the reference's hardware setting) and the paper's Table II
 interval (wide: the torque check then shrinks the k box, with the aa-vertex refinement).
 """
+
 from __future__ import annotations
 
 import json
@@ -16,7 +17,6 @@ import sys
 import time
 
 import numpy as np
-
 from safesysid.scenario import Obstacle, Planner
 from safesysid.systems import reachability as reach
 from safesysid.systems.payload import load_dumbbells
@@ -50,7 +50,7 @@ def table_ii_box(robot):
 
 
 def tracking(robot, theta_lo, V_max=0.02, Kr=(5.0, 5.0, 5.0, 5.0, 7.0, 7.0, 7.0), alpha=20.0):
-    ia = theta_lo[10 * robot.n + 2::4]
+    ia = theta_lo[10 * robot.n + 2 :: 4]
     return reach.TrackingBounds.from_ultimate_bound(V_max, float(ia.min()), np.asarray(Kr), robot.n, alpha)
 
 
@@ -72,12 +72,15 @@ def near_boxes(robot, q, rng, count=3, clearance=(0.06, 0.12), payload=None):
         centre[2] = max(centre[2], 0.5 * size[2] + 0.01)
         rot = RollPitchYaw([0.0, 0.0, yaw]).ToRotationMatrix().matrix()
         m = len(spheres)
-        sd, _ = reach.box_signed_distance(c, np.broadcast_to(centre, (m, 3)), np.broadcast_to(rot, (m, 3, 3)),
-                                          np.broadcast_to(0.5 * size, (m, 3)))
+        sd, _ = reach.box_signed_distance(
+            c, np.broadcast_to(centre, (m, 3)), np.broadcast_to(rot, (m, 3, 3)), np.broadcast_to(0.5 * size, (m, 3))
+        )
         gap = sd - spheres.radius
         if gap.min() < clearance[0] or gap.min() > clearance[1]:
             continue
-        out.append(Obstacle(name=f"box{len(out)}", xyz_m=centre.tolist(), rpy_rad=[0.0, 0.0, float(yaw)], size_m=size.tolist()))
+        out.append(
+            Obstacle(name=f"box{len(out)}", xyz_m=centre.tolist(), rpy_rad=[0.0, 0.0, float(yaw)], size_m=size.tolist())
+        )
     return out
 
 
@@ -104,9 +107,13 @@ def _solve_series(robot, payload, thetas, bounds, solver, scenes, plans_per_scen
             q, v, a = (x[0] for x in res.evaluate([cfg.replan_period_s]))
     t = np.array(times)
     return {
-        "solves": len(t), "median_s": float(np.median(t)), "max_s": float(t.max()), "mean_s": float(t.mean()),
+        "solves": len(t),
+        "median_s": float(np.median(t)),
+        "max_s": float(t.max()),
+        "mean_s": float(t.mean()),
         "p90_s": float(np.percentile(t, 90)),
-        "median_cpu_s": float(np.nanmedian(cpu)), "max_cpu_s": float(np.nanmax(cpu)),
+        "median_cpu_s": float(np.nanmedian(cpu)),
+        "max_cpu_s": float(np.nanmax(cpu)),
         "feasible": int(sum(s in ("solved", "best_feasible") for s in statuses)),
         "statuses": {s: statuses.count(s) for s in sorted(set(statuses))},
         "median_cond": float(np.median(conds)) if conds else None,
@@ -122,13 +129,22 @@ def run(quick: bool = False) -> dict:
     payload = load_dumbbells(MODELS_DIR / "dumbbells.yaml")["4lb"]
     scenes = 2 if quick else 6
     plans_per_scene = 4
-    out = {"load_average_at_start": os.getloadavg()[0], "cpus": os.cpu_count(), "target_median_s": 0.5,
-           "target_max_s": 1.5, "obstacles": 3, "scenes": scenes, "plans_per_scene": plans_per_scene}
+    out = {
+        "load_average_at_start": os.getloadavg()[0],
+        "cpus": os.cpu_count(),
+        "target_median_s": 0.5,
+        "target_max_s": 1.5,
+        "obstacles": 3,
+        "scenes": scenes,
+        "plans_per_scene": plans_per_scene,
+    }
     priors = {"ee_20pct": parameter_box(robot, payload), "table_ii": table_ii_box(robot)}
     for prior_name, thetas in priors.items():
         bounds = tracking(robot, thetas[1])
         for solver in ("ipopt", "snopt"):
-            out[f"{solver}_{prior_name}"] = _solve_series(robot, payload, thetas, bounds, solver, scenes, plans_per_scene)
+            out[f"{solver}_{prior_name}"] = _solve_series(
+                robot, payload, thetas, bounds, solver, scenes, plans_per_scene
+            )
     return out
 
 

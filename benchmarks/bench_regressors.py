@@ -5,12 +5,12 @@ parameters as derivative directions gives W_e one sample at a time. Pinocchio's
 computeJointTorqueRegressor (if `pin` is installed) gives the full standard regressor.
 Target: >= 20x faster than AutoDiffXd and within 2x of Pinocchio per sample.
 """
+
 from __future__ import annotations
 
 import time
 
 import numpy as np
-
 from safesysid.systems import regressors
 from safesysid.systems.robot_model import load_robot, make_plant
 
@@ -26,7 +26,7 @@ def _per_sample(fn, count, repeat=3):
 
 def drake_autodiff_we(robot, q, v, a):
     """W_e rows for each sample from Drake's AutoDiffXd inverse dynamics."""
-    from pydrake.autodiffutils import InitializeAutoDiff, ExtractGradient
+    from pydrake.autodiffutils import ExtractGradient, InitializeAutoDiff
     from pydrake.multibody.tree import MultibodyForces_
 
     plant, _, _ = make_plant(robot.source)
@@ -36,6 +36,7 @@ def drake_autodiff_we(robot, q, v, a):
     body = ad.GetBodyByName(robot.body_names[robot.end_effector])
     theta_ad = InitializeAutoDiff(robot.theta_e)[:, 0]
     from pydrake.multibody.tree import SpatialInertia_, UnitInertia_
+
     m = theta_ad[0]
     com = theta_ad[1:4] / m
     i = theta_ad[4:]
@@ -94,14 +95,18 @@ def run(quick=False):
     result = {"samples": n_samples}
     result["ours_We_us"] = 1e6 * _per_sample(lambda: regressors.standard_regressor(tree, q, v, a, bodies=ee), n_samples)
     result["ours_Wme_us"] = 1e6 * _per_sample(lambda: regressors.momentum_regressor(tree, q, v, bodies=ee), n_samples)
-    result["ours_Wce_us"] = 1e6 * _per_sample(lambda: regressors.momentum_rate_regressor(tree, q, v, bodies=ee), n_samples)
+    result["ours_Wce_us"] = 1e6 * _per_sample(
+        lambda: regressors.momentum_rate_regressor(tree, q, v, bodies=ee), n_samples
+    )
     result["ours_W_full_us"] = 1e6 * _per_sample(lambda: regressors.standard_regressor(tree, q, v, a), n_samples)
     n_ad = min(n_samples, 300)
     w_ad = drake_autodiff_we(robot, q[:n_ad], v[:n_ad], a[:n_ad])
     w_ours = regressors.standard_regressor(tree, q[:n_ad], v[:n_ad], a[:n_ad], bodies=ee)
     # AutoDiff derivative w.r.t. theta_e through the (m, com, unit inertia) construction is the regressor.
     result["autodiff_max_abs_diff"] = float(np.abs(w_ad - w_ours).max())
-    result["drake_autodiff_We_us"] = 1e6 * _per_sample(lambda: drake_autodiff_we(robot, q[:n_ad], v[:n_ad], a[:n_ad]), n_ad, repeat=1)
+    result["drake_autodiff_We_us"] = 1e6 * _per_sample(
+        lambda: drake_autodiff_we(robot, q[:n_ad], v[:n_ad], a[:n_ad]), n_ad, repeat=1
+    )
     result["speedup_vs_autodiff"] = result["drake_autodiff_We_us"] / result["ours_We_us"]
     try:
         import pinocchio  # noqa: F401
@@ -112,10 +117,16 @@ def run(quick=False):
         model = pinocchio_model(robot)
         w_pin = pinocchio_regressor(model, q[:50], v[:50], a[:50])
         # Pinocchio's per-body order is [m, mc, Ixx, Ixy, Iyy, Ixz, Iyz, Izz].
-        theta_pin = robot.theta[:10 * robot.n].reshape(-1, 10)[:, [0, 1, 2, 3, 4, 7, 5, 9, 8, 6]].ravel()
-        result["pinocchio_tau_max_abs_diff"] = float(np.abs(w_pin @ theta_pin - regressors.standard_regressor(
-            tree, q[:50], v[:50], a[:50]) @ robot.theta[:10 * robot.n]).max())
-        result["pinocchio_W_full_us"] = 1e6 * _per_sample(lambda: pinocchio_regressor(model, q[:n_pin], v[:n_pin], a[:n_pin]), n_pin)
+        theta_pin = robot.theta[: 10 * robot.n].reshape(-1, 10)[:, [0, 1, 2, 3, 4, 7, 5, 9, 8, 6]].ravel()
+        result["pinocchio_tau_max_abs_diff"] = float(
+            np.abs(
+                w_pin @ theta_pin
+                - regressors.standard_regressor(tree, q[:50], v[:50], a[:50]) @ robot.theta[: 10 * robot.n]
+            ).max()
+        )
+        result["pinocchio_W_full_us"] = 1e6 * _per_sample(
+            lambda: pinocchio_regressor(model, q[:n_pin], v[:n_pin], a[:n_pin]), n_pin
+        )
         result["ours_over_pinocchio_full"] = result["ours_W_full_us"] / result["pinocchio_W_full_us"]
         result["ours_We_over_pinocchio_full"] = result["ours_We_us"] / result["pinocchio_W_full_us"]
     return result

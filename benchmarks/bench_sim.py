@@ -5,16 +5,16 @@ Target: real-time factor >= 1 (simulated seconds per wall-clock second), loggers
 On a shared machine the wall-clock factor depends on the load (reported); the CPU-time factor
 does not. Also reports the per-step cost of the controller law alone and of the baselines' loops.
 """
+
 from __future__ import annotations
 
 import time
 
 import numpy as np
-
+from safesysid.closed_loop import build_closed_loop, simulate_closed_loop
 from safesysid.scenario import load_scenario, robot_from_scenario
 from safesysid.systems import armour as C
 from safesysid.systems.bezier import QuinticBezier
-from safesysid.closed_loop import build_closed_loop, simulate_closed_loop
 
 TARGET_RTF = 1.0
 
@@ -69,7 +69,8 @@ def run(quick: bool = False) -> dict:
     if not quick:
         for kind in ("pid", "adaptive", "adaptive_robust"):
             result[f"{kind}_real_time_factor"], result[f"{kind}_cpu_real_time_factor"] = _loop_rtf(
-                s, robot, theta0, box, kind, sim_s, 1)
+                s, robot, theta0, box, kind, sim_s, 1
+            )
     return result
 
 

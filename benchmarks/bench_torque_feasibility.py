@@ -7,6 +7,7 @@ Compare two versions of the code: `python benchmarks/bench_torque_feasibility.py
 PACKAGE_ROOT a folder holding another `safesysid` package (e.g. an exported older commit laid
 out as safesysid/, safesysid/systems/, ...), imported instead of the installed one.
 """
+
 from __future__ import annotations
 
 import json
@@ -16,7 +17,6 @@ import sys
 
 def run():
     import numpy as np
-
     from safesysid.benchmarks.bench_planner import Q0, near_boxes, table_ii_box
     from safesysid.scenario import Planner
     from safesysid.systems import armour as ctl
@@ -43,9 +43,14 @@ def run():
                 box.append(float(np.mean(res.k_box[1] - res.k_box[0]) / 2))
             else:
                 reasons.append(res.reason)
-        out[f"V_max_{V_max}"] = {"feasible": feasible, "starts": 10, "mean_k_box_fraction": float(np.mean(box)) if box else None,
-                                 "median_wall_s": float(np.median(times)), "median_cpu_s": float(np.median(cpus)),
-                                 "reasons": reasons}
+        out[f"V_max_{V_max}"] = {
+            "feasible": feasible,
+            "starts": 10,
+            "mean_k_box_fraction": float(np.mean(box)) if box else None,
+            "median_wall_s": float(np.median(times)),
+            "median_cpu_s": float(np.median(cpus)),
+            "reasons": reasons,
+        }
     return out
 
 

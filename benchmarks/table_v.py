@@ -7,6 +7,7 @@ correlation across trajectories of cond(W) and cond(Y_h).
 
     python benchmarks/table_v.py [--trajectories 60] [--seed 0] [--out table_v.md]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -14,7 +15,6 @@ import sys
 import time
 
 import numpy as np
-
 from safesysid.systems import estimation as est_mod
 from safesysid.systems import regressors
 from safesysid.systems.robot_model import load_robot
@@ -37,8 +37,9 @@ def observation_matrix(wm_e, wc_e, dt, h):
 
 
 def conditions(robot, rng, duration_s=10.0, rate_hz=1000.0, period_s=PERIOD_S, harmonics=HARMONICS):
-    t, q, v, a = est_mod.fourier_trajectory(rng, robot, duration_s, rate_hz, harmonics=harmonics, period_s=period_s,
-                                            centre=CENTRE)
+    t, q, v, a = est_mod.fourier_trajectory(
+        rng, robot, duration_s, rate_hz, harmonics=harmonics, period_s=period_s, centre=CENTRE
+    )
     ee = [robot.end_effector]
     tree = robot.tree
     w = regressors.standard_regressor(tree, q, v, a, bodies=ee).reshape(-1, 10)
@@ -59,15 +60,20 @@ def table(trajectories=60, seed=0, period_s=PERIOD_S, harmonics=HARMONICS):
         for h in HORIZONS:
             cy[h].append(y[h])
     cw = np.array(cw)
-    return {h: {"pearson": float(np.corrcoef(cw, cy[h])[0, 1]), "median_cond_Y": float(np.median(cy[h]))}
-            for h in HORIZONS}, float(np.median(cw))
+    return {
+        h: {"pearson": float(np.corrcoef(cw, cy[h])[0, 1]), "median_cond_Y": float(np.median(cy[h]))} for h in HORIZONS
+    }, float(np.median(cw))
 
 
 def markdown(result, median_cond_w, trajectories, period_s=PERIOD_S, harmonics=HARMONICS):
-    lines = [f"Pearson correlation of cond(W) and cond(Y) over {trajectories} random Fourier trajectories "
-             f"(10 s at 1 kHz, base period {period_s:g} s, {harmonics} harmonics, Kinova Gen3 end effector; "
-             f"median cond(W) = {median_cond_w:.4g})", "",
-             "| h (samples) | h (s) | Pearson (ours) | Pearson (paper) | median cond(Y) |", "|---|---|---|---|---|"]
+    lines = [
+        f"Pearson correlation of cond(W) and cond(Y) over {trajectories} random Fourier trajectories "
+        f"(10 s at 1 kHz, base period {period_s:g} s, {harmonics} harmonics, Kinova Gen3 end effector; "
+        f"median cond(W) = {median_cond_w:.4g})",
+        "",
+        "| h (samples) | h (s) | Pearson (ours) | Pearson (paper) | median cond(Y) |",
+        "|---|---|---|---|---|",
+    ]
     for h, row in result.items():
         lines.append(f"| {h} | {h / 1000:.3f} | {row['pearson']:.4f} | {PAPER[h]:.4f} | {row['median_cond_Y']:.4g} |")
     return "\n".join(lines) + "\n"

@@ -5,13 +5,24 @@ a corrected model), so two plants can be driven by the same commanded trajectory
 logs compared. The feed-forward is evaluated once for the whole trajectory (vectorized), so a
 second of 1 kHz simulation costs about a third of a second.
 """
+
 from __future__ import annotations
 
 import numpy as np
 
 
-def track_trajectory(scenario, plant_robot, controller_robot, traj, seed, duration_s, rate_hz=100.0,
-                     kp_Nm_rad=400.0, kd_Nms_rad=40.0, skip_s=0.2):
+def track_trajectory(
+    scenario,
+    plant_robot,
+    controller_robot,
+    traj,
+    seed,
+    duration_s,
+    rate_hz=100.0,
+    kp_Nm_rad=400.0,
+    kd_Nms_rad=40.0,
+    skip_s=0.2,
+):
     """JointLog (t, q, v, measured torque; no accelerations: the arm has no such sensor) of the
     real arm built from (scenario, plant_robot), no payload, tracking traj(t) -> (q, v, a) with
     u = ID_controller(q_d, v_d, a_d) + kp (q_d - q) + kd (v_d - v); the first skip_s seconds
@@ -19,7 +30,6 @@ def track_trajectory(scenario, plant_robot, controller_robot, traj, seed, durati
     from pydrake.systems.analysis import Simulator
     from pydrake.systems.framework import DiagramBuilder, LeafSystem
     from pydrake.systems.primitives import VectorLogSink
-
     from safesysid.joint_log import JointLog
 
     from .real_arm import add_real_arm

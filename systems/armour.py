@@ -47,6 +47,7 @@ systems/regressors.py for one sample (batched over bodies, bilinear maps as cons
 Wp and Wm together in ~0.3 ms instead of ~4 ms for the two vectorized calls at N = 1, which is
 what lets the loop run at 1 kHz in real time; tests check it equals RobotModel's to 1e-11.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -75,8 +76,9 @@ _E6 = np.eye(6)
 _CROSS_MOTION = np.stack([regressors.cross_motion(_E6[k], _E6) for k in range(6)]).reshape(36, 6)
 _INERTIA = regressors.inertia_times(_E6).reshape(6, 60)  # K(x) = x @ _INERTIA  (6 x 10 blocks)
 # B(v) va = 1/2 [v x* K(va) + va x* K(v) - K(v x va)]  (Christoffel form, regressors.py)
-_BILINEAR = regressors.body_wrench_regressor(_E6[:, None].repeat(6, 1), _E6[None, :].repeat(6, 0),
-                                             np.zeros((6, 6, 6))).reshape(36, 60)
+_BILINEAR = regressors.body_wrench_regressor(
+    _E6[:, None].repeat(6, 1), _E6[None, :].repeat(6, 0), np.zeros((6, 6, 6))
+).reshape(36, 60)
 _SKEW = regressors.skew(np.eye(3)).reshape(3, 9)  # [p]x = p @ _SKEW (as 3 x 3; linear in p)
 
 
@@ -159,7 +161,7 @@ class ControllerDynamics:
         y_p = (ab @ _INERTIA + _outer(vb, vab) @ _BILINEAR).reshape(n, 6, 10)
         y_m = (xb @ _INERTIA).reshape(n, 6, 10)
         out = np.zeros((2, n, 14 * n))
-        out[:, :, :10 * n] = np.einsum("ijk,bikl->bjil", s_body, np.stack([y_p, y_m])).reshape(2, n, 10 * n)
+        out[:, :, : 10 * n] = np.einsum("ijk,bikl->bjil", s_body, np.stack([y_p, y_m])).reshape(2, n, 10 * n)
         idx, f0 = self.idx, 10 * n + 4 * self.idx
         out[0, idx, f0] = regressors.coulomb_shape(va, self.smoothing)
         out[0, idx, f0 + 1] = va
@@ -344,8 +346,14 @@ class TrackingBounds:
         if bounds is None:
             return cls.zero(n)
         full = lambda x: np.broadcast_to(np.asarray(x, float), (n,)).copy()  # noqa: E731
-        return cls(float(bounds.eps), full(bounds.position), full(bounds.velocity), full(bounds.qd_a), full(bounds.qdd_a),
-                   float(bounds.alpha))
+        return cls(
+            float(bounds.eps),
+            full(bounds.position),
+            full(bounds.velocity),
+            full(bounds.qd_a),
+            full(bounds.qdd_a),
+            float(bounds.alpha),
+        )
 
 
 def tracking_bounds(Kr, V_max, sigma_min, alpha):
@@ -361,8 +369,15 @@ def tracking_bounds_for(robot, gains: ArmourGains, theta_lower):
 
 
 # ---- parameter boxes ------------------------------------------------------------------------------
-def parameter_box(robot, theta_e_nominal, theta_e_lower, theta_e_upper, rest_ratio=None, friction_ratio=None,
-                  floors: ParameterFloors | None = None):
+def parameter_box(
+    robot,
+    theta_e_nominal,
+    theta_e_lower,
+    theta_e_upper,
+    rest_ratio=None,
+    friction_ratio=None,
+    floors: ParameterFloors | None = None,
+):
     """(theta0, [theta]) over all 14 n parameters: the end effector from the given box, the rest
     of the robot +- max(ratio |theta|, floor) around the model (ratios from the parameter YAML and
     the default floors unless given)."""
@@ -385,5 +400,12 @@ def prior_box(robot, initial_interval, noise, exact=False):
         theta0 = robot.theta.copy()
         return theta0, Interval(theta0, theta0)
     ii, ratio = initial_interval, noise.theta_r_ratio
-    return parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper), rest_ratio=ratio,
-                         friction_ratio=ratio, floors=noise.theta_r_floor)
+    return parameter_box(
+        robot,
+        np.array(ii.nominal),
+        np.array(ii.lower),
+        np.array(ii.upper),
+        rest_ratio=ratio,
+        friction_ratio=ratio,
+        floors=noise.theta_r_floor,
+    )

@@ -8,6 +8,7 @@ Bounds over a time interval are rigorous: the curve restricted to [t_a, t_b] is 
 Bézier whose control points (a fixed linear map of the original ones) contain it in their
 convex hull; the same holds for the derivative curves.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -21,7 +22,7 @@ DEGREE = 5
 def _bernstein(deg, s):
     s = np.asarray(s, float)[:, None]
     i = np.arange(deg + 1)
-    return np.array([comb(deg, k) for k in i]) * s ** i * (1 - s) ** (deg - i)
+    return np.array([comb(deg, k) for k in i]) * s**i * (1 - s) ** (deg - i)
 
 
 def _monomial_of_bernstein(deg):
@@ -41,7 +42,7 @@ def restriction_matrix(deg, s_a, s_b):
     h = s_b - s_a
     for j in range(deg + 1):
         for m in range(j + 1):
-            sub[m, j] = comb(j, m) * s_a ** (j - m) * h ** m
+            sub[m, j] = comb(j, m) * s_a ** (j - m) * h**m
     return np.linalg.solve(a, sub @ a)
 
 
@@ -72,8 +73,11 @@ class QuinticBezier:
         """d q(t) / d q_end, d qd / d q_end, d qdd / d q_end (each (len(t),)), same for all joints."""
         s = np.clip(np.asarray(t, float) / duration, 0.0, 1.0)
         w = np.array([0, 0, 0, 1, 1, 1.0])
-        return (_bernstein(5, s) @ w, _bernstein(4, s) @ _difference(w[:, None], 1)[:, 0] / duration,
-                _bernstein(3, s) @ _difference(w[:, None], 2)[:, 0] / duration ** 2)
+        return (
+            _bernstein(5, s) @ w,
+            _bernstein(4, s) @ _difference(w[:, None], 1)[:, 0] / duration,
+            _bernstein(3, s) @ _difference(w[:, None], 2)[:, 0] / duration**2,
+        )
 
     def evaluate(self, t, q_end):
         """q, qd, qdd at times t (clamped to [0, T]; rest at q_end after T): each (len(t), n)."""
@@ -82,7 +86,7 @@ class QuinticBezier:
         p = self.control_points(q_end)
         q = _bernstein(5, s) @ p
         qd = _bernstein(4, s) @ _difference(p, 1) / self.duration
-        qdd = _bernstein(3, s) @ _difference(p, 2) / self.duration ** 2
+        qdd = _bernstein(3, s) @ _difference(p, 2) / self.duration**2
         after = (t > self.duration)[:, None]
         return q, np.where(after, 0.0, qd), np.where(after, 0.0, qdd)
 
@@ -95,7 +99,7 @@ class QuinticBezier:
         p = self.control_points(q_end)
         out = []
         for order in range(3):
-            pts = _difference(p, order) / self.duration ** order
+            pts = _difference(p, order) / self.duration**order
             deg = DEGREE - order
             sub = np.stack([restriction_matrix(deg, a, b) @ pts for a, b in zip(edges[:-1], edges[1:])])
             out.append((sub.min(1), sub.max(1)))

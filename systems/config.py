@@ -17,7 +17,7 @@ import numpy as np
 
 from .robot_model import MODELS_DIR
 
-List = typing.List
+List = list
 Optional = typing.Optional
 
 MAX_CONTROL_STEP_S = 0.001
@@ -236,7 +236,7 @@ class Scenario:
 def resolve_path(text, base_dir):
     """`builtin:NAME` -> models/NAME; relative paths against the scenario's folder."""
     if text.startswith("builtin:"):
-        return MODELS_DIR / text[len("builtin:"):]
+        return MODELS_DIR / text[len("builtin:") :]
     p = Path(text).expanduser()
     return p if p.is_absolute() else Path(base_dir) / p
 

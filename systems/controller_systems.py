@@ -18,6 +18,7 @@ All laws evaluate at the step's inputs (direct feedthrough, cached once per step
   w_bar = |Wp| max(theta_hi - theta_hat, theta_hat - theta_lo) the worst model error over the box.
 Gains come from ControllerGains (from the scenario via gains_from_scenario).
 """
+
 from __future__ import annotations
 
 import logging
@@ -32,6 +33,7 @@ from .config import ScenarioError
 from .intervals import Interval
 
 _log = logging.getLogger(__name__)
+
 
 @dataclass
 class ControllerGains:
@@ -64,7 +66,8 @@ def gains_from_scenario(scenario, n):
         pid_kd=_fit(c.pid_kd_Nms_rad, n, "pid_kd_Nms_rad"),
         adaptive_kd=_fit(c.adaptive_kd_Nms_rad, n, "adaptive_kd_Nms_rad"),
         adaptive_gamma=_fit(c.adaptive_gamma, 10, "adaptive_gamma"),
-        robust_boundary=float(c.adaptive_boundary_rad_s))
+        robust_boundary=float(c.adaptive_boundary_rad_s),
+    )
 
 
 class ControllerBase(LeafSystem):
@@ -87,8 +90,16 @@ class ControllerBase(LeafSystem):
         n = self.n
         x = self.state.Eval(context)
         d = self.desired.Eval(context)
-        return (x[:n], x[n:], d[:n], d[n:2 * n], d[2 * n:], self.theta0.Eval(context),
-                self.theta_lower.Eval(context), self.theta_upper.Eval(context))
+        return (
+            x[:n],
+            x[n:],
+            d[:n],
+            d[n : 2 * n],
+            d[2 * n :],
+            self.theta0.Eval(context),
+            self.theta_lower.Eval(context),
+            self.theta_upper.Eval(context),
+        )
 
     def _inputs(self, context):
         *signals, lo, hi = self._raw_inputs(context)
@@ -96,8 +107,11 @@ class ControllerBase(LeafSystem):
 
     def _declare_step_cache(self, name, calc):
         """A cache entry holding any Python object, recomputed when an input changes."""
-        return self.DeclareCacheEntry(name, ValueProducer(allocate=lambda: AbstractValue.Make(object()), calc=calc),
-                                      {self.all_input_ports_ticket()})
+        return self.DeclareCacheEntry(
+            name,
+            ValueProducer(allocate=lambda: AbstractValue.Make(object()), calc=calc),
+            {self.all_input_ports_ticket()},
+        )
 
     def _calc_torque(self, context, output):
         output.SetFromVector(self._torque(context, *self._inputs(context)))

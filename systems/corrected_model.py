@@ -21,14 +21,26 @@ Schema (contracts.md; add keys, never rename):
 Every parameter applies to all joints of the model (per-joint lists have n entries); `joints`
 only says where the effect was found to matter.
 """
+
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-EFFECT_NAMES = ("coulomb_friction", "viscous_friction", "stribeck_friction", "load_friction", "armature",
-                "torque_offset", "torque_scale", "payload", "time_delay", "base_tilt", "joint_elasticity")
+EFFECT_NAMES = (
+    "coulomb_friction",
+    "viscous_friction",
+    "stribeck_friction",
+    "load_friction",
+    "armature",
+    "torque_offset",
+    "torque_scale",
+    "payload",
+    "time_delay",
+    "base_tilt",
+    "joint_elasticity",
+)
 TIME_LAWS = ("lag", "shift")  # first-order lag of the model side, pure delay
 # Parameter keys a frozen model needs per effect (the others are derived, for people), and
 # whether each is a per-joint list (True), a fixed-length list (int) or a number (None).
@@ -103,26 +115,38 @@ class CorrectedModel:
         for k, e in enumerate(self.effects):
             for key, kind in REQUIRED[e.name].items():
                 if kind is True and len(e.params[key]) != n:
-                    raise CorrectedModelError(f"{self.path or 'corrected model'}: effects[{k}].params.{key}: "
-                                              f"{len(e.params[key])} values for a model with {n} joints")
+                    raise CorrectedModelError(
+                        f"{self.path or 'corrected model'}: effects[{k}].params.{key}: "
+                        f"{len(e.params[key])} values for a model with {n} joints"
+                    )
             if any(j > n for j in e.joints):
-                raise CorrectedModelError(f"{self.path or 'corrected model'}: effects[{k}].joints: "
-                                          f"joint > {n} (the model has {n} joints)")
+                raise CorrectedModelError(
+                    f"{self.path or 'corrected model'}: effects[{k}].joints: joint > {n} (the model has {n} joints)"
+                )
         sat = self.scoring.saturation
         if sat is not None and len(sat.top_speed_rad_s) != n:
-            raise CorrectedModelError(f"{self.path or 'corrected model'}: scoring.saturation.top_speed_rad_s: "
-                                      f"{len(sat.top_speed_rad_s)} values for a model with {n} joints")
+            raise CorrectedModelError(
+                f"{self.path or 'corrected model'}: scoring.saturation.top_speed_rad_s: "
+                f"{len(sat.top_speed_rad_s)} values for a model with {n} joints"
+            )
 
     def to_doc(self):
-        doc = {"model": self.model, "model_resolved": self.model_resolved,
-               "effects": [{"name": e.name, "joints": [int(j) for j in e.joints], "params": _plain(e.params)}
-                           for e in self.effects],
-               "scoring": {"residual_form": self.scoring.residual_form, "window_s": float(self.scoring.window_s)}}
+        doc = {
+            "model": self.model,
+            "model_resolved": self.model_resolved,
+            "effects": [
+                {"name": e.name, "joints": [int(j) for j in e.joints], "params": _plain(e.params)} for e in self.effects
+            ],
+            "scoring": {"residual_form": self.scoring.residual_form, "window_s": float(self.scoring.window_s)},
+        }
         sat = self.scoring.saturation
         if sat is not None:
-            doc["scoring"]["saturation"] = {"top_speed_rad_s": [float(x) for x in sat.top_speed_rad_s],
-                                            "level": float(sat.level), "band_rad_s": float(sat.band_rad_s),
-                                            "min_duration_s": float(sat.min_duration_s)}
+            doc["scoring"]["saturation"] = {
+                "top_speed_rad_s": [float(x) for x in sat.top_speed_rad_s],
+                "level": float(sat.level),
+                "band_rad_s": float(sat.band_rad_s),
+                "min_duration_s": float(sat.min_duration_s),
+            }
         if self.fitted_on:
             doc["fitted_on"] = [str(p) for p in self.fitted_on]
         return doc
@@ -180,7 +204,9 @@ def read_corrected_model(path):
         raise CorrectedModelError(f"{where}: cannot read ({err.strerror})") from err
     except yaml.YAMLError as err:
         line = getattr(getattr(err, "problem_mark", None), "line", None)
-        raise CorrectedModelError(f"{where}: not valid YAML" + (f" (line {line + 1})" if line is not None else "")) from err
+        raise CorrectedModelError(
+            f"{where}: not valid YAML" + (f" (line {line + 1})" if line is not None else "")
+        ) from err
 
     def bad(field_name, msg):
         return CorrectedModelError(f"{where}: {field_name}: {msg}")
@@ -202,8 +228,9 @@ def read_corrected_model(path):
         if name not in EFFECT_NAMES:
             raise bad(f"{f}.name", f"unknown effect {name!r} (known: {', '.join(EFFECT_NAMES)})")
         joints = e.get("joints", [])
-        if not isinstance(joints, list) or not all(isinstance(j, int) and not isinstance(j, bool) and j >= 1
-                                                   for j in joints):
+        if not isinstance(joints, list) or not all(
+            isinstance(j, int) and not isinstance(j, bool) and j >= 1 for j in joints
+        ):
             raise bad(f"{f}.joints", "expected a list of 1-based joint numbers")
         params = e.get("params")
         if not isinstance(params, dict):
@@ -231,8 +258,9 @@ def read_corrected_model(path):
     resolved = doc.get("model_resolved", "") or ""
     if not isinstance(resolved, str):
         raise bad("model_resolved", "expected a path")
-    return CorrectedModel(model, effects, scoring, resolved, list(fitted_on) if isinstance(fitted_on, list) else [],
-                          str(path))
+    return CorrectedModel(
+        model, effects, scoring, resolved, list(fitted_on) if isinstance(fitted_on, list) else [], str(path)
+    )
 
 
 def _finite(x):

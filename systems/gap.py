@@ -76,6 +76,7 @@ it is significant, i.e. all of
       accuracy): a statistically clear but physically negligible mismatch, such as a
       simulator's own time discretisation, is not a cause.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -87,11 +88,30 @@ from threadpoolctl import threadpool_limits
 
 from . import inertial, regressors
 
-EFFECTS = ("coulomb_friction", "viscous_friction", "stribeck_friction", "load_friction", "armature",
-           "torque_offset", "torque_scale", "payload", "time_delay", "base_tilt", "joint_elasticity")
-PER_JOINT = ("coulomb_friction", "viscous_friction", "stribeck_friction", "load_friction", "armature",
-             "torque_offset", "torque_scale", "joint_elasticity")
-STRIBECK_VELOCITIES = tuple(round(0.02 * 1.5 ** k, 4) for k in range(7))  # rad/s grid for vs (0.02..0.23)
+EFFECTS = (
+    "coulomb_friction",
+    "viscous_friction",
+    "stribeck_friction",
+    "load_friction",
+    "armature",
+    "torque_offset",
+    "torque_scale",
+    "payload",
+    "time_delay",
+    "base_tilt",
+    "joint_elasticity",
+)
+PER_JOINT = (
+    "coulomb_friction",
+    "viscous_friction",
+    "stribeck_friction",
+    "load_friction",
+    "armature",
+    "torque_offset",
+    "torque_scale",
+    "joint_elasticity",
+)
+STRIBECK_VELOCITIES = tuple(round(0.02 * 1.5**k, 4) for k in range(7))  # rad/s grid for vs (0.02..0.23)
 TIME_LAWS = {"time_delay@shift": "shift", "time_delay@lag": "lag"}  # model-side time laws (grid-searched d)
 BLOCK_S = 0.5
 Z_BLOCK = 3.0
@@ -139,17 +159,17 @@ def smooth_derivative(t, x, segs, window_s=0.1, order=3):
 
     out = np.empty_like(np.asarray(x, float))
     for i0, i1 in segs:
-        tt, xx = t[i0:i1 + 1], x[i0:i1 + 1]
+        tt, xx = t[i0 : i1 + 1], x[i0 : i1 + 1]
         if len(tt) < 2:
-            out[i0:i1 + 1] = 0.0
+            out[i0 : i1 + 1] = 0.0
             continue
         h = float(np.median(np.diff(tt)))
         w = int(round(window_s / h)) | 1
         w = max(w, order + 2 + (order % 2 == 0))
         if len(tt) >= w:
-            out[i0:i1 + 1] = savgol_filter(xx, w, order, deriv=1, delta=h, axis=0)
+            out[i0 : i1 + 1] = savgol_filter(xx, w, order, deriv=1, delta=h, axis=0)
         else:
-            out[i0:i1 + 1] = np.gradient(xx, tt, axis=0)
+            out[i0 : i1 + 1] = np.gradient(xx, tt, axis=0)
     return out
 
 
@@ -159,7 +179,7 @@ def _windows(t, segs, window_s):
     for s0, s1 in segs:
         if s1 <= s0:
             continue
-        h = float(np.median(np.diff(t[s0:s1 + 1])))
+        h = float(np.median(np.diff(t[s0 : s1 + 1])))
         step = max(1, int(round(window_s / h)))
         edges = list(range(s0, s1 + 1, step))
         if edges[-1] != s1:
@@ -192,11 +212,11 @@ def _neighbour_mean(x, segs):
     residual's own noise)."""
     out = np.empty_like(x)
     for s0, s1 in segs:
-        seg = x[s0:s1 + 1]
+        seg = x[s0 : s1 + 1]
         if len(seg) < 3:
-            out[s0:s1 + 1] = seg
+            out[s0 : s1 + 1] = seg
             continue
-        o = out[s0:s1 + 1]
+        o = out[s0 : s1 + 1]
         o[1:-1] = 0.5 * (seg[:-2] + seg[2:])
         o[0], o[-1] = seg[1], seg[-2]
     return out
@@ -254,7 +274,7 @@ def velocity_saturation(logs, rule=None):
         mask = np.zeros(l.v.shape, bool)
         for s0, s1 in segments(l.t):
             for j in range(l.v.shape[1]):
-                v = l.v[s0:s1 + 1, j]
+                v = l.v[s0 : s1 + 1, j]
                 av = np.abs(v)
                 cand = av >= rule.level * vmax[j]
                 i, N = 0, len(v)
@@ -263,12 +283,16 @@ def velocity_saturation(logs, rule=None):
                         i += 1
                         continue
                     k, lo, hi = i, av[i], av[i]
-                    while (k + 1 < N and cand[k + 1] and np.sign(v[k + 1]) == np.sign(v[i])
-                           and max(hi, av[k + 1]) - min(lo, av[k + 1]) <= rule.band_rad_s):
+                    while (
+                        k + 1 < N
+                        and cand[k + 1]
+                        and np.sign(v[k + 1]) == np.sign(v[i])
+                        and max(hi, av[k + 1]) - min(lo, av[k + 1]) <= rule.band_rad_s
+                    ):
                         k += 1
                         lo, hi = min(lo, av[k]), max(hi, av[k])
                     if l.t[s0 + k] - l.t[s0 + i] >= rule.min_duration_s:
-                        mask[s0 + i:s0 + k + 1, j] = True
+                        mask[s0 + i : s0 + k + 1, j] = True
                     i = k + 1
         masks.append(mask)
     return masks
@@ -292,18 +316,24 @@ def build_design(model, log, form, window_s=0.1, max_gap_s=None, columns=True, s
         std_cols["coulomb_friction"] = _diag(sgn)
         std_cols["viscous_friction"] = _diag(v)
         for vs in STRIBECK_VELOCITIES:
-            std_cols[f"stribeck_friction@{vs}"] = _diag(sgn * np.exp(-(v / vs) ** 2))
+            std_cols[f"stribeck_friction@{vs}"] = _diag(sgn * np.exp(-((v / vs) ** 2)))
         tau_nb = _neighbour_mean(tau, segs)
         std_cols["load_friction"] = _diag(np.abs(tau_nb) * sgn)
         std_cols["torque_offset"] = _diag(np.ones_like(v))
-        std_cols["base_tilt"] = np.stack([_gravity(tree, theta_b, q, [gnorm, 0, 0]),
-                                          _gravity(tree, theta_b, q, [0, gnorm, 0])], -1)
+        std_cols["base_tilt"] = np.stack(
+            [_gravity(tree, theta_b, q, [gnorm, 0, 0]), _gravity(tree, theta_b, q, [0, gnorm, 0])], -1
+        )
         # d tau_rigid / dq at the logged motion (acceleration: logged, else the smoothed one).
         h = 1e-6
         a_el = log.a if (form == "inverse_dynamics" and log.a is not None) else a_smooth
         tau0 = regressors.standard_regressor(tree, q, v, a_el) @ theta_b
-        dtdq = np.stack([(regressors.standard_regressor(tree, q + h * np.eye(n)[j], v, a_el) @ theta_b - tau0) / h
-                         for j in range(n)], -1)
+        dtdq = np.stack(
+            [
+                (regressors.standard_regressor(tree, q + h * np.eye(n)[j], v, a_el) @ theta_b - tau0) / h
+                for j in range(n)
+            ],
+            -1,
+        )
         # Torque through the transmission: measured minus the nominal joint friction.
         jp = model.joint_params
         fric = jp.coulomb * sgn + jp.viscous * v + jp.offset
@@ -360,7 +390,7 @@ def build_design(model, log, form, window_s=0.1, max_gap_s=None, columns=True, s
     # Blocks for the held-out standard error: BLOCK_S pieces inside each segment.
     seg_id = np.zeros(len(t), int)
     for k, (s0, s1) in enumerate(segs):
-        seg_id[s0:s1 + 1] = k
+        seg_id[s0 : s1 + 1] = k
     blk = seg_id[rows] * 100000 + np.floor((row_time - t[0]) / BLOCK_S).astype(int)
     _, row_block = np.unique(blk, return_inverse=True)
     d = Design(form, y, cols, row_time, row_block, feat, tau_nom, log.source, segments=segs)
@@ -371,10 +401,17 @@ def build_design(model, log, form, window_s=0.1, max_gap_s=None, columns=True, s
     else:  # a window is saturated when any of its samples is
         csum = np.concatenate([np.zeros((1, n), int), np.cumsum(sat, 0)])
         d.row_saturated = (csum[win[:, 1] + 1] - csum[win[:, 0]]) > 0
-    d.sample = {"t": t, "segment": seg_id, "seg_bounds": np.array(segs, int).reshape(-1, 2),
-                "cols": sample_cols, "nominal": sample_nominal, "windows": win,
-                "measured": tau, "restarts": lag_restarts(segs, sat),
-                "antiderivative": win is not None}
+    d.sample = {
+        "t": t,
+        "segment": seg_id,
+        "seg_bounds": np.array(segs, int).reshape(-1, 2),
+        "cols": sample_cols,
+        "nominal": sample_nominal,
+        "windows": win,
+        "measured": tau,
+        "restarts": lag_restarts(segs, sat),
+        "antiderivative": win is not None,
+    }
     return d
 
 
@@ -417,7 +454,7 @@ def first_order_lag(t, x, seg_bounds, d, chunk=50.0):
     re-anchored every `chunk` time constants so the exponentials stay far from overflow."""
     y = np.empty_like(x)
     for s0, s1 in seg_bounds:
-        tt, xx = t[s0:s1 + 1], x[s0:s1 + 1]
+        tt, xx = t[s0 : s1 + 1], x[s0 : s1 + 1]
         if len(tt) == 1:
             y[s0] = xx[0]
             continue
@@ -426,13 +463,13 @@ def first_order_lag(t, x, seg_bounds, d, chunk=50.0):
         a = np.exp(-dt / d)
         dx = np.diff(xx, axis=0)
         u = xx[1:] - a * xx[:-1] - dx * (d / dt) * (1 - a)
-        ys = y[s0:s1 + 1]
+        ys = y[s0 : s1 + 1]
         ys[0] = xx[0] - d * dx[0] / dt[0]
         k = 1
         while k < len(tt):
             m = min(max(int(np.searchsorted(tt, tt[k - 1] + chunk * d, side="right")), k + 1), len(tt))
             grow = ((tt[k:m] - tt[k - 1]) / d).reshape(col)
-            ys[k:m] = np.exp(-grow) * (ys[k - 1] + np.cumsum(u[k - 1:m - 1] * np.exp(grow), axis=0))
+            ys[k:m] = np.exp(-grow) * (ys[k - 1] + np.cumsum(u[k - 1 : m - 1] * np.exp(grow), axis=0))
             k = m
     return y
 
@@ -477,8 +514,7 @@ def model_side_rows(design, groups, transform):
     nom = smp["nominal"]
     key = ("columns",) + tuple(groups)
     if key not in smp:  # the same column sets come back for every trial d
-        smp[key] = (np.concatenate([smp["cols"][g] for g in groups], -1) if groups
-                    else np.zeros(nom.shape + (0,)))
+        smp[key] = np.concatenate([smp["cols"][g] for g in groups], -1) if groups else np.zeros(nom.shape + (0,))
     A = smp[key]
     if law == "lag":
         t, bounds = smp["t"], smp["seg_bounds"]
@@ -489,8 +525,10 @@ def model_side_rows(design, groups, transform):
         if law == "lag":
             return A[idx], nom[idx]
         j0, j1, w = _sample_shift(smp, idx, d)
-        return ((1 - w)[:, None, None] * A[j0] + w[:, None, None] * A[j1],
-                (1 - w)[:, None] * nom[j0] + w[:, None] * nom[j1])
+        return (
+            (1 - w)[:, None, None] * A[j0] + w[:, None, None] * A[j1],
+            (1 - w)[:, None] * nom[j0] + w[:, None] * nom[j1],
+        )
 
     win = smp["windows"]
     if win is None:
@@ -653,12 +691,15 @@ class Problem:
         self.check_block = np.concatenate(blocks)[self.check_valid] if check else np.zeros(0, int)
         self.check_joint = np.tile(np.arange(n), len(self.y_check_all) // n)[self.check_valid]
         tau_check = np.concatenate([d.y + d.tau_hat_nominal for d in check]) if check else np.zeros((1, n))
-        self.tau_rms_check = np.sqrt(np.mean(tau_check ** 2, 0))
+        self.tau_rms_check = np.sqrt(np.mean(tau_check**2, 0))
         self.min_delay = 0.5 * float(np.median(np.concatenate([np.diff(d.sample["t"]) for d in fit])))
 
     def index(self, groups):
-        return np.concatenate([np.arange(self.offset[g], self.offset[g] + self.k[g]) for g in groups]) \
-            if groups else np.zeros(0, int)
+        return (
+            np.concatenate([np.arange(self.offset[g], self.offset[g] + self.k[g]) for g in groups])
+            if groups
+            else np.zeros(0, int)
+        )
 
     def _system(self, transform, groups):
         """(G, b, yy) of the fit logs for `groups` (column order of index(groups)) with a model
@@ -715,7 +756,7 @@ class Problem:
         # neighbours (SSE is smooth in d), kept when it fits better.
         i = int(np.searchsorted(grid, best))
         if 0 < i < len(grid) - 1:
-            (d0, d1, d2) = grid[i - 1:i + 2]
+            (d0, d1, d2) = grid[i - 1 : i + 2]
             e0, e1, e2 = errs[float(d0)], errs[float(d1)], errs[float(d2)]
             curvature = e0 - 2 * e1 + e2
             if curvature > 0:
@@ -757,7 +798,7 @@ class Problem:
         sse = yy - 2 * p @ b + p @ G @ p
         out, pos = {}, 0
         for g in groups:
-            out[g] = p[pos:pos + self.k[g]]
+            out[g] = p[pos : pos + self.k[g]]
             pos += self.k[g]
         return out, max(float(sse), 0.0)
 
@@ -860,7 +901,7 @@ def noise_variance(r, block, joint):
         d = np.diff(r[m])[block[m][1:] == block[m][:-1]]
         if len(d):
             out.append((1.4826 * np.median(np.abs(d))) ** 2 / 2)
-    return float(np.mean(out)) if out else float(np.mean(r ** 2))
+    return float(np.mean(out)) if out else float(np.mean(r**2))
 
 
 def resolvable(problem, params):
@@ -894,24 +935,39 @@ def significance(problem, r0, r1, sse0_fit, sse1_fit, k_added, joint=None):
     r0, r1 = r0[sel], r1[sel]
     blocks = problem.check_block[sel]
     joints = problem.check_joint[sel]
-    mse0 = float(np.mean(r0 ** 2))
-    gain = r0 ** 2 - r1 ** 2
+    mse0 = float(np.mean(r0**2))
+    gain = r0**2 - r1**2
     delta = float(np.mean(gain))
     cross = np.bincount(blocks, weights=2 * r1 * (r0 - r1))
-    se = float(np.sqrt(np.sum(cross ** 2)))
+    se = float(np.sqrt(np.sum(cross**2)))
     total = float(np.sum(gain))
-    z = total / se if se > 0 else (np.inf if total > 1e-12 * max(np.sum(r0 ** 2), 1e-300) else 0.0)
+    z = total / se if se > 0 else (np.inf if total > 1e-12 * max(np.sum(r0**2), 1e-300) else 0.0)
     p_blocks = _signed_rank_p(np.bincount(blocks, weights=gain)[np.bincount(blocks) > 0])
     sigma2 = noise_variance(r0, blocks, joints)
     change = r0 - r1
-    relevance = max(float(np.sqrt(np.mean(change[joints == j] ** 2)) / max(problem.tau_rms_check[j], 1e-12))
-                    for j in np.unique(joints))
+    relevance = max(
+        float(np.sqrt(np.mean(change[joints == j] ** 2)) / max(problem.tau_rms_check[j], 1e-12))
+        for j in np.unique(joints)
+    )
     m = problem.n_fit_rows
     bic = m * np.log(max(sse1_fit, 1e-300) / max(sse0_fit, 1e-300)) + k_added * np.log(m)
-    ok = bool((z >= Z_BLOCK or p_blocks <= P_BLOCKS) and delta >= MIN_RELATIVE * mse0 and delta >= MIN_NOISE_FRACTION * sigma2
-              and relevance >= MIN_EFFECT_RATIO and (joint is not None or bic < 0))
-    return {"significant": ok, "z": float(z), "p_blocks": p_blocks, "delta_mse": delta, "relative": delta / mse0 if mse0 > 0 else 0.0,
-            "noise_variance": sigma2, "bic_change": float(bic), "relevance": relevance}
+    ok = bool(
+        (z >= Z_BLOCK or p_blocks <= P_BLOCKS)
+        and delta >= MIN_RELATIVE * mse0
+        and delta >= MIN_NOISE_FRACTION * sigma2
+        and relevance >= MIN_EFFECT_RATIO
+        and (joint is not None or bic < 0)
+    )
+    return {
+        "significant": ok,
+        "z": float(z),
+        "p_blocks": p_blocks,
+        "delta_mse": delta,
+        "relative": delta / mse0 if mse0 > 0 else 0.0,
+        "noise_variance": sigma2,
+        "bic_change": float(bic),
+        "relevance": relevance,
+    }
 
 
 def _signed_rank_p(block_gain):
@@ -950,7 +1006,7 @@ def regimes(designs, residuals):
             ts = tt[sign_change[:, j]]
             if len(ts):
                 dist = np.min(np.abs(tt[:, None] - ts[None, :]), axis=1)
-                rev[base:base + len(tt), j] = dist <= 0.1
+                rev[base : base + len(tt), j] = dist <= 0.1
         base += len(tt)
     masks = {
         "near_zero_velocity": near_zero,
@@ -971,8 +1027,14 @@ def regimes(designs, residuals):
         idx = np.digitize(tt, edges) - 1
         for w in np.unique(idx):
             sel = idx == w
-            windows.append({"log": d.source, "t_start": float(edges[w]), "t_end": float(edges[w] + 1.0),
-                            "share": float((r[sel] ** 2).sum() / total)})
+            windows.append(
+                {
+                    "log": d.source,
+                    "t_start": float(edges[w]),
+                    "t_end": float(edges[w] + 1.0),
+                    "share": float((r[sel] ** 2).sum() / total),
+                }
+            )
     windows.sort(key=lambda x: -x["share"])
     return share, samples, windows[:5]
 
@@ -998,13 +1060,19 @@ def effect_params(model, effect, params, group_used):
         return {"scale": lst(1.0 + p)}
     if effect == "payload":
         m = float(p[0])
-        return {"theta_delta": lst(p), "theta_e": lst(model.theta_e + p), "mass_kg": m,
-                "com_m": lst(p[1:4] / m) if m > 1e-9 else [0.0, 0.0, 0.0]}
+        return {
+            "theta_delta": lst(p),
+            "theta_e": lst(model.theta_e + p),
+            "mass_kg": m,
+            "com_m": lst(p[1:4] / m) if m > 1e-9 else [0.0, 0.0, 0.0],
+        }
     if effect == "time_delay":
         shift = group_used.endswith("@shift")
-        return {"delay_s": float(p[0]),
-                "law": "pure delay tau(t - d)" if shift else "first-order lag: tau_meas + d dtau_meas/dt = tau",
-                "time_law": "shift" if shift else "lag"}
+        return {
+            "delay_s": float(p[0]),
+            "law": "pure delay tau(t - d)" if shift else "first-order lag: tau_meas + d dtau_meas/dt = tau",
+            "time_law": "shift" if shift else "lag",
+        }
     if effect == "base_tilt":
         # Base rotated by RollPitchYaw(roll, pitch, 0): gravity in the base frame is
         # |g| [sin p, -cos p sin r, -cos p cos r] (real_arm's convention).
@@ -1057,7 +1125,7 @@ class CrossValidated:
         self.check_block = np.concatenate(blocks)
         self.check_joint = np.concatenate([p.check_joint for p in self.problems])
         tau = np.concatenate([d.y + d.tau_hat_nominal for p in self.problems for d in p.check])
-        self.tau_rms_check = np.sqrt(np.mean(tau ** 2, 0))
+        self.tau_rms_check = np.sqrt(np.mean(tau**2, 0))
         self.n_fit_rows = sum(p.n_fit_rows for p in self.problems)
         self.yy = sum(p.yy for p in self.problems)
         self.min_delay = min(p.min_delay for p in self.problems)
@@ -1093,7 +1161,9 @@ def inner_folds(model, fit_logs, form, rule):
         (log,), (mask,) = fit_logs, masks
         designs = []
         for sl in time_pieces(log.t):
-            piece = dataclasses.replace(log.slice(sl), source=f"{log.source} [{log.t[sl][0]:.2f}, {log.t[sl][-1]:.2f}] s")
+            piece = dataclasses.replace(
+                log.slice(sl), source=f"{log.source} [{log.t[sl][0]:.2f}, {log.t[sl][-1]:.2f}] s"
+            )
             designs.append(build_design(model, piece, form, WINDOW_S, saturated=mask[sl]))
         scheme = "time_blocked"
     folds = [([i for i in range(len(designs)) if i != k], [k]) for k in range(len(designs))]
@@ -1152,7 +1222,7 @@ def select_effects(ev, effects, max_effects):
         loss = {}
         for e in selected:
             params, _ = ev.fit_effects([x for x in selected if x != e])
-            loss[e] = float(np.mean(ev.check_residual(params) ** 2) - np.mean(cur_r ** 2))
+            loss[e] = float(np.mean(ev.check_residual(params) ** 2) - np.mean(cur_r**2))
         selected.sort(key=lambda e: -loss[e])
     # Joints where each selected effect matters: removing it from the combined fit on that
     # joint must lose a significant amount on the validation residuals.
@@ -1162,8 +1232,9 @@ def select_effects(ev, effects, max_effects):
         if e in PER_JOINT:
             js = [j + 1 for j in range(n) if significance(ev, r_wo, cur_r, 1, 1, 0, joint=j)["significant"]]
         else:
-            gain = np.array([np.mean(r_wo[ev.check_joint == j] ** 2 - cur_r[ev.check_joint == j] ** 2)
-                             for j in range(n)])
+            gain = np.array(
+                [np.mean(r_wo[ev.check_joint == j] ** 2 - cur_r[ev.check_joint == j] ** 2) for j in range(n)]
+            )
             js = [j + 1 for j in range(n) if gain[j] > MIN_RELATIVE * np.mean(r_wo[ev.check_joint == j] ** 2)]
         joints[e] = js or list(range(1, n + 1))
     return Selection(selected, cur_params, cur_r, steps, single, joints)
@@ -1180,7 +1251,7 @@ def _best_small_set(ev, effects, single, r0, sse0_fit):
         fits[(e,)] = (single[e]["params"], single[e]["sse"], single[e]["r"])
     admissible = [()] + [(e,) for e in effects if single[e]["sig"]["significant"]]
     for i, e in enumerate(effects):
-        for f in effects[i + 1:]:
+        for f in effects[i + 1 :]:
             params, sse = ev.fit_effects([e, f])
             r = ev.check_residual(params)
             fits[(e, f)] = (params, sse, r)
@@ -1227,8 +1298,10 @@ def score_designs(corrected, designs):
     params = group_params(corrected.effects)
     for k, e in enumerate(corrected.effects):
         if e.name == "stribeck_friction" and f"stribeck_friction@{float(e.params['vs_rad_s'])}" not in designs[0].cols:
-            raise CorrectedModelError(f"{corrected.path or 'corrected model'}: effects[{k}].params.vs_rad_s: "
-                                      f"{e.params['vs_rad_s']} is not one of {', '.join(map(str, STRIBECK_VELOCITIES))}")
+            raise CorrectedModelError(
+                f"{corrected.path or 'corrected model'}: effects[{k}].params.vs_rad_s: "
+                f"{e.params['vs_rad_s']} is not one of {', '.join(map(str, STRIBECK_VELOCITIES))}"
+            )
     return [d.y for d in designs], [design_residual(d, params) for d in designs]
 
 
@@ -1247,9 +1320,14 @@ def _rms_table(before, after, mask):
     b = [_rms(before[mask[:, j], j]) if mask[:, j].any() else 0.0 for j in range(n)]
     a = [_rms(after[mask[:, j], j]) if mask[:, j].any() else 0.0 for j in range(n)]
     rb, ra = (_rms(before[mask]), _rms(after[mask])) if mask.any() else (0.0, 0.0)
-    return {"rms_before": rb, "rms_after": ra, "reduction": _reduction(rb, ra),
-            "rms_before_per_joint": b, "rms_after_per_joint": a,
-            "reduction_per_joint": [_reduction(x, y) for x, y in zip(b, a)]}
+    return {
+        "rms_before": rb,
+        "rms_after": ra,
+        "reduction": _reduction(rb, ra),
+        "rms_before_per_joint": b,
+        "rms_after_per_joint": a,
+        "reduction_per_joint": [_reduction(x, y) for x, y in zip(b, a)],
+    }
 
 
 def held_out_numbers(designs, before, after):
@@ -1272,10 +1350,17 @@ def corrected_model_of(model, selection, params, form, rule, model_path="", fit_
     from .corrected_model import CorrectedEffect, CorrectedModel, Scoring
 
     path = str(model_path or model.source or "")
-    effects = [CorrectedEffect(e, list(selection.joints[e]), effect_params(model, e, params, _group_of(e, params)))
-               for e in selection.effects]
-    return CorrectedModel(path, effects, Scoring(form, WINDOW_S, rule),
-                          str(Path(path).resolve()) if path else "", [str(s) for s in fit_sources])
+    effects = [
+        CorrectedEffect(e, list(selection.joints[e]), effect_params(model, e, params, _group_of(e, params)))
+        for e in selection.effects
+    ]
+    return CorrectedModel(
+        path,
+        effects,
+        Scoring(form, WINDOW_S, rule),
+        str(Path(path).resolve()) if path else "",
+        [str(s) for s in fit_sources],
+    )
 
 
 def diagnose(model, fit_logs, check_logs, effects=EFFECTS, form=None, max_effects=6, model_path=""):
@@ -1296,8 +1381,7 @@ def _diagnose(model, fit_logs, check_logs, effects, form, max_effects, model_pat
     check = frozen_designs(model, check_logs, form, rule)
     final = Problem(model, cv.designs, check)
     params, _ = final.fit_effects(sel.effects)
-    corrected_model = corrected_model_of(model, sel, params, form, rule, model_path,
-                                         [l.source for l in fit_logs])
+    corrected_model = corrected_model_of(model, sel, params, form, rule, model_path, [l.source for l in fit_logs])
     before, after = score_designs(corrected_model, check)
     test = held_out_numbers(check, before, after)
     n = model.n
@@ -1307,46 +1391,60 @@ def _diagnose(model, fit_logs, check_logs, effects, form, max_effects, model_pat
         rms_alone = _rms(final.check_residual_all(alone))
         chosen = e in sel.effects
         src = params if chosen else alone
-        entry = {"name": e,
-                 "joints": sel.joints[e] if chosen else _effect_joints_single(cv, sel.single[e]["params"], e, n),
-                 "params": effect_params(model, e, src, _group_of(e, src)),
-                 "rms_check_after": rms_alone,
-                 "reduction": _reduction(test["rms_before"], rms_alone),
-                 "significant": chosen,
-                 "params_from": "combined" if chosen else "alone",
-                 "test_alone": _json_sig(sel.single[e]["sig"])}
+        entry = {
+            "name": e,
+            "joints": sel.joints[e] if chosen else _effect_joints_single(cv, sel.single[e]["params"], e, n),
+            "params": effect_params(model, e, src, _group_of(e, src)),
+            "rms_check_after": rms_alone,
+            "reduction": _reduction(test["rms_before"], rms_alone),
+            "significant": chosen,
+            "params_from": "combined" if chosen else "alone",
+            "test_alone": _json_sig(sel.single[e]["sig"]),
+        }
         if chosen:
             entry["selection_step"] = sel.effects.index(e) + 1
         entries.append(entry)
-    entries.sort(key=lambda x: (not x["significant"], x.get("selection_step", 0),
-                                -x["test_alone"]["delta_mse"]))
+    entries.sort(key=lambda x: (not x["significant"], x.get("selection_step", 0), -x["test_alone"]["delta_mse"]))
 
     cv_before = cv.y_check_all.reshape(-1, n)
     cv_after = cv.check_residual(sel.params, valid_only=False).reshape(-1, n)
     cv_valid = cv.check_valid.reshape(-1, n)
-    cross_validation = {"scheme": cv.scheme,
-                        "folds": [{"fit": [d.source for d in p.fit], "validate": [d.source for d in p.check]}
-                                  for p in cv.problems],
-                        **_rms_table(cv_before, cv_after, np.ones_like(cv_valid)),
-                        "without_saturated": _rms_table(cv_before, cv_after, cv_valid),
-                        "selection": sel.steps}
+    cross_validation = {
+        "scheme": cv.scheme,
+        "folds": [{"fit": [d.source for d in p.fit], "validate": [d.source for d in p.check]} for p in cv.problems],
+        **_rms_table(cv_before, cv_after, np.ones_like(cv_valid)),
+        "without_saturated": _rms_table(cv_before, cv_after, cv_valid),
+        "selection": sel.steps,
+    }
     result = _held_out_result(check, before, after, test, entries, form)
     result["gap"]["rms_fit"] = float(np.sqrt(final.yy / max(final.n_fit_rows, 1)))
     result["combined"].update(rms_fit_after=_rms(final.fit_residual(params)), selection=sel.steps)
-    result.update({
-        "test": {**test, "note": "check logs, scored once with the frozen selection and parameters; "
-                                 "no selection step or threshold saw them"},
-        "cross_validation": cross_validation,
-        "protocol": {"selection_data": "fit logs only (inner cross-validation: " + cv.scheme + ")",
-                     "check_logs": "scored once (test)",
-                     "saturation_top_speed_rad_s": list(rule.top_speed_rad_s)},
-        "significance_rule": {"z_block": Z_BLOCK, "p_blocks": P_BLOCKS, "min_blocks": MIN_BLOCKS,
-                              "block_s": BLOCK_S, "min_relative": MIN_RELATIVE,
-                              "min_effect_ratio": MIN_EFFECT_RATIO,
-                              "min_noise_fraction": MIN_NOISE_FRACTION,
-                              "information_criterion": "BIC on the inner training folds",
-                              "data": "validation residuals of the inner folds on the fit logs"},
-    })
+    result.update(
+        {
+            "test": {
+                **test,
+                "note": "check logs, scored once with the frozen selection and parameters; "
+                "no selection step or threshold saw them",
+            },
+            "cross_validation": cross_validation,
+            "protocol": {
+                "selection_data": "fit logs only (inner cross-validation: " + cv.scheme + ")",
+                "check_logs": "scored once (test)",
+                "saturation_top_speed_rad_s": list(rule.top_speed_rad_s),
+            },
+            "significance_rule": {
+                "z_block": Z_BLOCK,
+                "p_blocks": P_BLOCKS,
+                "min_blocks": MIN_BLOCKS,
+                "block_s": BLOCK_S,
+                "min_relative": MIN_RELATIVE,
+                "min_effect_ratio": MIN_EFFECT_RATIO,
+                "min_noise_fraction": MIN_NOISE_FRACTION,
+                "information_criterion": "BIC on the inner training folds",
+                "data": "validation residuals of the inner folds on the fit logs",
+            },
+        }
+    )
     corrected = corrected_parameters(model, sel.effects, params)
     return Diagnosis(result, form, cv.designs, check, before, after, params, corrected, corrected_model)
 
@@ -1356,21 +1454,34 @@ def _held_out_result(designs, before, after, test, entries, form):
     named = [e["name"] for e in entries if e["significant"]]
     share, samples, windows = regimes(designs, before)
     return {
-        "gap": {"rms_check": test["rms_before"], "rms_check_per_joint": test["rms_before_per_joint"],
-                "where": {"joints": [int(j) + 1 for j in np.argsort(-np.array(test["rms_before_per_joint"]))],
-                          "regimes": share, "regime_sample_share": samples, "time_windows": windows},
-                "residual_form": form,
-                "rms_check_per_log": test["rms_before_per_log"],
-                "velocity_saturation": _saturation_summary(designs, before)},
+        "gap": {
+            "rms_check": test["rms_before"],
+            "rms_check_per_joint": test["rms_before_per_joint"],
+            "where": {
+                "joints": [int(j) + 1 for j in np.argsort(-np.array(test["rms_before_per_joint"]))],
+                "regimes": share,
+                "regime_sample_share": samples,
+                "time_windows": windows,
+            },
+            "residual_form": form,
+            "rms_check_per_log": test["rms_before_per_log"],
+            "velocity_saturation": _saturation_summary(designs, before),
+        },
         "effects": entries,
         "cause": named,
-        "combined": {"effects": named, "rms_check_after": test["rms_after"], "reduction": test["reduction"],
-                     "rms_check_per_joint_after": test["rms_after_per_joint"],
-                     "rms_check_per_log_after": test["rms_after_per_log"],
-                     "regimes_after": regimes(designs, after)[0],
-                     "without_saturated": {"rms_check": test["without_saturated"]["rms_before"],
-                                           "rms_check_after": test["without_saturated"]["rms_after"],
-                                           "reduction": test["without_saturated"]["reduction"]}},
+        "combined": {
+            "effects": named,
+            "rms_check_after": test["rms_after"],
+            "reduction": test["reduction"],
+            "rms_check_per_joint_after": test["rms_after_per_joint"],
+            "rms_check_per_log_after": test["rms_after_per_log"],
+            "regimes_after": regimes(designs, after)[0],
+            "without_saturated": {
+                "rms_check": test["without_saturated"]["rms_before"],
+                "rms_check_after": test["without_saturated"]["rms_after"],
+                "reduction": test["without_saturated"]["reduction"],
+            },
+        },
     }
 
 
@@ -1385,18 +1496,32 @@ def frozen_diagnosis(model, corrected, logs):
         entries = []
         for k, e in enumerate(corrected.effects):
             rms = _rms(np.concatenate([design_residual(d, group_params([e])) for d in designs]))
-            entries.append({"name": e.name, "joints": list(e.joints), "params": e.params, "rms_check_after": rms,
-                            "reduction": _reduction(test["rms_before"], rms), "significant": True,
-                            "params_from": "frozen", "selection_step": k + 1})
+            entries.append(
+                {
+                    "name": e.name,
+                    "joints": list(e.joints),
+                    "params": e.params,
+                    "rms_check_after": rms,
+                    "reduction": _reduction(test["rms_before"], rms),
+                    "significant": True,
+                    "params_from": "frozen",
+                    "selection_step": k + 1,
+                }
+            )
         result = _held_out_result(designs, before, after, test, entries, designs[0].form)
     sc = corrected.scoring
     result["gap"]["rms_fit"] = None  # no fit logs
     result["test"] = {**test, "note": "scored with the frozen corrected model; nothing fitted, nothing selected"}
-    result["frozen"] = {"corrected_model": corrected.path, "model": str(corrected.model_path()),
-                        "fitted": "nothing", "residual_form": sc.residual_form,
-                        "saturation_top_speed_rad_s": sc.saturation.top_speed_rad_s if sc.saturation else None}
-    return Diagnosis(result, designs[0].form, [], designs, before, after, group_params(corrected.effects), {},
-                     corrected)
+    result["frozen"] = {
+        "corrected_model": corrected.path,
+        "model": str(corrected.model_path()),
+        "fitted": "nothing",
+        "residual_form": sc.residual_form,
+        "saturation_top_speed_rad_s": sc.saturation.top_speed_rad_s if sc.saturation else None,
+    }
+    return Diagnosis(
+        result, designs[0].form, [], designs, before, after, group_params(corrected.effects), {}, corrected
+    )
 
 
 def leave_one_out(model, logs, **kwargs):
@@ -1419,31 +1544,44 @@ def pool_held_out(folds):
     before = np.concatenate([r for d in folds for r in d.check_residual_before])
     after = np.concatenate([r for d in folds for r in d.check_residual_after])
     valid = ~np.concatenate([c.row_saturated for d in folds for c in d.check_designs])
-    per_fold = [{"check": [c.source for c in d.check_designs], "rms_before": d.result["gap"]["rms_check"],
-                 "rms_after": d.result["combined"]["rms_check_after"], "reduction": d.result["combined"]["reduction"],
-                 "without_saturated": d.result["combined"]["without_saturated"], "cause": d.result["cause"],
-                 "params": {e["name"]: e["params"] for e in d.result["effects"] if e["significant"]},
-                 "rms_before_per_joint": d.result["gap"]["rms_check_per_joint"],
-                 "rms_after_per_joint": d.result["combined"]["rms_check_per_joint_after"],
-                 "cross_validation": {k: d.result["cross_validation"][k]
-                                      for k in ("scheme", "rms_before", "rms_after", "reduction")},
-                 "wall_time_s": d.result.get("wall_time_s")}
-                for d in folds]
+    per_fold = [
+        {
+            "check": [c.source for c in d.check_designs],
+            "rms_before": d.result["gap"]["rms_check"],
+            "rms_after": d.result["combined"]["rms_check_after"],
+            "reduction": d.result["combined"]["reduction"],
+            "without_saturated": d.result["combined"]["without_saturated"],
+            "cause": d.result["cause"],
+            "params": {e["name"]: e["params"] for e in d.result["effects"] if e["significant"]},
+            "rms_before_per_joint": d.result["gap"]["rms_check_per_joint"],
+            "rms_after_per_joint": d.result["combined"]["rms_check_per_joint_after"],
+            "cross_validation": {
+                k: d.result["cross_validation"][k] for k in ("scheme", "rms_before", "rms_after", "reduction")
+            },
+            "wall_time_s": d.result.get("wall_time_s"),
+        }
+        for d in folds
+    ]
     mean_before = float(np.mean([f["rms_before"] for f in per_fold]))
     mean_after = float(np.mean([f["rms_after"] for f in per_fold]))
     causes = [set(f["cause"]) for f in per_fold]
     order = [e for f in per_fold for e in f["cause"]]
     every = set.intersection(*causes) if causes else set()
     some = set.union(*causes) if causes else set()
-    return {"protocol": "nested: each held-out log scored once; selection on inner folds of the other logs",
-            "pooled": _rms_table(before, after, np.ones_like(valid)),
-            "pooled_unsaturated": _rms_table(before, after, valid),
-            "saturated_share": float(1.0 - valid.mean()),
-            "mean_over_folds": {"rms_before": mean_before, "rms_after": mean_after,
-                                "reduction": _reduction(mean_before, mean_after)},
-            "folds": per_fold,
-            "named_in_every_fold": sorted(every, key=order.index),
-            "named_in_some_fold": sorted(some - every, key=order.index)}
+    return {
+        "protocol": "nested: each held-out log scored once; selection on inner folds of the other logs",
+        "pooled": _rms_table(before, after, np.ones_like(valid)),
+        "pooled_unsaturated": _rms_table(before, after, valid),
+        "saturated_share": float(1.0 - valid.mean()),
+        "mean_over_folds": {
+            "rms_before": mean_before,
+            "rms_after": mean_after,
+            "reduction": _reduction(mean_before, mean_after),
+        },
+        "folds": per_fold,
+        "named_in_every_fold": sorted(every, key=order.index),
+        "named_in_some_fold": sorted(some - every, key=order.index),
+    }
 
 
 def _saturation_summary(designs, residuals):
@@ -1455,11 +1593,21 @@ def _saturation_summary(designs, residuals):
         for j in range(sat.shape[1]):
             m = np.concatenate([[False], d.row_saturated[:, j], [False]]).astype(int)
             for i0, i1 in zip(np.flatnonzero(np.diff(m) == 1), np.flatnonzero(np.diff(m) == -1) - 1):
-                spans.append({"log": d.source, "joint": j + 1, "t_start": float(d.row_time[i0]),
-                              "t_end": float(d.row_time[i1]),
-                              "speed_rad_s": float(np.abs(d.features["v"][i0:i1 + 1, j]).mean())})
-    return {"element_share": float(sat.mean()), "per_joint_share": [float(x) for x in sat.mean(0)],
-            "residual_share": float(r2[sat].sum() / (r2.sum() or 1.0)), "spans": spans}
+                spans.append(
+                    {
+                        "log": d.source,
+                        "joint": j + 1,
+                        "t_start": float(d.row_time[i0]),
+                        "t_end": float(d.row_time[i1]),
+                        "speed_rad_s": float(np.abs(d.features["v"][i0 : i1 + 1, j]).mean()),
+                    }
+                )
+    return {
+        "element_share": float(sat.mean()),
+        "per_joint_share": [float(x) for x in sat.mean(0)],
+        "residual_share": float(r2[sat].sum() / (r2.sum() or 1.0)),
+        "spans": spans,
+    }
 
 
 def _reduction(before, after):
@@ -1481,8 +1629,12 @@ def _effect_joints_single(ev, params, e, n):
 def corrected_parameters(model, selected, params):
     """Corrected joint parameters (models/*_params.yaml `joints` format) plus the other effects."""
     jp = model.joint_params
-    fric = {"coulomb_Nm": jp.coulomb.copy(), "viscous_Nms_rad": jp.viscous.copy(),
-            "armature_kgm2": jp.armature.copy(), "offset_Nm": jp.offset.copy()}
+    fric = {
+        "coulomb_Nm": jp.coulomb.copy(),
+        "viscous_Nms_rad": jp.viscous.copy(),
+        "armature_kgm2": jp.armature.copy(),
+        "offset_Nm": jp.offset.copy(),
+    }
     other = {}
     plant_effects = {}
     for e in selected:
@@ -1510,6 +1662,11 @@ def corrected_parameters(model, selected, params):
             elif e == "base_tilt":
                 plant_effects["base_tilt_rad"] = [other[e]["roll_rad"], other[e]["pitch_rad"]]
             elif e == "joint_elasticity":
-                plant_effects["joint_stiffness_Nm_rad"] = [s if s is not None else 1e12 for s in other[e]["stiffness_Nm_rad"]]
-    return {"friction": {k: [float(x) for x in v] for k, v in fric.items()}, "other": other,
-            "plant_effects": plant_effects}
+                plant_effects["joint_stiffness_Nm_rad"] = [
+                    s if s is not None else 1e12 for s in other[e]["stiffness_Nm_rad"]
+                ]
+    return {
+        "friction": {k: [float(x) for x in v] for k, v in fric.items()},
+        "other": other,
+        "plant_effects": plant_effects,
+    }

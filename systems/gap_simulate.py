@@ -18,9 +18,10 @@ acts on is SNR times the noise RMS there (SNR in [1, 4]; every third non-null ca
 noise floor, SNR in [1, 1.3]), capped by physical limits; when a
 cap keeps an effect below 0.8x the noise RMS the joints are redrawn (up to 10 times), so every
 case is inside the range the check is about. Caps: delay <= 50 ms, lag <= 150 ms, tilt <= 0.05 rad,
-compliance <= 0.003 rad/(N m), load friction mu <= 0.3, scale within +-15 %, payload <= 5 kg, Coulomb / Stribeck /
-viscous / armature / offset increments <= 10 N m / 20 N m / 30 N m s/rad / 5 kg m^2 / 10 N m. Logs are written with or without the
-acceleration columns. Every other two-effect case puts two per-joint effects on the same joints.
+compliance <= 0.003 rad/(N m), load friction mu <= 0.3, scale within +-15 %, payload <= 5 kg,
+Coulomb / Stribeck / viscous / armature / offset increments <= 10 N m / 20 N m / 30 N m s/rad /
+5 kg m^2 / 10 N m. Logs are written with or without the acceleration columns. Every other
+two-effect case puts two per-joint effects on the same joints.
 
 Honest like the diagnosis: each case has two fit logs, on which all selection happens (inner
 cross-validation), and one check log, scored once. Named effects are compared with the truth by
@@ -28,6 +29,7 @@ name (confusion table) and by value (value_errors: delay, friction, armature, of
 mass and CoM, tilt, stiffness). detection_limits finds, per effect, the smallest physical size
 named in >= 90 % of cases at a given noise level.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -58,7 +60,7 @@ class Trajectory:
         arg = self.omega * t + self.phase
         q = self.centre + np.sum(self.amp * np.sin(arg), 1)
         v = np.sum(self.amp * self.omega * np.cos(arg), 1)
-        a = -np.sum(self.amp * self.omega ** 2 * np.sin(arg), 1)
+        a = -np.sum(self.amp * self.omega**2 * np.sin(arg), 1)
         return q, v, a
 
 
@@ -123,7 +125,7 @@ def true_torque(model, traj, t, effects):
         tau = tau + e["viscous_friction"]["delta"] * v
     if "stribeck_friction" in e:
         s = e["stribeck_friction"]
-        tau = tau + s["delta"] * np.sign(v) * np.exp(-(v / s["vs"]) ** 2)
+        tau = tau + s["delta"] * np.sign(v) * np.exp(-((v / s["vs"]) ** 2))
     if "armature" in e:
         tau = tau + e["armature"]["delta"] * a
     if "load_friction" in e:
@@ -203,15 +205,28 @@ def _scale_effect(name, eff, factor, cap):
 def _effect_rms(model, name, eff, trajs, times, clean):
     """Per-joint RMS of what the effect changes in the residual of the nominal model."""
     if name == "joint_elasticity":  # acts through the logged angle: the nominal model sees it there
-        contrib = [model.inverse_dynamics(*true_torque(model, tr, t, {name: eff})[:3]) - c[3]
-                   for tr, t, c in zip(trajs, times, clean)]
+        contrib = [
+            model.inverse_dynamics(*true_torque(model, tr, t, {name: eff})[:3]) - c[3]
+            for tr, t, c in zip(trajs, times, clean)
+        ]
     else:
         contrib = [true_torque(model, tr, t, {name: eff})[3] - c[3] for tr, t, c in zip(trajs, times, clean)]
     return np.sqrt(np.mean(np.concatenate(contrib) ** 2, 0))
 
 
-def make_case(model, rng, injected, with_acceleration, n_fit=2, n_check=1, duration_s=10.0,
-              snr_range=SNR_RANGE, same_joints=False, fixed=None, noise_level=None):
+def make_case(
+    model,
+    rng,
+    injected,
+    with_acceleration,
+    n_fit=2,
+    n_check=1,
+    duration_s=10.0,
+    snr_range=SNR_RANGE,
+    same_joints=False,
+    fixed=None,
+    noise_level=None,
+):
     """Fit and check logs with the `injected` effects withheld from `model`.
 
     Effect sizes are drawn as an SNR in `snr_range` (module docstring) unless `fixed` gives an
@@ -256,24 +271,34 @@ def make_case(model, rng, injected, with_acceleration, n_fit=2, n_check=1, durat
                 final = achieved
                 break
             eff = _scale_effect(name, eff, snr * noise_acts / achieved if achieved > 0 else 1.0, cap)
-            final = np.sqrt(np.mean(_effect_rms(model, name, eff, trajs, times, clean)[acts] ** 2)) if acts.any() else 0.0
+            final = (
+                np.sqrt(np.mean(_effect_rms(model, name, eff, trajs, times, clean)[acts] ** 2)) if acts.any() else 0.0
+            )
             if final >= MIN_SNR_AFTER_CAP * noise_acts:
                 break
         if name in PER_JOINT and shared is None:
             shared = joints
         effects[name] = eff
-        truth[name] = {"joints": [int(j) + 1 for j in np.flatnonzero(acts)],
-                       "injected_joints": [int(j) + 1 for j in joints],
-                       "snr_target": float(snr), "snr": float(final / noise_acts),  # after the physical caps
-                       "params": {k: (np.asarray(v).tolist() if not isinstance(v, (float, int, str)) else v)
-                                  for k, v in eff.items()}}
+        truth[name] = {
+            "joints": [int(j) + 1 for j in np.flatnonzero(acts)],
+            "injected_joints": [int(j) + 1 for j in joints],
+            "snr_target": float(snr),
+            "snr": float(final / noise_acts),  # after the physical caps
+            "params": {
+                k: (np.asarray(v).tolist() if not isinstance(v, (float, int, str)) else v) for k, v in eff.items()
+            },
+        }
     logs = []
     for tr, t in zip(trajs, times):
         q, v, a, tau = true_torque(model, tr, t, effects)
         tau = tau + rng.uniform(-1, 1, tau.shape) * noise_amp
         logs.append(JointLog(t, q, v, tau, a if with_acceleration else None, {}, "simulated"))
-    truth_all = {"effects": truth, "noise_level": float(level), "noise_amplitude_Nm": noise_amp.tolist(),
-                 "with_acceleration": bool(with_acceleration)}
+    truth_all = {
+        "effects": truth,
+        "noise_level": float(level),
+        "noise_amplitude_Nm": noise_amp.tolist(),
+        "with_acceleration": bool(with_acceleration),
+    }
     return logs[:n_fit], logs[n_fit:], truth_all
 
 
@@ -321,23 +346,38 @@ def _run_case(job):
     model, seed, i, spec = job
     crng = np.random.default_rng([seed, i])
     with single_threaded_blas():
-        fit, check, truth = make_case(model, crng, spec["injected"], spec["with_acceleration"],
-                                      snr_range=NEAR_FLOOR_SNR if spec["near_floor"] else SNR_RANGE,
-                                      same_joints=spec["same_joints"])
+        fit, check, truth = make_case(
+            model,
+            crng,
+            spec["injected"],
+            spec["with_acceleration"],
+            snr_range=NEAR_FLOOR_SNR if spec["near_floor"] else SNR_RANGE,
+            same_joints=spec["same_joints"],
+        )
         d = diagnose(model, fit, check)
     named = d.result["cause"]
     inj = spec["injected"]
     fitted = {e["name"]: e["params"] for e in d.result["effects"] if e["significant"]}
-    case = {"case": i, **spec, "named": named, "form": d.form,
-            "missed": [e for e in inj if e not in named], "false": [e for e in named if e not in inj],
-            "truth": truth, "fitted": fitted,
-            "rms_check": d.result["gap"]["rms_check"], "rms_check_after": d.result["combined"]["rms_check_after"],
-            "cross_validation_reduction": d.result["cross_validation"]["reduction"],
-            "joints_named": {e["name"]: e["joints"] for e in d.result["effects"] if e["significant"]},
-            "value_errors": [err for e in inj if e in fitted for err in value_errors(e, truth["effects"][e], fitted[e])]}
+    case = {
+        "case": i,
+        **spec,
+        "named": named,
+        "form": d.form,
+        "missed": [e for e in inj if e not in named],
+        "false": [e for e in named if e not in inj],
+        "truth": truth,
+        "fitted": fitted,
+        "rms_check": d.result["gap"]["rms_check"],
+        "rms_check_after": d.result["combined"]["rms_check_after"],
+        "cross_validation_reduction": d.result["cross_validation"]["reduction"],
+        "joints_named": {e["name"]: e["joints"] for e in d.result["effects"] if e["significant"]},
+        "value_errors": [err for e in inj if e in fitted for err in value_errors(e, truth["effects"][e], fitted[e])],
+    }
     if "time_delay" in inj and "time_delay" in named:  # the right time law?
-        case["time_law"] = {"injected": truth["effects"]["time_delay"]["params"].get("law", "shift"),
-                            "named": fitted["time_delay"]["time_law"]}
+        case["time_law"] = {
+            "injected": truth["effects"]["time_delay"]["params"].get("law", "shift"),
+            "named": fitted["time_delay"]["time_law"],
+        }
     return case
 
 
@@ -377,38 +417,68 @@ def value_errors(name, truth, fitted):
     def rec(quantity, unit, t, f, size=None):
         size = abs(t) if size is None else size
         err = abs(f - t)
-        return {"effect": name, "quantity": quantity, "unit": unit, "truth": float(t), "fitted": float(f),
-                "abs_error": float(err), "rel_error": float(err / size) if size > 0 else None}
+        return {
+            "effect": name,
+            "quantity": quantity,
+            "unit": unit,
+            "truth": float(t),
+            "fitted": float(f),
+            "abs_error": float(err),
+            "rel_error": float(err / size) if size > 0 else None,
+        }
 
-    per_joint = {"coulomb_friction": ("delta", "delta_Fc_Nm", "ΔFc", "N·m"),
-                 "viscous_friction": ("delta", "delta_Fv_Nms_rad", "ΔFv", "N·m·s/rad"),
-                 "stribeck_friction": ("delta", "Fs_Nm", "Fs", "N·m"),
-                 "armature": ("delta", "delta_Ia_kgm2", "ΔIa", "kg·m²"),
-                 "torque_offset": ("delta", "offset_Nm", "offset", "N·m"),
-                 "load_friction": ("mu", "mu", "μ", "-")}
+    per_joint = {
+        "coulomb_friction": ("delta", "delta_Fc_Nm", "ΔFc", "N·m"),
+        "viscous_friction": ("delta", "delta_Fv_Nms_rad", "ΔFv", "N·m·s/rad"),
+        "stribeck_friction": ("delta", "Fs_Nm", "Fs", "N·m"),
+        "armature": ("delta", "delta_Ia_kgm2", "ΔIa", "kg·m²"),
+        "torque_offset": ("delta", "offset_Nm", "offset", "N·m"),
+        "load_friction": ("mu", "mu", "μ", "-"),
+    }
     if name in per_joint:
         tk, fk, q, unit = per_joint[name]
         return [rec(q, unit, tp[tk][j], fitted[fk][j]) for j in joints]
     if name == "torque_scale":
         return [rec("scale", "-", tp["scale"][j], fitted["scale"][j], abs(tp["scale"][j] - 1.0)) for j in joints]
     if name == "joint_elasticity":
-        return [r for j in joints for r in (
-            rec("stiffness", "N·m/rad", 1.0 / tp["compliance"][j], 1.0 / max(fitted["compliance_rad_per_Nm"][j], 1e-12)),
-            rec("compliance", "rad/(N·m)", tp["compliance"][j], fitted["compliance_rad_per_Nm"][j]))]
+        return [
+            r
+            for j in joints
+            for r in (
+                rec(
+                    "stiffness",
+                    "N·m/rad",
+                    1.0 / tp["compliance"][j],
+                    1.0 / max(fitted["compliance_rad_per_Nm"][j], 1e-12),
+                ),
+                rec("compliance", "rad/(N·m)", tp["compliance"][j], fitted["compliance_rad_per_Nm"][j]),
+            )
+        ]
     if name == "time_delay":
         return [rec("d", "s", tp["delay_s"], fitted["delay_s"])]
     if name == "payload":
         m = tp["mass_kg"]
         com = np.asarray(tp["theta"][1:4]) / m
         err = float(np.linalg.norm(np.asarray(fitted["com_m"]) - com))
-        return [rec("mass", "kg", m, fitted["mass_kg"]),
-                {"effect": name, "quantity": "CoM", "unit": "m", "truth": float(np.linalg.norm(com)),
-                 "fitted": float(np.linalg.norm(fitted["com_m"])), "abs_error": err,
-                 "rel_error": err / float(np.linalg.norm(com))}]
+        return [
+            rec("mass", "kg", m, fitted["mass_kg"]),
+            {
+                "effect": name,
+                "quantity": "CoM",
+                "unit": "m",
+                "truth": float(np.linalg.norm(com)),
+                "fitted": float(np.linalg.norm(fitted["com_m"])),
+                "abs_error": err,
+                "rel_error": err / float(np.linalg.norm(com)),
+            },
+        ]
     if name == "base_tilt":
         roll, pitch = tp["roll_pitch_rad"]
         size = max(abs(roll), abs(pitch))
-        return [rec("roll", "rad", roll, fitted["roll_rad"], size), rec("pitch", "rad", pitch, fitted["pitch_rad"], size)]
+        return [
+            rec("roll", "rad", roll, fitted["roll_rad"], size),
+            rec("pitch", "rad", pitch, fitted["pitch_rad"], size),
+        ]
     return []
 
 
@@ -423,21 +493,34 @@ def error_table(cases):
     for (effect, quantity, unit), recs in rows.items():
         ab = np.array([r["abs_error"] for r in recs])
         rel = np.array([r["rel_error"] for r in recs if r["rel_error"] is not None])
-        out.append({"effect": effect, "quantity": quantity, "unit": unit, "n": len(recs),
-                    "abs_median": float(np.median(ab)), "abs_p90": float(np.quantile(ab, 0.9)),
-                    "rel_median": float(np.median(rel)) if len(rel) else None,
-                    "rel_p90": float(np.quantile(rel, 0.9)) if len(rel) else None})
+        out.append(
+            {
+                "effect": effect,
+                "quantity": quantity,
+                "unit": unit,
+                "n": len(recs),
+                "abs_median": float(np.median(ab)),
+                "abs_p90": float(np.quantile(ab, 0.9)),
+                "rel_median": float(np.median(rel)) if len(rel) else None,
+                "rel_p90": float(np.quantile(rel, 0.9)) if len(rel) else None,
+            }
+        )
     order = {e: k for k, e in enumerate(EFFECTS)}
     return sorted(out, key=lambda r: (order[r["effect"]], r["quantity"]))
 
 
 def error_markdown(table):
-    lines = ["| effect | quantity | named cases·joints | median abs error | 90th pct abs error | median rel error "
-             "| 90th pct rel error |", "|---|---|---|---|---|---|---|"]
+    lines = [
+        "| effect | quantity | named cases·joints | median abs error | 90th pct abs error | median rel error "
+        "| 90th pct rel error |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for r in table:
-        rel = (lambda x: "-" if x is None else f"{100 * x:.1f} %")  # noqa: E731
-        lines.append(f"| {r['effect']} | {r['quantity']} [{r['unit']}] | {r['n']} | {r['abs_median']:.3g} "
-                     f"| {r['abs_p90']:.3g} | {rel(r['rel_median'])} | {rel(r['rel_p90'])} |")
+        rel = lambda x: "-" if x is None else f"{100 * x:.1f} %"  # noqa: E731
+        lines.append(
+            f"| {r['effect']} | {r['quantity']} [{r['unit']}] | {r['n']} | {r['abs_median']:.3g} "
+            f"| {r['abs_p90']:.3g} | {rel(r['rel_median'])} | {rel(r['rel_p90'])} |"
+        )
     return "\n".join(lines)
 
 
@@ -498,8 +581,9 @@ def _detection_case(job):
     from .gap import diagnose, single_threaded_blas
 
     model, seed, key, level, size, i = job
-    rng = np.random.default_rng([seed, list(DETECTION_LADDERS).index(key), int(round(1e4 * level)),
-                                 int(round(1e9 * size)), i])
+    rng = np.random.default_rng(
+        [seed, list(DETECTION_LADDERS).index(key), int(round(1e4 * level)), int(round(1e9 * size)), i]
+    )
     name, eff = effect_at(key, size, model, rng)
     with single_threaded_blas():
         fit, check, truth = make_case(model, rng, [name], i % 2 == 0, fixed={name: eff}, noise_level=level)
@@ -517,9 +601,13 @@ def _ladder(job):
     def rate(k):
         if k not in tried:
             res = [_detection_case((model, seed, key, level, sizes[k], i)) for i in range(n_cases)]
-            tried[k] = {"size": sizes[k], "found": sum(r["found"] for r in res), "cases": n_cases,
-                        "false": sum(bool(r["false"]) for r in res),
-                        "snr_median": float(np.median([r["snr"] for r in res]))}
+            tried[k] = {
+                "size": sizes[k],
+                "found": sum(r["found"] for r in res),
+                "cases": n_cases,
+                "false": sum(bool(r["false"]) for r in res),
+                "snr_median": float(np.median([r["snr"] for r in res])),
+            }
         return tried[k]["found"] / n_cases
 
     k = len(sizes) // 2
@@ -532,10 +620,15 @@ def _ladder(job):
             k += 1
         limit = k + 1 if k + 1 < len(sizes) else None
     quantity, unit, _ = DETECTION_LADDERS[key]
-    return {"effect": key, "quantity": quantity, "unit": unit, "noise_level": level,
-            "limit": sizes[limit] if limit is not None else None,
-            "snr_at_limit": tried[limit]["snr_median"] if limit is not None else None,
-            "tried": [tried[k] for k in sorted(tried)]}
+    return {
+        "effect": key,
+        "quantity": quantity,
+        "unit": unit,
+        "noise_level": level,
+        "limit": sizes[limit] if limit is not None else None,
+        "snr_at_limit": tried[limit]["snr_median"] if limit is not None else None,
+        "tried": [tried[k] for k in sorted(tried)],
+    }
 
 
 def detection_limits(model, noise_levels=(0.01, 0.03), n_cases=10, seed=0, workers=1, keys=None, progress=None):
@@ -562,8 +655,9 @@ def detection_markdown(limits):
         cells = []
         for lv in levels:
             r = by[(key, lv)]
-            cells.append("> largest tried" if r["limit"] is None else
-                         f"{r['limit']:g} {r['unit']} (SNR {r['snr_at_limit']:.2f})")
+            cells.append(
+                "> largest tried" if r["limit"] is None else f"{r['limit']:g} {r['unit']} (SNR {r['snr_at_limit']:.2f})"
+            )
         lines.append(f"| {key} | {r0['quantity']} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -574,28 +668,39 @@ def summarize(cases):
     n_named = sum(len(c["named"]) for c in cases)
     n_false = sum(len(c["false"]) for c in cases)
     nulls = [c for c in cases if not c["injected"]]
-    return {"cases": len(cases), "injected_effects": n_inj, "injected_named": n_found,
-            "injected_named_rate": n_found / n_inj if n_inj else 1.0,
-            "named_effects": n_named, "false_effects": n_false,
-            "false_effect_rate": n_false / n_named if n_named else 0.0,
-            "cases_with_false_effect": sum(bool(c["false"]) for c in cases),
-            "cases_with_false_effect_rate": sum(bool(c["false"]) for c in cases) / len(cases) if cases else 0.0,
-            "null_cases": len(nulls), "null_correct": sum(not c["named"] for c in nulls),
-            "exact_cases": sum(not c["missed"] and not c["false"] for c in cases),
-            "time_law_named": sum("time_law" in c for c in cases),
-            "time_law_correct": sum(c["time_law"]["injected"] == c["time_law"]["named"] for c in cases if "time_law" in c),
-            "missed": [{"case": c["case"], "effect": e, "snr": c["truth"]["effects"][e]["snr"]}
-                       for c in cases for e in c["missed"]],
-            "near_floor": _named_rate([c for c in cases if c.get("near_floor")]),
-            "same_joints": _named_rate([c for c in cases if c.get("same_joints")]),
-            "parameter_errors": error_table(cases)}
+    return {
+        "cases": len(cases),
+        "injected_effects": n_inj,
+        "injected_named": n_found,
+        "injected_named_rate": n_found / n_inj if n_inj else 1.0,
+        "named_effects": n_named,
+        "false_effects": n_false,
+        "false_effect_rate": n_false / n_named if n_named else 0.0,
+        "cases_with_false_effect": sum(bool(c["false"]) for c in cases),
+        "cases_with_false_effect_rate": sum(bool(c["false"]) for c in cases) / len(cases) if cases else 0.0,
+        "null_cases": len(nulls),
+        "null_correct": sum(not c["named"] for c in nulls),
+        "exact_cases": sum(not c["missed"] and not c["false"] for c in cases),
+        "time_law_named": sum("time_law" in c for c in cases),
+        "time_law_correct": sum(c["time_law"]["injected"] == c["time_law"]["named"] for c in cases if "time_law" in c),
+        "missed": [
+            {"case": c["case"], "effect": e, "snr": c["truth"]["effects"][e]["snr"]} for c in cases for e in c["missed"]
+        ],
+        "near_floor": _named_rate([c for c in cases if c.get("near_floor")]),
+        "same_joints": _named_rate([c for c in cases if c.get("same_joints")]),
+        "parameter_errors": error_table(cases),
+    }
 
 
 def _named_rate(cases):
     inj = sum(len(c["injected"]) for c in cases)
     found = sum(len(c["injected"]) - len(c["missed"]) for c in cases)
-    return {"cases": len(cases), "injected_effects": inj, "injected_named": found,
-            "cases_with_false_effect": sum(bool(c["false"]) for c in cases)}
+    return {
+        "cases": len(cases),
+        "injected_effects": inj,
+        "injected_named": found,
+        "cases_with_false_effect": sum(bool(c["false"]) for c in cases),
+    }
 
 
 def confusion(cases, effects=EFFECTS):
@@ -623,8 +728,11 @@ def confusion_markdown(table):
     short = {e: "".join(w[0] for w in e.split("_")) if e != "none" else "none" for e in labels}
     head = "| injected \\ named | " + " | ".join(short[c] for c in labels) + " |"
     sep = "|---" * (len(labels) + 1) + "|"
-    rows = [f"| {r} | " + " | ".join(str(table[r][c]) if table[r][c] else "." for c in labels) + " |"
-            for r in labels if any(table[r].values())]
+    rows = [
+        f"| {r} | " + " | ".join(str(table[r][c]) if table[r][c] else "." for c in labels) + " |"
+        for r in labels
+        if any(table[r].values())
+    ]
     key = "Columns: " + ", ".join(f"{short[e]} = {e}" for e in labels)
     return "\n".join([head, sep, *rows, "", key])
 
@@ -649,10 +757,15 @@ def real_arm_log(effects, seed, duration_s=10.0, rate_hz=RATE_HZ, noise_ratio=0.
     from .arm_tracking import track_trajectory
     from .robot_model import load_robot
 
-    overrides = {"payload": {"dumbbell": "none"}, "seed": int(seed),
-                 "noise": {"torque_ratio": noise_ratio, "torque_floor_Nm": 0.05},
-                 "plant": {"time_step_s": 0.001, "effects": {k: (v.tolist() if isinstance(v, np.ndarray) else v)
-                                                              for k, v in effects.items()}}}
+    overrides = {
+        "payload": {"dumbbell": "none"},
+        "seed": int(seed),
+        "noise": {"torque_ratio": noise_ratio, "torque_floor_Nm": 0.05},
+        "plant": {
+            "time_step_s": 0.001,
+            "effects": {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in effects.items()},
+        },
+    }
     scenario = load_scenario(overrides=overrides)
     robot = load_robot(coulomb_smoothing=scenario.robot.coulomb_smoothing_rad_s)
     rng = np.random.default_rng(seed)
@@ -685,10 +798,16 @@ def run_real_arm_check(seed=0, progress=None, duration_s=6.0, only=None):
                 logs.append(log)
             d = diagnose(robot, logs[:2], logs[2:])
             named = d.result["cause"]
-            out.append({"injected": inj, "named": named, "effects": eff,
-                        "rms_check": d.result["gap"]["rms_check"],
-                        "rms_check_after": d.result["combined"]["rms_check_after"],
-                        "plant_effects": d.corrected["plant_effects"]})
+            out.append(
+                {
+                    "injected": inj,
+                    "named": named,
+                    "effects": eff,
+                    "rms_check": d.result["gap"]["rms_check"],
+                    "rms_check_after": d.result["combined"]["rms_check_after"],
+                    "plant_effects": d.corrected["plant_effects"],
+                }
+            )
             if progress:
                 progress(out[-1])
     return out

@@ -3,6 +3,7 @@
 Parameter order everywhere (NAMES below), inertia about the body-frame origin:
     theta = [m, m*cx, m*cy, m*cz, Ixx, Iyy, Izz, Ixy, Iyz, Ixz]
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -45,8 +46,9 @@ def to_spatial_inertia(theta):
     return SpatialInertia(m, com, unit, skip_validity_check=True)
 
 
-def shift_to(theta, offset, rotation=np.eye(3)):
-    """theta of a body whose frame sits at `offset` (rotated by `rotation`) in frame F, in F."""
+def shift_to(theta, offset, rotation=None):
+    """theta of a body whose frame sits at `offset` (rotated by `rotation`, default none) in frame F, in F."""
+    rotation = np.eye(3) if rotation is None else rotation
     t = np.asarray(theta, float)
     m, h_b, i_b = t[0], t[1:4], inertia_matrix(t)
     r = np.asarray(rotation, float)
@@ -76,8 +78,21 @@ def theta_from_pseudo_inertia(j):
     j = np.asarray(j, float)
     sigma = j[..., :3, :3]
     i = np.trace(sigma, axis1=-2, axis2=-1)[..., None, None] * np.eye(3) - sigma
-    return np.stack([j[..., 3, 3], j[..., 0, 3], j[..., 1, 3], j[..., 2, 3], i[..., 0, 0], i[..., 1, 1],
-                     i[..., 2, 2], i[..., 0, 1], i[..., 1, 2], i[..., 0, 2]], -1)
+    return np.stack(
+        [
+            j[..., 3, 3],
+            j[..., 0, 3],
+            j[..., 1, 3],
+            j[..., 2, 3],
+            i[..., 0, 0],
+            i[..., 1, 1],
+            i[..., 2, 2],
+            i[..., 0, 1],
+            i[..., 1, 2],
+            i[..., 0, 2],
+        ],
+        -1,
+    )
 
 
 def is_physically_consistent(theta, tol=0.0):

@@ -4,6 +4,7 @@ Hand-rolled because the maintained Python interval packages (pyinterval, mpmath.
 and thousands of times too slow for the per-sample, per-parameter boxes we propagate. Every
 operation rounds its result one ulp outward, so each returned box contains the exact set.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -107,7 +108,7 @@ class Interval:
     __rmul__ = __mul__
 
     def square(self):
-        lo2, hi2 = self.lo ** 2, self.hi ** 2
+        lo2, hi2 = self.lo**2, self.hi**2
         low = np.where((self.lo <= 0) & (self.hi >= 0), 0.0, np.minimum(lo2, hi2))
         return Interval(_down(low), _up(np.maximum(lo2, hi2)))
 

@@ -22,6 +22,7 @@ small local reader whose objects have the shape of systems/corrected_model.py's
 (CorrectedModel: model, effects, path, model_path(); CorrectedEffect: name, joints, params),
 so everything below works with either.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -31,8 +32,12 @@ from pathlib import Path
 import numpy as np
 
 # effect -> (JointParameters field, params key of the increment on the starting model)
-ROBOT_SIDE = {"coulomb_friction": ("coulomb", "delta_Fc_Nm"), "viscous_friction": ("viscous", "delta_Fv_Nms_rad"),
-              "armature": ("armature", "delta_Ia_kgm2"), "torque_offset": ("offset", "offset_Nm")}
+ROBOT_SIDE = {
+    "coulomb_friction": ("coulomb", "delta_Fc_Nm"),
+    "viscous_friction": ("viscous", "delta_Fv_Nms_rad"),
+    "armature": ("armature", "delta_Ia_kgm2"),
+    "torque_offset": ("offset", "offset_Nm"),
+}
 RIGID = 1e12  # N m/rad: the stiffness of a joint without diagnosed compliance (rigid)
 
 
@@ -67,7 +72,6 @@ class Correction:
         return next((c for c in candidates if c.is_file()), candidates[-1])
 
 
-
 def find_effect(corr, name):
     return next((e for e in corr.effects if e.name == name), None)
 
@@ -91,8 +95,12 @@ def read_correction(path) -> Correction:
     for k, e in enumerate(effects):
         if not isinstance(e, dict) or not isinstance(e.get("name"), str) or not isinstance(e.get("params"), dict):
             raise CorrectionError(f"{where}: effects[{k}]: expected {{name, joints, params}}")
-    return Correction(doc["model"], [Effect(e["name"], list(e.get("joints") or []), e["params"]) for e in effects],
-                      str(path), doc.get("model_resolved") or "")
+    return Correction(
+        doc["model"],
+        [Effect(e["name"], list(e.get("joints") or []), e["params"]) for e in effects],
+        str(path),
+        doc.get("model_resolved") or "",
+    )
 
 
 def _param(corr, effect, key, n=None):
@@ -139,7 +147,7 @@ def corrected_robot(robot, corr):
         return robot
     jp = dataclasses.replace(jp, **changes)
     theta = robot.theta.copy()
-    theta[10 * robot.n:] = jp.friction_theta()
+    theta[10 * robot.n :] = jp.friction_theta()
     return dataclasses.replace(robot, joint_params=jp, theta=theta)
 
 
@@ -169,8 +177,10 @@ def plant_effects(corr, n=None):
             out["stribeck_friction_Nm"] = _param(corr, e, "Fs_Nm", n).tolist()
             out["stribeck_velocity_rad_s"] = float(_param(corr, e, "vs_rad_s"))
         elif name == "payload":
-            raise CorrectionError(f"{corr.path}: effects[{k}] payload: a diagnosed payload has no counterpart in "
-                                  "the simulated arm (the scenario's payload is payload.dumbbell)")
+            raise CorrectionError(
+                f"{corr.path}: effects[{k}] payload: a diagnosed payload has no counterpart in "
+                "the simulated arm (the scenario's payload is payload.dumbbell)"
+            )
         elif name not in ROBOT_SIDE:
             raise CorrectionError(f"{corr.path}: effects[{k}].name: unknown effect {name!r}")
     return out

@@ -1,5 +1,6 @@
 """Payloads held by the end effector: dumbbell shape, its exact inertia, and the combined
 end-effector parameters theta_e (end effector + payload about the end-effector frame)."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -26,9 +27,11 @@ class Dumbbell:
         v_head = vol(self.head_radius_m, self.head_length_m)
         density = self.mass_kg / (v_handle + 2 * v_head)
         x_head = (self.handle_length_m + self.head_length_m) / 2
-        return [(density * v_handle, 0.0, self.handle_radius_m, self.handle_length_m),
-                (density * v_head, x_head, self.head_radius_m, self.head_length_m),
-                (density * v_head, -x_head, self.head_radius_m, self.head_length_m)]
+        return [
+            (density * v_handle, 0.0, self.handle_radius_m, self.handle_length_m),
+            (density * v_head, x_head, self.head_radius_m, self.head_length_m),
+            (density * v_head, -x_head, self.head_radius_m, self.head_length_m),
+        ]
 
     @property
     def length_m(self):

@@ -15,6 +15,7 @@ analytic in (q, qd, qdd) and dq/dk_j = w(t) k_r,j e_j), "goal" = |q_end - goal|^
 random feasible k (the ablation). Solved with Drake MathematicalProgram (Ipopt or SNOPT) under a
 wall-time cap; the best iterate that our own constraint evaluation finds feasible is returned.
 """
+
 from __future__ import annotations
 
 import os
@@ -26,8 +27,8 @@ import numpy as np
 
 from . import reachability as reach
 from . import regressors
-from .bezier import QuinticBezier, restriction_matrix
 from .armour import TrackingBounds
+from .bezier import QuinticBezier, restriction_matrix
 from .intervals import Interval, _up
 from .spatial import cross, to_body
 
@@ -40,6 +41,8 @@ _CAP_MESSAGE = "planner wall-time cap reached"
 class _WallTimeExceeded(Exception):
     """Raised from our callbacks to stop the solver at the wall-time cap (both Ipopt and SNOPT
     unwind cleanly; the best verified-feasible evaluated point is then used)."""
+
+
 SOFTMIN_SHARPNESS_PER_M = 2000.0  # soft-min of a group <= its true min (gap <= log(count)/beta)
 
 
@@ -110,7 +113,9 @@ def ee_standard_regressor(tree, body, q, v, a):
     ab = to_body(R[e], p[e], A[e])
     anc = np.flatnonzero(tree.ancestors()[:, e])
     sb = to_body(R[e][:, None], p[e][:, None], S[:, anc])  # (N, k, 6) screws in the body frame
-    y = _linear(ab, _K_MAP, (6, 10)) + _linear(vb, _FORCE_CROSS_MAP, (6, 6)) @ _linear(vb, _K_MAP, (6, 10))  # I a + v x* I v
+    y = _linear(ab, _K_MAP, (6, 10)) + _linear(vb, _FORCE_CROSS_MAP, (6, 6)) @ _linear(
+        vb, _K_MAP, (6, 10)
+    )  # I a + v x* I v
     out = np.zeros((nsamp, n, 10), dtype)
     out[:, anc] = sb @ y
     return out
@@ -185,8 +190,17 @@ class PlanningProblem:
         cfg = planner.config
         robot = planner.robot
         self.n = robot.n
-        self.reach = reach.PlanReach(q0, v0, a0, cfg.duration_s, planner.k_center, planner.k_range,
-                                     cfg.num_time_intervals, planner.tracking, restrictions=_restrictions(cfg.num_time_intervals))
+        self.reach = reach.PlanReach(
+            q0,
+            v0,
+            a0,
+            cfg.duration_s,
+            planner.k_center,
+            planner.k_range,
+            cfg.num_time_intervals,
+            planner.tracking,
+            restrictions=_restrictions(cfg.num_time_intervals),
+        )
         self.reason = ""
         self.feasible_start = True
         k_lo, k_hi, why = self.reach.limit_box(robot.joint_params)
@@ -227,8 +241,10 @@ class PlanningProblem:
 
         def boxes_for(scales, merge):
             per = [[reach.merge_rows(x, merge) for x in self.reach.state_boxes(*shrunk(f))] for f in scales]
-            return [Interval(np.concatenate([p[c].lo for p in per]), np.concatenate([p[c].hi for p in per]))
-                    for c in range(4)], len(per[0][0].lo)
+            return [
+                Interval(np.concatenate([p[c].lo for p in per]), np.concatenate([p[c].hi for p in per]))
+                for c in range(4)
+            ], len(per[0][0].lo)
 
         def plain_bound(scales):
             """(sup, nominal, robust, excess, rows per level): the interval bound of every level at
@@ -252,7 +268,7 @@ class PlanningProblem:
         if (sup / limit).max() <= 1.0:
             self.torque_ratio = float((sup / limit).max())
             return True
-        scales = [0.5 ** s for s in range(1, self.planner.torque_shrink_steps + 1)]
+        scales = [0.5**s for s in range(1, self.planner.torque_shrink_steps + 1)]
         sup, nominal, robust, excess, nb = plain_bound(scales)
         if take_largest_fit(scales, sup, nb):  # the plain bound admits a shrunk box
             return True
@@ -266,8 +282,10 @@ class PlanningProblem:
         last = sup.reshape(len(scales), nb, -1)[-1]
         i, j = np.unravel_index(np.argmax(last / limit), last.shape)
         t_box = self.reach.edges[min(i * group, len(self.reach.t_mid) - 1)]
-        self._fail(f"torque limit of joint {j + 1} cannot be guaranteed (bound {last[i, j]:.1f} N m > "
-                   f"{limit[j]:.1f} N m from t = {t_box:.2f} s, robust term included)")
+        self._fail(
+            f"torque limit of joint {j + 1} cannot be guaranteed (bound {last[i, j]:.1f} N m > "
+            f"{limit[j]:.1f} N m from t = {t_box:.2f} s, robust term included)"
+        )
         return False
 
     # -- collision pairs -------------------------------------------------------------------------
@@ -288,9 +306,12 @@ class PlanningProblem:
         clearances = []  # (centre signed distance (nint, m), obstacle index; -1: the floor)
         boxes = pl.boxes
         for o in range(len(boxes)):
-            sd, _ = reach.box_signed_distance(c.reshape(-1, 3), np.broadcast_to(boxes.centre[o], (nint * m, 3)),
-                                              np.broadcast_to(boxes.rotation[o], (nint * m, 3, 3)),
-                                              np.broadcast_to(boxes.half_size[o], (nint * m, 3)))
+            sd, _ = reach.box_signed_distance(
+                c.reshape(-1, 3),
+                np.broadcast_to(boxes.centre[o], (nint * m, 3)),
+                np.broadcast_to(boxes.rotation[o], (nint * m, 3, 3)),
+                np.broadcast_to(boxes.half_size[o], (nint * m, 3)),
+            )
             clearances.append((sd.reshape(nint, m), o))
         if pl.floor_z is not None:
             clearances.append((np.where(pl.floor_exempt[None, :], np.inf, c[..., 2] - pl.floor_z), -1))
@@ -318,8 +339,10 @@ class PlanningProblem:
         if np.any(hopeless):
             i, s = np.argwhere(hopeless)[0]
             what = "the floor" if o < 0 else f"obstacle {self.planner.boxes.names[o]!r}"
-            self._fail(f"sphere {self.planner.spheres.names[s]!r} cannot clear {what} at t = "
-                       f"{self.reach.t_mid[i]:.2f} s for any k (start inside the safety margin)")
+            self._fail(
+                f"sphere {self.planner.spheres.names[s]!r} cannot clear {what} at t = "
+                f"{self.reach.t_mid[i]:.2f} s for any k (start inside the safety margin)"
+            )
 
     @property
     def num_constraints(self):
@@ -405,8 +428,9 @@ class PlanningProblem:
         qc = q[None] + 1j * h * dirs[:, :, 0]
         vc = v[None] + 1j * h * dirs[:, :, 1]
         ac = a[None] + 1j * h * dirs[:, :, 2]
-        w = ee_standard_regressor(pl.robot.tree, pl.robot.end_effector, qc.reshape(-1, n), vc.reshape(-1, n),
-                                  ac.reshape(-1, n)).reshape(n, ns * n, 10)
+        w = ee_standard_regressor(
+            pl.robot.tree, pl.robot.end_effector, qc.reshape(-1, n), vc.reshape(-1, n), ac.reshape(-1, n)
+        ).reshape(n, ns * n, 10)
         W = w[0].real
         dW = w.imag / h  # (n_k, rows, 10)
         u, s, vt = np.linalg.svd(W, full_matrices=False)
@@ -448,8 +472,18 @@ class SafePlanner:
     means perfect tracking, for tests only).
     """
 
-    def __init__(self, robot, config, obstacles=(), payload=None, tracking=None, floor=True, torque_shrink_steps=3,
-                 torque_group=2, spread_rows=4):
+    def __init__(
+        self,
+        robot,
+        config,
+        obstacles=(),
+        payload=None,
+        tracking=None,
+        floor=True,
+        torque_shrink_steps=3,
+        torque_group=2,
+        spread_rows=4,
+    ):
         self.robot = robot
         self.config = config
         n = robot.n
@@ -474,7 +508,9 @@ class SafePlanner:
         cpu_start = time.process_time()
         mode = mode or self.config.cost
         prob = self.problem(q0, v0, a0, theta0, theta_lo, theta_hi, mode)
-        res = PlanResult(ok=False, status="infeasible_start", solver=self.config.solver if mode != "random" else "random")
+        res = PlanResult(
+            ok=False, status="infeasible_start", solver=self.config.solver if mode != "random" else "random"
+        )
         if not prob.feasible_start:
             res.reason = prob.reason
             res.solve_time_s = time.perf_counter() - t_start
@@ -657,7 +693,7 @@ class SafePlanner:
         if fallback is not None:  # safe but maybe dull (e.g. holding still): better than braking
             cands.append((np.inf, fallback, "best_feasible"))
         cands.sort(key=lambda item: item[0])
-        for c, x, st in cands:
+        for _, x, st in cands:
             if prob.is_feasible(x):
                 return np.array(x), st, status
         return None, "infeasible", status

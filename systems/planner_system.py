@@ -24,6 +24,7 @@ as {t, kind, detail} in the state for summary.json.
 Everything a run accumulates (the plans, their records and results, the random generator) is in
 the abstract state PlannerState, so two contexts of one diagram never share it.
 """
+
 from __future__ import annotations
 
 import copy
@@ -51,8 +52,9 @@ class PlannerState:
 
 
 class ExcitingPlanner(LeafSystem):
-    def __init__(self, planner, q0, theta0, theta_lower, theta_upper, num_plans=None, replan_period_s=None,
-                 mode=None, seed=0):
+    def __init__(
+        self, planner, q0, theta0, theta_lower, theta_upper, num_plans=None, replan_period_s=None, mode=None, seed=0
+    ):
         super().__init__()
         self._planner = planner
         cfg = planner.config
@@ -71,13 +73,22 @@ class ExcitingPlanner(LeafSystem):
         self._state = self.DeclareAbstractState(AbstractValue.Make(PlannerState(thetas=tuple(self._defaults))))
         deps = {self.abstract_state_ticket(self._state), self.time_ticket()}
         for k, name in enumerate(("q_desired", "v_desired", "a_desired")):
-            self.DeclareVectorOutputPort(name, n, lambda c, out, k=k: out.SetFromVector(self._desired(c)[k]),
-                                         prerequisites_of_calc=deps)
+            self.DeclareVectorOutputPort(
+                name, n, lambda c, out, k=k: out.SetFromVector(self._desired(c)[k]), prerequisites_of_calc=deps
+            )
         for k, name in enumerate(("plan_theta0", "plan_theta_lower", "plan_theta_upper")):
-            self.DeclareVectorOutputPort(name, p, lambda c, out, k=k: out.SetFromVector(self._get(c).thetas[k]),
-                                         prerequisites_of_calc={self.abstract_state_ticket(self._state)})
-        self.DeclareAbstractOutputPort("plan", lambda: AbstractValue.Make(PlannerState()),
-                                       lambda c, out: out.set_value(self._get(c)), prerequisites_of_calc=deps)
+            self.DeclareVectorOutputPort(
+                name,
+                p,
+                lambda c, out, k=k: out.SetFromVector(self._get(c).thetas[k]),
+                prerequisites_of_calc={self.abstract_state_ticket(self._state)},
+            )
+        self.DeclareAbstractOutputPort(
+            "plan",
+            lambda: AbstractValue.Make(PlannerState()),
+            lambda c, out: out.set_value(self._get(c)),
+            prerequisites_of_calc=deps,
+        )
         self.DeclareInitializationUnrestrictedUpdateEvent(self._on_init)
         self.DeclarePeriodicUnrestrictedUpdateEvent(self._period, self._period, self._on_period)
 
@@ -118,7 +129,9 @@ class ExcitingPlanner(LeafSystem):
 
     # -- events ----------------------------------------------------------------------------------
     def _on_init(self, context, state):
-        self._plan_into(context, state, PlannerState(thetas=tuple(self._defaults), rng=np.random.default_rng(self._seed)))
+        self._plan_into(
+            context, state, PlannerState(thetas=tuple(self._defaults), rng=np.random.default_rng(self._seed))
+        )
         return EventStatus.Succeeded()
 
     def _on_period(self, context, state):
@@ -130,8 +143,12 @@ class ExcitingPlanner(LeafSystem):
     def _plan_into(self, context, state, st: PlannerState):
         t = context.get_time()
         if not self._estimate_consistent(context):
-            new = dataclasses.replace(st, done=True, events=st.events + self._stop_events(
-                st, t, "plan_refused", "the estimate is inconsistent: no further plans"))
+            new = dataclasses.replace(
+                st,
+                done=True,
+                events=st.events
+                + self._stop_events(st, t, "plan_refused", "the estimate is inconsistent: no further plans"),
+            )
             state.get_mutable_abstract_state(int(self._state)).set_value(new)
             return
         q, v, a = self._desired_at(st, t)
@@ -142,11 +159,24 @@ class ExcitingPlanner(LeafSystem):
         res = self._planner.plan(q, v, a, *thetas, k_init=k_prev, rng=rng, mode=self._mode)
         wall = time.perf_counter() - wall
         calls = st.calls + 1
-        record = dict(t_s=t, index=calls - 1, ok=res.ok, status=res.status, reason=res.reason, cost=res.cost,
-                      cond=res.cond, solve_time_s=res.solve_time_s, wall_s=wall, solver=res.solver,
-                      solver_status=res.solver_status, braking=not res.ok and st.plan is not None,
-                      k=None if res.k is None else res.k.tolist(), min_clearance_m=res.min_clearance_m,
-                      max_torque_ratio=res.max_torque_ratio, constraints=res.num_collision_constraints)
+        record = dict(
+            t_s=t,
+            index=calls - 1,
+            ok=res.ok,
+            status=res.status,
+            reason=res.reason,
+            cost=res.cost,
+            cond=res.cond,
+            solve_time_s=res.solve_time_s,
+            wall_s=wall,
+            solver=res.solver,
+            solver_status=res.solver_status,
+            braking=not res.ok and st.plan is not None,
+            k=None if res.k is None else res.k.tolist(),
+            min_clearance_m=res.min_clearance_m,
+            max_torque_ratio=res.max_torque_ratio,
+            constraints=res.num_collision_constraints,
+        )
         new = dataclasses.replace(st, calls=calls, records=st.records + (record,), results=st.results + (res,), rng=rng)
         if res.ok:
             new.plan, new.t_start, new.thetas = res, t, thetas
@@ -162,6 +192,11 @@ class ExcitingPlanner(LeafSystem):
         events = (dict(t=t, kind=kind, detail=detail),)
         if st.plan is not None:
             end = st.t_start + st.plan.trajectory.duration
-            events += (dict(t=t, kind="brake", detail=f"finishing the verified plan started at {st.t_start:.3f} s "
-                                                      f"(at rest at {end:.3f} s)"),)
+            events += (
+                dict(
+                    t=t,
+                    kind="brake",
+                    detail=f"finishing the verified plan started at {st.t_start:.3f} s (at rest at {end:.3f} s)",
+                ),
+            )
         return events

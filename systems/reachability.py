@@ -35,15 +35,20 @@ tracking error inside the bound and every theta in [theta]:
    it to be inside the torque limit for every interval (a check over the whole k box, on hulls of
    adjacent intervals; if it fails the k box is shrunk toward k = 0).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+
 import numpy as np
 
 from . import regressors
+from .armour import (
+    TrackingBounds,  # the controller's certified bounds (position, velocity, qd_a, qdd_a)
+    robust_gain_bound,
+    spectral_bound,
+)
 from .bezier import QuinticBezier, restriction_matrix
-from .armour import TrackingBounds  # the controller's certified bounds (position, velocity, qd_a, qdd_a)
-from .armour import robust_gain_bound, spectral_bound
 from .intervals import Interval, _down, _up
 
 # ---------------------------------------------------------------------------------------------
@@ -64,8 +69,12 @@ class Spheres:
         return len(self.radius)
 
     def concat(self, other):
-        return Spheres(np.concatenate([self.body, other.body]), np.concatenate([self.centre, other.centre]),
-                       np.concatenate([self.radius, other.radius]), list(self.names) + list(other.names))
+        return Spheres(
+            np.concatenate([self.body, other.body]),
+            np.concatenate([self.centre, other.centre]),
+            np.concatenate([self.radius, other.radius]),
+            list(self.names) + list(other.names),
+        )
 
 
 def arm_spheres(robot):
@@ -76,15 +85,18 @@ def arm_spheres(robot):
     centres in the link frame. Never from the model's collision geometry: that is the arm's real
     shape, which the referee measures independently (tests check the spheres contain it).
     """
-    import yaml
     from pathlib import Path
+
+    import yaml
 
     from .robot_model import ModelError, make_plant
 
     doc = robot.extra.get("params_doc") or {}
     if not doc.get("planner_spheres"):
-        raise ModelError(f"{robot.source}: the robot's parameter file names no planner_spheres file "
-                         "(the planner over-approximates the arm with spheres)")
+        raise ModelError(
+            f"{robot.source}: the robot's parameter file names no planner_spheres file "
+            "(the planner over-approximates the arm with spheres)"
+        )
     path = Path(robot.source).parent / doc["planner_spheres"]
     try:
         links = yaml.safe_load(path.read_text())["links"]
@@ -130,8 +142,12 @@ def payload_spheres(robot, dumbbell):
         return Spheres(np.zeros(0, int), np.zeros((0, 3)), np.zeros(0), [])
     grasp = np.asarray(robot.extra.get("grasp_point", np.zeros(3)), float)
     spheres = dumbbell.covering_spheres()
-    return Spheres(np.full(len(spheres), robot.end_effector, int), np.array([grasp + np.asarray(c) for c, _ in spheres]),
-                   np.array([r for _, r in spheres], float), [f"payload_{dumbbell.name}_{k}" for k in range(len(spheres))])
+    return Spheres(
+        np.full(len(spheres), robot.end_effector, int),
+        np.array([grasp + np.asarray(c) for c, _ in spheres]),
+        np.array([r for _, r in spheres], float),
+        [f"payload_{dumbbell.name}_{k}" for k in range(len(spheres))],
+    )
 
 
 def sphere_lipschitz(tree, spheres):
@@ -214,9 +230,12 @@ class Boxes:
 
         if not obstacles:
             return cls(np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)), [])
-        return cls(np.array([o.xyz_m for o in obstacles], float),
-                   np.array([RollPitchYaw(o.rpy_rad).ToRotationMatrix().matrix() for o in obstacles]),
-                   0.5 * np.array([o.size_m for o in obstacles], float), [o.name for o in obstacles])
+        return cls(
+            np.array([o.xyz_m for o in obstacles], float),
+            np.array([RollPitchYaw(o.rpy_rad).ToRotationMatrix().matrix() for o in obstacles]),
+            0.5 * np.array([o.size_m for o in obstacles], float),
+            [o.name for o in obstacles],
+        )
 
 
 def box_signed_distance(points, centre, rotation, half_size):
@@ -244,14 +263,18 @@ def _bezier_derivative(points, order, duration):
     deg = points.shape[0] - 1
     for r in range(order):
         points = (deg - r) * np.diff(points, axis=0)
-    return points / duration ** order
+    return points / duration**order
 
 
 class PlanReach:
     """Per-interval over-approximations of one plan family (fixed start, k free in a box)."""
 
-    def __init__(self, q0, v0, a0, duration, k_center, k_range, num_intervals, bounds: TrackingBounds, restrictions=None):
-        self.bezier = QuinticBezier(np.asarray(q0, float), np.asarray(v0, float), np.asarray(a0, float), float(duration))
+    def __init__(
+        self, q0, v0, a0, duration, k_center, k_range, num_intervals, bounds: TrackingBounds, restrictions=None
+    ):
+        self.bezier = QuinticBezier(
+            np.asarray(q0, float), np.asarray(v0, float), np.asarray(a0, float), float(duration)
+        )
         self.n = len(self.bezier.q0)
         self.kc = np.asarray(k_center, float)
         self.kr = np.asarray(k_range, float)
@@ -261,8 +284,9 @@ class PlanReach:
         self.t_mid = 0.5 * (self.edges[:-1] + self.edges[1:])
         s_edges = self.edges / self.T
         # Restriction matrices per interval for degree 5, 4, 3 (position, velocity, acceleration).
-        self._restrict = restrictions or [np.stack([restriction_matrix(5 - o, a, b) for a, b in zip(s_edges[:-1], s_edges[1:])])
-                                          for o in range(3)]
+        self._restrict = restrictions or [
+            np.stack([restriction_matrix(5 - o, a, b) for a, b in zip(s_edges[:-1], s_edges[1:])]) for o in range(3)
+        ]
         self.q_end0 = self.bezier.q0 + self.kc
         self.q_mid0, _, _ = self.bezier.evaluate(self.t_mid, self.q_end0)
         self.w_mid = QuinticBezier.end_weights(self.t_mid, self.T)[0]  # dq_mid / dq_end (scalar per interval)
@@ -302,8 +326,20 @@ class PlanReach:
         qe_lo = self.q_end(-np.ones(self.n))
         qe_hi = self.q_end(np.ones(self.n))
         lo, hi = qe_lo.copy(), qe_hi.copy()
-        checks = [(0, joint_params.position_lower + self.bounds.position, joint_params.position_upper - self.bounds.position, "position"),
-                  (1, -joint_params.velocity_limit + self.bounds.velocity, joint_params.velocity_limit - self.bounds.velocity, "velocity")]
+        checks = [
+            (
+                0,
+                joint_params.position_lower + self.bounds.position,
+                joint_params.position_upper - self.bounds.position,
+                "position",
+            ),
+            (
+                1,
+                -joint_params.velocity_limit + self.bounds.velocity,
+                joint_params.velocity_limit - self.bounds.velocity,
+                "velocity",
+            ),
+        ]
         margin = 1e-9
         for order, low, high, what in checks:
             fixed, weight = self._affine_control_points(order)
@@ -321,8 +357,14 @@ class PlanReach:
                 zero = (ws == 0) & finite
                 if np.any(zero & (a > b)):
                     j = int(np.argwhere(zero & (a > b))[0, -1])
-                    return None, None, (f"joint {j + 1} {what} limit: the start state already violates the limit "
-                                        "shrunk by the tracking bound")
+                    return (
+                        None,
+                        None,
+                        (
+                            f"joint {j + 1} {what} limit: the start state already violates the limit "
+                            "shrunk by the tracking bound"
+                        ),
+                    )
                 hi = np.minimum(hi, np.where(pos, lim, np.inf).min((0, 1)))
                 lo = np.maximum(lo, np.where(neg, lim, -np.inf).max((0, 1)))
         k_lo, k_hi = self.k_of_q_end(lo), self.k_of_q_end(hi)
@@ -330,7 +372,11 @@ class PlanReach:
         bad = k_lo > k_hi
         if np.any(bad):
             j = int(np.flatnonzero(bad)[0])
-            return None, None, f"joint {j + 1}: no end position keeps the position/velocity limits with the tracking margin"
+            return (
+                None,
+                None,
+                f"joint {j + 1}: no end position keeps the position/velocity limits with the tracking margin",
+            )
         return k_lo, k_hi, ""
 
     # -- state boxes for every k in a box -------------------------------------------------------
@@ -345,7 +391,10 @@ class PlanReach:
             hulls.append(Interval(np.minimum(pts[0].min(1), pts[1].min(1)), np.maximum(pts[0].max(1), pts[1].max(1))))
         qd, vd, ad = hulls
         b = self.bounds
-        pad = lambda x, r: Interval(_down(_down(x.lo - r) - 1e-12 * np.abs(x.lo)), _up(_up(x.hi + r) + 1e-12 * np.abs(x.hi)))  # noqa: E731
+
+        def pad(x, r):
+            return Interval(_down(_down(x.lo - r) - 1e-12 * np.abs(x.lo)), _up(_up(x.hi + r) + 1e-12 * np.abs(x.hi)))
+
         return pad(qd, b.position), pad(vd, b.velocity), pad(vd, b.qd_a), pad(ad, b.qdd_a)
 
 
@@ -400,8 +449,10 @@ class _Box(Interval):
     def __mul__(self, o):
         if isinstance(o, _Box):
             p1, p2, p3, p4 = self.lo * o.lo, self.lo * o.hi, self.hi * o.lo, self.hi * o.hi
-            return _Box(_dn(np.minimum(np.minimum(p1, p2), np.minimum(p3, p4))),
-                        _upr(np.maximum(np.maximum(p1, p2), np.maximum(p3, p4))))
+            return _Box(
+                _dn(np.minimum(np.minimum(p1, p2), np.minimum(p3, p4))),
+                _upr(np.maximum(np.maximum(p1, p2), np.maximum(p3, p4))),
+            )
         p1, p2 = self.lo * o, self.hi * o
         return _Box(_dn(np.minimum(p1, p2)), _upr(np.maximum(p1, p2)))
 
@@ -467,15 +518,19 @@ def _inertia_times(x):
     """Interval K(x) stored as (..., 10, 6) (exact: every entry is +-one component of x)."""
     lo, hi = x.lo[..., _K_COMP], x.hi[..., _K_COMP]
     shape = x.shape[:-1] + (10, 6)
-    return _Box(np.where(_K_SIGN > 0, lo, np.where(_K_SIGN < 0, -hi, 0.0)).reshape(shape),
-                np.where(_K_SIGN > 0, hi, np.where(_K_SIGN < 0, -lo, 0.0)).reshape(shape))
+    return _Box(
+        np.where(_K_SIGN > 0, lo, np.where(_K_SIGN < 0, -hi, 0.0)).reshape(shape),
+        np.where(_K_SIGN > 0, hi, np.where(_K_SIGN < 0, -lo, 0.0)).reshape(shape),
+    )
 
 
 def _body_wrench_regressor(v, va, a):
     """Interval Y (..., 10, 6) with Y theta = I a + B(v) va (regressors.body_wrench_regressor)."""
     kv, kva = _inertia_times(v), _inertia_times(va)
     v_, va_ = v[..., None, :], va[..., None, :]
-    return _inertia_times(a) + 0.5 * (_force_cross(v_, kva) + _force_cross(va_, kv) - _inertia_times(_motion_cross(v, va)))
+    return _inertia_times(a) + 0.5 * (
+        _force_cross(v_, kva) + _force_cross(va_, kv) - _inertia_times(_motion_cross(v, va))
+    )
 
 
 def _joint_transforms(tree, q):
@@ -592,7 +647,7 @@ def interval_mass_spread(robot, q, theta_lo, theta_hi):
     forms = np.abs(_INERTIA_FORMS)
     spread = np.zeros((q.shape[0], n, n))
     for i in range(n):
-        w = width[10 * i:10 * i + 10]
+        w = width[10 * i : 10 * i + 10]
         jci, radi = jc[:, i], rad[:, i]
         centre = np.abs(np.swapaxes(jci, -1, -2)[:, None] @ (_INERTIA_FORMS @ jci[:, None]))  # (N, 10, n, n)
         absj = np.abs(jci)
@@ -601,7 +656,7 @@ def interval_mass_spread(robot, q, theta_lo, theta_hi):
         scale = np.swapaxes(absj, -1, -2)[:, None] @ (forms @ absj[:, None])
         bound = centre + first + second + 64 * np.finfo(float).eps * scale  # + rounding of the products
         spread += np.einsum("xkab,k->xab", bound, w)
-    ia = width[10 * n + 2::4]
+    ia = width[10 * n + 2 :: 4]
     spread[:, np.arange(n), np.arange(n)] += ia
     return spectral_bound(spread)
 
@@ -642,7 +697,7 @@ def interval_passivity_regressor(robot, q, v, va, aa, gravity=True):
         j = i
         while j >= 0:
             col = (f * s_local[j][None, None]).sum(-1)  # (N, 10)
-            lo[:, j, 10 * i:10 * i + 10], hi[:, j, 10 * i:10 * i + 10] = col.lo, col.hi
+            lo[:, j, 10 * i : 10 * i + 10], hi[:, j, 10 * i : 10 * i + 10] = col.lo, col.hi
             par = tree.parent[j]
             if par < 0:
                 break
@@ -651,7 +706,9 @@ def interval_passivity_regressor(robot, q, v, va, aa, gravity=True):
     # Friction columns [Fc, Fv, Ia, beta] per joint.
     vs = robot.coulomb_smoothing
     if vs > 0:
-        sgn = _Box(np.maximum(_down(np.tanh(va.lo / vs)) - 1e-15, -1.0), np.minimum(_up(np.tanh(va.hi / vs)) + 1e-15, 1.0))
+        sgn = _Box(
+            np.maximum(_down(np.tanh(va.lo / vs)) - 1e-15, -1.0), np.minimum(_up(np.tanh(va.hi / vs)) + 1e-15, 1.0)
+        )
     else:
         sgn = _Box(np.sign(va.lo), np.sign(va.hi))
     idx = np.arange(n)
@@ -680,8 +737,14 @@ def robust_bound_vertex(robot, q, v, va, aa, theta0, theta_lo, theta_hi, block, 
     q_hull = merge_rows(q, b_rows)
     ng = q_hull.shape[0]
     zeros = Interval(np.zeros((n * ng, n)))
-    b_all = interval_passivity_regressor(robot, Interval(np.tile(q_hull.lo, (n, 1)), np.tile(q_hull.hi, (n, 1))), zeros, zeros,
-                                         Interval(np.repeat(np.eye(n), ng, axis=0)), gravity=False)
+    b_all = interval_passivity_regressor(
+        robot,
+        Interval(np.tile(q_hull.lo, (n, 1)), np.tile(q_hull.hi, (n, 1))),
+        zeros,
+        zeros,
+        Interval(np.repeat(np.eye(n), ng, axis=0)),
+        gravity=False,
+    )
     cols = np.zeros(a_part.lo.shape[-1], bool)
     cols[block] = True
     fr = 10 * n + 4 * np.arange(n)
@@ -701,7 +764,11 @@ def robust_bound_vertex(robot, q, v, va, aa, theta0, theta_lo, theta_hi, block, 
             opts_hi.append(np.maximum(p1, p2))
         lo = np.concatenate([lo + opts_lo[0], lo + opts_lo[1]])
         hi = np.concatenate([hi + opts_hi[0], hi + opts_hi[1]])
-        scale = scale + np.maximum(np.maximum(np.abs(b_lo[j]), np.abs(b_hi[j])) * np.maximum(np.abs(aa.lo[:, j]), np.abs(aa.hi[:, j]))[:, None, None], 0)
+        scale = scale + np.maximum(
+            np.maximum(np.abs(b_lo[j]), np.abs(b_hi[j]))
+            * np.maximum(np.abs(aa.lo[:, j]), np.abs(aa.hi[:, j]))[:, None, None],
+            0,
+        )
     err = 4 * (n + 2) * np.finfo(float).eps * scale  # rounding of the sums above
     mag = np.maximum(np.abs(lo), np.abs(hi)) + err[None]
     best = _up((mag @ d[cols]).max(0) * (1 + 32 * np.finfo(float).eps))

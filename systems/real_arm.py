@@ -51,6 +51,7 @@ Unmodelled effects (scenario.plant.effects, each off by default):
   transmission carries (applied torque minus friction). Velocities are reported unchanged. This
   captures the torque-proportional position offset of a stiff gearbox, not its resonance.
 """
+
 from __future__ import annotations
 
 import tempfile
@@ -59,12 +60,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from pydrake.common import RandomDistribution, RandomGenerator
 from pydrake.geometry import Box, CollisionFilterDeclaration, Cylinder, ProximityProperties, Role
 from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
 from pydrake.multibody.plant import CoulombFriction
 from pydrake.multibody.tree import SpatialInertia
 from pydrake.systems.framework import BasicVector, DiagramBuilder, LeafSystem
-from pydrake.common import RandomDistribution, RandomGenerator
 from pydrake.systems.primitives import DiscreteTimeDelay, RandomSource, Saturation, ZeroOrderHold
 
 from . import inertial
@@ -72,7 +73,6 @@ from .config import ScenarioError, resolve_path, robot_from_scenario, scenario_d
 from .payload import Dumbbell, load_dumbbells, payload_theta_in_end_effector
 from .robot_model import make_plant
 from .uncertainty import parameter_radius
-
 
 
 def scenario_dumbbell(scenario):
@@ -109,14 +109,15 @@ class JointFriction(LeafSystem):
         n = self.n = len(self.coulomb)
         self.applied = self.DeclareVectorInputPort("applied_torque", n)
         self.state = self.DeclareVectorInputPort("state", 2 * n)
-        self.DeclareVectorOutputPort("actuation", BasicVector(n), self._calc,
-                                     prerequisites_of_calc={self.all_input_ports_ticket()})
+        self.DeclareVectorOutputPort(
+            "actuation", BasicVector(n), self._calc, prerequisites_of_calc={self.all_input_ports_ticket()}
+        )
 
     def _calc(self, context, output):
-        v = self.state.Eval(context)[self.n:]
+        v = self.state.Eval(context)[self.n :]
         law = np.tanh(v / self.smoothing) if self.smoothing > 0 else np.sign(v)
         applied = self.applied.Eval(context)
-        extra = (self.load_mu * np.abs(applied) + self.stribeck * np.exp(-(v / self.stribeck_vs) ** 2)) * law
+        extra = (self.load_mu * np.abs(applied) + self.stribeck * np.exp(-((v / self.stribeck_vs) ** 2))) * law
         output.SetFromVector(applied - (self.coulomb * law + self.viscous * v + self.offset) - extra)
 
 
@@ -133,7 +134,7 @@ class SeriesElasticEncoders(LeafSystem):
 
     def _calc(self, context, output):
         x = self.state.Eval(context).copy()
-        x[:self.n] += self.transmitted.Eval(context) / self.stiffness
+        x[: self.n] += self.transmitted.Eval(context) / self.stiffness
         output.SetFromVector(x)
 
 
@@ -178,8 +179,9 @@ class TorqueSensor(LeafSystem):
         state.get_mutable_discrete_state(self._filtered).SetFromVector(self._lagged(context))
 
     def _calc(self, context, output):
-        output.SetFromVector(context.get_discrete_state(self._filtered).get_value() if self._keep
-                             else self._raw(context))
+        output.SetFromVector(
+            context.get_discrete_state(self._filtered).get_value() if self._keep else self._raw(context)
+        )
 
 
 def _per_joint(values, n, default, field):
@@ -205,9 +207,9 @@ def draw_robot_theta(robot, radius, rng, mode="drawn", link_theta=None):
     theta0 = robot.theta
     unit = rng.choice([-1.0, 1.0], theta0.shape) if mode == "corner" else rng.uniform(-1.0, 1.0, theta0.shape)
     delta = unit * radius
-    own = theta0[:10 * n].reshape(n, 10) if link_theta is None else np.asarray(link_theta, float)
+    own = theta0[: 10 * n].reshape(n, 10) if link_theta is None else np.asarray(link_theta, float)
     for i in range(n):
-        d = delta[10 * i:10 * i + 10]
+        d = delta[10 * i : 10 * i + 10]
         floor = _PD_MARGIN * np.linalg.eigvalsh(inertial.pseudo_inertia(own[i])).min()
         while not inertial.is_physically_consistent(own[i] + d, floor):
             d *= 0.5
@@ -222,14 +224,14 @@ def _robot_parameter_box(robot, scenario):
 
 def _link_inertials(plant, names):
 
-    return np.array([inertial.from_spatial_inertia(plant.GetBodyByName(name).default_spatial_inertia())
-                     for name in names])
+    return np.array(
+        [inertial.from_spatial_inertia(plant.GetBodyByName(name).default_spatial_inertia()) for name in names]
+    )
 
 
 def _urdf_with_inertials(source, inertials, directory):
     """A copy of the URDF at `source` whose named links carry the given inertials ({link: theta
     about the link origin}); relative mesh paths made absolute. Returns its path."""
-
 
     source = Path(source)
     tree = ET.parse(source)
@@ -248,9 +250,21 @@ def _urdf_with_inertials(source, inertials, directory):
         node = ET.SubElement(links[name], "inertial")
         ET.SubElement(node, "origin", xyz=" ".join(repr(float(c)) for c in com), rpy="0 0 0")
         ET.SubElement(node, "mass", value=repr(float(m)))
-        ET.SubElement(node, "inertia", **{k: repr(float(i_com[a, b])) for k, (a, b) in
-                                          {"ixx": (0, 0), "iyy": (1, 1), "izz": (2, 2), "ixy": (0, 1),
-                                           "ixz": (0, 2), "iyz": (1, 2)}.items()})
+        ET.SubElement(
+            node,
+            "inertia",
+            **{
+                k: repr(float(i_com[a, b]))
+                for k, (a, b) in {
+                    "ixx": (0, 0),
+                    "iyy": (1, 1),
+                    "izz": (2, 2),
+                    "ixy": (0, 1),
+                    "ixz": (0, 2),
+                    "iyz": (1, 2),
+                }.items()
+            },
+        )
     path = Path(directory) / source.name
     tree.write(path)
     return path
@@ -260,23 +274,25 @@ def real_robot_theta(robot, scenario, seed):
     """(theta, link inertials) of the real arm: the nominal model (inertials None), or parameters
     drawn in the box (plant.robot_parameters) with {link name: its own drawn inertial theta}."""
 
-
     mode = scenario.plant.robot_parameters
     if mode == "nominal":
         return robot.theta.copy(), None
     if Path(robot.source).suffix.lower() != ".urdf":
-        raise ScenarioError(f"{scenario.source}: plant.robot_parameters: {mode!r} needs a URDF model, got {robot.source}")
+        raise ScenarioError(
+            f"{scenario.source}: plant.robot_parameters: {mode!r} needs a URDF model, got {robot.source}"
+        )
     nominal_plant, _, _ = make_plant(robot.source)
     own = _link_inertials(nominal_plant, robot.body_names)
     rng = np.random.default_rng([int(seed), 0x5EED])  # its own stream: not the sensor noise's
     theta = draw_robot_theta(robot, _robot_parameter_box(robot, scenario), rng, mode, own)
-    return theta, {name: own[i] + theta[10 * i:10 * i + 10] - robot.theta[10 * i:10 * i + 10]
-                   for i, name in enumerate(robot.body_names)}
+    return theta, {
+        name: own[i] + theta[10 * i : 10 * i + 10] - robot.theta[10 * i : 10 * i + 10]
+        for i, name in enumerate(robot.body_names)
+    }
 
 
 def _make_real_plant(robot, inertials, time_step, builder):
     """make_plant of the model, or of a temporary copy of its URDF with the drawn inertials."""
-
 
     if inertials is None:
         return make_plant(robot.source, time_step, builder=builder)
@@ -345,15 +361,18 @@ class RealArm:
                 self.scene_graph.RemoveRole(sg_ctx, source, gid, Role.kProximity)
         if changed:  # a re-assigned role starts unfiltered: no contact with the arm, again
             self.scene_graph.collision_filter_manager(sg_ctx).Apply(
-                CollisionFilterDeclaration().ExcludeWithin(self.robot_geometries))
+                CollisionFilterDeclaration().ExcludeWithin(self.robot_geometries)
+            )
 
     def seed_noise(self, root_context, seed=None):
         """Seed the sensor noise of this context (the station's seed unless given): Drake's
         SetRandomContext(RandomGenerator(seed)) on the noise source only, so the rest of the
         context is kept. Unseeded, a RandomSource draws from a default seed of its own."""
         if self.noise_source is not None:
-            self.noise_source.SetRandomContext(self.noise_source.GetMyMutableContextFromRoot(root_context),
-                                               RandomGenerator(int(self.seed if seed is None else seed)))
+            self.noise_source.SetRandomContext(
+                self.noise_source.GetMyMutableContextFromRoot(root_context),
+                RandomGenerator(int(self.seed if seed is None else seed)),
+            )
 
     def set_state(self, root_context, q, v=None):
         ctx = self.plant_context(root_context)
@@ -405,7 +424,6 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
     dumbbell: "scenario" (the scenario's payload), a Dumbbell, or None (no payload at start).
     """
 
-
     robot = robot or robot_from_scenario(scenario)
     n = robot.n
     h = scenario.plant.time_step_s
@@ -414,14 +432,15 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
 
     seed = scenario.seed if seed is None else seed
     theta, inertials = real_robot_theta(robot, scenario, seed)
-    fric = theta[10 * n:].reshape(n, 4)  # [Fc, Fv, Ia, beta] per joint
+    fric = theta[10 * n :].reshape(n, 4)  # [Fc, Fv, Ia, beta] per joint
     station = DiagramBuilder()
     plant, scene_graph, instance = _make_real_plant(robot, inertials, h, station)
     plant.set_name("real_arm_plant")
     jp = robot.joint_params
     joints = [plant.GetJointByName(name, instance) for name in jp.names]
-    actuators = {plant.get_joint_actuator(i).joint().name(): plant.get_joint_actuator(i)
-                 for i in plant.GetJointActuatorIndices()}
+    actuators = {
+        plant.get_joint_actuator(i).joint().name(): plant.get_joint_actuator(i) for i in plant.GetJointActuatorIndices()
+    }
     for k, joint in enumerate(joints):
         if joint.name() not in actuators:
             raise ScenarioError(f"{robot.source}: joint {joint.name()} has no actuator")
@@ -431,8 +450,9 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
     # Payload body welded at the grasp point (its frame: origin at the dumbbell centre, x along it).
     ee_body = plant.GetBodyByName(robot.body_names[robot.end_effector], instance)
     payload_instance = plant.AddModelInstance("payload")
-    payload_body = plant.AddRigidBody("payload", payload_instance,
-                                      _dumbbell_spatial_inertia(db) if db is not None else SpatialInertia.Zero())
+    payload_body = plant.AddRigidBody(
+        "payload", payload_instance, _dumbbell_spatial_inertia(db) if db is not None else SpatialInertia.Zero()
+    )
     plant.WeldFrames(ee_body.body_frame(), payload_body.body_frame(), RigidTransform(robot.extra["grasp_point"]))
     if db is not None:
         _register_dumbbell_geometry(plant, payload_body, db)
@@ -451,8 +471,10 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
     robot_geometries = plant.CollectRegisteredGeometries(robot_bodies)
     scene_graph.collision_filter_manager().Apply(CollisionFilterDeclaration().ExcludeWithin(robot_geometries))
     inspector = scene_graph.model_inspector()
-    payload_collision = tuple((gid, ProximityProperties(inspector.GetProximityProperties(gid)))
-                              for gid in plant.GetCollisionGeometriesForBody(payload_body))
+    payload_collision = tuple(
+        (gid, ProximityProperties(inspector.GetProximityProperties(gid)))
+        for gid in plant.GetCollisionGeometriesForBody(payload_body)
+    )
 
     sat = station.AddSystem(Saturation(-jp.torque_limit, jp.torque_limit))
     sat.set_name("actuator_saturation")
@@ -463,13 +485,22 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
         delay.set_name("actuation_delay")
         station.Connect(sat.get_output_port(), delay.get_input_port())
         applied_port = delay.get_output_port()
-    stiffness = _per_joint(eff.joint_stiffness_Nm_rad, n, 0.0, "joint_stiffness_Nm_rad") if eff.joint_stiffness_Nm_rad else None
+    stiffness = (
+        _per_joint(eff.joint_stiffness_Nm_rad, n, 0.0, "joint_stiffness_Nm_rad") if eff.joint_stiffness_Nm_rad else None
+    )
     if stiffness is not None and np.any(stiffness <= 0):
         raise ScenarioError("plant.effects.joint_stiffness_Nm_rad: values must be > 0")
-    friction = station.AddSystem(JointFriction(
-        fric[:, 0], fric[:, 1], fric[:, 3], robot.coulomb_smoothing,
-        _per_joint(eff.load_friction_mu, n, 0.0, "load_friction_mu"),
-        _per_joint(eff.stribeck_friction_Nm, n, 0.0, "stribeck_friction_Nm"), eff.stribeck_velocity_rad_s))
+    friction = station.AddSystem(
+        JointFriction(
+            fric[:, 0],
+            fric[:, 1],
+            fric[:, 3],
+            robot.coulomb_smoothing,
+            _per_joint(eff.load_friction_mu, n, 0.0, "load_friction_mu"),
+            _per_joint(eff.stribeck_friction_Nm, n, 0.0, "stribeck_friction_Nm"),
+            eff.stribeck_velocity_rad_s,
+        )
+    )
     friction.set_name("joint_friction")
     station.Connect(applied_port, friction.applied)
     station.Connect(plant.get_state_output_port(instance), friction.state)
@@ -483,11 +514,18 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
         state_out = encoders.get_output_port()
     noise = scenario.noise
     noisy = noise.distribution == "uniform"
-    sensor = station.AddSystem(TorqueSensor(
-        n, h, noise.torque_ratio, noise.torque_floor_Nm,
-        _per_joint(eff.torque_sensor_scale, n, 1.0, "torque_sensor_scale"),
-        _per_joint(eff.torque_sensor_offset_Nm, n, 0.0, "torque_sensor_offset_Nm"),
-        noisy, eff.torque_sensor_lag_s))
+    sensor = station.AddSystem(
+        TorqueSensor(
+            n,
+            h,
+            noise.torque_ratio,
+            noise.torque_floor_Nm,
+            _per_joint(eff.torque_sensor_scale, n, 1.0, "torque_sensor_scale"),
+            _per_joint(eff.torque_sensor_offset_Nm, n, 0.0, "torque_sensor_offset_Nm"),
+            noisy,
+            eff.torque_sensor_lag_s,
+        )
+    )
     sensor.set_name("torque_sensor")
     station.Connect(sat.get_output_port(), sensor.torque)
     noise_source = None
@@ -502,26 +540,46 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
         # step's update samples it), so N - 1 buffered steps make a reading N steps late
         # (tests/test_corrected_model.py: 0.03 s is diagnosed as 0.030 s). The noise draw, a
         # discrete state of its own, lags one step less; white noise, so no test can tell.
-        late = station.AddSystem(DiscreteTimeDelay(h, sensor_delay_steps - 1, n) if sensor_delay_steps > 1
-                                 else ZeroOrderHold(h, n))
+        late = station.AddSystem(
+            DiscreteTimeDelay(h, sensor_delay_steps - 1, n) if sensor_delay_steps > 1 else ZeroOrderHold(h, n)
+        )
         late.set_name("torque_sensor_delay")
         station.Connect(measured, late.get_input_port())
         measured = late.get_output_port()
 
     station.ExportInput(sat.get_input_port(), "commanded_torque")
-    for port, name in ((state_out, "state"), (measured, "measured_torque"),
-                       (sat.get_output_port(), "motor_torque"), (applied_port, "applied_torque"),
-                       (plant.get_state_output_port(instance), "plant_state"),
-                       (scene_graph.get_query_output_port(), "query_object")):
+    for port, name in (
+        (state_out, "state"),
+        (measured, "measured_torque"),
+        (sat.get_output_port(), "motor_torque"),
+        (applied_port, "applied_torque"),
+        (plant.get_state_output_port(instance), "plant_state"),
+        (scene_graph.get_query_output_port(), "query_object"),
+    ):
         station.ExportOutput(port, name)
     system = builder.AddSystem(station.Build())
     system.set_name("real_arm")
     out = system.GetOutputPort
-    return RealArm(robot=robot, plant=plant, scene_graph=scene_graph, instance=instance, payload_body=payload_body,
-                   dumbbell=db, commanded_torque_input=system.GetInputPort("commanded_torque"),
-                   state_output=out("state"), measured_torque_output=out("measured_torque"),
-                   applied_torque_output=out("applied_torque"), motor_torque_output=out("motor_torque"),
-                   torque_sensor=sensor, time_step=h, payload_collision=payload_collision,
-                   robot_geometries=robot_geometries, theta=theta, system=system,
-                   plant_state_output=out("plant_state"), query_output=out("query_object"), noise_source=noise_source,
-                   seed=int(seed))
+    return RealArm(
+        robot=robot,
+        plant=plant,
+        scene_graph=scene_graph,
+        instance=instance,
+        payload_body=payload_body,
+        dumbbell=db,
+        commanded_torque_input=system.GetInputPort("commanded_torque"),
+        state_output=out("state"),
+        measured_torque_output=out("measured_torque"),
+        applied_torque_output=out("applied_torque"),
+        motor_torque_output=out("motor_torque"),
+        torque_sensor=sensor,
+        time_step=h,
+        payload_collision=payload_collision,
+        robot_geometries=robot_geometries,
+        theta=theta,
+        system=system,
+        plant_state_output=out("plant_state"),
+        query_output=out("query_object"),
+        noise_source=noise_source,
+        seed=int(seed),
+    )

@@ -14,6 +14,7 @@ with B(V) = 1/2 [V x* I - I V x + (I V) xbar] the Christoffel-consistent factori
 (Mdot = C + C^T, so Mdot - 2C is skew: what the robust controller's proof needs).
 Friction columns per joint [Fc, Fv, Ia, beta] are appended by `friction_columns`.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -27,9 +28,14 @@ def skew(v):
     """(..., 3) -> (..., 3, 3) cross-product matrices."""
     v = np.asarray(v)
     z = np.zeros(v.shape[:-1])
-    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1),
-                     np.stack([v[..., 2], z, -v[..., 0]], -1),
-                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+    return np.stack(
+        [
+            np.stack([z, -v[..., 2], v[..., 1]], -1),
+            np.stack([v[..., 2], z, -v[..., 0]], -1),
+            np.stack([-v[..., 1], v[..., 0], z], -1),
+        ],
+        -2,
+    )
 
 
 def cross_motion(v, m):
@@ -65,8 +71,9 @@ def inertia_times(x):
 def body_wrench_regressor(v, va, a):
     """Y(v, va, a) with Y theta = I a + B(v) va in the body frame (..., 6, 10)."""
     kv, kva = inertia_times(v), inertia_times(va)
-    return (inertia_times(a) + 0.5 * (cross_force_matrix(v) @ kva + cross_force_matrix(va) @ kv
-                                      - inertia_times(cross_motion(v, va))))
+    return inertia_times(a) + 0.5 * (
+        cross_force_matrix(v) @ kva + cross_force_matrix(va) @ kv - inertia_times(cross_motion(v, va))
+    )
 
 
 @dataclass(frozen=True)
@@ -205,7 +212,7 @@ def _project(tree, kin, wrench_reg_body, screws_world, bodies=None):
     for col, i in enumerate(bodies):
         js = np.flatnonzero(anc[:, i])
         s_body = to_body(kin.R[:, i, None], kin.p[:, i, None], screws_world[:, js])  # (N, k, 6)
-        out[:, js, 10 * col:10 * col + 10] = s_body @ wrench_reg_body[:, col]
+        out[:, js, 10 * col : 10 * col + 10] = s_body @ wrench_reg_body[:, col]
     return out
 
 

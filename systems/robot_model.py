@@ -8,6 +8,7 @@ Parameter vector theta (length 14 n), in this order everywhere:
 body i = composite child of joint i (bodies welded to it merged), about its frame origin;
 friction_j = [Fc, Fv, Ia, beta].
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
@@ -96,26 +97,42 @@ class RobotModel:
     # ---- regressors (inertial + friction columns) ---------------------------------------------
     def standard_regressor(self, q, v, a):
         """W (N, n, 14n): W theta = M a + C v + g + F(v, a)."""
-        return np.concatenate([regressors.standard_regressor(self.tree, q, v, a),
-                               regressors.friction_columns(v, a, "standard", self.coulomb_smoothing)], -1)
+        return np.concatenate(
+            [
+                regressors.standard_regressor(self.tree, q, v, a),
+                regressors.friction_columns(v, a, "standard", self.coulomb_smoothing),
+            ],
+            -1,
+        )
 
     def momentum_regressor(self, q, v):
         """Wm (N, n, 14n): Wm theta = (M + diag(Ia)) v."""
-        return np.concatenate([regressors.momentum_regressor(self.tree, q, v),
-                               regressors.friction_columns(v, kind="momentum")], -1)
+        return np.concatenate(
+            [regressors.momentum_regressor(self.tree, q, v), regressors.friction_columns(v, kind="momentum")], -1
+        )
 
     def momentum_rate_regressor(self, q, v):
         """Wc (N, n, 14n): Wc theta = C^T v - g - (Fc sgn v + Fv v + beta).
 
         With Ia carried in the momentum, d/dt (Wm theta) = Wc theta + tau along any motion.
         """
-        return np.concatenate([regressors.momentum_rate_regressor(self.tree, q, v),
-                               regressors.friction_columns(v, kind="rate", smoothing_velocity=self.coulomb_smoothing)], -1)
+        return np.concatenate(
+            [
+                regressors.momentum_rate_regressor(self.tree, q, v),
+                regressors.friction_columns(v, kind="rate", smoothing_velocity=self.coulomb_smoothing),
+            ],
+            -1,
+        )
 
     def passivity_regressor(self, q, v, va, aa):
         """Wp (N, n, 14n): Wp theta = M aa + C(q, v) va + g + F(va, aa) (controller form)."""
-        return np.concatenate([regressors.passivity_regressor(self.tree, q, v, va, aa),
-                               regressors.friction_columns(va, aa, "standard", self.coulomb_smoothing)], -1)
+        return np.concatenate(
+            [
+                regressors.passivity_regressor(self.tree, q, v, va, aa),
+                regressors.friction_columns(va, aa, "standard", self.coulomb_smoothing),
+            ],
+            -1,
+        )
 
     def inverse_dynamics(self, q, v, a, theta=None):
         theta = self.theta if theta is None else theta
@@ -156,10 +173,16 @@ def load_joint_parameters(path, joint_names=None):
             return val
 
         params = JointParameters(
-            names=names, position_lower=arr("position_lower_rad", -np.inf), position_upper=arr("position_upper_rad", np.inf),
-            velocity_limit=arr("velocity_limit_rad_s"), torque_limit=arr("torque_limit_Nm"),
-            coulomb=arr("coulomb_Nm", 0.0), viscous=arr("viscous_Nms_rad", 0.0), armature=arr("armature_kgm2", 0.0),
-            offset=arr("offset_Nm", 0.0))
+            names=names,
+            position_lower=arr("position_lower_rad", -np.inf),
+            position_upper=arr("position_upper_rad", np.inf),
+            velocity_limit=arr("velocity_limit_rad_s"),
+            torque_limit=arr("torque_limit_Nm"),
+            coulomb=arr("coulomb_Nm", 0.0),
+            viscous=arr("viscous_Nms_rad", 0.0),
+            armature=arr("armature_kgm2", 0.0),
+            offset=arr("offset_Nm", 0.0),
+        )
     except (OSError, yaml.YAMLError, KeyError, TypeError) as err:
         raise ModelError(f"{path}: cannot read joint parameters ({err})") from err
     if joint_names is not None and list(joint_names) != names:
@@ -251,8 +274,9 @@ def tree_from_plant(plant, context, joint_names=None):
             raise ModelError(f"joint {j.name()}: only revolute and prismatic joints are supported")
     # Each body is carried by the nearest movable joint above it (through welds), or the world.
     child_of = {j.child_body().index(): k for k, j in enumerate(movable)}
-    inboard = {plant.get_joint(i).child_body().index(): plant.get_joint(i).parent_body()
-               for i in plant.GetJointIndices()}
+    inboard = {
+        plant.get_joint(i).child_body().index(): plant.get_joint(i).parent_body() for i in plant.GetJointIndices()
+    }
 
     def carrier(body):
         while body.index() not in child_of:
@@ -289,8 +313,14 @@ def tree_from_plant(plant, context, joint_names=None):
         spatial = plant.CalcSpatialInertia(context, child.body_frame(), members[k])
         thetas.append(inertial.from_spatial_inertia(spatial))
     gravity = plant.gravity_field().gravity_vector()
-    tree = KinematicTree(parent=parent, X_parent_joint=x_pj, X_joint_child=x_jc, axis=axis,
-                         prismatic=prismatic, gravity=np.asarray(gravity, float))
+    tree = KinematicTree(
+        parent=parent,
+        X_parent_joint=x_pj,
+        X_joint_child=x_jc,
+        axis=axis,
+        prismatic=prismatic,
+        gravity=np.asarray(gravity, float),
+    )
     return tree, np.concatenate(thetas), [j.child_body().name() for j in movable], [j.name() for j in movable]
 
 
@@ -302,10 +332,16 @@ def joint_parameters_from_plant(plant, joint_names):
         lo.append(j.position_lower_limits()[0])
         hi.append(j.position_upper_limits()[0])
         vel.append(j.velocity_upper_limits()[0])
-        act = [plant.get_joint_actuator(a) for a in plant.GetJointActuatorIndices() if plant.get_joint_actuator(a).joint().name() == name]
+        act = [
+            plant.get_joint_actuator(a)
+            for a in plant.GetJointActuatorIndices()
+            if plant.get_joint_actuator(a).joint().name() == name
+        ]
         eff.append(act[0].effort_limit() if act else np.inf)
     z = np.zeros(len(joint_names))
-    return JointParameters(list(joint_names), np.array(lo), np.array(hi), np.array(vel), np.array(eff), z, z.copy(), z.copy(), z.copy())
+    return JointParameters(
+        list(joint_names), np.array(lo), np.array(hi), np.array(vel), np.array(eff), z, z.copy(), z.copy(), z.copy()
+    )
 
 
 def load_robot(model_path=None, params_path=None, coulomb_smoothing=0.0, end_effector=None):
@@ -340,5 +376,13 @@ def load_robot(model_path=None, params_path=None, coulomb_smoothing=0.0, end_eff
         raise ModelError(f"{params_path or model_path}: end effector {ee_name!r} is not a moving body of the model")
     theta = np.concatenate([theta_bodies, params.friction_theta()])
     extra = {"grasp_point": np.asarray((doc or {}).get("grasp_point_m", [0, 0, 0]), float), "params_doc": doc}
-    return RobotModel(tree=tree, joint_params=params, theta=theta, end_effector=ee, body_names=body_names,
-                      source=str(model_path), coulomb_smoothing=coulomb_smoothing, extra=extra)
+    return RobotModel(
+        tree=tree,
+        joint_params=params,
+        theta=theta,
+        end_effector=ee,
+        body_names=body_names,
+        source=str(model_path),
+        coulomb_smoothing=coulomb_smoothing,
+        extra=extra,
+    )

@@ -17,6 +17,7 @@ saturation (what reaches the joints, never above the limit).
 The record lives in the Context (abstract state, appended by a periodic unrestricted update at
 t_k, which sees the state and inputs of t_k as a logger does): `record(context)`.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
@@ -116,8 +117,11 @@ class SafetyMonitor(LeafSystem):
         inspector = self._inspector
         ids = inspector.GetAllGeometryIds(Role.kProximity)
         environment = [g for g in ids if self._is_environment(g) and inspector.GetName(g) not in supports]
-        fixed = [g for g in ids if not self._is_environment(g)
-                 and plant.IsAnchored(plant.GetBodyFromFrameId(inspector.GetFrameId(g)))]
+        fixed = [
+            g
+            for g in ids
+            if not self._is_environment(g) and plant.IsAnchored(plant.GetBodyFromFrameId(inspector.GetFrameId(g)))
+        ]
         return [(a, b) for a in fixed for b in environment]
 
     def min_clearance(self, query):
@@ -125,7 +129,9 @@ class SafetyMonitor(LeafSystem):
         distances += [query.ComputeSignedDistancePairClosestPoints(a, b) for a, b in self._fixed_pairs]
         best, pair = np.inf, None
         for d in distances:
-            if self._is_environment(d.id_A) != self._is_environment(d.id_B) and d.distance < min(best, self._max_distance):
+            if self._is_environment(d.id_A) != self._is_environment(d.id_B) and d.distance < min(
+                best, self._max_distance
+            ):
                 best = d.distance
                 pair = (self._inspector.GetName(d.id_A), self._inspector.GetName(d.id_B))
         return (self._max_distance if pair is None else best), pair
@@ -138,9 +144,15 @@ class SafetyMonitor(LeafSystem):
         x = self.state_port.Eval(context)
         u = self.torque_port.Eval(context)
         clearance, pair = self.min_clearance(self.query_port.Eval(context))
-        return (context.get_time(), clearance, float(limit_ratio(x[:n], jp.position_lower, jp.position_upper)),
-                float(np.max(np.abs(x[n:]) / jp.velocity_limit)), float(np.max(np.abs(u) / jp.torque_limit)),
-                float(np.max(np.abs(self.command_port.Eval(context)) / jp.torque_limit)), pair)
+        return (
+            context.get_time(),
+            clearance,
+            float(limit_ratio(x[:n], jp.position_lower, jp.position_upper)),
+            float(np.max(np.abs(x[n:]) / jp.velocity_limit)),
+            float(np.max(np.abs(u) / jp.torque_limit)),
+            float(np.max(np.abs(self.command_port.Eval(context)) / jp.torque_limit)),
+            pair,
+        )
 
     def _clear(self, context, state):
         state.get_mutable_abstract_state(int(self._samples)).set_value(_Samples())

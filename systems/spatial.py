@@ -4,6 +4,7 @@ Motion vectors are [ω; v] (6,), about the world origin unless said otherwise. T
 numpy on the last axis: np.cross's per-call overhead dominates on the small stacked vectors the
 regressors evaluate, so the products are written out.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -13,8 +14,14 @@ _CROSS3 = np.cross(np.eye(3)[:, None], np.eye(3)[None, :]).reshape(9, 3)  # a x 
 
 def cross(a, b):
     """a x b over the last axis (length 3), broadcasting, any dtype."""
-    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
-                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], -1)
+    return np.stack(
+        [
+            a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+            a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+            a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0],
+        ],
+        -1,
+    )
 
 
 def cross_rows(a, b):

@@ -18,6 +18,7 @@ multiple of t_p the same event hands the new samples (the one at t_p included) t
 estimator (old segments are not recomputed) and refreshes the outputs (discrete state).
 History, consistency, events and the final estimate are functions of the context.
 """
+
 from __future__ import annotations
 
 import copy
@@ -55,8 +56,10 @@ class SysIdEstimator(LeafSystem):
         self.update_period_s = float(update_period_s)
         self._samples_per_update = int(round(self.update_period_s / self.sample_period_s))
         if abs(self._samples_per_update * self.sample_period_s - self.update_period_s) > 1e-9 * self.update_period_s:
-            raise ValueError(f"estimator update period {self.update_period_s} s is not a multiple of the sample "
-                             f"period {self.sample_period_s} s")
+            raise ValueError(
+                f"estimator update period {self.update_period_s} s is not a multiple of the sample "
+                f"period {self.sample_period_s} s"
+            )
         self.prior = prior
         self.prior_nominal = prior_nominal
         n = robot.n
@@ -103,7 +106,7 @@ class SysIdEstimator(LeafSystem):
         tau = self._torque_input.Eval(context)
         n = self.n
         run = self._get(context)
-        run = replace(run, samples=run.samples + (np.concatenate([[t], x[:n], x[n:2 * n], tau]),))
+        run = replace(run, samples=run.samples + (np.concatenate([[t], x[:n], x[n : 2 * n], tau]),))
         step = int(round(t / self.sample_period_s))
         if step > 0 and step % self._samples_per_update == 0:
             run = self._update(t, run, state)
@@ -117,14 +120,23 @@ class SysIdEstimator(LeafSystem):
         old = run.estimator
         estimator = copy.deepcopy(old, {id(old.robot): old.robot, id(old.settings): old.settings})
         try:
-            estimator.add(data[:, 0], data[:, 1:1 + n], data[:, 1 + n:1 + 2 * n], data[:, 1 + 2 * n:])
+            estimator.add(data[:, 0], data[:, 1 : 1 + n], data[:, 1 + n : 1 + 2 * n], data[:, 1 + 2 * n :])
             est = estimator.update()
         except EstimatorError as err:  # not enough data yet (or bad samples): keep the outputs
             return SysIdState(estimator, (), run.history + ({"t": t, "skipped": str(err)},))
-        record = {"t": t, "update_time_s": est.update_time_s, "cond_Y": est.cond_Y, "case": est.case,
-                  "consistent": est.consistent, "nominal": est.theta_e.tolist(),
-                  "lower": est.lower.tolist(), "upper": est.upper.tolist(), "message": est.message,
-                  "problems": list(est.problems), "quadrature_ratio": est.quadrature_ratio}
+        record = {
+            "t": t,
+            "update_time_s": est.update_time_s,
+            "cond_Y": est.cond_Y,
+            "case": est.case,
+            "consistent": est.consistent,
+            "nominal": est.theta_e.tolist(),
+            "lower": est.lower.tolist(),
+            "upper": est.upper.tolist(),
+            "message": est.message,
+            "problems": list(est.problems),
+            "quadrature_ratio": est.quadrature_ratio,
+        }
         new = SysIdState(estimator, (), run.history + (record,))
         self._write(state, est, len(self.history_of(new)))
         return new
@@ -164,8 +176,13 @@ class SysIdEstimator(LeafSystem):
                 seen = True
                 out.append({"t": h["t"], "kind": "inconsistent_estimate", "detail": h["message"]})
             if h["quadrature_ratio"] > self.settings.quadrature_warn_ratio:
-                out.append({"t": h["t"], "kind": "quadrature_unresolved",
-                            "detail": f"quadrature bound up to {h['quadrature_ratio']:.2f} of a row's torque radius"})
+                out.append(
+                    {
+                        "t": h["t"],
+                        "kind": "quadrature_unresolved",
+                        "detail": f"quadrature bound up to {h['quadrature_ratio']:.2f} of a row's torque radius",
+                    }
+                )
         return out
 
     def final_estimate(self, context, ee_slice=None):

@@ -37,6 +37,7 @@ re-checks a solution independently: Drake signed distance between the link shape
 (the referee's geometry, systems/safety_monitor.py) and the obstacles/floor at 1 kHz, Drake's
 CalcInverseDynamics (+ the plant's joint friction), limits.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -50,8 +51,8 @@ from pathlib import Path
 import numpy as np
 
 from . import reachability as reach
-from .bezier import _bernstein, _difference, restriction_matrix
 from .armour import TrackingBounds
+from .bezier import _bernstein, _difference, restriction_matrix
 
 VERSION = "task_trajectory/1"  # part of the cache key: bump when the formulation changes
 DEGREE = 5
@@ -101,7 +102,7 @@ def basis(t, num_pieces, piece_duration, order=0):
     t = np.clip(np.atleast_1d(np.asarray(t, float)), 0.0, num_pieces * piece_duration)
     piece = np.minimum((t // piece_duration).astype(int), num_pieces - 1)
     s = t / piece_duration - piece
-    local = _bernstein(DEGREE - order, s) @ _difference(np.eye(DEGREE + 1), order) / piece_duration ** order
+    local = _bernstein(DEGREE - order, s) @ _difference(np.eye(DEGREE + 1), order) / piece_duration**order
     out = np.zeros((len(t), (DEGREE + 1) * num_pieces))
     for k in range(DEGREE + 1):
         out[np.arange(len(t)), 6 * piece + k] = local[:, k]
@@ -110,7 +111,7 @@ def basis(t, num_pieces, piece_duration, order=0):
 
 def jerk_gram(num_pieces, piece_duration):
     """Q (6K, 6K): sum_j int |jerk_j|^2 dt = sum_j x_j^T Q x_j (exact)."""
-    d3 = _difference(np.eye(DEGREE + 1), 3) / piece_duration ** 3  # (3, 6): jerk control points
+    d3 = _difference(np.eye(DEGREE + 1), 3) / piece_duration**3  # (3, 6): jerk control points
     g = np.array([[comb(2, i) * comb(2, j) / (5.0 * comb(4, i + j)) for j in range(3)] for i in range(3)])
     block = piece_duration * d3.T @ g @ d3  # int over the piece: T int_0^1 ds
     return np.kron(np.eye(num_pieces), block)
@@ -200,7 +201,9 @@ class TaskProblem:
         n = self.robot.n
         self.q_start = np.asarray(self.q_start, float)
         self.goal_q = None if self.goal_q is None or len(self.goal_q) == 0 else np.asarray(self.goal_q, float)
-        self.place_xyz = None if self.place_xyz is None or len(self.place_xyz) == 0 else np.asarray(self.place_xyz, float)
+        self.place_xyz = (
+            None if self.place_xyz is None or len(self.place_xyz) == 0 else np.asarray(self.place_xyz, float)
+        )
         if (self.goal_q is None) == (self.place_xyz is None):
             raise ValueError("a task needs exactly one of goal_q and place_xyz")
         self.tracking = TrackingBounds.coerce(self.tracking, n)
@@ -225,8 +228,21 @@ class TaskResult:
     details: dict = field(default_factory=dict)
 
     def to_dict(self):
-        out = {k: getattr(self, k) for k in ("ok", "status", "reason", "cost", "max_violation", "min_sphere_clearance_m",
-                                              "max_torque_ratio", "solve_time_s", "solver", "solver_status")}
+        out = {
+            k: getattr(self, k)
+            for k in (
+                "ok",
+                "status",
+                "reason",
+                "cost",
+                "max_violation",
+                "min_sphere_clearance_m",
+                "max_torque_ratio",
+                "solve_time_s",
+                "solver",
+                "solver_status",
+            )
+        }
         out["q_goal_rad"] = None if self.q_goal is None else self.q_goal.tolist()
         out["trajectory"] = None if self.trajectory is None else self.trajectory.to_dict()
         out["details"] = _jsonable(self.details)
@@ -236,8 +252,11 @@ class TaskResult:
     def from_dict(cls, doc):
         doc = dict(doc)
         q_goal, traj = doc.pop("q_goal_rad"), doc.pop("trajectory")
-        return cls(q_goal=None if q_goal is None else np.asarray(q_goal, float),
-                   trajectory=None if traj is None else PiecewiseBezier.from_dict(traj), **doc)
+        return cls(
+            q_goal=None if q_goal is None else np.asarray(q_goal, float),
+            trajectory=None if traj is None else PiecewiseBezier.from_dict(traj),
+            **doc,
+        )
 
 
 def _jsonable(x):
@@ -275,12 +294,25 @@ def task_problem_from_scenario(scenario, q_start=None):
     tracking = tracking_bounds_for(robot, gains_from_scenario(scenario, robot.n).armour, box.lo)
     place = None
     if not task.goal_q_rad:
-        place = np.asarray(task.place_xyz_m, float) if task.place_xyz_m else placement_above(
-            next(ob for ob in scenario.obstacles if ob.name == task.platform), dumbbell, task.release_height_m)
-    return TaskProblem(robot=robot, theta=true_theta(robot, dumbbell), dumbbell=dumbbell, obstacles=list(scenario.obstacles),
-                       floor_z=scenario.planner.floor_z_m, q_start=scenario.q0_rad if q_start is None else q_start,
-                       goal_q=task.goal_q_rad or None, place_xyz=place, tracking=tracking,
-                       settings=TaskSettings.from_task(task))
+        place = (
+            np.asarray(task.place_xyz_m, float)
+            if task.place_xyz_m
+            else placement_above(
+                next(ob for ob in scenario.obstacles if ob.name == task.platform), dumbbell, task.release_height_m
+            )
+        )
+    return TaskProblem(
+        robot=robot,
+        theta=true_theta(robot, dumbbell),
+        dumbbell=dumbbell,
+        obstacles=list(scenario.obstacles),
+        floor_z=scenario.planner.floor_z_m,
+        q_start=scenario.q0_rad if q_start is None else q_start,
+        goal_q=task.goal_q_rad or None,
+        place_xyz=place,
+        tracking=tracking,
+        settings=TaskSettings.from_task(task),
+    )
 
 
 def placement_above(platform, dumbbell, release_height):
@@ -325,7 +357,7 @@ class TaskConstraints:
         self.window_matrix = np.zeros((len(self.t_col), 6, 6 * st.num_pieces))
         for p in range(st.num_pieces):
             for w, (a, b) in enumerate(zip(edges[:-1], edges[1:])):
-                self.window_matrix[p * per_piece + w, :, 6 * p:6 * p + 6] = restriction_matrix(DEGREE, a, b)
+                self.window_matrix[p * per_piece + w, :, 6 * p : 6 * p + 6] = restriction_matrix(DEGREE, a, b)
         self.lipschitz = reach.sphere_lipschitz(robot.tree, problem.spheres)
         self.floor_exempt = _floor_exempt(robot.tree, problem.spheres)
         self.t_tau = np.linspace(0.0, st.duration_s, st.torque_samples)
@@ -350,7 +382,7 @@ class TaskConstraints:
 
     def split(self, y):
         y = np.asarray(y, float)
-        return y[:-self.n].reshape(self.param.r, self.n), y[-self.n:]
+        return y[: -self.n].reshape(self.param.r, self.n), y[-self.n :]
 
     def control_points(self, y):
         z, q_goal = self.split(y)
@@ -382,7 +414,15 @@ class TaskConstraints:
             const = par.g_start * self.p.q_start[j]
             if np.isfinite(self.q_lo[j]) or np.isfinite(self.q_hi[j]):
                 out.append((a, const, np.full(m, self.q_lo[j]), np.full(m, self.q_hi[j]), j))
-            out.append((diff @ a, diff @ const, np.full(diff.shape[0], -self.v_max[j]), np.full(diff.shape[0], self.v_max[j]), j))
+            out.append(
+                (
+                    diff @ a,
+                    diff @ const,
+                    np.full(diff.shape[0], -self.v_max[j]),
+                    np.full(diff.shape[0], self.v_max[j]),
+                    j,
+                )
+            )
         return out
 
     def hull_violation(self, y):
@@ -434,9 +474,12 @@ class TaskConstraints:
         vals, grads = [], []
         flat = c.reshape(-1, 3)
         for o in range(len(p.boxes)):
-            sd, g = reach.box_signed_distance(flat, np.broadcast_to(p.boxes.centre[o], flat.shape),
-                                              np.broadcast_to(p.boxes.rotation[o], (len(flat), 3, 3)),
-                                              np.broadcast_to(p.boxes.half_size[o], flat.shape))
+            sd, g = reach.box_signed_distance(
+                flat,
+                np.broadcast_to(p.boxes.centre[o], flat.shape),
+                np.broadcast_to(p.boxes.rotation[o], (len(flat), 3, 3)),
+                np.broadcast_to(p.boxes.half_size[o], flat.shape),
+            )
             vals.append(sd.reshape(nsamp, m) - need)
             grads.append(g.reshape(nsamp, m, 3))
         if p.floor_z is not None:
@@ -505,7 +548,7 @@ class TaskConstraints:
         scale = 1.0 / self.tau_max
         jac = np.zeros((nsamp * n, self.num_vars))
         for k, pair in enumerate(self.tau_basis):
-            d = np.transpose(deriv[k * n:(k + 1) * n], (1, 2, 0)) * scale[None, :, None]  # (N, n_out, n_in)
+            d = np.transpose(deriv[k * n : (k + 1) * n], (1, 2, 0)) * scale[None, :, None]  # (N, n_out, n_in)
             # group index = (sample, output joint); chain over the sample's input joints
             dd = np.zeros((nsamp * n, nsamp, n))
             dd[np.arange(nsamp * n), np.repeat(np.arange(nsamp), n)] = d.reshape(nsamp * n, n)
@@ -525,7 +568,9 @@ class TaskConstraints:
         """Two end-effector points: the grasp point and one 1 m further along the gripper's z."""
         robot = self.p.robot
         g = np.asarray(robot.extra["grasp_point"], float)
-        return reach.Spheres(np.full(2, robot.end_effector), np.stack([g, g + [0.0, 0.0, 1.0]]), np.zeros(2), ["grasp", "axis"])
+        return reach.Spheres(
+            np.full(2, robot.end_effector), np.stack([g, g + [0.0, 0.0, 1.0]]), np.zeros(2), ["grasp", "axis"]
+        )
 
     # -- everything at once ------------------------------------------------------------------
     def check(self, y):
@@ -546,11 +591,11 @@ class TaskConstraints:
     def initial_guess(self, q_goal):
         """Unconstrained minimum-jerk Z for the given goal (a straight line in joint space)."""
         y = np.zeros(self.num_vars)
-        y[-self.n:] = q_goal
+        y[-self.n :] = q_goal
         for j, (qm, b, _) in enumerate(self.cost_matrices()):
             r = self.param.r
             rhs = -(b[:r] + qm[:r, r] * q_goal[j])
-            y[j:r * self.n:self.n] = np.linalg.solve(qm[:r, :r], rhs)
+            y[j : r * self.n : self.n] = np.linalg.solve(qm[:r, :r], rhs)
         return y
 
 
@@ -580,10 +625,16 @@ def solve_placement_ik(problem: TaskProblem, q_guess=None):
     for q0 in starts + [turned]:
         ik = InverseKinematics(plant, with_joint_limits=False)
         q = ik.q()
-        ik.AddPositionConstraint(ee, np.asarray(robot.extra["grasp_point"], float), plant.world_frame(),
-                                 target - PLACEMENT_TOL_M / 2, target + PLACEMENT_TOL_M / 2)
-        ik.AddAngleBetweenVectorsConstraint(plant.world_frame(), [0.0, 0.0, 1.0], ee, [0.0, 0.0, 1.0], 0.0,
-                                            GRIPPER_TILT_TOL_RAD / 2)
+        ik.AddPositionConstraint(
+            ee,
+            np.asarray(robot.extra["grasp_point"], float),
+            plant.world_frame(),
+            target - PLACEMENT_TOL_M / 2,
+            target + PLACEMENT_TOL_M / 2,
+        )
+        ik.AddAngleBetweenVectorsConstraint(
+            plant.world_frame(), [0.0, 0.0, 1.0], ee, [0.0, 0.0, 1.0], 0.0, GRIPPER_TILT_TOL_RAD / 2
+        )
         lo = np.where(np.isfinite(jp.position_lower), jp.position_lower + tb.position, -np.inf)
         hi = np.where(np.isfinite(jp.position_upper), jp.position_upper - tb.position, np.inf)
         prog = ik.get_mutable_prog()
@@ -635,8 +686,15 @@ def solve_task_trajectory(problem: TaskProblem, solver=None, fallback=True) -> T
         t_solve = time.perf_counter()
         y, status, rounds = _solve_rounds(con, y0, name)
         viol, clearance, torque_ratio = con.check(y) if y is not None else (np.inf, np.nan, np.nan)
-        attempts.append({"solver": name, "solver_status": status, "rounds": rounds,
-                         "time_s": time.perf_counter() - t_solve, "max_violation": viol})
+        attempts.append(
+            {
+                "solver": name,
+                "solver_status": status,
+                "rounds": rounds,
+                "time_s": time.perf_counter() - t_solve,
+                "max_violation": viol,
+            }
+        )
         res.solver, res.solver_status, res.max_violation = name, status, viol
         if y is not None and viol <= FEASIBILITY_TOL:
             # solved: the solver reports an optimum; feasible: it did not, our check passes
@@ -648,7 +706,9 @@ def solve_task_trajectory(problem: TaskProblem, solver=None, fallback=True) -> T
     details["attempts"] = attempts
     if not res.ok:
         res.status = "solver_failed" if all(a["solver_status"].startswith("error") for a in attempts) else "infeasible"
-        res.reason = "; ".join(f"{a['solver']}: {a['solver_status']}, max violation {a['max_violation']:.3g}" for a in attempts)
+        res.reason = "; ".join(
+            f"{a['solver']}: {a['solver_status']}, max violation {a['max_violation']:.3g}" for a in attempts
+        )
     return _finish(res, t0)
 
 
@@ -705,14 +765,20 @@ def _solve_with(con: TaskConstraints, y0, solver_name, spread, with_torque=True,
                 vals, jac = fn(ExtractValue(x)[:, 0])
                 return InitializeAutoDiff(vals, jac @ ExtractGradient(x))[:, 0]
             return fn(x)[0]
+
         return call
 
     if p.place_xyz is not None:
         tol = np.array([PLACEMENT_TOL_M - SOLVER_MARGIN / 10] * 3)
-        prog.AddConstraint(wrap(con.placement), np.concatenate([-tol, [-np.inf]]),
-                           np.concatenate([tol, [1 - np.cos(GRIPPER_TILT_TOL_RAD / 2)]]), q_goal)
+        prog.AddConstraint(
+            wrap(con.placement),
+            np.concatenate([-tol, [-np.inf]]),
+            np.concatenate([tol, [1 - np.cos(GRIPPER_TILT_TOL_RAD / 2)]]),
+            q_goal,
+        )
     else:
         prog.AddBoundingBoxConstraint(p.goal_q, p.goal_q, q_goal)
+
     def collision(x):
         return con.collision_grouped(x, spread)
 
@@ -760,8 +826,9 @@ def _solve_with(con: TaskConstraints, y0, solver_name, spread, with_torque=True,
     return result.GetSolution(y), str(result.get_solution_result()).replace("SolutionResult.", "")
 
 
-def certified_torque_ratio(problem: TaskProblem, trajectory: PiecewiseBezier, theta0, theta_lo, theta_hi,
-                           windows_per_piece=100):
+def certified_torque_ratio(
+    problem: TaskProblem, trajectory: PiecewiseBezier, theta0, theta_lo, theta_hi, windows_per_piece=100
+):
     """max_j sup |u_j| / limit_j of the ARMOUR command while tracking `trajectory`: over every
     instant (windows tiling each piece, Bézier hulls of q, dq, ddq), every tracking error in the
     tube and every theta in [theta_lo, theta_hi] (reachability's interval passivity regressor and
@@ -775,7 +842,7 @@ def certified_torque_ratio(problem: TaskProblem, trajectory: PiecewiseBezier, th
     for order in range(3):
         lo, hi = [], []
         for pts in trajectory.control_points:
-            d = _difference(pts, order) / trajectory.piece_duration ** order
+            d = _difference(pts, order) / trajectory.piece_duration**order
             sub = np.stack([restriction_matrix(DEGREE - order, a, b) @ d for a, b in zip(edges[:-1], edges[1:])])
             lo.append(sub.min(1))
             hi.append(sub.max(1))
@@ -786,8 +853,9 @@ def certified_torque_ratio(problem: TaskProblem, trajectory: PiecewiseBezier, th
         return Interval(_down(_down(lo - r) - 1e-12 * np.abs(lo)), _up(_up(hi + r) + 1e-12 * np.abs(hi)))
 
     q_box = pad(q_lo, q_hi, tb.position)
-    wp = reach.interval_passivity_regressor(problem.robot, q_box, pad(v_lo, v_hi, tb.velocity),
-                                            pad(v_lo, v_hi, tb.qd_a), pad(a_lo, a_hi, tb.qdd_a))
+    wp = reach.interval_passivity_regressor(
+        problem.robot, q_box, pad(v_lo, v_hi, tb.velocity), pad(v_lo, v_hi, tb.qd_a), pad(a_lo, a_hi, tb.qdd_a)
+    )
     # The robust input may exceed |w_bar| on the tube (h < 0): the same excess the planner adds.
     excess = reach.barrier_excess(problem.robot, q_box, theta_lo, theta_hi, tb)
     sup, _, _ = reach.torque_bound(wp, theta0, theta_lo, theta_hi, excess)
@@ -803,21 +871,43 @@ def cache_key(problem: TaskProblem, solver=None, fallback=True):
     model arrays, payload, obstacles, floor, start, goal, tube, settings, solver, VERSION."""
     robot = problem.robot
     doc = robot.extra.get("params_doc") or {}
-    files = [Path(robot.source)] + ([Path(robot.source).parent / doc["planner_spheres"]] if doc.get("planner_spheres") else [])
+    files = [Path(robot.source)] + (
+        [Path(robot.source).parent / doc["planner_spheres"]] if doc.get("planner_spheres") else []
+    )
     jp = robot.joint_params
     inputs = {
         "version": VERSION,
         "files": {f.name: hashlib.sha256(f.read_bytes()).hexdigest() for f in files},
         "params_doc": doc,
-        "joint_params": {k: getattr(jp, k) for k in ("names", "position_lower", "position_upper", "velocity_limit",
-                                                     "torque_limit", "coulomb", "viscous", "armature", "offset")},
-        "robot_theta": robot.theta, "coulomb_smoothing": robot.coulomb_smoothing, "end_effector": robot.end_effector,
+        "joint_params": {
+            k: getattr(jp, k)
+            for k in (
+                "names",
+                "position_lower",
+                "position_upper",
+                "velocity_limit",
+                "torque_limit",
+                "coulomb",
+                "viscous",
+                "armature",
+                "offset",
+            )
+        },
+        "robot_theta": robot.theta,
+        "coulomb_smoothing": robot.coulomb_smoothing,
+        "end_effector": robot.end_effector,
         "grasp_point": robot.extra.get("grasp_point"),
-        "theta": problem.theta, "dumbbell": None if problem.dumbbell is None else problem.dumbbell.__dict__,
+        "theta": problem.theta,
+        "dumbbell": None if problem.dumbbell is None else problem.dumbbell.__dict__,
         "obstacles": [[o.name, list(o.xyz_m), list(o.rpy_rad), list(o.size_m)] for o in problem.obstacles],
-        "floor_z": problem.floor_z, "q_start": problem.q_start, "goal_q": problem.goal_q, "place_xyz": problem.place_xyz,
-        "tracking": problem.tracking.__dict__, "settings": problem.settings.__dict__,
-        "solver": solver or problem.settings.solver, "fallback": fallback,
+        "floor_z": problem.floor_z,
+        "q_start": problem.q_start,
+        "goal_q": problem.goal_q,
+        "place_xyz": problem.place_xyz,
+        "tracking": problem.tracking.__dict__,
+        "settings": problem.settings.__dict__,
+        "solver": solver or problem.settings.solver,
+        "fallback": fallback,
     }
     text = json.dumps(_jsonable(inputs), sort_keys=True, default=float)
     return hashlib.sha256(text.encode()).hexdigest()
@@ -892,8 +982,10 @@ def verify_task_trajectory(problem: TaskProblem, trajectory: PiecewiseBezier, ra
     jp = robot.joint_params
     tb = problem.tracking
     builder = DiagramBuilder()
-    scene = Scenario(obstacles=list(problem.obstacles), planner=Planner(
-        floor_z_m=problem.floor_z if problem.floor_z is not None else -100.0))
+    scene = Scenario(
+        obstacles=list(problem.obstacles),
+        planner=Planner(floor_z_m=problem.floor_z if problem.floor_z is not None else -100.0),
+    )
     arm = add_real_arm(builder, scene, robot=robot, dumbbell=problem.dumbbell)
     monitor = builder.AddSystem(SafetyMonitor(arm.plant, arm.scene_graph, robot, period_s=1.0))
     diagram = builder.Build()
@@ -933,11 +1025,18 @@ def verify_task_trajectory(problem: TaskProblem, trajectory: PiecewiseBezier, ra
         failures.append("position outside limits - tube bound")
     if torque_ratio > 1:
         failures.append(f"torque ratio {torque_ratio:.3f} > 1")
-    if np.max(np.abs(v[[0, -1]])) > 1e-9 or np.max(np.abs(a[[0, -1]])) > 1e-9 or np.max(np.abs(q[0] - problem.q_start)) > 1e-9:
+    if (
+        np.max(np.abs(v[[0, -1]])) > 1e-9
+        or np.max(np.abs(a[[0, -1]])) > 1e-9
+        or np.max(np.abs(q[0] - problem.q_start)) > 1e-9
+    ):
         failures.append("does not start at q_start at rest or does not end at rest")
-    if problem.place_xyz is not None and (place_err > PLACEMENT_TOL_M * np.sqrt(3) + 1e-9 or tilt > GRIPPER_TILT_TOL_RAD):
+    if problem.place_xyz is not None and (
+        place_err > PLACEMENT_TOL_M * np.sqrt(3) + 1e-9 or tilt > GRIPPER_TILT_TOL_RAD
+    ):
         failures.append(f"placement error {place_err:.4g} m, gripper tilt {tilt:.3g} rad")
     if problem.goal_q is not None and np.max(np.abs(q[-1] - problem.goal_q)) > 1e-6:
         failures.append("does not end at goal_q")
-    return TaskVerification(not failures, float(clearance), pair, torque_ratio, vel_ratio, joint_ratio, place_err, tilt,
-                            len(t), failures)
+    return TaskVerification(
+        not failures, float(clearance), pair, torque_ratio, vel_ratio, joint_ratio, place_err, tilt, len(t), failures
+    )

@@ -4,6 +4,7 @@ A piece is (t_start_s, QuinticBezier, q_end). At time t the latest piece with t_
 evaluated at t - t_start (after its duration it rests at q_end: the built-in brake). Pieces
 live in the context (abstract state), so a planner can append pieces while the diagram runs.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -34,7 +35,7 @@ class Piece:
         T = self.curve.duration
         object.__setattr__(self, "_c0", coef)
         object.__setattr__(self, "_c1", coef[1:] * _POWERS[1:, None] / T)
-        object.__setattr__(self, "_c2", coef[2:] * (_POWERS[2:] * (_POWERS[2:] - 1))[:, None] / T ** 2)
+        object.__setattr__(self, "_c2", coef[2:] * (_POWERS[2:] * (_POWERS[2:] - 1))[:, None] / T**2)
 
     def evaluate(self, t):
         """(q, qd, qdd) at absolute time t; at rest at q_end after the duration."""
@@ -78,8 +79,12 @@ def make_trajectory_source(n, trajectory):
         def __init__(self):
             super().__init__()
             self._pieces_index = self.DeclareAbstractState(AbstractValue.Make(_as_pieces(trajectory)))
-            self.DeclareVectorOutputPort("desired", BasicVector(3 * n), self._calc,
-                                         prerequisites_of_calc={self.time_ticket(), self.abstract_state_ticket(self._pieces_index)})
+            self.DeclareVectorOutputPort(
+                "desired",
+                BasicVector(3 * n),
+                self._calc,
+                prerequisites_of_calc={self.time_ticket(), self.abstract_state_ticket(self._pieces_index)},
+            )
 
         def pieces(self, context):
             return context.get_abstract_state(self._pieces_index).get_value()

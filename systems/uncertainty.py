@@ -3,6 +3,7 @@
 One definition for the controller, the planner, the estimator and the drawn real arm; the floors
 are a scenario field (systems/config.py ParameterFloors).
 """
+
 import numpy as np
 
 from .config import ParameterFloors

@@ -1,7 +1,7 @@
 """Fixtures shared by the tests (plain helpers are in helpers.py). A module that defines a
 fixture of the same name uses its own."""
-import pytest
 
+import pytest
 from helpers import FULL, n_trials, params_with_spheres, shared_path  # noqa: F401 (test_gap.py still imports them from here)
 
 

@@ -1,4 +1,5 @@
 """Helpers shared by the tests (imported as `from helpers import ...`; fixtures live in conftest.py)."""
+
 import os
 from pathlib import Path
 
@@ -34,7 +35,10 @@ def params_with_spheres(tmp_path, spheres_path):
     from safesysid.systems.robot_model import MODELS_DIR
 
     params = tmp_path / "params.yaml"
-    params.write_text((MODELS_DIR / "kinova_gen3_params.yaml").read_text()
-                      .replace("urdf: kinova_gen3.urdf", f"urdf: {MODELS_DIR / 'kinova_gen3.urdf'}")
-                      .replace("planner_spheres: kinova_gen3_spheres.yaml", f"planner_spheres: {spheres_path}"))
+    params.write_text(
+        (MODELS_DIR / "kinova_gen3_params.yaml")
+        .read_text()
+        .replace("urdf: kinova_gen3.urdf", f"urdf: {MODELS_DIR / 'kinova_gen3.urdf'}")
+        .replace("planner_spheres: kinova_gen3_spheres.yaml", f"planner_spheres: {spheres_path}")
+    )
     return params

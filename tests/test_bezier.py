@@ -1,5 +1,4 @@
 import numpy as np
-
 from safesysid.systems.bezier import QuinticBezier
 
 

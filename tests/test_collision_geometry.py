@@ -7,12 +7,12 @@ dumbbell's cylinders. Each shape is sampled densely (surface and nested shells i
 SceneGraph at many joint configurations, and every sample must lie inside a planner sphere
 carried by the same body (spheres ride on body frames, so the check is per carrier body).
 """
+
 import numpy as np
 import pytest
+from helpers import params_with_spheres
 from pydrake.geometry import Box, Capsule, Cylinder, Role, Sphere
 from pydrake.systems.framework import DiagramBuilder
-
-from helpers import params_with_spheres
 from safesysid.scenario import SCENARIOS_DIR, load_scenario
 from safesysid.systems import reachability as reach
 from safesysid.systems.payload import load_dumbbells
@@ -58,7 +58,9 @@ def sample_shape(shape, n=24):
         surface = np.vstack(faces)
     elif isinstance(shape, Sphere):
         u, th = np.meshgrid(_ring(n), np.linspace(-np.pi / 2, np.pi / 2, n))
-        surface = shape.radius() * np.stack([np.cos(u) * np.cos(th), np.sin(u) * np.cos(th), np.sin(th)], -1).reshape(-1, 3)
+        surface = shape.radius() * np.stack([np.cos(u) * np.cos(th), np.sin(u) * np.cos(th), np.sin(th)], -1).reshape(
+            -1, 3
+        )
     else:
         raise AssertionError(f"no sampler for {type(shape).__name__}")
     return np.vstack([f * surface for f in (1.0, 0.75, 0.5, 0.25, 0.0)])
@@ -89,7 +91,8 @@ def worst_protrusions(robot, dumbbell, configurations):
                 continue  # obstacles and the floor
             body = plant.GetBodyFromFrameId(frame)
             carrier = reach.carrier_index(plant, body, robot.body_names)
-            label = f"{body.name()} {type(inspector.GetShape(gid)).__name__} ({'collision' if role == Role.kProximity else 'visual'})"
+            kind = "collision" if role == Role.kProximity else "visual"
+            label = f"{body.name()} {type(inspector.GetShape(gid)).__name__} ({kind})"
             shapes.append((gid, label, sample_shape(inspector.GetShape(gid)), spheres.body == carrier))
     worst = {}
     pctx = plant.GetMyMutableContextFromRoot(ctx)

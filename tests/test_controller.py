@@ -1,8 +1,8 @@
 """ARMOUR law: regressors, hand-computed cases, containment and exactness of w_bar / V_bar,
 the certified sigma_min and the per-joint tracking bounds."""
+
 import numpy as np
 import pytest
-
 from safesysid.systems import armour as C
 from safesysid.systems.intervals import Interval
 from safesysid.systems.payload import load_dumbbells, payload_theta_in_end_effector
@@ -20,8 +20,9 @@ def dyn(robot):
 
 
 def _box(robot, rng, ee_ratio=0.2):
-    theta_e = robot.theta_e + payload_theta_in_end_effector(load_dumbbells(MODELS_DIR / "dumbbells.yaml")["6lb"],
-                                                            robot.extra["grasp_point"])
+    theta_e = robot.theta_e + payload_theta_in_end_effector(
+        load_dumbbells(MODELS_DIR / "dumbbells.yaml")["6lb"], robot.extra["grasp_point"]
+    )
     rad = ee_ratio * np.abs(theta_e) + 1e-3
     return C.parameter_box(robot, theta_e + rng.uniform(-0.5, 0.5, 10) * rad, theta_e - rad, theta_e + rad)
 
@@ -154,9 +155,11 @@ def test_robust_gain_on_the_tube_boundary(robot, dyn, V_max):
         negative += out.h < 0
         over.append(out.lam - w_norm)
         ratio.append((out.lam - w_norm) / (bound - w_norm))
-    print(f"V_max {V_max}: h < 0 in {negative}/300 boundary states; lambda - |w_bar| up to {max(over):.3f} N m "
-          f"(the old bound |v_j| <= |w_bar| fails in {sum(o > 0 for o in over)}); "
-          f"up to {max(ratio):.3f} of the certified excess alpha eps mu / 2")
+    print(
+        f"V_max {V_max}: h < 0 in {negative}/300 boundary states; lambda - |w_bar| up to {max(over):.3f} N m "
+        f"(the old bound |v_j| <= |w_bar| fails in {sum(o > 0 for o in over)}); "
+        f"up to {max(ratio):.3f} of the certified excess alpha eps mu / 2"
+    )
     assert negative > 150 and max(over) > 0.3  # the states the old bound got wrong are sampled
     assert max(ratio) > 0.2  # the certified excess is not absurdly loose
 
@@ -172,7 +175,10 @@ def test_reproduction_lambda_exceeds_w_bar_at_the_quickstart_pose(robot, dyn):
     w_norm = np.linalg.norm(out.w_bar)
     eps = C.tracking_bounds_for(robot, gains, box.lo).eps
     bound = C.robust_gain_bound(w_norm, gains.alpha, eps, C.mass_spread(robot, q0, box.lo, box.hi))
-    print(f"h = {out.h:.5f} J, |v_4| = {abs(out.v[3]):.3f} N m, |w_bar| = {w_norm:.3f} N m, certified bound {bound:.3f} N m")
+    print(
+        f"h = {out.h:.5f} J, |v_4| = {abs(out.v[3]):.3f} N m, |w_bar| = {w_norm:.3f} N m, "
+        f"certified bound {bound:.3f} N m"
+    )
     assert out.h < 0 and abs(out.v[3]) > w_norm + 0.3
     assert abs(out.v[3]) <= bound
 
@@ -198,10 +204,14 @@ def test_law_hand_assembled(robot, dyn):
     out = C.armour_control(dyn, gains, q, v, q_d, qd_d, qdd_d, theta0, box)
     e = C.wrap_error(q_d - q, robot.joint_params.continuous)
     r = (qd_d - v) + gains.Kr * e
-    wp = robot.passivity_regressor(q[None], v[None], (qd_d + gains.Kr * e)[None], (qdd_d + gains.Kr * (qd_d - v))[None])[0]
+    wp = robot.passivity_regressor(
+        q[None], v[None], (qd_d + gains.Kr * e)[None], (qdd_d + gains.Kr * (qd_d - v))[None]
+    )[0]
     tau_nom = wp @ theta0
-    w_bar = np.maximum(wp @ box.mid + np.abs(wp) @ (box.hi - box.lo) / 2 - tau_nom,
-                       tau_nom - (wp @ box.mid - np.abs(wp) @ (box.hi - box.lo) / 2))
+    w_bar = np.maximum(
+        wp @ box.mid + np.abs(wp) @ (box.hi - box.lo) / 2 - tau_nom,
+        tau_nom - (wp @ box.mid - np.abs(wp) @ (box.hi - box.lo) / 2),
+    )
     m = robot.momentum_regressor(q[None], r[None])[0]
     v_bar = 0.5 * (r @ m @ box.mid + np.abs(r @ m) @ (box.hi - box.lo) / 2)
     h = 0.02 - v_bar
@@ -258,8 +268,10 @@ def test_sigma_min_certified_and_nearly_tight(robot):
         m = robot.mass_matrix(q, theta)
         m[:, np.arange(n), np.arange(n)] += rng.uniform(0.95 * ia, ia, (count, n)) - ia  # Ia anywhere in its box
         smallest = min(smallest, np.linalg.eigvalsh(m)[:, 0].min())
-    print(f"certified sigma_min {sigma:.4f} kg m^2; smallest eigenvalue in {SIGMA_SAMPLES} sampled configurations "
-          f"{smallest:.4f}")
+    print(
+        f"certified sigma_min {sigma:.4f} kg m^2; smallest eigenvalue in {SIGMA_SAMPLES} sampled configurations "
+        f"{smallest:.4f}"
+    )
     assert sigma <= smallest < 1.1 * sigma
 
 
@@ -305,13 +317,21 @@ def test_all_controllers_share_ports(robot):
     theta0, box = _box(robot, np.random.default_rng(6))
     for kind in ("armour", "pid", "adaptive", "adaptive_robust"):
         system = make_controller(kind, robot, gains, 0.001)
-        ports = {system.get_input_port(i).get_name(): system.get_input_port(i).size() for i in range(system.num_input_ports())}
+        ports = {
+            system.get_input_port(i).get_name(): system.get_input_port(i).size()
+            for i in range(system.num_input_ports())
+        }
         assert ports == expected
         assert system.GetOutputPort("torque").size() == n
         ctx = system.CreateDefaultContext()
         q = np.array([0.0, 0.26, 0.0, 2.0, 0.0, 0.9, 1.57])
-        for name, value in (("desired", np.concatenate([q, np.zeros(14)])), ("state", np.concatenate([q, np.zeros(7)])),
-                            ("theta0", theta0), ("theta_lower", box.lo), ("theta_upper", box.hi)):
+        for name, value in (
+            ("desired", np.concatenate([q, np.zeros(14)])),
+            ("state", np.concatenate([q, np.zeros(7)])),
+            ("theta0", theta0),
+            ("theta_lower", box.lo),
+            ("theta_upper", box.hi),
+        ):
             system.GetInputPort(name).FixValue(ctx, value)
         u = system.GetOutputPort("torque").Eval(ctx)
         # At rest on the trajectory every law commands the nominal gravity + offset torque.
@@ -327,8 +347,13 @@ def test_armour_controller_never_commands_nan(robot, caplog):
     q = np.array([0.0, 0.26, 0.0, 2.0, 0.0, 0.9, 1.57])
     bad = robot.theta.copy()
     bad[3] = np.nan
-    for name, value in (("desired", np.concatenate([q, np.zeros(14)])), ("state", np.concatenate([q + 0.01, np.zeros(7)])),
-                        ("theta0", bad), ("theta_lower", robot.theta), ("theta_upper", robot.theta)):
+    for name, value in (
+        ("desired", np.concatenate([q, np.zeros(14)])),
+        ("state", np.concatenate([q + 0.01, np.zeros(7)])),
+        ("theta0", bad),
+        ("theta_lower", robot.theta),
+        ("theta_upper", robot.theta),
+    ):
         system.GetInputPort(name).FixValue(ctx, value)
     with caplog.at_level("WARNING"):
         u = system.GetOutputPort("torque").Eval(ctx)

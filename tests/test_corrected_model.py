@@ -2,10 +2,10 @@
 loads its robot-side corrections into the RobotModel and its other effects into plant.effects,
 and the simulated arm built from it, driven by the same commanded trajectory as the "real"
 (Drake-simulated) arm, reproduces the real measured torque to the diagnosis' held-out RMS."""
+
 import numpy as np
 import pytest
 import yaml
-
 from safesysid.scenario import ScenarioError, load_scenario, robot_from_scenario
 from safesysid.systems import gap
 from safesysid.systems import gap_simulate as gs
@@ -19,16 +19,20 @@ DURATION_S = 5.0
 
 def write_corrected_model(path, model, diagnosis):
     """corrected_model.yaml (contracts.md) of a diagnosis' significant effects."""
-    effects = [{"name": e["name"], "joints": e["joints"], "params": e["params"]}
-               for e in diagnosis.result["effects"] if e["significant"]]
+    effects = [
+        {"name": e["name"], "joints": e["joints"], "params": e["params"]}
+        for e in diagnosis.result["effects"]
+        if e["significant"]
+    ]
     path.write_text(yaml.safe_dump({"model": str(model), "effects": effects}, sort_keys=False))
     return path
 
 
 def _scenario(folder, corrected, noise="none"):
     path = folder / "sim.yaml"
-    path.write_text(f"robot: {{corrected_model: {corrected.name}}}\npayload: {{dumbbell: none}}\n"
-                    f"noise: {{distribution: {noise}}}\n")
+    path.write_text(
+        f"robot: {{corrected_model: {corrected.name}}}\npayload: {{dumbbell: none}}\nnoise: {{distribution: {noise}}}\n"
+    )
     return load_scenario(path)
 
 
@@ -44,20 +48,24 @@ def reproduce(tmp_path, effects, seed):
     logs = [track_trajectory(real, controller, controller, tr, seed + k, DURATION_S) for k, tr in enumerate(trajs)]
     d = gap.diagnose(load_robot(URDF), logs[:2], logs[2:])
     check = logs[2]
-    quiet = load_scenario(overrides={"payload": {"dumbbell": "none"}, "noise": {"distribution": "none"},
-                                     "plant": {"effects": effects}})
+    quiet = load_scenario(
+        overrides={"payload": {"dumbbell": "none"}, "noise": {"distribution": "none"}, "plant": {"effects": effects}}
+    )
     noise = check.tau - track_trajectory(quiet, controller, controller, trajs[2], seed + 2, DURATION_S).tau
     rms = {}
     for name, diagnosis in (("corrected", d), ("uncorrected", None)):
         folder = tmp_path / name
         folder.mkdir()
-        corrected = write_corrected_model(folder / "corrected_model.yaml", URDF, diagnosis) if diagnosis else \
-            _write_empty(folder / "corrected_model.yaml")
+        corrected = (
+            write_corrected_model(folder / "corrected_model.yaml", URDF, diagnosis)
+            if diagnosis
+            else _write_empty(folder / "corrected_model.yaml")
+        )
         s = _scenario(folder, corrected)
         sim = track_trajectory(s, robot_from_scenario(s), controller, trajs[2], 99, DURATION_S)
         assert np.array_equal(sim.t, check.t)
         rms[name] = float(np.sqrt(np.mean((sim.tau - check.tau) ** 2)))
-    return d, rms["corrected"], float(np.sqrt(np.mean(noise ** 2))), rms["uncorrected"]
+    return d, rms["corrected"], float(np.sqrt(np.mean(noise**2))), rms["uncorrected"]
 
 
 def _write_empty(path):
@@ -83,8 +91,10 @@ def test_lagged_sensor_is_reproduced(tmp_path):
     assert lag["significant"] and lag["params"]["law"].startswith("first-order")
     assert lag["params"]["delay_s"] == pytest.approx(0.08, abs=5e-4)
     after = d.result["combined"]["rms_check_after"]
-    print(f"lag: held-out RMS {d.result['gap']['rms_check']:.3f} -> {after:.4f} N m; corrected simulation vs log "
-          f"{rms:.4f} N m (log noise {noise:.4f}); uncorrected simulation {before:.2f} N m")
+    print(
+        f"lag: held-out RMS {d.result['gap']['rms_check']:.3f} -> {after:.4f} N m; corrected simulation vs log "
+        f"{rms:.4f} N m (log noise {noise:.4f}); uncorrected simulation {before:.2f} N m"
+    )
     assert rms <= CLOSED_LOOP * after + noise
     assert before > 20 * (CLOSED_LOOP * after + noise)  # not vacuous
 
@@ -97,23 +107,33 @@ def test_corrected_model_reproduces_the_logged_torque(tmp_path):
     d, rms, noise, before = reproduce(tmp_path, {"torque_sensor_lag_s": 0.08, "load_friction_mu": mu}, seed=3)
     assert set(d.result["cause"]) == {"armature", "time_delay", "viscous_friction", "load_friction", "coulomb_friction"}
     after = d.result["combined"]["rms_check_after"]
-    print(f"full: held-out RMS {d.result['gap']['rms_check']:.3f} -> {after:.4f} N m; corrected simulation vs log "
-          f"{rms:.4f} N m (log noise {noise:.4f}); uncorrected simulation {before:.2f} N m")
+    print(
+        f"full: held-out RMS {d.result['gap']['rms_check']:.3f} -> {after:.4f} N m; corrected simulation vs log "
+        f"{rms:.4f} N m (log noise {noise:.4f}); uncorrected simulation {before:.2f} N m"
+    )
     assert rms <= CLOSED_LOOP * after + noise
     assert before > 20 * (CLOSED_LOOP * after + noise)
 
 
 def test_scenario_loads_both_sides(tmp_path):
-    doc = {"model": str(URDF), "effects": [
-        {"name": "viscous_friction", "joints": [1], "params": {"delta_Fv_Nms_rad": [2.0] + [0.0] * 6}},
-        {"name": "armature", "joints": [2], "params": {"delta_Ia_kgm2": [0.0, 3.0] + [0.0] * 5}},
-        {"name": "torque_offset", "joints": [3], "params": {"offset_Nm": [0, 0, 0.5, 0, 0, 0, 0]}},
-        {"name": "time_delay", "joints": [1], "params": {"delay_s": 0.1, "law": "first-order lag: tau_meas + ..."}},
-        {"name": "load_friction", "joints": [4], "params": {"mu": [0, 0, 0, 0.1, 0, 0, 0]}},
-        {"name": "joint_elasticity", "joints": [2], "params": {"compliance_rad_per_Nm": [0, 0.002, 0, 0, 0, 0, 0]}},
-        {"name": "torque_scale", "joints": [5], "params": {"scale": [1, 1, 1, 1, 1.05, 1, 1]}},
-        {"name": "base_tilt", "joints": [1], "params": {"roll_rad": 0.01, "pitch_rad": -0.02}},
-        {"name": "stribeck_friction", "joints": [6], "params": {"Fs_Nm": [0, 0, 0, 0, 0, 1.0, 0], "vs_rad_s": 0.03}}]}
+    doc = {
+        "model": str(URDF),
+        "effects": [
+            {"name": "viscous_friction", "joints": [1], "params": {"delta_Fv_Nms_rad": [2.0] + [0.0] * 6}},
+            {"name": "armature", "joints": [2], "params": {"delta_Ia_kgm2": [0.0, 3.0] + [0.0] * 5}},
+            {"name": "torque_offset", "joints": [3], "params": {"offset_Nm": [0, 0, 0.5, 0, 0, 0, 0]}},
+            {"name": "time_delay", "joints": [1], "params": {"delay_s": 0.1, "law": "first-order lag: tau_meas + ..."}},
+            {"name": "load_friction", "joints": [4], "params": {"mu": [0, 0, 0, 0.1, 0, 0, 0]}},
+            {"name": "joint_elasticity", "joints": [2], "params": {"compliance_rad_per_Nm": [0, 0.002, 0, 0, 0, 0, 0]}},
+            {"name": "torque_scale", "joints": [5], "params": {"scale": [1, 1, 1, 1, 1.05, 1, 1]}},
+            {"name": "base_tilt", "joints": [1], "params": {"roll_rad": 0.01, "pitch_rad": -0.02}},
+            {
+                "name": "stribeck_friction",
+                "joints": [6],
+                "params": {"Fs_Nm": [0, 0, 0, 0, 0, 1.0, 0], "vs_rad_s": 0.03},
+            },
+        ],
+    }
     (tmp_path / "c.yaml").write_text(yaml.safe_dump(doc))
     (tmp_path / "s.yaml").write_text("robot: {corrected_model: c.yaml, coulomb_smoothing_rad_s: 0.02}\n")
     s = load_scenario(tmp_path / "s.yaml")
@@ -130,17 +150,28 @@ def test_scenario_loads_both_sides(tmp_path):
     assert e.torque_sensor_offset_Nm == []  # the offset is the model's beta, counted once
 
 
-@pytest.mark.parametrize("scenario, effects, expect", [
-    ("robot: {corrected_model: missing.yaml}", None, "robot.corrected_model: file 'missing.yaml' not found"),
-    ("robot: {corrected_model: c.yaml, model: x.urdf}", [], "robot.model: not with robot.corrected_model"),
-    ("robot: {corrected_model: c.yaml}\nplant: {effects: {torque_sensor_lag_s: 0.1}}",
-     [{"name": "time_delay", "joints": [1], "params": {"delay_s": 0.05, "time_law": "lag"}}],
-     "plant.effects.torque_sensor_lag_s: also set by robot.corrected_model"),
-    ("robot: {corrected_model: c.yaml}", [{"name": "payload", "joints": [7], "params": {"theta_delta": [0.1] * 10}}],
-     "effects[0] payload"),
-    ("robot: {corrected_model: c.yaml}", [{"name": "load_friction", "joints": [1], "params": {}}],
-     "effects[0].params.mu: missing"),
-])
+@pytest.mark.parametrize(
+    "scenario, effects, expect",
+    [
+        ("robot: {corrected_model: missing.yaml}", None, "robot.corrected_model: file 'missing.yaml' not found"),
+        ("robot: {corrected_model: c.yaml, model: x.urdf}", [], "robot.model: not with robot.corrected_model"),
+        (
+            "robot: {corrected_model: c.yaml}\nplant: {effects: {torque_sensor_lag_s: 0.1}}",
+            [{"name": "time_delay", "joints": [1], "params": {"delay_s": 0.05, "time_law": "lag"}}],
+            "plant.effects.torque_sensor_lag_s: also set by robot.corrected_model",
+        ),
+        (
+            "robot: {corrected_model: c.yaml}",
+            [{"name": "payload", "joints": [7], "params": {"theta_delta": [0.1] * 10}}],
+            "effects[0] payload",
+        ),
+        (
+            "robot: {corrected_model: c.yaml}",
+            [{"name": "load_friction", "joints": [1], "params": {}}],
+            "effects[0].params.mu: missing",
+        ),
+    ],
+)
 def test_bad_corrected_models_are_named(tmp_path, scenario, effects, expect):
     if effects is not None:
         (tmp_path / "c.yaml").write_text(yaml.safe_dump({"model": str(URDF), "effects": effects}))
@@ -153,16 +184,22 @@ def test_bad_corrected_models_are_named(tmp_path, scenario, effects, expect):
 @pytest.mark.parametrize("delay, field", [(0.03, "torque_sensor_delay_s"), (-0.02, "time_delay_s")])
 def test_pure_delays_map_to_the_sensor_or_the_actuation(tmp_path, delay, field):
     """Torque lagging the motion (d > 0) is a late sensor reading; leading it, an actuation delay."""
-    doc = {"model": str(URDF), "effects": [{"name": "time_delay", "joints": [1],
-                                            "params": {"delay_s": delay, "law": "pure delay tau(t - d)"}}]}
+    doc = {
+        "model": str(URDF),
+        "effects": [
+            {"name": "time_delay", "joints": [1], "params": {"delay_s": delay, "law": "pure delay tau(t - d)"}}
+        ],
+    }
     (tmp_path / "c.yaml").write_text(yaml.safe_dump(doc))
     (tmp_path / "s.yaml").write_text("robot: {corrected_model: c.yaml}\n")
     assert getattr(load_scenario(tmp_path / "s.yaml").plant.effects, field) == abs(delay)
 
 
 def test_joint_count_is_checked(tmp_path):
-    doc = {"model": str(URDF), "effects": [{"name": "viscous_friction", "joints": [1],
-                                            "params": {"delta_Fv_Nms_rad": [1.0, 2.0]}}]}
+    doc = {
+        "model": str(URDF),
+        "effects": [{"name": "viscous_friction", "joints": [1], "params": {"delta_Fv_Nms_rad": [1.0, 2.0]}}],
+    }
     (tmp_path / "c.yaml").write_text(yaml.safe_dump(doc))
     (tmp_path / "s.yaml").write_text("robot: {corrected_model: c.yaml}\n")
     with pytest.raises(ScenarioError, match=r"effects\[0\].params.delta_Fv_Nms_rad: 2 values for a model with 7"):
@@ -172,8 +209,13 @@ def test_joint_count_is_checked(tmp_path):
 def test_late_torque_reading_is_diagnosed_as_its_delay():
     """torque_sensor_delay_s (the counterpart of a diagnosed pure delay with d > 0): 0.03 s in
     the simulated arm is diagnosed blind as a 0.03 s pure delay, so it maps back one to one."""
-    real = load_scenario(overrides={"payload": {"dumbbell": "none"}, "noise": NOISE,
-                                    "plant": {"effects": {"torque_sensor_delay_s": 0.03}}})
+    real = load_scenario(
+        overrides={
+            "payload": {"dumbbell": "none"},
+            "noise": NOISE,
+            "plant": {"effects": {"torque_sensor_delay_s": 0.03}},
+        }
+    )
     robot = robot_from_scenario(real)
     rng = np.random.default_rng(4)
     logs = [track_trajectory(real, robot, robot, gs.random_trajectory(robot, rng), 20 + k, 4.0) for k in range(3)]

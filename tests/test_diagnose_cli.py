@@ -1,10 +1,10 @@
 """`safesysid diagnose` end to end: contract fields, report, plots, corrected parameters,
 bad input -> one line, exit 2."""
+
 import json
 
 import numpy as np
 import pytest
-
 from safesysid.cli import main
 from safesysid.joint_log import JointLog, write_joint_log
 from safesysid.systems import gap
@@ -56,8 +56,13 @@ def test_diagnose_writes_the_contract(case, capsys):
     assert "inverse_dynamics_smoothed_a" in next(iter(g["residual_forms"].values()))
     report = (out / "report.md").read_text()
     assert "viscous_friction" in report and f"{g['rms_check']:.3f}" in report
-    for name in ("residual_vs_velocity.png", "residual_vs_acceleration.png", "residual_vs_gravity.png",
-                 "residual_timeseries.png", "joint_rms.png"):
+    for name in (
+        "residual_vs_velocity.png",
+        "residual_vs_acceleration.png",
+        "residual_vs_gravity.png",
+        "residual_timeseries.png",
+        "joint_rms.png",
+    ):
         assert (out / name).stat().st_size > 1000
     # Feed back: the corrected parameters load as a joint-parameter YAML with the fitted friction.
     fixed = load_robot(params_path=out / "corrected_params.yaml")
@@ -95,7 +100,9 @@ def test_leave_one_out_pools_the_folds(case, capsys):
     every fold) agreeing with the folds' own diagnosis.json."""
     root, urdf, paths = case
     out = root / "loo"
-    assert main(["diagnose", "--model", str(urdf), "--leave-one-out", "--fit", *map(str, paths), "--out", str(out)]) == 0
+    assert (
+        main(["diagnose", "--model", str(urdf), "--leave-one-out", "--fit", *map(str, paths), "--out", str(out)]) == 0
+    )
     res = json.loads((out / "leave_one_out.json").read_text())
     folds = [json.loads((out / f"fold{k + 1}_log{k}" / "diagnosis.json").read_text()) for k in range(3)]
     assert [f["check"] for f in res["folds"]] == [[str(p)] for p in paths]
@@ -139,13 +146,21 @@ def test_bad_input_is_one_line_exit_2(case, tmp_path, capsys):
     # Joint count different from the model (the 7-joint Kinova).
     kin = tmp_path / "kinova.yaml"
     kin.write_text("name: k\n")
-    _one_line_exit_2(["diagnose", "--model", str(kin), "--fit", str(a), "--check", str(c), "--out", str(tmp_path / "o")],
-                     capsys, "joints")
+    _one_line_exit_2(
+        ["diagnose", "--model", str(kin), "--fit", str(a), "--check", str(c), "--out", str(tmp_path / "o")],
+        capsys,
+        "joints",
+    )
     # A URDF that does not load.
     broken = tmp_path / "broken.urdf"
-    broken.write_text("<robot name='x'><link name='a'/><joint name='j' type='revolute'><parent link='a'/></joint></robot>")
-    _one_line_exit_2(["diagnose", "--model", str(broken), "--fit", str(a), "--check", str(c), "--out", str(tmp_path / "o")],
-                     capsys, "broken.urdf")
+    broken.write_text(
+        "<robot name='x'><link name='a'/><joint name='j' type='revolute'><parent link='a'/></joint></robot>"
+    )
+    _one_line_exit_2(
+        ["diagnose", "--model", str(broken), "--fit", str(a), "--check", str(c), "--out", str(tmp_path / "o")],
+        capsys,
+        "broken.urdf",
+    )
     # No model.
     _one_line_exit_2(["diagnose", "--fit", str(a), "--check", str(c)], capsys, "--model")
     _one_line_exit_2(base[:3] + ["--leave-one-out", "--fit", str(a)], capsys, "--leave-one-out")
@@ -175,8 +190,12 @@ def test_scenario_yaml_as_model(tmp_path, capsys):
         tau = tau + 0.2 * rng.uniform(-1, 1, tau.shape)
         paths.append(write_joint_log(tmp_path / f"k{k}.csv", JointLog(t, q, v, tau, a)))
     out = tmp_path / "out"
-    assert main(["diagnose", "--model", str(scenario), "--fit", str(paths[0]), "--check", str(paths[1]),
-                 "--out", str(out)]) == 0
+    assert (
+        main(
+            ["diagnose", "--model", str(scenario), "--fit", str(paths[0]), "--check", str(paths[1]), "--out", str(out)]
+        )
+        == 0
+    )
     res = json.loads((out / "diagnosis.json").read_text())
     assert res["cause"] == ["torque_offset"]
     assert next(e for e in res["effects"] if e["name"] == "torque_offset")["joints"] == [2]
@@ -197,11 +216,17 @@ def test_corrected_model_is_scored_frozen_on_new_logs(case, capsys, monkeypatch)
     monkeypatch.setattr(gap.Problem, "solve", no_fitting)
     capsys.readouterr()
     scored = root / "frozen_out"
-    assert main(["diagnose", "--model", str(out / "corrected_model.yaml"), "--check", str(c), "--out", str(scored)]) == 0
+    assert (
+        main(["diagnose", "--model", str(out / "corrected_model.yaml"), "--check", str(c), "--out", str(scored)]) == 0
+    )
     res = json.loads((scored / "diagnosis.json").read_text())
     assert abs(res["combined"]["rms_check_after"] - ref["combined"]["rms_check_after"]) < 1e-6
-    assert np.abs(np.subtract(res["combined"]["rms_check_per_joint_after"],
-                              ref["combined"]["rms_check_per_joint_after"])).max() < 1e-6
+    assert (
+        np.abs(
+            np.subtract(res["combined"]["rms_check_per_joint_after"], ref["combined"]["rms_check_per_joint_after"])
+        ).max()
+        < 1e-6
+    )
     assert res["cause"] == ref["cause"] and res["frozen"]["fitted"] == "nothing"
     printed = capsys.readouterr().out
     assert "nothing fitted" in printed and f"{ref['combined']['rms_check_after']:.6f}" in printed
@@ -224,12 +249,16 @@ def test_corrected_model_bad_input_is_one_line_exit_2(case, tmp_path, capsys):
         mutate(bad)
         path = tmp_path / "corrected_model.yaml"
         path.write_text(yaml.safe_dump(bad))
-        _one_line_exit_2(["diagnose", "--model", str(path), "--check", str(c), *extra, "--out", str(tmp_path / "o")],
-                         capsys, needle)
+        _one_line_exit_2(
+            ["diagnose", "--model", str(path), "--check", str(c), *extra, "--out", str(tmp_path / "o")], capsys, needle
+        )
 
     run_with(lambda d: d["effects"][0]["params"].pop("delta_Fv_Nms_rad"), "effects[0].params.delta_Fv_Nms_rad")
     run_with(lambda d: d["effects"][0].update(name="magic"), "effects[0].name")
-    run_with(lambda d: d["effects"][0]["params"].update(delta_Fv_Nms_rad=[1.0, 2.0, 3.0]), "effects[0].params.delta_Fv_Nms_rad")
+    run_with(
+        lambda d: d["effects"][0]["params"].update(delta_Fv_Nms_rad=[1.0, 2.0, 3.0]),
+        "effects[0].params.delta_Fv_Nms_rad",
+    )
     run_with(lambda d: d.update(model="nowhere.urdf", model_resolved=""), "model")
     run_with(lambda d: d["scoring"].update(residual_form="magic"), "scoring.residual_form")
     run_with(lambda d: None, "--check only", extra=("--fit", str(a)))
@@ -249,8 +278,12 @@ def test_report_html_renders_in_headless_chromium(case):
     assert main(["diagnose", "--model", str(urdf), "--fit", str(a), str(b), "--check", str(c), "--out", str(out)]) == 0
     page = (out / "report.html").read_text()
     n_images = page.count("<img ")
-    assert n_images >= 5 and "src=\"data:image/png;base64," in page and ".png\"" not in page
-    dom = subprocess.run([browser, "--headless", "--no-sandbox", "--disable-gpu", "--dump-dom",
-                          (out / "report.html").as_uri()], capture_output=True, text=True, timeout=120).stdout
+    assert n_images >= 5 and 'src="data:image/png;base64,' in page and '.png"' not in page
+    dom = subprocess.run(
+        [browser, "--headless", "--no-sandbox", "--disable-gpu", "--dump-dom", (out / "report.html").as_uri()],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    ).stdout
     assert f'data-images-decoded="{n_images}"' in dom
     assert "Where:" in dom and "Held-out (test):" in dom

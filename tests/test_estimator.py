@@ -1,12 +1,13 @@
 """Algorithm 1 (systems/estimation/): data model, solver, provable interval, incremental use."""
+
 import numpy as np
 import pytest
-
 from helpers import CENTRE, PAYLOADS, PRIOR, PRIOR_NOMINAL, n_trials
 from safesysid.systems import estimation as E
 from safesysid.systems import inertial
 from safesysid.systems.payload import load_dumbbells, payload_theta_in_end_effector
 from safesysid.systems.robot_model import MODELS_DIR
+
 
 def true_theta(rng, robot, dumbbell, ratio=0.05):
     """Whole-robot truth: θ_r perturbed inside its ±ratio box, θ_e = end effector + payload."""
@@ -40,7 +41,7 @@ def test_segments_by_time_never_span_a_gap():
     assert len(bounds) > 10
     for a, b in bounds:
         assert t[b] - t[a] >= 0.1 - 1e-12
-        assert np.max(np.diff(t[a:b + 1])) <= 0.05  # never across the gap
+        assert np.max(np.diff(t[a : b + 1])) <= 0.05  # never across the gap
         assert t[b - 1] - t[a] < 0.1  # ends at the first sample past the horizon
     shared = bounds[1:, 0] == bounds[:-1, 1]
     assert shared.sum() == len(bounds) - 2  # contiguous except across the gap
@@ -54,13 +55,15 @@ def test_integrated_rate_regressor_matches_per_sample_regressor(robot, integrati
     t = t + rng.uniform(0, 2e-4, len(t)) * (np.arange(len(t)) > 0)  # uneven steps
     bounds, _ = E.segment_bounds(t, 0.1, 0.05)
     fast = E.integrated_rate_regressor(robot.tree, q, v, t, bounds, integration)
-    wc = robot.momentum_rate_regressor(q, v)[..., :10 * robot.n]
-    ref = np.stack([np.tensordot(E.sample_weights(t, a, b, integration), wc[a:b + 1], 1) for a, b in bounds])
+    wc = robot.momentum_rate_regressor(q, v)[..., : 10 * robot.n]
+    ref = np.stack([np.tensordot(E.sample_weights(t, a, b, integration), wc[a : b + 1], 1) for a, b in bounds])
     assert np.abs(fast - ref).max() <= 1e-12 * np.abs(ref).max()
 
 
-@pytest.mark.parametrize("integration, rate_hz, period_s", [("trapezoid", 1000.0, None), ("euler", 1000.0, None),
-                                                           ("trapezoid", 200.0, 0.5), ("euler", 100.0, 1.0)])
+@pytest.mark.parametrize(
+    "integration, rate_hz, period_s",
+    [("trapezoid", 1000.0, None), ("euler", 1000.0, None), ("trapezoid", 200.0, 0.5), ("euler", 100.0, 1.0)],
+)
 def test_quadrature_bound_covers_the_integration_error(robot, dumbbells, integration, rate_hz, period_s):
     """Noise-free held-torque log and the true θ: ∫τ dt is exact (left sum of the held torque), so
     every row's residual is the quadrature error of ∫W_c θ dt; it is inside the bound, also at
@@ -89,8 +92,10 @@ def test_quadrature_bound_grows_with_the_box(robot, dumbbells):
     t, q, v, _, tau = E.simulate_log(rng, robot, theta, 1.0, centre=CENTRE)
     settings = E.EstimatorSettings()
     bounds, _ = E.segment_bounds(t, settings.horizon_s, settings.segment_gap_s())
-    quads = [E.build_segment_rows(robot, t, q, v, tau, bounds, settings, (theta, k * 0.05 * np.abs(theta))).quad
-             for k in (0, 1, 2)]
+    quads = [
+        E.build_segment_rows(robot, t, q, v, tau, bounds, settings, (theta, k * 0.05 * np.abs(theta))).quad
+        for k in (0, 1, 2)
+    ]
     assert np.all(quads[0] <= quads[1]) and np.all(quads[1] <= quads[2]) and np.any(quads[0] < quads[2])
 
 
@@ -111,7 +116,11 @@ def test_cost_gradient_and_hessian_are_exact():
         d = np.zeros(10)
         d[k] = h
         gp, gm = E.cost_grad_hess(eta + d, A, b, c)[1], E.cost_grad_hess(eta - d, A, b, c)[1]
-        assert g[k] == pytest.approx((E.cost_grad_hess(eta + d, A, b, c)[0] - E.cost_grad_hess(eta - d, A, b, c)[0]) / (2 * h), rel=1e-5, abs=1e-6)
+        assert g[k] == pytest.approx(
+            (E.cost_grad_hess(eta + d, A, b, c)[0] - E.cost_grad_hess(eta - d, A, b, c)[0]) / (2 * h),
+            rel=1e-5,
+            abs=1e-6,
+        )
         assert np.allclose(H[:, k], (gp - gm) / (2 * h), rtol=1e-5, atol=1e-5)
 
 
@@ -120,7 +129,8 @@ def test_solver_recovers_consistent_optimum_and_ift_equals_linear_map(robot):
     constant linear map Y⁺ ∂U/∂m (the residual-curvature term vanishes at the optimum)."""
     rng = np.random.default_rng(6)
     theta_true = robot.theta_e + payload_theta_in_end_effector(
-        load_dumbbells(MODELS_DIR / "dumbbells.yaml")["5lb"], robot.extra["grasp_point"])
+        load_dumbbells(MODELS_DIR / "dumbbells.yaml")["5lb"], robot.extra["grasp_point"]
+    )
     Y = rng.normal(size=(80, 10)) * np.r_[5.0, 1, 1, 1, 0.3, 0.3, 0.3, 0.3, 0.3, 0.3]
     U = Y @ theta_true + rng.normal(scale=1e-3, size=80)
     A, b, c = E.ls_cost_terms(Y, U)
@@ -196,7 +206,7 @@ def test_held_torque_with_uneven_steps_and_gaps(robot, dumbbells, integration):
     est = ie.update()
     assert est.consistent and est.contains(theta_e)
     for a, b in zip(ie.rows.start_index, ie.rows.end_index):
-        assert np.max(np.diff(t[a:b + 1])) <= min(settings.max_gap_s, 1.5 * settings.hold_period_s)
+        assert np.max(np.diff(t[a : b + 1])) <= min(settings.max_gap_s, 1.5 * settings.hold_period_s)
 
 
 def test_held_torque_segments_never_span_a_lost_sample(robot, dumbbells):
@@ -212,7 +222,7 @@ def test_held_torque_segments_never_span_a_lost_sample(robot, dumbbells):
     tk = t[keep]
     assert len(ie.rows) > 0
     for a, b in zip(ie.rows.start_index, ie.rows.end_index):
-        assert np.max(np.diff(tk[a:b + 1])) < 1.5e-3
+        assert np.max(np.diff(tk[a : b + 1])) < 1.5e-3
 
 
 def test_a_log_slower_than_the_hold_period_is_refused_with_a_hint(robot):

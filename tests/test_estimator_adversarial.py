@@ -14,11 +14,11 @@ a missing parameter floor) puts it outside.
 
 CI: 64 cases (a 5 % failure rate goes unseen with probability 0.95^64 = 4 %); SAFESYSID_FULL=1: 400.
 """
+
 import dataclasses
 
 import numpy as np
 import pytest
-
 from helpers import CENTRE, PAYLOADS, PRIOR, PRIOR_NOMINAL, n_trials
 from safesysid.systems import estimation as E
 from safesysid.systems.estimation.enclosure import _left_inverse
@@ -34,7 +34,11 @@ def theta_r_radius(est):
 
 def left_inverse(est, rows, kind):
     """One of the estimator's two least-squares left inverses L (10, S·n)."""
-    settings = est.settings if kind == "map" else dataclasses.replace(est.settings, point_estimate="paper", row_weighting="bound")
+    settings = (
+        est.settings
+        if kind == "map"
+        else dataclasses.replace(est.settings, point_estimate="paper", row_weighting="bound")
+    )
     return _left_inverse(rows, est.theta_r, theta_r_radius(est), settings)[0]
 
 
@@ -74,8 +78,9 @@ def make_case(robot, dumbbells, index, duration_s=3.0):
         sign = np.where(seg[:, None] >= 0, push * np.sign(G[np.maximum(seg, 0)]), 1.0)
     else:
         corner = index % 2 == 0
-        theta[rest] = probe.theta_r + rad_r * (rng.choice([-1.0, 1.0], rest.sum()) if corner
-                                               else rng.uniform(-1, 1, rest.sum()))
+        theta[rest] = probe.theta_r + rad_r * (
+            rng.choice([-1.0, 1.0], rest.sum()) if corner else rng.uniform(-1, 1, rest.sum())
+        )
         bounds, _ = E.segment_bounds(t, probe.settings.horizon_s, probe.settings.max_gap_s)
         seg = held_samples(t, bounds)
         if pattern == "uniform":

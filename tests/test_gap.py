@@ -1,8 +1,8 @@
 """Gap diagnosis (systems/gap.py): residual forms, effect columns, constrained fits, selection,
 and the withheld-effect self-check (systems/gap_simulate.py)."""
+
 import numpy as np
 import pytest
-
 from helpers import n_trials, shared_path
 from safesysid.joint_log import JointLog
 from safesysid.systems import gap, inertial
@@ -10,10 +10,16 @@ from safesysid.systems import gap_simulate as gs
 from safesysid.systems.robot_model import load_robot
 
 TWO_LINK = """<robot name="two"><link name="base"/>
-  <link name="l1"><inertial><origin xyz="0.15 0 0.02"/><mass value="2.0"/><inertia ixx="0.01" iyy="0.03" izz="0.03" ixy="0" ixz="0" iyz="0"/></inertial></link>
-  <link name="l2"><inertial><origin xyz="0.12 0 0"/><mass value="1.0"/><inertia ixx="0.004" iyy="0.01" izz="0.012" ixy="0" ixz="0" iyz="0"/></inertial></link>
-  <joint name="j1" type="revolute"><parent link="base"/><child link="l1"/><axis xyz="0 1 0"/><limit lower="-2.5" upper="2.5" effort="60" velocity="2"/></joint>
-  <joint name="j2" type="revolute"><parent link="l1"/><child link="l2"/><origin xyz="0.3 0 0"/><axis xyz="0 1 0"/><limit lower="-2.5" upper="2.5" effort="30" velocity="2"/></joint>
+  <link name="l1"><inertial>
+    <origin xyz="0.15 0 0.02"/><mass value="2.0"/>
+    <inertia ixx="0.01" iyy="0.03" izz="0.03" ixy="0" ixz="0" iyz="0"/></inertial></link>
+  <link name="l2"><inertial>
+    <origin xyz="0.12 0 0"/><mass value="1.0"/>
+    <inertia ixx="0.004" iyy="0.01" izz="0.012" ixy="0" ixz="0" iyz="0"/></inertial></link>
+  <joint name="j1" type="revolute"><parent link="base"/><child link="l1"/><axis xyz="0 1 0"/>
+    <limit lower="-2.5" upper="2.5" effort="60" velocity="2"/></joint>
+  <joint name="j2" type="revolute"><parent link="l1"/><child link="l2"/><origin xyz="0.3 0 0"/><axis xyz="0 1 0"/>
+    <limit lower="-2.5" upper="2.5" effort="30" velocity="2"/></joint>
 </robot>"""
 
 
@@ -66,8 +72,12 @@ def test_effect_columns_reproduce_linear_effects_exactly(two_link, form):
     parameters (friction, armature, offset, payload), in both residual forms."""
     n = two_link.n
     theta_p = gs.payload_theta(two_link, 1.2, np.random.default_rng(1))
-    truth = {"coulomb_friction": np.array([0.8, 0.0]), "viscous_friction": np.array([0.0, 1.5]),
-             "armature": np.array([0.3, 0.1]), "torque_offset": np.array([-0.4, 0.7])}
+    truth = {
+        "coulomb_friction": np.array([0.8, 0.0]),
+        "viscous_friction": np.array([0.0, 1.5]),
+        "armature": np.array([0.3, 0.1]),
+        "torque_offset": np.array([-0.4, 0.7]),
+    }
     effects = {k: {"delta": v} for k, v in truth.items()}
     effects["payload"] = {"theta": theta_p}
     (log,) = _logs(two_link, 2, effects, n=1)
@@ -188,8 +198,10 @@ def test_reference_gen3_urdf_and_real_logs_leave_one_run_out():
     assert sat[0][:, 0].any() and sat[2][:, 0].any() and not sat[1].any()
     # Nested leave-one-run-out: the held-out run is scored once; selection runs on inner folds
     # of the other two runs only (leave one of them out). CI: the first fold; full: all three.
-    folds = [gap.diagnose(model, [l for k, l in enumerate(logs) if k != held], [logs[held]])
-             for held in range(n_trials(1, 3))]
+    folds = [
+        gap.diagnose(model, [l for k, l in enumerate(logs) if k != held], [logs[held]])
+        for held in range(n_trials(1, 3))
+    ]
     for held, d in enumerate(folds):
         r = d.result
         assert all(str(runs[held]) not in f["fit"] + f["validate"] for f in r["cross_validation"]["folds"])
@@ -247,7 +259,7 @@ def test_speed_saturated_samples_are_found_and_left_out(two_link, monkeypatch):
     limit = 0.8 * min(np.abs(l.v[:, 0]).max() for l in clean)
     logs, pinned = zip(*(_pin_at_top_speed(l, 0, limit, 6.0, rng) for l in clean))
     masks = gap.velocity_saturation(logs)
-    for log, m, p in zip(logs, masks, pinned):
+    for m, p in zip(masks, pinned):
         assert not m[:, 1].any()
         edges = np.diff(np.concatenate([[0], p.astype(int), [0]]))
         for i0, i1 in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)):
@@ -299,8 +311,7 @@ def test_first_order_lag_is_exact_for_piecewise_linear_input():
         x = np.where(t <= tc, s1 * (t - t0), s1 * (tc - t0) + s2 * (t - tc))[:, None]
         y = gap.first_order_lag(t, x, bounds, d)[seg, 0]
         ts = t[seg]
-        expected = np.where(ts <= tc, x[seg, 0] - d * s1,
-                            x[seg, 0] - d * s2 - d * (s1 - s2) * np.exp(-(ts - tc) / d))
+        expected = np.where(ts <= tc, x[seg, 0] - d * s1, x[seg, 0] - d * s2 - d * (s1 - s2) * np.exp(-(ts - tc) / d))
         assert np.abs(y - expected).max() < 1e-9
 
 
@@ -326,8 +337,15 @@ def test_restarted_lag_matches_the_ode_with_state_resets(integrated):
         total = 0.0  # int y, continuous across a mid-segment reset
         for s, e in zip(starts, ends):
             stop = t[e] if e < len(t) else t[-1]
-            sol = solve_ivp(lambda tt, z: [(np.interp(tt, t, x[:, j]) - z[0]) / d, z[0]], (t[s], stop),
-                            [anchor[s, j], total], dense_output=True, rtol=1e-10, atol=1e-12, max_step=0.002)
+            sol = solve_ivp(
+                lambda tt, z: [(np.interp(tt, t, x[:, j]) - z[0]) / d, z[0]],  # noqa: B023 (solved here)
+                (t[s], stop),
+                [anchor[s, j], total],
+                dense_output=True,
+                rtol=1e-10,
+                atol=1e-12,
+                max_step=0.002,
+            )
             truth_y[s:e, j], truth_int[s:e, j] = sol.sol(t[s:e])
             total = sol.sol(stop)[1]
     smp = {"t": t, "restarts": restarts, "antiderivative": integrated}
@@ -339,7 +357,7 @@ def test_restarted_lag_matches_the_ode_with_state_resets(integrated):
         X = gap._cumtrapz(t, x)
         out = gap.restarted_lag(smp, X, gap.first_order_lag(t, X, bounds, d), d, anchor)
         for s0, s1 in bounds:  # differences inside a segment: the integral of the reset y
-            err = (out[s0:s1 + 1] - out[s0]) - (truth_int[s0:s1 + 1] - truth_int[s0])
+            err = (out[s0 : s1 + 1] - out[s0]) - (truth_int[s0 : s1 + 1] - truth_int[s0])
             assert np.abs(err).max() < 1e-4
         # the reset really changes the answer (the test is not vacuous)
         plain = gap.first_order_lag(t, X, bounds, d)
@@ -430,8 +448,14 @@ def test_detection_ladder_finds_the_smallest_reliable_size(monkeypatch):
     """The ladder walk (stub detector) returns the smallest size found in >= 90 % of the cases
     from either side of its starting point; 8/10 is not enough; None above the ladder."""
     sizes = gs.DETECTION_LADDERS["torque_offset"][2]  # 0.01 ... 1.0, walk starts at 0.1
-    for threshold, partial, expected in ((0.005, None, 0.01), (0.02, None, 0.02), (0.5, None, 0.5),
-                                         (0.2, 0.2, 0.5), (3.0, None, None)):
+    for threshold, partial, expected in (
+        (0.005, None, 0.01),
+        (0.02, None, 0.02),
+        (0.5, None, 0.5),
+        (0.2, 0.2, 0.5),
+        (3.0, None, None),
+    ):
+
         def stub(job, th=threshold, part=partial):
             size, i = job[4], job[5]
             return {"found": size >= th and not (size == part and i < 2), "false": [], "snr": 1.0}
@@ -450,7 +474,6 @@ def test_three_logs_of_1500_samples_in_under_10_s_cpu():
     import scipy.optimize  # noqa: F401  (import time is not the diagnosis' time)
     import scipy.signal  # noqa: F401
     import scipy.stats  # noqa: F401
-
     from safesysid.benchmarks.bench_diagnose import logs_3x1500
 
     model = load_robot()

@@ -1,6 +1,5 @@
 import numpy as np
 import pytest
-
 from safesysid.systems import inertial
 
 
@@ -13,9 +12,21 @@ def test_jacobian_and_hessian_match_finite_differences(seed):
     eta = np.random.default_rng(seed).normal(scale=0.6, size=10)
     h = 1e-6
     eye = np.eye(10)
-    jac_fd = np.stack([(inertial.log_cholesky_to_theta(eta + h * e) - inertial.log_cholesky_to_theta(eta - h * e)) / (2 * h) for e in eye], 1)
+    jac_fd = np.stack(
+        [
+            (inertial.log_cholesky_to_theta(eta + h * e) - inertial.log_cholesky_to_theta(eta - h * e)) / (2 * h)
+            for e in eye
+        ],
+        1,
+    )
     assert np.allclose(inertial.log_cholesky_jacobian(eta), jac_fd, atol=1e-7)
-    hess_fd = np.stack([(inertial.log_cholesky_jacobian(eta + h * e) - inertial.log_cholesky_jacobian(eta - h * e)) / (2 * h) for e in eye], 2)
+    hess_fd = np.stack(
+        [
+            (inertial.log_cholesky_jacobian(eta + h * e) - inertial.log_cholesky_jacobian(eta - h * e)) / (2 * h)
+            for e in eye
+        ],
+        2,
+    )
     assert np.allclose(inertial.log_cholesky_hessian(eta), hess_fd, atol=1e-6)
 
 

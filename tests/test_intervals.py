@@ -1,5 +1,4 @@
 import numpy as np
-
 from safesysid.systems import intervals
 from safesysid.systems.intervals import Interval
 

@@ -2,12 +2,12 @@
 ROS 1), mapping by joint name, header stamps, and `safesysid diagnose` giving the same
 diagnosis on a bag as on the CSV of the same data; bad bags -> one line naming file, topic and
 field, exit 2."""
+
 import json
 from decimal import Decimal
 
 import numpy as np
 import pytest
-
 from safesysid.cli import main
 from safesysid.joint_bag import read_joint_bag
 from safesysid.joint_log import JointLog, LogError, read_joint_log, write_joint_log
@@ -20,9 +20,9 @@ TOPIC = "/arm/joint_states"
 
 def _stamp(t):
     """(sec, nanosec) of a time written in the CSV (at most 9 decimals: exact)."""
-    ns = Decimal(repr(float(t))) * 10 ** 9
+    ns = Decimal(repr(float(t))) * 10**9
     assert ns == ns.to_integral_value()
-    return divmod(int(ns), 10 ** 9)
+    return divmod(int(ns), 10**9)
 
 
 def write_bag(path, fmt, log, names, topic=TOPIC, zero_stamps=False, extra_group=True, edit=None):
@@ -48,8 +48,9 @@ def write_bag(path, fmt, log, names, topic=TOPIC, zero_stamps=False, extra_group
     if fmt == "ros1":
         writer = Writer1(path)
     else:
-        writer = Writer(path, version=9,
-                        storage_plugin=StoragePlugin.MCAP if fmt == "ros2_mcap" else StoragePlugin.SQLITE3)
+        writer = Writer(
+            path, version=9, storage_plugin=StoragePlugin.MCAP if fmt == "ros2_mcap" else StoragePlugin.SQLITE3
+        )
     with writer:
         con = writer.add_connection(topic, JointState.__msgtype__, typestore=store)
         for k in range(len(log)):
@@ -57,7 +58,7 @@ def write_bag(path, fmt, log, names, topic=TOPIC, zero_stamps=False, extra_group
             fields = {"position": log.q[k, order], "velocity": log.v[k, order], "effort": log.tau[k, order]}
             if edit:
                 edit(k, fields)
-            bag_time = stamp[0] * 10 ** 9 + stamp[1]
+            bag_time = stamp[0] * 10**9 + stamp[1]
             msg = message(stamp, fields, [names[i] for i in order])
             writer.write(con, bag_time, serialize(msg, JointState.__msgtype__))
             if extra_group and k % 10 == 3:
@@ -126,16 +127,47 @@ def test_diagnosis_from_bags_equals_the_csv_diagnosis(logs, fmt, capsys):
     names = model.joint_params.names
     bags = [write_bag(bag_path(folder, fmt, f"log{k}"), fmt, log, names) for k, log in enumerate(read)]
     out_csv, out_bag = folder / "csv", folder / "bag"
-    assert main(["diagnose", "--model", str(urdf), "--fit", *map(str, csvs[:2]), "--check", str(csvs[2]),
-                 "--out", str(out_csv)]) == 0
+    assert (
+        main(
+            [
+                "diagnose",
+                "--model",
+                str(urdf),
+                "--fit",
+                *map(str, csvs[:2]),
+                "--check",
+                str(csvs[2]),
+                "--out",
+                str(out_csv),
+            ]
+        )
+        == 0
+    )
     # Default joints: the model's names (j1, j2); the topic is not the default one.
-    assert main(["diagnose", "--model", str(urdf), "--fit", *map(str, bags[:2]), "--check", str(bags[2]),
-                 "--topic", TOPIC, "--out", str(out_bag)]) == 0
+    assert (
+        main(
+            [
+                "diagnose",
+                "--model",
+                str(urdf),
+                "--fit",
+                *map(str, bags[:2]),
+                "--check",
+                str(bags[2]),
+                "--topic",
+                TOPIC,
+                "--out",
+                str(out_bag),
+            ]
+        )
+        == 0
+    )
     a = json.loads((out_csv / "diagnosis.json").read_text())
     b = json.loads((out_bag / "diagnosis.json").read_text())
     paths = {str(bg): str(c) for bg, c in zip(bags, csvs)}
     _same_up_to_timing(a, b, lambda s: paths.get(s, s))
     assert a["cause"] == ["viscous_friction"]
+
     def body(out):  # the header comment names the log files
         return [x for x in (out / "corrected_params.yaml").read_text().splitlines() if not x.startswith("#")]
 
@@ -143,8 +175,21 @@ def test_diagnosis_from_bags_equals_the_csv_diagnosis(logs, fmt, capsys):
 
 
 def _expect_bad(path, tmp_path, capsys, *words, extra=()):
-    code = main(["diagnose", "--model", str(tmp_path / "two_link.urdf"), "--fit", str(path), str(path),
-                 "--topic", TOPIC, "--out", str(tmp_path / "o"), *extra])
+    code = main(
+        [
+            "diagnose",
+            "--model",
+            str(tmp_path / "two_link.urdf"),
+            "--fit",
+            str(path),
+            str(path),
+            "--topic",
+            TOPIC,
+            "--out",
+            str(tmp_path / "o"),
+            *extra,
+        ]
+    )
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1, err
     for w in (str(path),) + words:

@@ -1,6 +1,5 @@
 import numpy as np
 import pytest
-
 from safesysid.joint_log import JointLog, LogError, read_joint_log, write_joint_log
 
 
@@ -28,12 +27,15 @@ def corrupt(tmp_path, edit):
     return path
 
 
-@pytest.mark.parametrize("edit, expect", [
-    (lambda l: l.__setitem__(0, l[0].replace("tau2", "tauX")), "missing column 'tau2'"),
-    (lambda l: l.__setitem__(3, "nan" + l[3][l[3].index(","):]), "row 4, column 't'"),
-    (lambda l: l.__setitem__(2, l[1]), "not strictly increasing"),
-    (lambda l: l.__setitem__(2, l[2] + ",1"), "row 3"),
-])
+@pytest.mark.parametrize(
+    "edit, expect",
+    [
+        (lambda l: l.__setitem__(0, l[0].replace("tau2", "tauX")), "missing column 'tau2'"),
+        (lambda l: l.__setitem__(3, "nan" + l[3][l[3].index(",") :]), "row 4, column 't'"),
+        (lambda l: l.__setitem__(2, l[1]), "not strictly increasing"),
+        (lambda l: l.__setitem__(2, l[2] + ",1"), "row 3"),
+    ],
+)
 def test_bad_logs_name_row_and_column(tmp_path, edit, expect):
     with pytest.raises(LogError, match=expect):
         read_joint_log(corrupt(tmp_path, edit), 3)

@@ -1,5 +1,6 @@
 """Layering: systems/ (Drake systems and their math) imports nothing from app/ (loading, CLI,
 reports); the scenario schema it needs is systems/config.py."""
+
 import ast
 from pathlib import Path
 
@@ -31,8 +32,11 @@ def app_imports(path):
 
 
 def test_systems_import_nothing_from_app():
-    offenders = {str(p.relative_to(ROOT)): app_imports(p) for p in sorted((ROOT / "systems").rglob("*.py"))
-                 if p.name not in PENDING}
+    offenders = {
+        str(p.relative_to(ROOT)): app_imports(p)
+        for p in sorted((ROOT / "systems").rglob("*.py"))
+        if p.name not in PENDING
+    }
     assert {k: v for k, v in offenders.items() if v} == {}
 
 
@@ -46,7 +50,6 @@ def test_every_system_of_the_online_diagram_is_a_module_level_class():
     """GetSystemType() names a module-level class (a class made inside a factory is a new class
     per call: '...<locals>.ArmourController'), for every controller kind."""
     from pydrake.systems.framework import Diagram
-
     from safesysid.online import build_online
     from safesysid.scenario import SCENARIOS_DIR, load_scenario
 
@@ -57,7 +60,9 @@ def test_every_system_of_the_online_diagram_is_a_module_level_class():
         yield system
 
     for kind in ("armour", "pid", "adaptive", "adaptive_robust"):
-        built = build_online(load_scenario(SCENARIOS_DIR / "quickstart.yaml", overrides=f"controller: {{kind: {kind}}}"))
+        built = build_online(
+            load_scenario(SCENARIOS_DIR / "quickstart.yaml", overrides=f"controller: {{kind: {kind}}}")
+        )
         types = {s.GetSystemType() for s in leaves(built.diagram)}
         assert not [t for t in types if "<locals>" in t]
         assert any(t.endswith("real_arm.TorqueSensor") for t in types)

@@ -1,8 +1,8 @@
 """Our Kinova Gen3 model: loads offline, one parameter file, end effector, link shapes and the
 planner's separate spheres, payloads."""
+
 import numpy as np
 import pytest
-
 from helpers import params_with_spheres
 from safesysid.systems import inertial
 from safesysid.systems.payload import load_dumbbells, payload_theta_in_end_effector
@@ -16,7 +16,7 @@ def test_gen3_loads_with_one_parameter_set():
     assert np.isclose(robot.theta_e[0], 1.28, atol=1e-3)
     assert jp.continuous.tolist() == [True, False, True, False, True, False, True]
     assert np.allclose(robot.theta[70:].reshape(7, 4)[:, 1], jp.viscous)
-    assert all(inertial.is_physically_consistent(robot.theta[10 * i:10 * i + 10]) for i in range(7))
+    assert all(inertial.is_physically_consistent(robot.theta[10 * i : 10 * i + 10]) for i in range(7))
 
 
 def test_urdf_limits_come_from_the_parameter_file():
@@ -37,7 +37,6 @@ def test_collision_geometry_is_the_link_shapes_and_the_planner_spheres_are_separ
     """The URDF collides with what it shows (capsules, gripper box); no sphere of the planner's
     set is in it. The planner's spheres come from the sphere file, some on every link."""
     from pydrake.geometry import Role
-
     from safesysid.systems.reachability import arm_spheres
 
     plant, sg, _ = make_plant(MODELS_DIR / "kinova_gen3.urdf", scene_graph=True)
@@ -45,8 +44,10 @@ def test_collision_geometry_is_the_link_shapes_and_the_planner_spheres_are_separ
     inspector = sg.model_inspector()
 
     def shapes(role):
-        return sorted((inspector.GetName(inspector.GetFrameId(g)), repr(inspector.GetShape(g)), str(inspector.GetPoseInFrame(g)))
-                      for g in inspector.GetAllGeometryIds(role))
+        return sorted(
+            (inspector.GetName(inspector.GetFrameId(g)), repr(inspector.GetShape(g)), str(inspector.GetPoseInFrame(g)))
+            for g in inspector.GetAllGeometryIds(role)
+        )
 
     collision = shapes(Role.kProximity)
     assert collision == shapes(Role.kIllustration) and len(collision) == 9
@@ -88,10 +89,14 @@ def test_bad_model_files_name_the_file(tmp_path):
     with pytest.raises(ModelError, match="not found"):
         load_robot(tmp_path / "missing.urdf")
     broken = tmp_path / "broken.urdf"
-    broken.write_text("<robot name='x'><link name='a'/><joint name='j' type='revolute'><parent link='a'/></joint></robot>")
+    broken.write_text(
+        "<robot name='x'><link name='a'/><joint name='j' type='revolute'><parent link='a'/></joint></robot>"
+    )
     with pytest.raises(ModelError, match="broken.urdf"):
         load_robot(broken)
     params = tmp_path / "p.yaml"
-    params.write_text("urdf: kinova_gen3.urdf\njoints: {names: [a, b], velocity_limit_rad_s: [1, 2, 3], torque_limit_Nm: [1, 2]}\n")
+    params.write_text(
+        "urdf: kinova_gen3.urdf\njoints: {names: [a, b], velocity_limit_rad_s: [1, 2, 3], torque_limit_Nm: [1, 2]}\n"
+    )
     with pytest.raises(ModelError, match="velocity_limit_rad_s"):
         load_joint_parameters(params)

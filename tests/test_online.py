@@ -3,11 +3,11 @@ not the planner's spheres), the controller's command before saturation, joint an
 limits, the tracking tube, interval containment; methods and outputs. The random scenes put a box
 1-5 cm outside the planner's spheres at the start (adversarially close). Full sample:
 SAFESYSID_FULL=1 (100 scenes)."""
+
 import json
 
 import numpy as np
 import pytest
-
 from helpers import FULL, n_trials
 from safesysid.online import run_online
 from safesysid.scenario import SCENARIOS_DIR, load_scenario
@@ -33,10 +33,29 @@ def assert_safe(summary):
 def test_quickstart_outputs(quickstart, tmp_path):
     summary = run_online(quickstart, tmp_path, method="ours")
     on_disk = json.loads((tmp_path / "summary.json").read_text())
-    for key in ("scenario", "method", "seed", "success", "failure", "collisions", "min_clearance_m", "max_torque_ratio",
-                "max_joint_limit_ratio", "max_tracking_error_rad", "tracking_bound_rad", "payload_true", "estimate",
-                "contains_truth", "cond_Y", "planner", "sysid", "wall_time_s", "sim_time_s",
-                "max_commanded_torque_ratio", "events"):
+    for key in (
+        "scenario",
+        "method",
+        "seed",
+        "success",
+        "failure",
+        "collisions",
+        "min_clearance_m",
+        "max_torque_ratio",
+        "max_joint_limit_ratio",
+        "max_tracking_error_rad",
+        "tracking_bound_rad",
+        "payload_true",
+        "estimate",
+        "contains_truth",
+        "cond_Y",
+        "planner",
+        "sysid",
+        "wall_time_s",
+        "sim_time_s",
+        "max_commanded_torque_ratio",
+        "events",
+    ):
         assert key in on_disk
     assert (tmp_path / "replay.html").stat().st_size > 100_000 and (tmp_path / "log.csv").exists()
     assert_safe(summary)
@@ -46,8 +65,19 @@ def test_quickstart_outputs(quickstart, tmp_path):
     # The run's log is a valid joint log: Algorithm 1 offline on it contains the truth too.
     from safesysid.cli import main
 
-    assert main(["sysid", str(tmp_path / "log.csv"), "--scenario", str(SCENARIOS_DIR / "quickstart.yaml"),
-                 "--out", str(tmp_path / "sysid")]) == 0
+    assert (
+        main(
+            [
+                "sysid",
+                str(tmp_path / "log.csv"),
+                "--scenario",
+                str(SCENARIOS_DIR / "quickstart.yaml"),
+                "--out",
+                str(tmp_path / "sysid"),
+            ]
+        )
+        == 0
+    )
     offline = json.loads((tmp_path / "sysid" / "estimate.json").read_text())
     truth = np.array(summary["payload_true"]["theta"])
     lower, upper = np.array(offline["lower"]), np.array(offline["upper"])
@@ -59,24 +89,45 @@ def test_random_scenes_with_a_box_close_to_the_arm_are_safe(quickstart, index):
     scene = random_scene(quickstart, np.random.default_rng(1000 + index), near_clearance_m=(0.01, 0.05))
     assert scene.obstacles and scene.obstacles[0].name == "near"
     summary = run_online(scene, None, method="ours", write=False)
-    print({k: summary[k] for k in ("min_clearance_m", "max_commanded_torque_ratio", "max_joint_limit_ratio",
-                                   "max_velocity_ratio", "max_tracking_error_ratio", "contains_truth")}, summary["events"])
+    print(
+        {
+            k: summary[k]
+            for k in (
+                "min_clearance_m",
+                "max_commanded_torque_ratio",
+                "max_joint_limit_ratio",
+                "max_velocity_ratio",
+                "max_tracking_error_ratio",
+                "contains_truth",
+            )
+        },
+        summary["events"],
+    )
     assert_safe(summary)
     assert "solved" in summary["planner"]["status"] or "best_feasible" in summary["planner"]["status"]  # it moved
     assert summary["min_clearance_m"] < 0.1  # the referee sees the box close to the real geometry
 
 
-@pytest.mark.skipif(not FULL, reason="a statistical claim: 20 pairs (SAFESYSID_FULL=1); CI checks the planner's "
-                                     "cond(W) in tests/test_planner.py")
+@pytest.mark.skipif(
+    not FULL,
+    reason="a statistical claim: 20 pairs (SAFESYSID_FULL=1); CI checks the planner's cond(W) in tests/test_planner.py",
+)
 def test_exciting_plans_beat_random_ones(quickstart):
     """Paired runs from the same start: median cond(Y) of ours / random (paper Table IV) <= 0.8."""
-    runs = {m: [run_online(quickstart, None, method=m, seed=seed, write=False) for seed in range(20)] for m in ("ours", "random")}
+    runs = {
+        m: [run_online(quickstart, None, method=m, seed=seed, write=False) for seed in range(20)]
+        for m in ("ours", "random")
+    }
     cond = {m: np.array([s["cond_Y"] for s in r]) for m, r in runs.items()}
-    mass_width = {m: np.array([s["estimate"]["upper"][0] - s["estimate"]["lower"][0] for s in r]) for m, r in runs.items()}
+    mass_width = {
+        m: np.array([s["estimate"]["upper"][0] - s["estimate"]["lower"][0] for s in r]) for m, r in runs.items()
+    }
     ratio = np.median(cond["ours"]) / np.median(cond["random"])
-    print(f"median cond(Y) ours {np.median(cond['ours']):.1f} / random {np.median(cond['random']):.1f} = {ratio:.2f} "
-          f"(ours lower in {int(np.sum(cond['ours'] < cond['random']))}/20); median mass-interval width "
-          f"ours {np.median(mass_width['ours']):.3f} kg, random {np.median(mass_width['random']):.3f} kg")
+    print(
+        f"median cond(Y) ours {np.median(cond['ours']):.1f} / random {np.median(cond['random']):.1f} = {ratio:.2f} "
+        f"(ours lower in {int(np.sum(cond['ours'] < cond['random']))}/20); median mass-interval width "
+        f"ours {np.median(mass_width['ours']):.3f} kg, random {np.median(mass_width['random']):.3f} kg"
+    )
     assert ratio <= 0.8
 
 

@@ -2,9 +2,9 @@
 box (issue 11, item 5): links, friction, armature and torque offsets at a random vertex
 ("corner") or uniform inside ("drawn"), while the controller, planner and estimator keep the
 nominal model and the box. CI: one corner run; SAFESYSID_FULL=1: 20 random scenes."""
+
 import numpy as np
 import pytest
-
 from helpers import FULL, n_trials
 from safesysid.online import run_online
 from safesysid.scenario import SCENARIOS_DIR, load_scenario

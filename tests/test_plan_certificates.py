@@ -6,10 +6,10 @@ estimator publishes meanwhile (a tighter box, or the wider hull it publishes whe
 inconsistent). A stub estimator changes its box at t_p: it tightens it at 1.5 s, then widens it and
 flags the estimate inconsistent at 3.0 s, after which the planner must not plan again.
 """
+
 import numpy as np
 import pytest
 from pydrake.systems.framework import BasicVector, LeafSystem
-
 from safesysid.scenario import SCENARIOS_DIR, load_scenario
 from safesysid.systems.real_arm import scenario_dumbbell, true_theta
 
@@ -26,9 +26,15 @@ class StubEstimator(LeafSystem):
         self._index = self.DeclareDiscreteState(1)
         deps = {self.xd_ticket()}
         for j, name in enumerate(("theta0", "theta_lower", "theta_upper")):
-            self.DeclareVectorOutputPort(name, p, lambda c, out, j=j: out.SetFromVector(self._box(c)[j]), prerequisites_of_calc=deps)
-        self.DeclareVectorOutputPort("consistent", BasicVector(1), lambda c, out: out.SetFromVector([self._box(c)[3]]),
-                                     prerequisites_of_calc=deps)
+            self.DeclareVectorOutputPort(
+                name, p, lambda c, out, j=j: out.SetFromVector(self._box(c)[j]), prerequisites_of_calc=deps
+            )
+        self.DeclareVectorOutputPort(
+            "consistent",
+            BasicVector(1),
+            lambda c, out: out.SetFromVector([self._box(c)[3]]),
+            prerequisites_of_calc=deps,
+        )
         self.DeclarePeriodicDiscreteUpdateEvent(period_s, period_s, self._advance)
 
     def _box(self, context):

@@ -1,10 +1,11 @@
 """The planner's constraints are conservative in continuous time (checked densely with Drake's
 signed distance on the true geometry, the actual ARMOUR law and random parameters), they are not
 vacuous, and the exciting cost is right."""
+
 import numpy as np
 import pytest
-
 from helpers import n_trials
+from safesysid.benchmarks.bench_planner import parameter_box as theta_box  # one definition of the test prior
 from safesysid.scenario import Obstacle, Planner
 from safesysid.systems import armour as ctl
 from safesysid.systems import planner as P
@@ -12,7 +13,6 @@ from safesysid.systems import reachability as reach
 from safesysid.systems.intervals import Interval
 from safesysid.systems.payload import load_dumbbells
 from safesysid.systems.robot_model import MODELS_DIR, load_robot
-from safesysid.benchmarks.bench_planner import parameter_box as theta_box  # one definition of the test prior
 
 Q0 = np.array([0.0, 0.26, 0.0, 2.0, 0.0, 0.9, 1.57])
 GAINS = ctl.ArmourGains(Kr=np.array([5.0] * 4 + [7.0] * 3), alpha=20.0, V_max=0.02)
@@ -30,9 +30,11 @@ def payload():
 
 def scene_obstacles():
     """Three boxes 6-12 cm from the arm/payload at Q0 (in front, beside, above the wrist)."""
-    return [Obstacle(name="front", xyz_m=[0.56, -0.02, 0.17], rpy_rad=[0, 0, 0.3], size_m=[0.1, 0.3, 0.34]),
-            Obstacle(name="side", xyz_m=[0.30, 0.27, 0.30], rpy_rad=[0, 0, -0.4], size_m=[0.2, 0.08, 0.4]),
-            Obstacle(name="above", xyz_m=[0.28, -0.05, 0.88], rpy_rad=[0.2, 0, 0], size_m=[0.3, 0.3, 0.1])]
+    return [
+        Obstacle(name="front", xyz_m=[0.56, -0.02, 0.17], rpy_rad=[0, 0, 0.3], size_m=[0.1, 0.3, 0.34]),
+        Obstacle(name="side", xyz_m=[0.30, 0.27, 0.30], rpy_rad=[0, 0, -0.4], size_m=[0.2, 0.08, 0.4]),
+        Obstacle(name="above", xyz_m=[0.28, -0.05, 0.88], rpy_rad=[0.2, 0, 0], size_m=[0.3, 0.3, 0.1]),
+    ]
 
 
 def make_planner(robot, payload, obstacles, **cfg):
@@ -52,7 +54,6 @@ class DrakeScene:
         from pydrake.math import RigidTransform, RollPitchYaw
         from pydrake.multibody.plant import CoulombFriction
         from pydrake.systems.framework import DiagramBuilder
-
         from safesysid.systems.robot_model import make_plant
 
         builder = DiagramBuilder()
@@ -60,9 +61,15 @@ class DrakeScene:
         plant = self.plant
         self.obstacle_ids = set()
         for o in obstacles:
-            self.obstacle_ids.add(plant.RegisterCollisionGeometry(
-                plant.world_body(), RigidTransform(RollPitchYaw(o.rpy_rad), o.xyz_m), Box(*o.size_m), o.name,
-                CoulombFriction()))
+            self.obstacle_ids.add(
+                plant.RegisterCollisionGeometry(
+                    plant.world_body(),
+                    RigidTransform(RollPitchYaw(o.rpy_rad), o.xyz_m),
+                    Box(*o.size_m),
+                    o.name,
+                    CoulombFriction(),
+                )
+            )
         ee = plant.GetBodyByName(robot.body_names[robot.end_effector])
         grasp = np.asarray(robot.extra["grasp_point"], float)
         for k, (_, x, r, length) in enumerate(payload.parts()):
@@ -70,8 +77,9 @@ class DrakeScene:
             plant.RegisterCollisionGeometry(ee, pose, Cylinder(r, length), f"payload_{k}", CoulombFriction())
         # The floor slab's top face at z = 0 (Planner.floor_z_m); the base standing on it is welded
         # to the world, so SceneGraph never reports that pair.
-        self.floor_id = plant.RegisterCollisionGeometry(plant.world_body(), RigidTransform([0, 0, -0.05]), Box(4, 4, 0.1),
-                                                        "floor", CoulombFriction())
+        self.floor_id = plant.RegisterCollisionGeometry(
+            plant.world_body(), RigidTransform([0, 0, -0.05]), Box(4, 4, 0.1), "floor", CoulombFriction()
+        )
         plant.Finalize()
         self.diagram = builder.Build()
         self.ctx = self.diagram.CreateDefaultContext()
@@ -168,7 +176,9 @@ def test_exciting_cost_gradient_matches_finite_differences(robot, payload, plann
         s = np.linalg.svd(W, compute_uv=False)
         assert np.isclose(val, np.log(s[0] / s[-1]))
         h = 1e-6
-        fd = np.array([(prob.exciting_cost(k + h * e)[0] - prob.exciting_cost(k - h * e)[0]) / (2 * h) for e in np.eye(7)])
+        fd = np.array(
+            [(prob.exciting_cost(k + h * e)[0] - prob.exciting_cost(k - h * e)[0]) / (2 * h) for e in np.eye(7)]
+        )
         assert np.allclose(grad, fd, rtol=1e-5, atol=1e-6)
 
 
@@ -248,8 +258,9 @@ def test_a_colliding_plan_is_rejected_and_the_planner_goes_around(robot, payload
     m = len(sp)
     for dist in np.arange(gap, gap + 0.2, 0.002):  # the nearest placement clear of every sphere
         centre = c0[0, s] + (dist + 0.05) * u
-        sd, _ = reach.box_signed_distance(c0[0], np.broadcast_to(centre, (m, 3)), np.broadcast_to(basis, (m, 3, 3)),
-                                          np.full((m, 3), 0.05))
+        sd, _ = reach.box_signed_distance(
+            c0[0], np.broadcast_to(centre, (m, 3)), np.broadcast_to(basis, (m, 3, 3)), np.full((m, 3), 0.05)
+        )
         if np.all(sd >= need):
             break
     box = Obstacle(name="trap", xyz_m=centre.tolist(), rpy_rad=list(rpy), size_m=[0.1, 0.1, 0.1])
@@ -359,7 +370,9 @@ def test_table_ii_prior_plans_with_a_shrunk_torque_box_and_stays_within_limits(r
     theta0, box = ctl.parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper))
     thetas = (theta0, box.lo, box.hi)
     gains = ctl.ArmourGains(GAINS.Kr, GAINS.alpha, load_scenario().controller.V_max)
-    planner = P.SafePlanner(robot, Planner(num_cost_samples=32), [], payload, ctl.tracking_bounds_for(robot, gains, box.lo))
+    planner = P.SafePlanner(
+        robot, Planner(num_cost_samples=32), [], payload, ctl.tracking_bounds_for(robot, gains, box.lo)
+    )
     orig = planner.problem
 
     def keep(*args, **kw):
@@ -370,6 +383,14 @@ def test_table_ii_prior_plans_with_a_shrunk_torque_box_and_stays_within_limits(r
     res = planner.plan(Q0, np.zeros(7), np.zeros(7), *thetas)
     assert res.ok, res.reason
     assert np.all(res.k_box[1] < 1.0)  # the box had to shrink
-    st = check_plan_densely(robot, planner, thetas, res.k, DrakeScene(robot, payload, []), np.random.default_rng(8),
-                            samples=n_trials(150, 1500), gains=gains)
+    st = check_plan_densely(
+        robot,
+        planner,
+        thetas,
+        res.k,
+        DrakeScene(robot, payload, []),
+        np.random.default_rng(8),
+        samples=n_trials(150, 1500),
+        gains=gains,
+    )
     assert st["negative_h"] > 0.3 * st["samples"]

@@ -1,10 +1,10 @@
 """ExcitingPlanner LeafSystem: receding horizon, continuity across replans, braking on failure."""
+
 import numpy as np
 import pytest
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
-
 from safesysid.scenario import Planner
 from safesysid.systems import armour as ctl
 from safesysid.systems.planner import PlanResult, SafePlanner
@@ -132,13 +132,15 @@ class Recording:
 def test_outputs_the_parameters_the_executing_plan_was_certified_with(setup):
     """The estimate tightens at 0.7 s: the plan started at 0 s keeps its own parameters on the
     output until the plan started at 1.5 s, certified with the tight box, takes over."""
-    from pydrake.trajectories import PiecewisePolynomial
     from pydrake.systems.primitives import TrajectorySource
+    from pydrake.trajectories import PiecewisePolynomial
 
     robot, planner, (theta0, lo, hi) = setup
     tight = (theta0, theta0 - 0.5 * (theta0 - lo), theta0 + 0.5 * (hi - theta0))
-    sources = [TrajectorySource(PiecewisePolynomial.ZeroOrderHold([0.0, 0.7, 10.0], np.stack([a, b, b], 1)))
-               for a, b in zip((theta0, lo, hi), tight)]
+    sources = [
+        TrajectorySource(PiecewisePolynomial.ZeroOrderHold([0.0, 0.7, 10.0], np.stack([a, b, b], 1)))
+        for a, b in zip((theta0, lo, hi), tight)
+    ]
     recording = Recording(planner)
     system = ExcitingPlanner(recording, Q0, theta0, lo, hi, num_plans=2)
     st, logs = simulate(system, 3.0, theta_sources=sources)
@@ -189,5 +191,7 @@ def test_two_contexts_do_not_share_plans_or_the_random_generator(setup):
     alone = Simulator(diagram)
     for stop in stops:
         alone.AdvanceTo(stop)
-    assert len(plans(alone)) == 3 and all(r.ok for r in system.results(system.GetMyContextFromRoot(alone.get_context())))
+    assert len(plans(alone)) == 3 and all(
+        r.ok for r in system.results(system.GetMyContextFromRoot(alone.get_context()))
+    )
     assert plans(together[0]) == plans(together[1]) == plans(alone)

@@ -1,11 +1,11 @@
 """Effects of the simulated arm that the diagnosis names but the robot model has no term for:
 load-dependent friction mu |tau| sgn v and Stribeck friction Fs sgn v exp(-(v/vs)^2), both in the
 diagnosis' law (systems/gap.py), and a late torque reading, as plant.effects of the real arm."""
+
 import numpy as np
 import pytest
-from pydrake.systems.framework import DiagramBuilder
-
 from helpers import FULL
+from pydrake.systems.framework import DiagramBuilder
 from safesysid.scenario import ScenarioError, load_scenario, robot_from_scenario
 from safesysid.systems import gap
 from safesysid.systems import gap_simulate as gs
@@ -24,8 +24,11 @@ def test_joint_friction_follows_the_diagnosis_law(robot):
     """Generalized force = applied - (Fc sgn v + Fv v + beta) - mu |applied| sgn v
     - Fs sgn v exp(-(v/vs)^2), sgn the model's (smoothed) Coulomb shape, as gap's columns."""
     fs, vs = [0.0, 2.0, 0.0, 0.0, 1.5, 0.0, 0.0], 0.05
-    s = load_scenario(overrides={"plant": {"effects": {"load_friction_mu": MU, "stribeck_friction_Nm": fs,
-                                                       "stribeck_velocity_rad_s": vs}}})
+    s = load_scenario(
+        overrides={
+            "plant": {"effects": {"load_friction_mu": MU, "stribeck_friction_Nm": fs, "stribeck_velocity_rad_s": vs}}
+        }
+    )
     b = DiagramBuilder()
     arm = add_real_arm(b, s, robot=robot)
     friction = arm.system.GetSubsystemByName("joint_friction")  # inside the real_arm station
@@ -37,7 +40,7 @@ def test_joint_friction_follows_the_diagnosis_law(robot):
     friction.state.FixValue(ctx, np.concatenate([np.zeros(7), v]))
     sgn = coulomb_shape(v, robot.coulomb_smoothing)
     law = friction_columns(v[None], np.zeros((1, 7)), "standard", robot.coulomb_smoothing)[0] @ robot.theta[70:]
-    law = law + np.array(MU) * np.abs(tau) * sgn + np.array(fs) * sgn * np.exp(-(v / vs) ** 2)
+    law = law + np.array(MU) * np.abs(tau) * sgn + np.array(fs) * sgn * np.exp(-((v / vs) ** 2))
     np.testing.assert_allclose(friction.get_output_port().Eval(ctx), tau - law, rtol=1e-12, atol=1e-12)
 
 
@@ -45,8 +48,9 @@ def test_bad_friction_effects_are_named():
     with pytest.raises(ScenarioError, match="plant.effects.load_friction_mu"):
         load_scenario(overrides={"plant": {"effects": {"load_friction_mu": [0.0, -0.1] + [0.0] * 5}}})
     with pytest.raises(ScenarioError, match="plant.effects.stribeck_velocity_rad_s"):
-        load_scenario(overrides={"plant": {"effects": {"stribeck_friction_Nm": [1.0] * 7,
-                                                       "stribeck_velocity_rad_s": 0.0}}})
+        load_scenario(
+            overrides={"plant": {"effects": {"stribeck_friction_Nm": [1.0] * 7, "stribeck_velocity_rad_s": 0.0}}}
+        )
 
 
 @pytest.mark.slow
@@ -81,8 +85,13 @@ def _late_reading(robot, delay):
     for name, d in (("late", delay), ("plain", 0.0)):
         # Noise-free: the noise source is a discrete state of its own, one step apart from the
         # torque path (real_arm.py); the torque path is what a late reading delays.
-        s = load_scenario(overrides={"payload": {"dumbbell": "none"}, "noise": {"distribution": "none"},
-                                     "plant": {"effects": {"torque_sensor_delay_s": d}}})
+        s = load_scenario(
+            overrides={
+                "payload": {"dumbbell": "none"},
+                "noise": {"distribution": "none"},
+                "plant": {"effects": {"torque_sensor_delay_s": d}},
+            }
+        )
         b = DiagramBuilder()
         arm = add_real_arm(b, s, robot=robot)
         src = b.AddSystem(ConstantVectorSource(np.linspace(-3.0, 3.0, 7)))

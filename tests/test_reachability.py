@@ -1,7 +1,7 @@
 """Every over-approximation of systems/reachability.py contains what it claims to contain."""
+
 import numpy as np
 import pytest
-
 from safesysid.systems import reachability as reach
 from safesysid.systems.intervals import Interval
 from safesysid.systems.payload import load_dumbbells
@@ -47,7 +47,6 @@ def test_spheres_come_from_the_sphere_file_and_ride_on_drake_body_poses(robot, s
     """Each sphere of the planner's file, placed on its link by Drake, is where sphere_centres
     puts it (the enclosure of the link shapes is tests/test_collision_geometry.py)."""
     import yaml
-
     from safesysid.systems.robot_model import make_plant
 
     plant, _, _ = make_plant(robot.source)
@@ -91,8 +90,11 @@ def test_box_signed_distance_and_gradient():
     rot = RollPitchYaw([0.3, -0.2, 1.1]).ToRotationMatrix().matrix()
     centre, half = np.array([0.5, -0.1, 0.3]), np.array([0.1, 0.2, 0.05])
     pts = centre + rng.uniform(-0.5, 0.5, size=(400, 3))
-    bc = lambda x: (np.broadcast_to(centre, x.shape), np.broadcast_to(rot, x.shape + (3,)),  # noqa: E731
-                    np.broadcast_to(half, x.shape))
+    bc = lambda x: (  # noqa: E731
+        np.broadcast_to(centre, x.shape),
+        np.broadcast_to(rot, x.shape + (3,)),
+        np.broadcast_to(half, x.shape),
+    )
     sd, grad = reach.box_signed_distance(pts, *bc(pts))
     # Brute force: outside, the distance to a dense sampling of the box surface is never smaller.
     local = (pts - centre) @ rot
@@ -106,7 +108,9 @@ def test_box_signed_distance_and_gradient():
     for axis in range(3):
         e = np.zeros(3)
         e[axis] = h
-        fd = (reach.box_signed_distance(pts + e, *bc(pts))[0] - reach.box_signed_distance(pts - e, *bc(pts))[0]) / (2 * h)
+        fd = (reach.box_signed_distance(pts + e, *bc(pts))[0] - reach.box_signed_distance(pts - e, *bc(pts))[0]) / (
+            2 * h
+        )
         assert np.allclose(fd, grad[:, axis], atol=1e-5)
 
 
@@ -146,9 +150,13 @@ def test_state_boxes_contain_every_k_time_and_tracking_error(robot):
     for _ in range(10):
         k = rng.uniform(k_lo, k_hi)
         q, v, a = r.bezier.evaluate(t, r.q_end(k))
-        u = lambda: rng.uniform(-1, 1, q.shape)  # noqa: E731
-        for box, x in ((qb, q + u() * b.position), (vb, v + u() * b.velocity), (vab, v + u() * b.qd_a),
-                       (aab, a + u() * b.qdd_a)):
+        u = lambda: rng.uniform(-1, 1, q.shape)  # noqa: E731, B023 (used in this iteration only)
+        for box, x in (
+            (qb, q + u() * b.position),
+            (vb, v + u() * b.velocity),
+            (vab, v + u() * b.qd_a),
+            (aab, a + u() * b.qdd_a),
+        ):
             assert np.all(box.lo[idx] <= x) and np.all(x <= box.hi[idx])
 
 
@@ -186,8 +194,9 @@ def test_limit_box_keeps_position_and_velocity_limits_and_is_not_vacuous(robot):
 def tube_boundary_states(robot, rng, desired, bounds, gains, box, count):
     """States ON the boundary of the tracking tube around each desired state (q_d, qd_d, qdd_d)
     (rows of `desired`): the position error e anywhere in its bound (entries at +-bound half the
-    time), theta_true in [theta] (a box vertex half the time), r in a random direction (along one joint half the time) scaled so
-    that the TRUE Lyapunov value 1/2 r^T M(q; theta_true) r equals V_max, edot = r - Kr e.
+    time), theta_true in [theta] (a box vertex half the time), r in a random direction (along one
+    joint half the time) scaled so that the TRUE Lyapunov value 1/2 r^T M(q; theta_true) r equals
+    V_max, edot = r - Kr e.
     Yields (row, q, qd, theta_true)."""
     n = robot.n
     qd, vd, _ = desired
@@ -241,11 +250,23 @@ def test_torque_bound_covers_the_controller_command_on_the_whole_tube(robot, V_m
     gains = ctl.ArmourGains(Kr=np.array(s.controller.Kr, float), alpha=s.controller.alpha, V_max=V_max)
     bounds = ctl.tracking_bounds_for(robot, gains, box.lo)
     dyn = ctl.ControllerDynamics(robot)
-    plans = [reach.PlanReach(np.array(s.q0_rad) + rng.uniform(-0.5, 0.5, n), rng.uniform(-0.3, 0.3, n),
-                             rng.uniform(-0.5, 0.5, n), 3.0, np.zeros(n), np.array(s.planner.k_range_rad), 8, bounds)
-             for _ in range(8)]
-    desired = [np.concatenate(x) for x in zip(*(p.bezier.evaluate(rng.uniform(0, 3.0, 5), p.q_end(rng.uniform(-1, 1, n)))
-                                                for p in plans))]  # 40 desired states
+    plans = [
+        reach.PlanReach(
+            np.array(s.q0_rad) + rng.uniform(-0.5, 0.5, n),
+            rng.uniform(-0.3, 0.3, n),
+            rng.uniform(-0.5, 0.5, n),
+            3.0,
+            np.zeros(n),
+            np.array(s.planner.k_range_rad),
+            8,
+            bounds,
+        )
+        for _ in range(8)
+    ]
+    desired = [
+        np.concatenate(x)
+        for x in zip(*(p.bezier.evaluate(rng.uniform(0, 3.0, 5), p.q_end(rng.uniform(-1, 1, n))) for p in plans))
+    ]  # 40 desired states
     sup_tube, robust_tube, _ = planner_torque_bound(robot, tube_boxes(desired, bounds), theta0, box, bounds)
     rows, outs = [], []
     for i, q, v, theta_true in tube_boundary_states(robot, rng, desired, bounds, gains, box, 12):
@@ -254,19 +275,29 @@ def test_torque_bound_covers_the_controller_command_on_the_whole_tube(robot, V_m
         assert 0.5 * out.err.r @ m_true @ out.err.r == pytest.approx(V_max, rel=1e-9)  # on the boundary
         rows.append(i)
         outs.append(out)
-    states = [np.array(x) for x in zip(*((q, v, o.err.qd_a, o.err.qdd_a) for o, (q, v) in
-                                         zip(outs, ((desired[0][i] - o.err.e, desired[1][i] - o.err.edot)
-                                                    for i, o in zip(rows, outs)))))]
+    states = [
+        np.array(x)
+        for x in zip(
+            *(
+                (q, v, o.err.qd_a, o.err.qdd_a)
+                for o, (q, v) in zip(
+                    outs, ((desired[0][i] - o.err.e, desired[1][i] - o.err.edot) for i, o in zip(rows, outs))
+                )
+            )
+        )
+    ]
     sup_point, robust_point, excess = planner_torque_bound(robot, [Interval(x) for x in states], theta0, box, bounds)
     v = np.array([np.abs(o.v).max() for o in outs])
     u = np.abs([o.u for o in outs])
     h = np.array([o.h for o in outs])
     over = np.array([o.lam - np.linalg.norm(o.w_bar) for o in outs])
-    print(f"V_max {V_max}: {len(outs)} boundary states, {np.sum(h < 0)} with h < 0, lambda - |w_bar| up to "
-          f"{over.max():.3f} N m; max |v_j| - robust term {np.max(v - robust_point):+.3f} N m on the state's own box, "
-          f"{np.max(v - robust_tube[rows]):+.3f} N m on the tube box; max |u_j| / sup {np.max(u / sup_point):.4f} "
-          f"(own box), {np.max(u / sup_tube[rows]):.4f} (tube box); max (lambda - |w_bar|) / barrier excess "
-          f"{np.max(over / excess):.3f}")
+    print(
+        f"V_max {V_max}: {len(outs)} boundary states, {np.sum(h < 0)} with h < 0, lambda - |w_bar| up to "
+        f"{over.max():.3f} N m; max |v_j| - robust term {np.max(v - robust_point):+.3f} N m on the state's own box, "
+        f"{np.max(v - robust_tube[rows]):+.3f} N m on the tube box; max |u_j| / sup {np.max(u / sup_point):.4f} "
+        f"(own box), {np.max(u / sup_tube[rows]):.4f} (tube box); max (lambda - |w_bar|) / barrier excess "
+        f"{np.max(over / excess):.3f}"
+    )
     assert np.sum(h < 0) > 0.3 * len(h)  # the states the old bound missed are sampled
     assert np.all(v <= robust_point) and np.all(v <= robust_tube[rows])
     assert np.all(u <= sup_point) and np.all(u <= sup_tube[rows])
@@ -284,9 +315,11 @@ def test_body_jacobians_rebuild_the_mass_matrix(robot):
     for row in range(len(q)):
         r = rng.normal(size=n)
         twists = np.einsum("ijc,j->ic", jac.mid[row], r)  # (bodies, 6)
-        energy = sum(twists[i] @ np.einsum("kab,k->ab", reach._INERTIA_FORMS, robot.theta[10 * i:10 * i + 10]) @ twists[i]
-                     for i in range(n))
-        energy += robot.theta[10 * n + 2::4] @ r ** 2
+        energy = sum(
+            twists[i] @ np.einsum("kab,k->ab", reach._INERTIA_FORMS, robot.theta[10 * i : 10 * i + 10]) @ twists[i]
+            for i in range(n)
+        )
+        energy += robot.theta[10 * n + 2 :: 4] @ r**2
         assert energy == pytest.approx(r @ robot.mass_matrix(q[row][None])[0] @ r, rel=1e-12)
 
 
@@ -314,7 +347,9 @@ def test_interval_mass_spread_encloses_the_point_spread(robot):
             sampled = np.array([ctl.mass_spread(robot, q, box.lo, box.hi) for q in centre + pick * rad])
             assert np.all(sampled <= mu)
             worst = np.maximum(worst, sampled)
-        print(f"boxes up to +-{rad_max} rad: interval mu / sampled max {np.min(mu / worst):.3f}-{np.max(mu / worst):.3f}")
+        print(
+            f"boxes up to +-{rad_max} rad: interval mu / sampled max {np.min(mu / worst):.3f}-{np.max(mu / worst):.3f}"
+        )
         if loose:
             assert np.max(mu / worst) < loose
 
@@ -353,7 +388,12 @@ def test_vertex_robust_bound_is_sound_and_tighter(robot):
     sl = robot.ee_slice
     theta0[sl], lo[sl], hi[sl] = ii.nominal, ii.lower, ii.upper
     d = np.maximum(hi - theta0, theta0 - lo)
-    mids = [rng.uniform(-1, 1, (6, n)), rng.uniform(-0.5, 0.5, (6, n)), rng.uniform(-0.5, 0.5, (6, n)), rng.uniform(-1, 1, (6, n))]
+    mids = [
+        rng.uniform(-1, 1, (6, n)),
+        rng.uniform(-0.5, 0.5, (6, n)),
+        rng.uniform(-0.5, 0.5, (6, n)),
+        rng.uniform(-1, 1, (6, n)),
+    ]
     rads = [np.full((6, n), 0.02), np.full((6, n), 0.15), np.full((6, n), 0.07), np.full((6, n), 0.8)]
     boxes = [Interval(m - r, m + r) for m, r in zip(mids, rads)]
     wv, plain = reach.robust_bound_vertex(robot, *boxes, theta0, lo, hi, sl)

@@ -1,11 +1,11 @@
 """The real-arm block: true dynamics (armature, payload, friction law), saturation, torque
 sensor noise, unmodelled effects, and obstacle geometry for signed-distance queries."""
+
 import numpy as np
 import pytest
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
-
 from safesysid.scenario import load_scenario, robot_from_scenario
 from safesysid.systems.armour import ControllerDynamics
 from safesysid.systems.real_arm import add_real_arm, scenario_dumbbell, true_theta
@@ -24,8 +24,12 @@ def _rig(scenario, robot, torque, dumbbell="scenario", log_step=None):
     src = b.AddSystem(ConstantVectorSource(np.asarray(torque, float)))
     b.Connect(src.get_output_port(), arm.commanded_torque_input)
     logs = {}
-    for name, port in (("state", arm.state_output), ("measured", arm.measured_torque_output),
-                       ("applied", arm.applied_torque_output), ("motor", arm.motor_torque_output)):
+    for name, port in (
+        ("state", arm.state_output),
+        ("measured", arm.measured_torque_output),
+        ("applied", arm.applied_torque_output),
+        ("motor", arm.motor_torque_output),
+    ):
         logs[name] = b.AddSystem(VectorLogSink(port.size(), log_step or scenario.plant.time_step_s))
         b.Connect(port, logs[name].get_input_port())
     sim = Simulator(b.Build())
@@ -43,14 +47,15 @@ def test_mass_matrix_is_rigid_plus_armature(robot):
     rng = np.random.default_rng(0)
     theta = true_theta(robot, scenario_dumbbell(s))
     no_armature = theta.copy()
-    no_armature[10 * robot.n + 2::4] = 0.0
+    no_armature[10 * robot.n + 2 :: 4] = 0.0
     for _ in range(3):
         q = rng.uniform(-2, 2, 7)
         arm.set_state(ctx, q)
         m_plant = arm.plant.CalcMassMatrix(arm.plant_context(ctx))
         np.testing.assert_allclose(m_plant, robot.mass_matrix(q[None], theta)[0], atol=1e-12)
-        np.testing.assert_allclose(m_plant - np.diag(robot.joint_params.armature),
-                                   robot.mass_matrix(q[None], no_armature)[0], atol=1e-12)
+        np.testing.assert_allclose(
+            m_plant - np.diag(robot.joint_params.armature), robot.mass_matrix(q[None], no_armature)[0], atol=1e-12
+        )
 
 
 @pytest.mark.parametrize("bell", ["none", "8lb"])
@@ -107,7 +112,9 @@ def test_friction_uses_the_regressor_law(robot):
 
 
 def test_saturation_and_noisy_torque_sensor(robot):
-    s = load_scenario(overrides={"noise": {"torque_ratio": 0.05, "torque_floor_Nm": 0.1}, "payload": {"dumbbell": "none"}})
+    s = load_scenario(
+        overrides={"noise": {"torque_ratio": 0.05, "torque_floor_Nm": 0.1}, "payload": {"dumbbell": "none"}}
+    )
     command = np.array([500.0, -500.0, 10.0, -10.0, 100.0, 1.0, 0.0])
     sim, arm, logs = _rig(s, robot, command)
     arm.seed_noise(sim.get_mutable_context())
@@ -135,8 +142,9 @@ def test_saturation_and_noisy_torque_sensor(robot):
 
 def test_sensor_offset_scale_and_delay(robot):
     eff = {"torque_sensor_offset_Nm": [0.5] * 7, "torque_sensor_scale": [1.1] * 7, "time_delay_s": 0.005}
-    s = load_scenario(overrides={"noise": {"distribution": "none"}, "payload": {"dumbbell": "none"},
-                                 "plant": {"effects": eff}})
+    s = load_scenario(
+        overrides={"noise": {"distribution": "none"}, "payload": {"dumbbell": "none"}, "plant": {"effects": eff}}
+    )
     q0 = np.array(s.q0_rad)
     hold = ControllerDynamics(robot).gravity(q0, robot.theta)
     sim, arm, logs = _rig(s, robot, hold)
@@ -155,9 +163,16 @@ def test_lagged_torque_sensor(robot):
     torque held over the step that ended: the exact lag of a held torque, no one-step lead); the
     motion is unchanged (a sensor effect only)."""
     d = 0.04
-    s = load_scenario(overrides={"noise": {"torque_ratio": 0.02, "torque_floor_Nm": 0.05}, "payload": {"dumbbell": "none"},
-                                 "plant": {"effects": {"torque_sensor_lag_s": d}}})
-    plain = load_scenario(overrides={"noise": {"torque_ratio": 0.02, "torque_floor_Nm": 0.05}, "payload": {"dumbbell": "none"}})
+    s = load_scenario(
+        overrides={
+            "noise": {"torque_ratio": 0.02, "torque_floor_Nm": 0.05},
+            "payload": {"dumbbell": "none"},
+            "plant": {"effects": {"torque_sensor_lag_s": d}},
+        }
+    )
+    plain = load_scenario(
+        overrides={"noise": {"torque_ratio": 0.02, "torque_floor_Nm": 0.05}, "payload": {"dumbbell": "none"}}
+    )
     q0 = np.array(s.q0_rad)
     hold = ControllerDynamics(robot).gravity(q0, robot.theta)
     runs = {}
@@ -179,8 +194,13 @@ def test_lagged_torque_sensor(robot):
 
 
 def test_base_tilt_changes_gravity(robot):
-    s = load_scenario(overrides={"noise": {"distribution": "none"}, "payload": {"dumbbell": "none"},
-                                 "plant": {"effects": {"base_tilt_rad": [0.05, 0.0]}}})
+    s = load_scenario(
+        overrides={
+            "noise": {"distribution": "none"},
+            "payload": {"dumbbell": "none"},
+            "plant": {"effects": {"base_tilt_rad": [0.05, 0.0]}},
+        }
+    )
     q0 = np.array(s.q0_rad)
     sim, arm, _ = _rig(s, robot, np.zeros(7))
     g = arm.plant.gravity_field().gravity_vector()
@@ -193,8 +213,13 @@ def test_base_tilt_changes_gravity(robot):
 
 def test_joint_elasticity_offsets_the_encoders(robot):
     stiffness = np.full(7, 2000.0)
-    s = load_scenario(overrides={"noise": {"distribution": "none"}, "payload": {"dumbbell": "none"},
-                                 "plant": {"effects": {"joint_stiffness_Nm_rad": stiffness.tolist()}}})
+    s = load_scenario(
+        overrides={
+            "noise": {"distribution": "none"},
+            "payload": {"dumbbell": "none"},
+            "plant": {"effects": {"joint_stiffness_Nm_rad": stiffness.tolist()}},
+        }
+    )
     q0 = np.array(s.q0_rad)
     hold = ControllerDynamics(robot).gravity(q0, robot.theta)
     sim, arm, logs = _rig(s, robot, hold)
@@ -213,8 +238,10 @@ def test_obstacles_and_floor_for_signed_distance(robot):
     ee_origin = kin.p[0, robot.end_effector]
     grasp = kin.R[0, robot.end_effector] @ robot.extra["grasp_point"] + ee_origin
     far = grasp + np.array([0.0, 0.0, 0.6])
-    obstacles = [{"name": "on_payload", "xyz_m": grasp.tolist(), "size_m": [0.05, 0.05, 0.05]},
-                 {"name": "far", "xyz_m": far.tolist(), "size_m": [0.05, 0.05, 0.05]}]
+    obstacles = [
+        {"name": "on_payload", "xyz_m": grasp.tolist(), "size_m": [0.05, 0.05, 0.05]},
+        {"name": "far", "xyz_m": far.tolist(), "size_m": [0.05, 0.05, 0.05]},
+    ]
     s = load_scenario(overrides={"payload": {"dumbbell": "8lb"}, "obstacles": obstacles})
     sim, arm, _ = _rig(s, robot, np.zeros(7))
     ctx = sim.get_mutable_context()
@@ -238,8 +265,12 @@ def test_released_payload_stops_colliding(robot):
     q0 = np.array(s.q0_rad)
     kin = robot.forward_kinematics(q0[None])
     grasp = kin.R[0, robot.end_effector] @ robot.extra["grasp_point"] + kin.p[0, robot.end_effector]
-    s = load_scenario(overrides={"payload": {"dumbbell": "8lb"},
-                                 "obstacles": [{"name": "at_grasp", "xyz_m": grasp.tolist(), "size_m": [0.03] * 3}]})
+    s = load_scenario(
+        overrides={
+            "payload": {"dumbbell": "8lb"},
+            "obstacles": [{"name": "at_grasp", "xyz_m": grasp.tolist(), "size_m": [0.03] * 3}],
+        }
+    )
     bell = scenario_dumbbell(s)
     sim, arm, _ = _rig(s, robot, ControllerDynamics(robot).gravity(q0, true_theta(robot, bell)))
     ctx = sim.get_mutable_context()
@@ -248,8 +279,10 @@ def test_released_payload_stops_colliding(robot):
     def payload_pairs():
         sg_ctx = arm.scene_graph.GetMyContextFromRoot(ctx)
         query = arm.scene_graph.get_query_output_port().Eval(sg_ctx)
-        names = [(query.inspector().GetName(p.id_A), query.inspector().GetName(p.id_B))
-                 for p in query.ComputeSignedDistancePairwiseClosestPoints(0.5)]
+        names = [
+            (query.inspector().GetName(p.id_A), query.inspector().GetName(p.id_B))
+            for p in query.ComputeSignedDistancePairwiseClosestPoints(0.5)
+        ]
         return [n for n in names if any("dumbbell" in x for x in n)]
 
     assert payload_pairs() and all(not ("dumbbell" in a and "dumbbell" in b) for a, b in payload_pairs())
@@ -283,11 +316,11 @@ def test_drawn_robot_parameters_stay_in_the_box_and_are_what_the_plant_uses(mode
     dev = (arm.theta - robot.theta) / radius
     assert np.all(np.abs(dev) <= 1.0 + 1e-12)
     n = robot.n
-    assert np.all(arm.theta[10 * n:] != robot.theta[10 * n:])  # every friction parameter moved, beta too
+    assert np.all(arm.theta[10 * n :] != robot.theta[10 * n :])  # every friction parameter moved, beta too
     if mode == "corner":
-        assert np.all(np.isclose(np.abs(dev[10 * n:]), 1.0)) and np.mean(np.isclose(np.abs(dev), 1.0)) > 0.5
+        assert np.all(np.isclose(np.abs(dev[10 * n :]), 1.0)) and np.mean(np.isclose(np.abs(dev), 1.0)) > 0.5
     for i in range(n):
-        assert inertial.is_physically_consistent(arm.theta[10 * i:10 * i + 10])
+        assert inertial.is_physically_consistent(arm.theta[10 * i : 10 * i + 10])
     ctx = diagram.CreateDefaultContext()
     theta = arm.true_theta()
     rng = np.random.default_rng(0)
@@ -296,16 +329,19 @@ def test_drawn_robot_parameters_stay_in_the_box_and_are_what_the_plant_uses(mode
         q = rng.uniform(-2, 2, n)
         arm.set_state(ctx, q)
         plant_ctx = arm.plant_context(ctx)
-        np.testing.assert_allclose(arm.plant.CalcMassMatrix(plant_ctx), robot.mass_matrix(q[None], theta)[0], atol=1e-12)
-        beta = theta[10 * n + 3::4]
-        np.testing.assert_allclose(-arm.plant.CalcGravityGeneralizedForces(plant_ctx) + beta, dyn.gravity(q, theta),
-                                   atol=1e-10)
+        np.testing.assert_allclose(
+            arm.plant.CalcMassMatrix(plant_ctx), robot.mass_matrix(q[None], theta)[0], atol=1e-12
+        )
+        beta = theta[10 * n + 3 :: 4]
+        np.testing.assert_allclose(
+            -arm.plant.CalcGravityGeneralizedForces(plant_ctx) + beta, dyn.gravity(q, theta), atol=1e-10
+        )
     friction = diagram.GetSubsystemByName("real_arm").GetSubsystemByName("joint_friction")
     fctx = friction.CreateDefaultContext()
     v = rng.normal(scale=0.3, size=n)
     friction.applied.FixValue(fctx, np.zeros(n))
     friction.state.FixValue(fctx, np.concatenate([np.zeros(n), v]))
-    law = friction_columns(v[None], np.zeros((1, n)), "standard", robot.coulomb_smoothing)[0] @ arm.theta[10 * n:]
+    law = friction_columns(v[None], np.zeros((1, n)), "standard", robot.coulomb_smoothing)[0] @ arm.theta[10 * n :]
     np.testing.assert_allclose(friction.get_output_port().Eval(fctx), -law, atol=1e-12)
 
 
@@ -325,7 +361,6 @@ def test_logged_torque_is_the_torque_held_over_the_next_step(robot):
     left sum of the logged torque (what the estimator integrates) leaves a residual well below
     the right sum (a log lagged by one step) and the trapezoid (the old rule)."""
     from pydrake.systems.framework import LeafSystem
-
     from safesysid.systems import estimation as E
 
     s = load_scenario(overrides={"payload": {"dumbbell": "8lb"}, "noise": {"distribution": "none"}})
@@ -337,16 +372,20 @@ def test_logged_torque_is_the_torque_held_over_the_next_step(robot):
     class Wobble(LeafSystem):
         def __init__(self):
             super().__init__()
-            self.DeclareVectorOutputPort("u", n, lambda ctx, out: out.SetFromVector(
-                hold + 8.0 * np.sin(7.0 * ctx.get_time() + np.arange(n))))
+            self.DeclareVectorOutputPort(
+                "u", n, lambda ctx, out: out.SetFromVector(hold + 8.0 * np.sin(7.0 * ctx.get_time() + np.arange(n)))
+            )
 
     b = DiagramBuilder()
     arm = add_real_arm(b, s, robot=robot)
     src = b.AddSystem(Wobble())
     b.Connect(src.get_output_port(), arm.commanded_torque_input)
     logs = {}
-    for name, port in (("state", arm.state_output), ("measured", arm.measured_torque_output),
-                       ("applied", arm.applied_torque_output)):
+    for name, port in (
+        ("state", arm.state_output),
+        ("measured", arm.measured_torque_output),
+        ("applied", arm.applied_torque_output),
+    ):
         logs[name] = b.AddSystem(VectorLogSink(port.size(), s.plant.time_step_s))
         b.Connect(port, logs[name].get_input_port())
     sim = Simulator(b.Build())
@@ -359,7 +398,7 @@ def test_logged_torque_is_the_torque_held_over_the_next_step(robot):
     rows = E.build_segment_rows(robot, t, x[:, :n], x[:, n:], tau, bounds, E.EstimatorSettings())
     lhs = rows.Y @ theta[robot.ee_slice] + np.einsum("snk,k->sn", rows.D_r, theta[robot.rest_mask()])
     left = np.abs(lhs - rows.T).max()
-    right = np.abs(lhs - np.stack([tau[a + 1:b + 1].T @ np.diff(t[a:b + 1]) for a, b in bounds])).max()
+    right = np.abs(lhs - np.stack([tau[a + 1 : b + 1].T @ np.diff(t[a : b + 1]) for a, b in bounds])).max()
     trapezoid = np.abs(lhs - E.segment_sums(tau, t, bounds, "trapezoid")).max()
     print(f"momentum residual max: left sum {left:.3g}, trapezoid {trapezoid:.3g}, right sum {right:.3g} N·m·s")
     assert left < 0.5 * trapezoid < 0.5 * right

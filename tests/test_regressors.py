@@ -1,8 +1,8 @@
 """Every regressor reproduces Drake on random states and random physically valid parameters."""
+
 import numpy as np
 import pytest
 from pydrake.multibody.tree import MultibodyForces
-
 from safesysid.systems import inertial, regressors
 from safesysid.systems.robot_model import load_robot, make_plant
 
@@ -19,14 +19,18 @@ def gen3():
 
 def random_theta(rng, n):
     """Random physically consistent body parameters (through the log-Cholesky map)."""
-    return np.concatenate([inertial.log_cholesky_to_theta(rng.normal(scale=0.4, size=10) + [-0.3, -1.5, -1.5, -1.5, 0, 0, 0, 0, 0, 0])
-                           for _ in range(n)])
+    return np.concatenate(
+        [
+            inertial.log_cholesky_to_theta(rng.normal(scale=0.4, size=10) + [-0.3, -1.5, -1.5, -1.5, 0, 0, 0, 0, 0, 0])
+            for _ in range(n)
+        ]
+    )
 
 
 def set_bodies(plant, context, robot, theta):
     for i, name in enumerate(robot.body_names):
         body = plant.GetBodyByName(name)
-        body.SetSpatialInertiaInBodyFrame(context, inertial.to_spatial_inertia(theta[10 * i:10 * i + 10]))
+        body.SetSpatialInertiaInBodyFrame(context, inertial.to_spatial_inertia(theta[10 * i : 10 * i + 10]))
 
 
 def rel_err(a, b):
@@ -41,6 +45,7 @@ def set_state(plant, ctx, robot, theta, q, v):
 
 def mass_rate(plant, ctx, q, v, h=1e-6):
     """Mdot along v by central differences; leaves the context at (q, v)."""
+
     def mass(qq):
         plant.SetPositions(ctx, qq)
         return plant.CalcMassMatrix(ctx)
@@ -128,10 +133,17 @@ def test_regressor_is_generic_over_joint_count(tmp_path):
     """A 2-link arm written here: the regressors reproduce Drake too (nothing assumes 7 joints)."""
     urdf = tmp_path / "two_link.urdf"
     urdf.write_text("""<robot name="two"><link name="base"/>
-      <link name="l1"><inertial><origin xyz="0.1 0.02 0"/><mass value="1.5"/><inertia ixx="0.01" iyy="0.02" izz="0.03" ixy="0.001" ixz="0" iyz="0"/></inertial></link>
-      <link name="l2"><inertial><origin xyz="0.2 0 0.01"/><mass value="0.8"/><inertia ixx="0.004" iyy="0.01" izz="0.012" ixy="0" ixz="0.0005" iyz="0"/></inertial></link>
-      <joint name="j1" type="revolute"><parent link="base"/><child link="l1"/><axis xyz="0 1 0"/><limit lower="-3" upper="3" effort="50" velocity="3"/></joint>
-      <joint name="j2" type="revolute"><parent link="l1"/><child link="l2"/><origin xyz="0.3 0 0" rpy="0.2 0 0"/><axis xyz="0 1 0"/><limit lower="-3" upper="3" effort="50" velocity="3"/></joint>
+      <link name="l1"><inertial>
+    <origin xyz="0.1 0.02 0"/><mass value="1.5"/>
+    <inertia ixx="0.01" iyy="0.02" izz="0.03" ixy="0.001" ixz="0" iyz="0"/></inertial></link>
+      <link name="l2"><inertial>
+    <origin xyz="0.2 0 0.01"/><mass value="0.8"/>
+    <inertia ixx="0.004" iyy="0.01" izz="0.012" ixy="0" ixz="0.0005" iyz="0"/></inertial></link>
+      <joint name="j1" type="revolute"><parent link="base"/><child link="l1"/><axis xyz="0 1 0"/>
+    <limit lower="-3" upper="3" effort="50" velocity="3"/></joint>
+      <joint name="j2" type="revolute"><parent link="l1"/><child link="l2"/><origin xyz="0.3 0 0" rpy="0.2 0 0"/>
+    <axis xyz="0 1 0"/>
+    <limit lower="-3" upper="3" effort="50" velocity="3"/></joint>
     </robot>""")
     robot = load_robot(urdf)
     assert robot.n == 2 and robot.joint_params.torque_limit.tolist() == [50, 50]
@@ -153,6 +165,6 @@ def test_friction_columns_follow_the_law():
     rng = np.random.default_rng(5)
     v, a = rng.normal(size=(2, 3, n))
     jp = robot.joint_params
-    cols = robot.standard_regressor(np.zeros((3, n)), v, a)[..., 10 * n:]
+    cols = robot.standard_regressor(np.zeros((3, n)), v, a)[..., 10 * n :]
     expected = jp.coulomb * np.sign(v) + jp.viscous * v + jp.armature * a + jp.offset
     assert np.allclose(cols @ jp.friction_theta(), expected)

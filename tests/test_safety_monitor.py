@@ -5,7 +5,6 @@ from pydrake.multibody.plant import CoulombFriction
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource
-
 from safesysid.systems import reachability as reach
 from safesysid.systems.robot_model import load_robot, make_plant
 from safesysid.systems.safety_monitor import SafetyMonitor, limit_ratio
@@ -15,7 +14,9 @@ def run_with_box(box_center, command=None, size=(0.1, 0.1, 0.1), name="box", q=N
     robot = load_robot()
     builder = DiagramBuilder()
     plant, sg, _ = make_plant(robot.source, time_step=0.001, builder=builder)
-    plant.RegisterCollisionGeometry(plant.world_body(), RigidTransform(box_center), Box(*size), name, CoulombFriction(0.5, 0.5))
+    plant.RegisterCollisionGeometry(
+        plant.world_body(), RigidTransform(box_center), Box(*size), name, CoulombFriction(0.5, 0.5)
+    )
     plant.Finalize()
     monitor = builder.AddSystem(SafetyMonitor(plant, sg, robot, period_s=0.001))
     zero = builder.AddSystem(ConstantVectorSource(np.zeros(robot.n)))
@@ -61,8 +62,12 @@ def test_the_referee_measures_the_link_shapes_not_the_planner_spheres():
     clearance = record.summary()["min_clearance_m"]
     spheres = reach.arm_spheres(robot)
     c, _ = reach.sphere_centres(robot.tree, spheres, np.zeros((1, robot.n)), with_jacobian=False)
-    sd, _ = reach.box_signed_distance(c[0], np.broadcast_to(centre, c[0].shape), np.broadcast_to(np.eye(3), (len(spheres), 3, 3)),
-                                      np.full(c[0].shape, 0.01))
+    sd, _ = reach.box_signed_distance(
+        c[0],
+        np.broadcast_to(centre, c[0].shape),
+        np.broadcast_to(np.eye(3), (len(spheres), 3, 3)),
+        np.full(c[0].shape, 0.01),
+    )
     print(f"referee {clearance:.4f} m, planner spheres {np.min(sd - spheres.radius):.4f} m")
     assert abs(clearance - 0.05) < 5e-4 and np.min(sd - spheres.radius) < 0.04
 
@@ -99,14 +104,19 @@ def test_two_contexts_keep_their_own_record():
     robot = load_robot()
     builder = DiagramBuilder()
     plant, sg, _ = make_plant(robot.source, time_step=0.001, builder=builder)
-    plant.RegisterCollisionGeometry(plant.world_body(), RigidTransform([0.6, 0.0, 0.3]), Box(0.1, 0.1, 0.1), "box",
-                                    CoulombFriction(0.5, 0.5))
+    plant.RegisterCollisionGeometry(
+        plant.world_body(), RigidTransform([0.6, 0.0, 0.3]), Box(0.1, 0.1, 0.1), "box", CoulombFriction(0.5, 0.5)
+    )
     plant.Finalize()
     monitor = builder.AddSystem(SafetyMonitor(plant, sg, robot, period_s=0.001))
     zero = builder.AddSystem(ConstantVectorSource(np.zeros(robot.n)))
     builder.Connect(zero.get_output_port(), plant.get_actuation_input_port())
-    for source, port in ((sg.get_query_output_port(), monitor.query_port), (plant.get_state_output_port(), monitor.state_port),
-                         (zero.get_output_port(), monitor.torque_port), (zero.get_output_port(), monitor.command_port)):
+    for source, port in (
+        (sg.get_query_output_port(), monitor.query_port),
+        (plant.get_state_output_port(), monitor.state_port),
+        (zero.get_output_port(), monitor.torque_port),
+        (zero.get_output_port(), monitor.command_port),
+    ):
         builder.Connect(source, port)
     diagram = builder.Build()
 

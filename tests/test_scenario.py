@@ -1,6 +1,5 @@
 import numpy as np
 import pytest
-
 from safesysid.scenario import SCENARIOS_DIR, ScenarioError, load_scenario, robot_from_scenario
 
 
@@ -11,23 +10,26 @@ def test_defaults_and_robot():
     assert robot.n == len(s.q0_rad) and robot.coulomb_smoothing == s.robot.coulomb_smoothing_rad_s
 
 
-@pytest.mark.parametrize("text, field", [
-    ("planner: {duraton_s: 3}", "planner.duraton_s"),
-    ("planner: {duration_s: fast}", "planner.duration_s"),
-    ("obstacles: [{xyz_m: [1, 2]}]", "obstacles[0].xyz_m"),
-    ("method: best", "method"),
-    ("robot: {params: nowhere.yaml}", "robot.params"),
-    ("initial_interval: {lower: [0]}", "initial_interval.lower"),
-    ("task: {goal_q_rad: [0, 1]}", "task.goal_q_rad"),
-    ("task: {place_xyz_m: [0.3, 0.0]}", "task.place_xyz_m"),
-    ("task: {goal_q_rad: [0, 0, 0, 0, 0, 0, 0], place_xyz_m: [0.3, 0.0, 0.2]}", "task: give"),
-    ("obstacles: [{name: box}]\ntask: {platform: table}", "task.platform"),
-    ("task: {solver: cplex}", "task.solver"),
-    ("plant: {time_step_s: 0.01}", "plant.time_step_s"),
-    ("task: {placement_tolerance_m: 0}", "task.placement_tolerance_m"),
-    ("task: {torque_margin_ratio: 1.0}", "task.torque_margin_ratio"),
-    ("task: {place_xyz_m: [0.3, 0.0, 0.2], payload_model: 9lb}", "task.payload_model"),
-])
+@pytest.mark.parametrize(
+    "text, field",
+    [
+        ("planner: {duraton_s: 3}", "planner.duraton_s"),
+        ("planner: {duration_s: fast}", "planner.duration_s"),
+        ("obstacles: [{xyz_m: [1, 2]}]", "obstacles[0].xyz_m"),
+        ("method: best", "method"),
+        ("robot: {params: nowhere.yaml}", "robot.params"),
+        ("initial_interval: {lower: [0]}", "initial_interval.lower"),
+        ("task: {goal_q_rad: [0, 1]}", "task.goal_q_rad"),
+        ("task: {place_xyz_m: [0.3, 0.0]}", "task.place_xyz_m"),
+        ("task: {goal_q_rad: [0, 0, 0, 0, 0, 0, 0], place_xyz_m: [0.3, 0.0, 0.2]}", "task: give"),
+        ("obstacles: [{name: box}]\ntask: {platform: table}", "task.platform"),
+        ("task: {solver: cplex}", "task.solver"),
+        ("plant: {time_step_s: 0.01}", "plant.time_step_s"),
+        ("task: {placement_tolerance_m: 0}", "task.placement_tolerance_m"),
+        ("task: {torque_margin_ratio: 1.0}", "task.torque_margin_ratio"),
+        ("task: {place_xyz_m: [0.3, 0.0, 0.2], payload_model: 9lb}", "task.payload_model"),
+    ],
+)
 def test_bad_keys_are_named_with_the_file(tmp_path, text, field):
     path = tmp_path / "bad.yaml"
     path.write_text(text)
@@ -63,19 +65,24 @@ def test_layers_merge_deeply_the_drake_way(tmp_path):
         assert (s.noise.torque_ratio, s.noise.torque_floor_Nm) == (0.03, 0.1)
         assert s.planner.num_plans == 2 and [o.name for o in s.obstacles] == ["a", "b"]
     # Later layers win; a list is replaced whole (Drake's convention for sequences).
-    s = load_scenario(path, overrides=["noise: {torque_floor_Nm: 0.1}", {"noise": {"torque_floor_Nm": 0.2},
-                                                                          "obstacles": [{"name": "c"}]}])
+    s = load_scenario(
+        path,
+        overrides=["noise: {torque_floor_Nm: 0.1}", {"noise": {"torque_floor_Nm": 0.2}, "obstacles": [{"name": "c"}]}],
+    )
     assert (s.noise.torque_ratio, s.noise.torque_floor_Nm) == (0.03, 0.2)
     assert [o.name for o in s.obstacles] == ["c"]
     # The schema's defaults are not touched by a layer.
     assert load_scenario().noise.torque_ratio == 0.025
 
 
-@pytest.mark.parametrize("text, where, field", [
-    ("noise: {torque_rato: 0.1}", "--scenario-text:", "noise.torque_rato"),
-    ("noise: [1", "--scenario-text: line 1", "invalid YAML"),
-    ("method: best", "with --scenario-text", "method"),
-])
+@pytest.mark.parametrize(
+    "text, where, field",
+    [
+        ("noise: {torque_rato: 0.1}", "--scenario-text:", "noise.torque_rato"),
+        ("noise: [1", "--scenario-text: line 1", "invalid YAML"),
+        ("method: best", "with --scenario-text", "method"),
+    ],
+)
 def test_bad_layer_is_named(tmp_path, text, where, field):
     path = tmp_path / "s.yaml"
     path.write_text("seed: 1\n")
@@ -103,7 +110,6 @@ def test_one_of_everything_names_every_field_and_every_effect():
     import dataclasses
 
     import yaml
-
     from safesysid.scenario import PlantEffects, Scenario
 
     raw = yaml.safe_load((SCENARIOS_DIR / "one_of_everything.yaml").read_text())
@@ -127,7 +133,6 @@ def test_every_scenario_builds_and_simulates_10_ms(name, kind):
     """Drake-style smoke test: the closed-loop diagram of every shipped scenario (and of
     one_of_everything.yaml with each controller kind) is built and simulated for 10 ms."""
     from pydrake.systems.analysis import Simulator
-
     from safesysid.online import build_online
 
     s = load_scenario(SCENARIOS_DIR / name, overrides=f"controller: {{kind: {kind}}}" if kind else None)

@@ -1,4 +1,5 @@
 """`safesysid sweep`: aggregation counts each failure with its seed; trials stream and resume."""
+
 import json
 
 from safesysid.cli import main
@@ -7,19 +8,31 @@ from safesysid.sweep_cli import aggregate, trial_scene
 
 
 def _summary(seed, **changes):
-    s = {"trial_seed": seed, "method": "ours", "failure": None, "collisions": 0, "min_clearance_m": 0.1,
-         "max_commanded_torque_ratio": 0.5, "max_joint_limit_ratio": 0.5, "max_velocity_ratio": 0.5,
-         "max_tracking_error_ratio": 0.5, "contains_truth": True,
-         "estimate": {"lower": [0.0] * 10, "upper": [1.0] * 10, "consistent": True},
-         "planner": {"missed_deadlines": 0, "brakes": 0}}
+    s = {
+        "trial_seed": seed,
+        "method": "ours",
+        "failure": None,
+        "collisions": 0,
+        "min_clearance_m": 0.1,
+        "max_commanded_torque_ratio": 0.5,
+        "max_joint_limit_ratio": 0.5,
+        "max_velocity_ratio": 0.5,
+        "max_tracking_error_ratio": 0.5,
+        "contains_truth": True,
+        "estimate": {"lower": [0.0] * 10, "upper": [1.0] * 10, "consistent": True},
+        "planner": {"missed_deadlines": 0, "brakes": 0},
+    }
     s.update(changes)
     return s
 
 
 def test_aggregate_names_the_seed_of_every_failure():
-    trials = [_summary(0), _summary(1, collisions=3, failure="collision", min_clearance_m=-0.01),
-              _summary(2, max_commanded_torque_ratio=1.2, failure="torque_limit"),
-              _summary(3, max_tracking_error_ratio=1.01, contains_truth=False, failure="tracking")]
+    trials = [
+        _summary(0),
+        _summary(1, collisions=3, failure="collision", min_clearance_m=-0.01),
+        _summary(2, max_commanded_torque_ratio=1.2, failure="torque_limit"),
+        _summary(3, max_tracking_error_ratio=1.01, contains_truth=False, failure="tracking"),
+    ]
     agg = aggregate(trials)
     assert agg["trials"] == 4 and agg["collisions"] == 1 and agg["limit_violations"] == 1
     assert agg["tracking_bound_violations"] == 1 and agg["containment_rate"] == 0.75

@@ -1,10 +1,10 @@
 """`safesysid sysid LOG.csv --scenario S.yaml --out DIR` end to end, and its bad-input errors."""
+
 import json
 
 import numpy as np
-import yaml
 import pytest
-
+import yaml
 from helpers import shared_path
 from safesysid.cli import main
 from safesysid.joint_log import JointLog, read_joint_log, write_joint_log
@@ -135,13 +135,28 @@ def unmodelled(robot, tmp_path_factory):
     scenario.write_text("name: sysid-unmodelled\npayload: {dumbbell: 6lb}\n")
     corrected = folder / "corrected_model.yaml"
     lst = lambda x: [float(y) for y in x]  # noqa: E731
-    corrected.write_text(yaml.safe_dump({"model": str(scenario), "effects": [
-        {"name": "viscous_friction", "joints": list(range(1, 8)), "params": {"delta_Fv_Nms_rad": lst(d_fv)}},
-        {"name": "armature", "joints": list(range(1, 8)), "params": {"delta_Ia_kgm2": lst(d_ia)}},
-        {"name": "torque_offset", "joints": [2], "params": {"offset_Nm": lst(offset)}},
-        {"name": "time_delay", "joints": list(range(1, 8)),
-         "params": {"delay_s": LAG_S, "law": "first-order lag: tau_meas + d dtau_meas/dt = tau"}},
-        {"name": "load_friction", "joints": [1], "params": {"mu": [0.0] * 7}}]}))
+    corrected.write_text(
+        yaml.safe_dump(
+            {
+                "model": str(scenario),
+                "effects": [
+                    {
+                        "name": "viscous_friction",
+                        "joints": list(range(1, 8)),
+                        "params": {"delta_Fv_Nms_rad": lst(d_fv)},
+                    },
+                    {"name": "armature", "joints": list(range(1, 8)), "params": {"delta_Ia_kgm2": lst(d_ia)}},
+                    {"name": "torque_offset", "joints": [2], "params": {"offset_Nm": lst(offset)}},
+                    {
+                        "name": "time_delay",
+                        "joints": list(range(1, 8)),
+                        "params": {"delay_s": LAG_S, "law": "first-order lag: tau_meas + d dtau_meas/dt = tau"},
+                    },
+                    {"name": "load_friction", "joints": [1], "params": {"mu": [0.0] * 7}},
+                ],
+            }
+        )
+    )
     return log, scenario, corrected, truth
 
 
@@ -162,8 +177,10 @@ def test_sysid_with_the_corrected_model_contains_the_truth(unmodelled, tmp_path,
     assert doc["contains_truth"] is True and doc["consistent"] is True
     assert doc["model"]["torque_lag_s"] == LAG_S and doc["model"]["not_applied"] == ["load_friction"]
     assert "truth inside: True" in printed and "not applied" in printed
-    print(f"mass: plain {plain['nominal'][0]:.3f} in [{plain['lower'][0]:.3f}, {plain['upper'][0]:.3f}], corrected "
-          f"{doc['nominal'][0]:.3f} in [{doc['lower'][0]:.3f}, {doc['upper'][0]:.3f}], truth {truth[0]:.3f} kg")
+    print(
+        f"mass: plain {plain['nominal'][0]:.3f} in [{plain['lower'][0]:.3f}, {plain['upper'][0]:.3f}], corrected "
+        f"{doc['nominal'][0]:.3f} in [{doc['lower'][0]:.3f}, {doc['upper'][0]:.3f}], truth {truth[0]:.3f} kg"
+    )
 
 
 def test_lag_correction_is_needed(unmodelled, tmp_path):
@@ -174,7 +191,10 @@ def test_lag_correction_is_needed(unmodelled, tmp_path):
     doc["effects"] = [e for e in doc["effects"] if e["name"] != "time_delay"]
     no_lag = tmp_path / "no_lag.yaml"
     no_lag.write_text(yaml.safe_dump(doc))
-    assert main(["sysid", str(log), "--scenario", str(scenario), "--model", str(no_lag), "--out", str(tmp_path / "o")]) == 0
+    assert (
+        main(["sysid", str(log), "--scenario", str(scenario), "--model", str(no_lag), "--out", str(tmp_path / "o")])
+        == 0
+    )
     doc = json.loads((tmp_path / "o" / "estimate.json").read_text())
     assert doc["consistent"] is False or doc["contains_truth"] is False
 
@@ -212,8 +232,11 @@ def test_real_gen3_log_with_the_corrected_model(tmp_path, capsys):
     runs = [shared_path("data", "kinova_gen3_real", f"run{k}.csv") for k in (1, 2, 3)]
     model = load_robot(urdf)
     d = gap.diagnose(model, [read_joint_log(p, 7) for p in runs[:2]], [read_joint_log(runs[2], 7)])
-    effects = [{"name": e["name"], "joints": e["joints"], "params": e["params"]}
-               for e in d.result["effects"] if e["significant"]]
+    effects = [
+        {"name": e["name"], "joints": e["joints"], "params": e["params"]}
+        for e in d.result["effects"]
+        if e["significant"]
+    ]
     corrected, bare = tmp_path / "corrected_model.yaml", tmp_path / "bare.yaml"
     corrected.write_text(yaml.safe_dump({"model": str(urdf), "effects": effects}))
     bare.write_text(yaml.safe_dump({"model": str(urdf), "effects": []}))

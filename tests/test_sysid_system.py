@@ -1,11 +1,11 @@
 """SysIdEstimator in a Drake diagram with a MultibodyPlant (continuous, integrated by Drake) driven
 through a zero-order hold, as a digital controller drives the arm."""
+
 import numpy as np
 import pytest
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import Adder, ConstantVectorSource, MatrixGain, ZeroOrderHold
-
 from safesysid.scenario import load_scenario
 from safesysid.systems.estimation import EstimatorSettings
 from safesysid.systems.robot_model import load_robot, make_plant
@@ -49,7 +49,7 @@ def rigid_robot():
     """The RobotModel of the bare URDF plant: no friction, no armature (what Drake simulates)."""
     robot = load_robot()
     theta = robot.theta.copy()
-    theta[10 * robot.n:] = 0.0
+    theta[10 * robot.n :] = 0.0
     return robot.with_theta(theta)
 
 
@@ -65,10 +65,16 @@ def build(robot, update_period_s=1.0, duration_s=3.0, sensor_offset_Nm=0.0):
     builder.AddSystem(plant)
     scenario = load_scenario()
     settings = EstimatorSettings.from_scenario(scenario)
-    est = builder.AddSystem(SysIdEstimator(robot, settings=settings, sample_period_s=1e-3,
-                                           update_period_s=update_period_s,
-                                           prior=(np.array(scenario.initial_interval.lower), np.array(scenario.initial_interval.upper)),
-                                           prior_nominal=np.array(scenario.initial_interval.nominal)))
+    est = builder.AddSystem(
+        SysIdEstimator(
+            robot,
+            settings=settings,
+            sample_period_s=1e-3,
+            update_period_s=update_period_s,
+            prior=(np.array(scenario.initial_interval.lower), np.array(scenario.initial_interval.upper)),
+            prior_nominal=np.array(scenario.initial_interval.nominal),
+        )
+    )
     q0 = np.array([0.0, 0.3, 0.0, 1.5, 0.0, 0.8, 0.0])
     ctrl = builder.AddSystem(ComputedTorque(plant, q0))
     builder.Connect(plant.get_state_output_port(), ctrl.get_input_port(0))
@@ -115,7 +121,11 @@ def test_estimator_system_in_a_diagram(rigid_robot):
     sim.AdvanceTo(3.0005)  # the event at t = 3 s is handled when time moves past it
     info = est.GetOutputPort("update_info").Eval(est_ctx)
     assert info[0] == 3 and info[3] == 1.0  # three updates at t = 1, 2, 3 s, consistent
-    assert est.GetOutputPort("consistent").Eval(est_ctx)[0] == 1.0 and est.consistent(est_ctx) and est.events(est_ctx) == []
+    assert (
+        est.GetOutputPort("consistent").Eval(est_ctx)[0] == 1.0
+        and est.consistent(est_ctx)
+        and est.events(est_ctx) == []
+    )
     theta0 = est.GetOutputPort("theta0").Eval(est_ctx)
     lo = est.GetOutputPort("theta_lower").Eval(est_ctx)
     hi = est.GetOutputPort("theta_upper").Eval(est_ctx)
@@ -149,7 +159,9 @@ def test_consistent_port_latches_off_and_the_box_is_kept(rigid_robot):
     boxes = [(est.GetOutputPort("theta_lower").Eval(est_ctx)[ee], est.GetOutputPort("theta_upper").Eval(est_ctx)[ee])]
     for stop in (1.0005, 2.0005, 3.0005):
         sim.AdvanceTo(stop)
-        boxes.append((est.GetOutputPort("theta_lower").Eval(est_ctx)[ee], est.GetOutputPort("theta_upper").Eval(est_ctx)[ee]))
+        boxes.append(
+            (est.GetOutputPort("theta_lower").Eval(est_ctx)[ee], est.GetOutputPort("theta_upper").Eval(est_ctx)[ee])
+        )
     for (lo0, hi0), (lo1, hi1) in zip(boxes, boxes[1:]):
         assert np.all(lo1 >= lo0) and np.all(hi1 <= hi0)
     assert est.GetOutputPort("consistent").Eval(est_ctx)[0] == 0.0 and not est.consistent(est_ctx)
@@ -165,10 +177,9 @@ def test_samples_are_what_the_discrete_arm_applies():
     makes any shift visible: sampled by a discrete update, the estimator read x_k+1 (the plant's
     state is already advanced) with the command of t_k."""
     from pydrake.systems.primitives import VectorLogSink
-
+    from safesysid.online import make_estimator_system
     from safesysid.scenario import robot_from_scenario
     from safesysid.systems.armour import ControllerDynamics
-    from safesysid.online import make_estimator_system
     from safesysid.systems.real_arm import add_real_arm
 
     s = load_scenario(overrides={"payload": {"dumbbell": "none"}})
@@ -196,8 +207,10 @@ def test_samples_are_what_the_discrete_arm_applies():
     est = b.AddSystem(make_estimator_system(robot, s, update_period_s=10.0))
     b.Connect(arm.state_output, est.GetInputPort("state"))
     b.Connect(arm.measured_torque_output, est.GetInputPort("measured_torque"))
-    logs = {name: b.AddSystem(VectorLogSink(port.size(), s.plant.time_step_s))
-            for name, port in (("state", arm.state_output), ("torque", arm.measured_torque_output))}
+    logs = {
+        name: b.AddSystem(VectorLogSink(port.size(), s.plant.time_step_s))
+        for name, port in (("state", arm.state_output), ("torque", arm.measured_torque_output))
+    }
     b.Connect(arm.state_output, logs["state"].get_input_port())
     b.Connect(arm.measured_torque_output, logs["torque"].get_input_port())
     sim = Simulator(b.Build())
@@ -210,8 +223,8 @@ def test_samples_are_what_the_discrete_arm_applies():
     tau = logs["torque"].FindLog(sim.get_context()).data().T
     k = np.rint(samples[:, 0] / s.plant.time_step_s).astype(int)
     assert len(k) >= 50 and np.allclose(t[k], samples[:, 0])
-    np.testing.assert_array_equal(samples[:, 1:1 + 2 * n], x[k])
-    np.testing.assert_array_equal(samples[:, 1 + 2 * n:], tau[k])
+    np.testing.assert_array_equal(samples[:, 1 : 1 + 2 * n], x[k])
+    np.testing.assert_array_equal(samples[:, 1 + 2 * n :], tau[k])
 
 
 def test_two_contexts_of_one_diagram_do_not_share_run_data(rigid_robot):
@@ -223,7 +236,9 @@ def test_two_contexts_of_one_diagram_do_not_share_run_data(rigid_robot):
 
     def start(sim, shift):
         ctx = plant.GetMyMutableContextFromRoot(sim.get_mutable_context())
-        plant.SetPositionsAndVelocities(ctx, x0 + np.r_[np.full(plant.num_positions(), shift), np.zeros(plant.num_velocities())])
+        plant.SetPositionsAndVelocities(
+            ctx, x0 + np.r_[np.full(plant.num_positions(), shift), np.zeros(plant.num_velocities())]
+        )
         sim.get_mutable_integrator().set_target_accuracy(1e-6)
         sim.Initialize()
         return sim

@@ -1,11 +1,11 @@
 """Task trajectory (systems/task_trajectory.py): the math, the optimizer on the paper's three
 experiment scenarios (verified independently on the link shapes and Drake's inverse dynamics),
 the cache and the failure statuses."""
+
 import dataclasses as dc
 
 import numpy as np
 import pytest
-
 from safesysid.scenario import SCENARIOS_DIR, ScenarioError, load_scenario
 from safesysid.systems import reachability as reach
 from safesysid.systems import task_trajectory as tt
@@ -86,9 +86,11 @@ def test_experiment_task_trajectory_is_found_and_verified_independently(solved, 
     prob, res = solved[name]
     assert res.ok and res.status == "solved" and res.max_violation <= tt.FEASIBILITY_TOL, res.reason
     check = tt.verify_task_trajectory(prob, res.trajectory)
-    print(f"{name}: cost {res.cost:.1f}, sphere clearance {res.min_sphere_clearance_m:.4f} m, link-shape clearance "
-          f"{check.min_clearance_m:.4f} m ({check.closest_pair}), torque {check.max_torque_ratio:.3f}, "
-          f"velocity {check.max_velocity_ratio:.3f}, solve {res.solve_time_s:.2f} s")
+    print(
+        f"{name}: cost {res.cost:.1f}, sphere clearance {res.min_sphere_clearance_m:.4f} m, link-shape clearance "
+        f"{check.min_clearance_m:.4f} m ({check.closest_pair}), torque {check.max_torque_ratio:.3f}, "
+        f"velocity {check.max_velocity_ratio:.3f}, solve {res.solve_time_s:.2f} s"
+    )
     assert check.ok, check.failures
     assert check.min_clearance_m > 0.005  # the spheres and the tube margin keep the link shapes away
     jp = prob.robot.joint_params
@@ -139,15 +141,21 @@ def test_window_margin_covers_the_motion_between_collision_samples(monkeypatch):
     """Few samples (windows of 0.1 s), no tube: the spheres must clear every obstacle at EVERY
     instant, not only at the samples. Removing the window margin (spread = 0) breaks it: the
     same solve then dips into the post between samples (measured: -4.8 mm; the test can fail)."""
+
     def dense_sphere_clearance(prob, res):
         t = np.linspace(0, res.trajectory.duration, 4001)
-        c, _ = reach.sphere_centres(prob.robot.tree, prob.spheres, res.trajectory.evaluate(t, 0)[0], with_jacobian=False)
+        c, _ = reach.sphere_centres(
+            prob.robot.tree, prob.spheres, res.trajectory.evaluate(t, 0)[0], with_jacobian=False
+        )
         worst = np.inf
         for o in range(len(prob.boxes)):
             flat = c.reshape(-1, 3)
-            sd, _ = reach.box_signed_distance(flat, np.broadcast_to(prob.boxes.centre[o], flat.shape),
-                                              np.broadcast_to(prob.boxes.rotation[o], (len(flat), 3, 3)),
-                                              np.broadcast_to(prob.boxes.half_size[o], flat.shape))
+            sd, _ = reach.box_signed_distance(
+                flat,
+                np.broadcast_to(prob.boxes.centre[o], flat.shape),
+                np.broadcast_to(prob.boxes.rotation[o], (len(flat), 3, 3)),
+                np.broadcast_to(prob.boxes.half_size[o], flat.shape),
+            )
             worst = min(worst, float(np.min(sd.reshape(c.shape[:2]) - prob.spheres.radius)))
         return worst
 
@@ -223,8 +231,11 @@ def test_cache_key_hashes_the_model_files(tmp_path):
     spheres = tmp_path / "spheres.yaml"
     spheres.write_text((MODELS_DIR / "kinova_gen3_spheres.yaml").read_text() + "# edited\n")
     prob = small_problem()
-    other = small_problem(robot=load_robot(params_path=params_with_spheres(tmp_path, spheres),
-                                           coulomb_smoothing=prob.robot.coulomb_smoothing))
+    other = small_problem(
+        robot=load_robot(
+            params_path=params_with_spheres(tmp_path, spheres), coulomb_smoothing=prob.robot.coulomb_smoothing
+        )
+    )
     assert tt.cache_key(other) != tt.cache_key(prob)
 
 

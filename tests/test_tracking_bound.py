@@ -7,17 +7,16 @@ the same ports.
 Sample size: 6 payloads x 2 V_max x n_trials(8, 20) adversarial runs = 96 in CI (a 5 % failure
 rate escapes 96 runs with probability 0.95^96 = 0.7 %), 240 with SAFESYSID_FULL=1.
 """
+
 import numpy as np
 import pytest
-
+from helpers import n_trials
+from safesysid.closed_loop import build_closed_loop, simulate_closed_loop
 from safesysid.scenario import load_scenario, robot_from_scenario
 from safesysid.systems import armour as C
 from safesysid.systems.bezier import QuinticBezier
-from safesysid.closed_loop import build_closed_loop, simulate_closed_loop
 from safesysid.systems.intervals import Interval
 from safesysid.systems.real_arm import scenario_dumbbell, true_theta
-
-from helpers import n_trials
 
 PAYLOADS = ["none", "4lb", "5lb", "6lb", "7lb", "8lb"]
 HARDWARE_V_MAX = 0.02  # J, the ARMOUR authors' value on the Gen3 hardware
@@ -66,14 +65,18 @@ def boundary_start(robot, s, theta_true, rng, ee_ratio):
     e_unit = rng.uniform(-1, 1, n) * (1 - 1e-9)
     side = rng.choice([-1.0, 1.0], theta_true.size)  # theta_true at hi (+1) or lo (-1) of its box
     for _ in range(3):  # side <- the maximiser of r^T M r for r along the model error's torque
-        box = Interval(np.minimum(theta_true, theta_true - 2 * rad * side), np.maximum(theta_true, theta_true - 2 * rad * side))
+        box = Interval(
+            np.minimum(theta_true, theta_true - 2 * rad * side), np.maximum(theta_true, theta_true - 2 * rad * side)
+        )
         e = e_unit * C.tracking_bounds_for(robot, gains, box.lo).position
         theta0 = theta_true - 2 * rad * side
         wp, _ = dyn.regressors(q_d - e, qd_d, qd_d + gains.Kr * e, qdd_d, np.zeros(n))
         direction = wp @ (theta_true - theta0)
         _, wm = dyn.regressors(q_d - e, qd_d, qd_d, qdd_d, direction)
         side = np.where(direction @ wm >= 0, 1.0, -1.0)
-    box = Interval(np.minimum(theta_true, theta_true - 2 * rad * side), np.maximum(theta_true, theta_true - 2 * rad * side))
+    box = Interval(
+        np.minimum(theta_true, theta_true - 2 * rad * side), np.maximum(theta_true, theta_true - 2 * rad * side)
+    )
     theta0 = theta_true - 2 * rad * side
     e = e_unit * C.tracking_bounds_for(robot, gains, box.lo).position
     q = q_d - e
@@ -91,22 +94,32 @@ def run(s, robot, theta0, box, q0, trajectory, kind="armour", duration=None, the
     n = robot.n
     gains = loop.controller.gains.armour
     e = C.wrap_error(d[:, :n] - x[:, :n], robot.joint_params.continuous)
-    r = (d[:, n:2 * n] - x[:, n:]) + gains.Kr * e
+    r = (d[:, n : 2 * n] - x[:, n:]) + gains.Kr * e
     bounds = C.tracking_bounds_for(robot, gains, box.lo)
     lyapunov = np.zeros(1)
     if theta_true is not None:
         m_true = robot.mass_matrix(x[:, :n], theta_true)
         lyapunov = 0.5 * np.einsum("ki,kij,kj->k", r, m_true, r) / gains.V_max
-    out = {"position": np.abs(e) / bounds.position, "r": np.linalg.norm(r, axis=1) / bounds.eps, "lyapunov": lyapunov,
-           "velocity": np.abs(d[:, n:2 * n] - x[:, n:]) / bounds.velocity,
-           "torque": np.abs(u) / robot.joint_params.torque_limit, "error": np.abs(e), "bounds": bounds}
+    out = {
+        "position": np.abs(e) / bounds.position,
+        "r": np.linalg.norm(r, axis=1) / bounds.eps,
+        "lyapunov": lyapunov,
+        "velocity": np.abs(d[:, n : 2 * n] - x[:, n:]) / bounds.velocity,
+        "torque": np.abs(u) / robot.joint_params.torque_limit,
+        "error": np.abs(e),
+        "bounds": bounds,
+    }
     if "diagnostics" in logs:
         out["h0"] = logs["diagnostics"][1][0, 1] / gains.V_max
         if theta_true is not None:
             # leading-order step limit of the sampled robust input (armour.py, "Sampling")
             top = np.linalg.eigvalsh(m_true)[:, -1].max()
-            out["step_estimate"] = bounds.eps * np.sqrt(C.mass_matrix_lower_bound(n, box.lo) / top) \
-                * C.mass_matrix_lower_bound(n, box.lo) / logs["diagnostics"][1][:, 2].max()
+            out["step_estimate"] = (
+                bounds.eps
+                * np.sqrt(C.mass_matrix_lower_bound(n, box.lo) / top)
+                * C.mass_matrix_lower_bound(n, box.lo)
+                / logs["diagnostics"][1][:, 2].max()
+            )
     return out
 
 
@@ -136,8 +149,11 @@ def test_tube_holds_from_its_boundary(bell, V_max):
         assert out["lyapunov"][0] == pytest.approx(1.0, rel=1e-9) and abs(out["h0"]) < 1e-9  # on the boundary
         for key in worst:
             worst[key] = max(worst[key], float(out[key].max()))
-    print(f"{bell} V_max {V_max}: {trials} boundary starts, max V/V_max {worst['lyapunov']:.9f}, |e|/bound "
-          f"{worst['position']:.3f}, |edot|/bound {worst['velocity']:.3f}, |r|/eps {worst['r']:.3f}, |u|/limit {worst['torque']:.3f}")
+    print(
+        f"{bell} V_max {V_max}: {trials} boundary starts, max V/V_max {worst['lyapunov']:.9f}, |e|/bound "
+        f"{worst['position']:.3f}, |edot|/bound {worst['velocity']:.3f}, |r|/eps {worst['r']:.3f}, "
+        f"|u|/limit {worst['torque']:.3f}"
+    )
     assert worst["lyapunov"] <= 1.0 + 1e-9  # the barrier itself: V(true) <= V_max at every step
     assert worst["position"] <= 1.0 and worst["r"] <= 1.0 and worst["velocity"] <= 1.0
     assert worst["torque"] <= 1.0
@@ -150,11 +166,16 @@ def test_coarse_control_step_breaks_the_tube():
     """The invariance argument is continuous-time; sampled with a zero-order hold it needs a short
     step (systems/armour.py, 'Sampling'). The same adversarial starts at a 40 ms step leave
     the tube: the check above can fail, and it is the step that it guards."""
-    runs = [run_from_boundary("8lb", SCENARIO_V_MAX, seed=trial, time_step=COARSE_STEP_S, duration=1.5) for trial in range(4)]
+    runs = [
+        run_from_boundary("8lb", SCENARIO_V_MAX, seed=trial, time_step=COARSE_STEP_S, duration=1.5)
+        for trial in range(4)
+    ]
     worst = max(float(out["lyapunov"].max()) for out in runs)
     estimate = min(out["step_estimate"] for out in runs)
-    print(f"control step {COARSE_STEP_S * 1e3:.0f} ms: max V/V_max {worst:.3f} (leading-order step limit "
-          f"sigma_min rho_min / lambda_max of these runs: {estimate * 1e3:.1f} ms)")
+    print(
+        f"control step {COARSE_STEP_S * 1e3:.0f} ms: max V/V_max {worst:.3f} (leading-order step limit "
+        f"sigma_min rho_min / lambda_max of these runs: {estimate * 1e3:.1f} ms)"
+    )
     assert worst > 1.0
 
 
@@ -165,11 +186,17 @@ def test_step_size_margin():
         pytest.skip("step sweep runs with SAFESYSID_FULL=1")
     held = []
     for step in (0.001, 0.005, 0.01, 0.015, 0.02, 0.025, 0.03):
-        runs = [run_from_boundary(bell, V_max, seed=trial, time_step=step, duration=1.5)
-                for bell in ("none", "8lb") for V_max in (SCENARIO_V_MAX, HARDWARE_V_MAX) for trial in range(8)]
+        runs = [
+            run_from_boundary(bell, V_max, seed=trial, time_step=step, duration=1.5)
+            for bell in ("none", "8lb")
+            for V_max in (SCENARIO_V_MAX, HARDWARE_V_MAX)
+            for trial in range(8)
+        ]
         worst = max(float(out["lyapunov"].max()) for out in runs)
-        print(f"step {step * 1e3:.0f} ms: max V/V_max {worst:.6f}, leading-order step limit "
-              f"{min(out['step_estimate'] for out in runs) * 1e3:.1f} ms")
+        print(
+            f"step {step * 1e3:.0f} ms: max V/V_max {worst:.6f}, leading-order step limit "
+            f"{min(out['step_estimate'] for out in runs) * 1e3:.1f} ms"
+        )
         if worst <= 1.0 + 1e-9:
             held.append(step)
     assert 0.001 in held
@@ -183,9 +210,13 @@ def test_conservative_interval_with_8lb_holds(robot):
     rng = np.random.default_rng(8)
     for _ in range(n_trials(1, 20)):
         trajectory = random_trajectory(s, rng)
-        out = run(s, robot, theta0, box, trajectory[0].q0, trajectory, theta_true=true_theta(robot, scenario_dumbbell(s)))
-        print(f"conservative 8lb: max |e|/bound {out['position'].max():.3f}, |r|/eps {out['r'].max():.3f}, "
-              f"V/V_max {out['lyapunov'].max():.3f}")
+        out = run(
+            s, robot, theta0, box, trajectory[0].q0, trajectory, theta_true=true_theta(robot, scenario_dumbbell(s))
+        )
+        print(
+            f"conservative 8lb: max |e|/bound {out['position'].max():.3f}, |r|/eps {out['r'].max():.3f}, "
+            f"V/V_max {out['lyapunov'].max():.3f}"
+        )
         assert out["position"].max() <= 1.0 and out["r"].max() <= 1.0 and out["torque"].max() <= 1.0
         assert out["lyapunov"].max() <= 1.0
         assert out["position"].max() > 0.05  # the payload is felt: the robust term is working
@@ -200,8 +231,10 @@ def test_wrong_model_leaves_the_bound(robot):
     assert not np.all(box.contains(true_theta(robot, scenario_dumbbell(s))))
     trajectory = random_trajectory(s, np.random.default_rng(9))
     out = run(s, robot, theta0, box, trajectory[0].q0, trajectory, theta_true=true_theta(robot, scenario_dumbbell(s)))
-    print(f"wrong model 8lb: max |e|/bound {out['position'].max():.3f}, |r|/eps {out['r'].max():.3f}, "
-          f"V/V_max {out['lyapunov'].max():.3f}")
+    print(
+        f"wrong model 8lb: max |e|/bound {out['position'].max():.3f}, |r|/eps {out['r'].max():.3f}, "
+        f"V/V_max {out['lyapunov'].max():.3f}"
+    )
     assert out["position"].max() > 1.0 and out["r"].max() > 1.0 and out["lyapunov"].max() > 1.0
 
 

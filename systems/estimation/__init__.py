@@ -57,6 +57,7 @@ Modules: settings (EstimatorSettings, EstimatorError), segments (segmentation, i
 regressor, quadrature bound, rows), log_cholesky (the NLP), enclosure (the interval),
 incremental (Algorithm 1 chunk by chunk), synthetic (joint logs for tests and benchmarks).
 """
+
 from .enclosure import box_is_consistent, interval_hull, row_bounds, set_membership_bounds, torque_row_radius
 from .incremental import Estimate, IncrementalEstimator, identify
 from .log_cholesky import (
@@ -87,11 +88,40 @@ from .settings import EPS, EstimatorError, EstimatorSettings
 from .synthetic import fourier_motion, fourier_trajectory, held_torque, perturbed_robot_theta, simulate_log
 
 __all__ = [
-    "EPS", "ETA_LOWER", "ETA_UPPER", "Estimate", "EstimatorError", "EstimatorSettings", "IncrementalEstimator",
-    "SegmentRows", "SolveResult", "box_is_consistent", "build_segment_rows", "cost_and_gradient", "cost_grad_hess",
-    "fourier_motion", "fourier_trajectory", "held_torque", "identify", "ift_sensitivity", "integrand_rates",
-    "integrated_rate_regressor", "interval_hull", "ls_cost_terms", "nearest_consistent", "perturbed_robot_theta",
-    "quadrature_bound", "rate_regressor_samples", "row_bounds", "sample_weights", "segment_bounds",
-    "segment_sums", "set_membership_bounds", "simulate_log", "solve_log_cholesky", "torque_radius", "torque_rate_bound",
+    "EPS",
+    "ETA_LOWER",
+    "ETA_UPPER",
+    "Estimate",
+    "EstimatorError",
+    "EstimatorSettings",
+    "IncrementalEstimator",
+    "SegmentRows",
+    "SolveResult",
+    "box_is_consistent",
+    "build_segment_rows",
+    "cost_and_gradient",
+    "cost_grad_hess",
+    "fourier_motion",
+    "fourier_trajectory",
+    "held_torque",
+    "identify",
+    "ift_sensitivity",
+    "integrand_rates",
+    "integrated_rate_regressor",
+    "interval_hull",
+    "ls_cost_terms",
+    "nearest_consistent",
+    "perturbed_robot_theta",
+    "quadrature_bound",
+    "rate_regressor_samples",
+    "row_bounds",
+    "sample_weights",
+    "segment_bounds",
+    "segment_sums",
+    "set_membership_bounds",
+    "simulate_log",
+    "solve_log_cholesky",
+    "torque_radius",
+    "torque_rate_bound",
     "torque_row_radius",
 ]

@@ -1,6 +1,7 @@
 """The interval of θ_e (Theorem 2, exact hull of the linear map): the left inverses, the error
 terms of the box, the certified set-membership LP and the LMI test of a box.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -51,8 +52,17 @@ def _left_inverse(rows: SegmentRows, theta_r, rad_r, settings):
     Dr2 = rows.D_r.reshape(S * n, -1)
     U = -Dr2 @ theta_r + rows.T.ravel()
     if settings.point_estimate == "map":
-        sig = np.sqrt((rows.w_first[:, None] ** 2 * rows.r_first ** 2 + rows.w_last[:, None] ** 2 * rows.r_last ** 2
-                       + rows.r_inner_sq) / 3.0).ravel() + rows.quad.ravel()
+        sig = (
+            np.sqrt(
+                (
+                    rows.w_first[:, None] ** 2 * rows.r_first**2
+                    + rows.w_last[:, None] ** 2 * rows.r_last**2
+                    + rows.r_inner_sq
+                )
+                / 3.0
+            ).ravel()
+            + rows.quad.ravel()
+        )
         wrow = 1.0 / np.maximum(sig, 1e-12 * max(sig.max(), 1e-300))
         keep = (rad_r > 0) & (np.abs(Dr2).max(0) > 0)
         Yt, Dt, Ut = Y2 * wrow[:, None], Dr2[:, keep] * wrow[:, None], U * wrow
@@ -106,8 +116,11 @@ def interval_hull(rows: SegmentRows, theta_r, rad_r, settings):
     next_shared = np.zeros(S, bool)
     next_shared[:-1] = rows.shared_prev[1:]
     last = G * (rows.w_last * ~next_shared)[None, :, None]
-    rad_tau = (np.abs(first) * rows.r_first).sum((1, 2)) + (np.abs(last) * rows.r_last).sum((1, 2)) \
+    rad_tau = (
+        (np.abs(first) * rows.r_first).sum((1, 2))
+        + (np.abs(last) * rows.r_last).sum((1, 2))
         + (np.abs(G) * rows.r_inner).sum((1, 2))
+    )
     rad_theta_r = np.abs(L @ Dr2) @ rad_r
     rad_quad = np.abs(L) @ rows.quad.ravel()
     total = rad_tau + rad_theta_r + rad_quad
@@ -118,8 +131,18 @@ def interval_hull(rows: SegmentRows, theta_r, rad_r, settings):
     E_abs = np.abs(E) + 4 * EPS * (S * n) * (np.abs(L) @ np.abs(Y2))
     rad_round = E_abs @ (np.abs(centre) + total)
     rad_round = rad_round + 64 * EPS * (S * n + Dr2.shape[1]) * (total + np.abs(L) @ np.abs(U)) + 1e-300
-    return dict(centre=centre, rad_torque=rad_tau, rad_theta_r=rad_theta_r, rad_quad=rad_quad, rad_round=rad_round,
-                U=U, A=A, b=b, c=c, pinv=L), cond
+    return dict(
+        centre=centre,
+        rad_torque=rad_tau,
+        rad_theta_r=rad_theta_r,
+        rad_quad=rad_quad,
+        rad_round=rad_round,
+        U=U,
+        A=A,
+        b=b,
+        c=c,
+        pinv=L,
+    ), cond
 
 
 def set_membership_bounds(rows: SegmentRows, theta_r, rad_r, settings, box_lo, box_hi, params):
@@ -140,7 +163,7 @@ def set_membership_bounds(rows: SegmentRows, theta_r, rad_r, settings, box_lo, b
     # added to each row's bound (a relaxation, so still an enclosure; ~no loss at 40 of 88).
     effect = (np.abs(Dr2) * rad_r).sum(0)
     keep = np.zeros(len(theta_r), bool)
-    keep[np.argsort(-effect)[:settings.lp_generators]] = True
+    keep[np.argsort(-effect)[: settings.lp_generators]] = True
     keep &= effect > 0
     fixed = Dr2[:, ~keep] @ theta_r[~keep]
     dropped = (np.abs(Dr2[:, ~keep]) * rad_r[~keep]).sum(1)
@@ -156,8 +179,14 @@ def set_membership_bounds(rows: SegmentRows, theta_r, rad_r, settings, box_lo, b
         for sign in (1.0, -1.0):
             c = np.zeros(A.shape[1])
             c[i] = sign
-            res = linprog(c, A_ub=A_ub, b_ub=b_ub, bounds=np.stack([lo_x, hi_x], 1), method="highs-ds",
-                          options={"presolve": False})
+            res = linprog(
+                c,
+                A_ub=A_ub,
+                b_ub=b_ub,
+                bounds=np.stack([lo_x, hi_x], 1),
+                method="highs-ds",
+                options={"presolve": False},
+            )
             if res.status == 2:  # infeasible: the data contradict the declared bounds
                 return out_lo, out_hi, False
             if res.status != 0:

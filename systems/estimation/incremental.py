@@ -1,6 +1,7 @@
 """Algorithm 1 chunk by chunk: the Estimate it publishes and the IncrementalEstimator that keeps
 per-segment rows, latches consistency and intersects each update with the published box.
 """
+
 from __future__ import annotations
 
 import time
@@ -10,7 +11,7 @@ import numpy as np
 
 from .. import inertial
 from ..uncertainty import parameter_radius
-from .enclosure import box_is_consistent, torque_row_radius, interval_hull, set_membership_bounds
+from .enclosure import box_is_consistent, interval_hull, set_membership_bounds, torque_row_radius
 from .log_cholesky import cost_grad_hess, nearest_consistent, solve_log_cholesky
 from .segments import SegmentRows, build_segment_rows, segment_bounds
 from .settings import EstimatorError, EstimatorSettings
@@ -52,15 +53,33 @@ class Estimate:
 
     def to_json(self, names=inertial.NAMES):
         f = lambda x: [float(v) for v in np.asarray(x).ravel()]  # noqa: E731
-        return {"nominal": f(self.theta_e), "lower": f(self.lower), "upper": f(self.upper), "names": list(names),
-                "widths": f(self.widths), "theta_ls": f(self.theta_ls), "update_lower": f(self.update_lower),
-                "update_upper": f(self.update_upper), "radius": {"torque": f(self.radius_torque),
-                "theta_r": f(self.radius_theta_r), "quadrature": f(self.radius_quadrature),
-                "rounding": f(self.radius_rounding)}, "case": self.case, "consistent": self.consistent,
-                "cond_Y": float(self.cond_Y), "num_segments": int(self.num_segments),
-                "num_samples": int(self.num_samples), "solver": self.solver, "message": self.message,
-                "problems": list(self.problems), "quadrature_ratio": float(self.quadrature_ratio),
-                "update_time_s": float(self.update_time_s)}
+        return {
+            "nominal": f(self.theta_e),
+            "lower": f(self.lower),
+            "upper": f(self.upper),
+            "names": list(names),
+            "widths": f(self.widths),
+            "theta_ls": f(self.theta_ls),
+            "update_lower": f(self.update_lower),
+            "update_upper": f(self.update_upper),
+            "radius": {
+                "torque": f(self.radius_torque),
+                "theta_r": f(self.radius_theta_r),
+                "quadrature": f(self.radius_quadrature),
+                "rounding": f(self.radius_rounding),
+            },
+            "case": self.case,
+            "consistent": self.consistent,
+            "cond_Y": float(self.cond_Y),
+            "num_segments": int(self.num_segments),
+            "num_samples": int(self.num_samples),
+            "solver": self.solver,
+            "message": self.message,
+            "problems": list(self.problems),
+            "quadrature_ratio": float(self.quadrature_ratio),
+            "update_time_s": float(self.update_time_s),
+        }
+
 
 class IncrementalEstimator:
     """Accepts joint-log chunks; keeps per-segment rows so old segments are never recomputed.
@@ -96,8 +115,9 @@ class IncrementalEstimator:
         self.prior = None if prior is None else (np.asarray(prior[0], float), np.asarray(prior[1], float))
         nominal = robot.theta_e if prior_nominal is None else np.asarray(prior_nominal, float)
         self.prior_nominal = nominal.copy()  # published before the first update (need not be consistent)
-        self.eta = inertial.theta_to_log_cholesky(nominal) if inertial.is_physically_consistent(nominal) \
-            else np.zeros(10)
+        self.eta = (
+            inertial.theta_to_log_cholesky(nominal) if inertial.is_physically_consistent(nominal) else np.zeros(10)
+        )
         self.estimate: Estimate | None = None
         self.consistent = True  # latched: False from the first inconsistent update on
         self.update_times_s = []
@@ -110,7 +130,9 @@ class IncrementalEstimator:
         q, v, tau = (np.atleast_2d(np.asarray(x, float)) for x in (q, v, tau))
         if q.shape != (len(t), self.n) or v.shape != q.shape or tau.shape != q.shape:
             raise EstimatorError(f"expected {self.n} joints per sample, got q {q.shape}, v {v.shape}, tau {tau.shape}")
-        if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q)) and np.all(np.isfinite(v)) and np.all(np.isfinite(tau))):
+        if not (
+            np.all(np.isfinite(t)) and np.all(np.isfinite(q)) and np.all(np.isfinite(v)) and np.all(np.isfinite(tau))
+        ):
             raise EstimatorError("NaN or inf in the estimator input")
         if self._pending is not None:
             if len(t) and t[0] <= self._pending[0][-1]:
@@ -149,12 +171,19 @@ class IncrementalEstimator:
         robot, st = self.robot, self.settings
         S = len(self.rows)
         if S * self.n < 10:
-            hint = "" if st.segment_gap_s() == st.max_gap_s else (
-                f" (held torque: a step longer than {st.segment_gap_s():.3g} s, 1.5 hold periods, ends a segment; "
-                "for a log sampled slower than its controller set estimator.hold_period_s or "
-                "estimator.torque_signal: continuous)")
-            raise EstimatorError(f"too little data: {S} segment(s) of {st.horizon_s} s; need at least "
-                                 f"{int(np.ceil(10 / self.n))} gap-free segments{hint}")
+            hint = (
+                ""
+                if st.segment_gap_s() == st.max_gap_s
+                else (
+                    f" (held torque: a step longer than {st.segment_gap_s():.3g} s, 1.5 hold periods, ends a segment; "
+                    "for a log sampled slower than its controller set estimator.hold_period_s or "
+                    "estimator.torque_signal: continuous)"
+                )
+            )
+            raise EstimatorError(
+                f"too little data: {S} segment(s) of {st.horizon_s} s; need at least "
+                f"{int(np.ceil(10 / self.n))} gap-free segments{hint}"
+            )
         hull, cond = interval_hull(self.rows, self.theta_r, self.theta_r_radius, st)
         prev = self.estimate
         if hull is None or cond > st.max_condition:
@@ -175,26 +204,32 @@ class IncrementalEstimator:
         # Evidence that a declared assumption failed (each one empties the set the truth is in).
         problems = []
         if np.any(self.rows.violated):
-            problems.append(f"the measured torque changes faster than the declared {st.torque_rate_limit_Nm_s} N·m/s "
-                            f"in {int(self.rows.violated.sum())} segment(s)")
+            problems.append(
+                f"the measured torque changes faster than the declared {st.torque_rate_limit_Nm_s} N·m/s "
+                f"in {int(self.rows.violated.sum())} segment(s)"
+            )
         # The same hull with the other left inverse (rows scaled by their declared bound): also
         # an enclosure, often tighter on the mass; keep the intersection.
         if st.point_estimate == "map":
-            alt, _ = interval_hull(self.rows, self.theta_r, self.theta_r_radius,
-                                   replace(st, point_estimate="paper", row_weighting="bound"))
+            alt, _ = interval_hull(
+                self.rows, self.theta_r, self.theta_r_radius, replace(st, point_estimate="paper", row_weighting="bound")
+            )
             if alt is not None:
                 r_alt = alt["rad_torque"] + alt["rad_theta_r"] + alt["rad_quad"] + alt["rad_round"]
                 lo_alt = np.maximum(lo, np.nextafter(alt["centre"] - r_alt, -np.inf))
                 hi_alt = np.minimum(hi, np.nextafter(alt["centre"] + r_alt, np.inf))
                 if np.any(lo_alt > hi_alt):
-                    problems.append("the two least-squares enclosures do not meet in "
-                                    f"{[inertial.NAMES[k] for k in np.flatnonzero(lo_alt > hi_alt)]}")
+                    problems.append(
+                        "the two least-squares enclosures do not meet in "
+                        f"{[inertial.NAMES[k] for k in np.flatnonzero(lo_alt > hi_alt)]}"
+                    )
                 else:
                     lo, hi = lo_alt, hi_alt
         params = {"none": [], "mass": [0], "all": list(range(10))}[st.set_membership]
         if params and not problems:
-            sm_lo, sm_hi, feasible = set_membership_bounds(self.rows, self.theta_r, self.theta_r_radius, st, lo, hi,
-                                                           params)
+            sm_lo, sm_hi, feasible = set_membership_bounds(
+                self.rows, self.theta_r, self.theta_r_radius, st, lo, hi, params
+            )
             if not feasible:
                 problems.append("the set-membership LP is infeasible")
             else:
@@ -212,17 +247,24 @@ class IncrementalEstimator:
         old = (prev.lower, prev.upper) if prev is not None else self.prior
         new_lo, new_hi = (lo, hi) if old is None else (np.maximum(lo, old[0]), np.minimum(hi, old[1]))
         if np.any(new_lo > new_hi):
-            problems.append("the new interval does not meet the published one in "
-                            f"{[inertial.NAMES[k] for k in np.flatnonzero(new_lo > new_hi)]}")
+            problems.append(
+                "the new interval does not meet the published one in "
+                f"{[inertial.NAMES[k] for k in np.flatnonzero(new_lo > new_hi)]}"
+            )
         notes = []
         quad_ratio = float(np.max(self.rows.quad / np.maximum(torque_row_radius(self.rows), 1e-300)))
         if quad_ratio > st.quadrature_warn_ratio:
-            notes.append(f"quadrature term up to {quad_ratio:.2f} of a row's torque radius: the motion is not "
-                         "resolved by the sampling")
+            notes.append(
+                f"quadrature term up to {quad_ratio:.2f} of a row's torque radius: the motion is not "
+                "resolved by the sampling"
+            )
         if problems:
             if self.consistent:
-                notes.insert(0, "inconsistent data (" + "; ".join(problems) + "): torque noise or θ_r outside the "
-                             "declared bounds, or the model is wrong; keeping the last consistent interval")
+                notes.insert(
+                    0,
+                    "inconsistent data (" + "; ".join(problems) + "): torque noise or θ_r outside the "
+                    "declared bounds, or the model is wrong; keeping the last consistent interval",
+                )
             self.consistent = False
         self.messages.extend(notes)
         if not self.consistent:  # latched: publish the last consistent box (or the prior) unchanged
@@ -237,14 +279,38 @@ class IncrementalEstimator:
         theta[robot.ee_slice] = theta_e
         t_lo, t_hi = self._robot_box()
         t_lo[robot.ee_slice], t_hi[robot.ee_slice] = new_lo, new_hi
-        est = Estimate(theta_e=theta_e, lower=new_lo, upper=new_hi, theta=theta, theta_lower=t_lo, theta_upper=t_hi,
-                       eta=sol.eta, theta_ls=centre, update_lower=lo, update_upper=hi,
-                       radius_torque=hull["rad_torque"], radius_theta_r=hull["rad_theta_r"],
-                       radius_quadrature=hull["rad_quad"], radius_rounding=hull["rad_round"], case=case,
-                       consistent=self.consistent, cond_Y=cond, num_segments=S, num_samples=self.num_samples,
-                       solver={"name": sol.solver, "success": sol.success, "result": sol.message,
-                               "cost": sol.cost, "grad_norm": sol.grad_norm, "newton_steps": sol.newton_steps},
-                       message="; ".join(notes), problems=problems, quadrature_ratio=quad_ratio)
+        est = Estimate(
+            theta_e=theta_e,
+            lower=new_lo,
+            upper=new_hi,
+            theta=theta,
+            theta_lower=t_lo,
+            theta_upper=t_hi,
+            eta=sol.eta,
+            theta_ls=centre,
+            update_lower=lo,
+            update_upper=hi,
+            radius_torque=hull["rad_torque"],
+            radius_theta_r=hull["rad_theta_r"],
+            radius_quadrature=hull["rad_quad"],
+            radius_rounding=hull["rad_round"],
+            case=case,
+            consistent=self.consistent,
+            cond_Y=cond,
+            num_segments=S,
+            num_samples=self.num_samples,
+            solver={
+                "name": sol.solver,
+                "success": sol.success,
+                "result": sol.message,
+                "cost": sol.cost,
+                "grad_norm": sol.grad_norm,
+                "newton_steps": sol.newton_steps,
+            },
+            message="; ".join(notes),
+            problems=problems,
+            quadrature_ratio=quad_ratio,
+        )
         return self._finish(est, start)
 
     def _finish(self, est, start):
@@ -271,8 +337,29 @@ class IncrementalEstimator:
         theta = self.robot.theta.copy()
         theta[self.robot.ee_slice] = theta_e
         z = np.zeros(10)
-        return Estimate(theta_e, lo.copy(), hi.copy(), theta, t_lo, t_hi, self.eta, theta_e, lo.copy(), hi.copy(),
-                        z, z, z, z, "prior", self.consistent, cond, S, self.num_samples, {}, message)
+        return Estimate(
+            theta_e,
+            lo.copy(),
+            hi.copy(),
+            theta,
+            t_lo,
+            t_hi,
+            self.eta,
+            theta_e,
+            lo.copy(),
+            hi.copy(),
+            z,
+            z,
+            z,
+            z,
+            "prior",
+            self.consistent,
+            cond,
+            S,
+            self.num_samples,
+            {},
+            message,
+        )
 
     def prior_estimate(self):
         """What to publish before the first identification (nominal θ_e, prior box)."""

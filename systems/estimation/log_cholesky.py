@@ -1,6 +1,7 @@
 """The nonlinear least squares in log-Cholesky coordinates (θ0 = P(η*), physically consistent
 by construction): cost, exact gradient and Hessian, the NLP and its trust-region polish.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -90,8 +91,7 @@ def _solver(name):
     return IpoptSolver(), "ipopt"
 
 
-def solve_log_cholesky(A, b, c, eta0, solver="ipopt", newton_steps=50, scale=None, max_iterations=20,
-                       max_time_s=0.08):
+def solve_log_cholesky(A, b, c, eta0, solver="ipopt", newton_steps=50, scale=None, max_iterations=20, max_time_s=0.08):
     """min_η ½‖Y P(η) − U‖² with Drake MathematicalProgram.
 
     The cost is a Python function evaluated on AutoDiffXd that returns the EXACT gradient
@@ -166,10 +166,14 @@ def solve_log_cholesky(A, b, c, eta0, solver="ipopt", newton_steps=50, scale=Non
         from scipy.optimize import minimize
 
         with np.errstate(over="ignore", invalid="ignore"):
-            pol = minimize(lambda e: cost_and_gradient(e, A, b, c, centred)[0] / scale, eta,
-                           jac=lambda e: cost_and_gradient(e, A, b, c, centred)[1] / scale,
-                           hess=lambda e: cost_grad_hess(e, A, b, c, centred)[2] / scale,
-                           method="trust-exact", options={"maxiter": newton_steps, "gtol": 1e-12})
+            pol = minimize(
+                lambda e: cost_and_gradient(e, A, b, c, centred)[0] / scale,
+                eta,
+                jac=lambda e: cost_and_gradient(e, A, b, c, centred)[1] / scale,
+                hess=lambda e: cost_grad_hess(e, A, b, c, centred)[2] / scale,
+                method="trust-exact",
+                options={"maxiter": newton_steps, "gtol": 1e-12},
+            )
         if np.all(np.isfinite(pol.x)) and np.all(pol.x >= ETA_LOWER) and np.all(pol.x <= ETA_UPPER):
             Jp = cost_and_gradient(pol.x, A, b, c, centred)[0]
             if np.isfinite(Jp) and Jp <= J:
@@ -178,8 +182,16 @@ def solve_log_cholesky(A, b, c, eta0, solver="ipopt", newton_steps=50, scale=Non
     g = cost_and_gradient(eta, A, b, c, centred)[1]
     # Stationary to working precision (relative to the curvature scale) counts as solved.
     ok = ok or polished or bool(np.linalg.norm(g) <= 1e-9 * scale * max(1.0, np.linalg.norm(eta)))
-    return SolveResult(eta=eta, theta=inertial.log_cholesky_to_theta(eta), cost=J, grad_norm=float(np.linalg.norm(g)),
-                       solver=name, success=ok, message=msg, newton_steps=steps)
+    return SolveResult(
+        eta=eta,
+        theta=inertial.log_cholesky_to_theta(eta),
+        cost=J,
+        grad_norm=float(np.linalg.norm(g)),
+        solver=name,
+        success=ok,
+        message=msg,
+        newton_steps=steps,
+    )
 
 
 def ift_sensitivity(eta, A, b, dU_dm_Y):

@@ -2,6 +2,7 @@
 per segment without forming W_c per sample), its quadrature bound, and Y, D_r, ∫τ with the
 declared error bound of each row.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -31,7 +32,7 @@ def segment_bounds(t, horizon_s, max_gap_s):
     next_start = 0
     for r0, r1 in zip(run_starts, run_ends):
         a = r0
-        tt = t[r0:r1 + 1]
+        tt = t[r0 : r1 + 1]
         while True:
             k = np.searchsorted(tt, t[a] + horizon_s - 1e-12 * max(1.0, abs(t[a])), side="left") + r0
             if k > r1:
@@ -44,7 +45,7 @@ def segment_bounds(t, horizon_s, max_gap_s):
 
 def sample_weights(t, a, b, integration):
     """Quadrature weights of samples a..b for ∫ over [t_a, t_b]."""
-    dt = np.diff(t[a:b + 1])
+    dt = np.diff(t[a : b + 1])
     w = np.zeros(b - a + 1)
     if integration == "euler":  # paper: left Riemann sum
         w[:-1] = dt
@@ -93,10 +94,15 @@ def _pair_factors(tree, q, v):
     for i in range(tree.n):
         js = np.flatnonzero(anc[:, i])
         k = len(js)
-        both = _to_body(kin.R[:, i], kin.p[:, i], np.concatenate(
-            [kin.Sdot[:, js], kin.S[:, js], kin.V[:, i, None], np.broadcast_to(g_world, (nsamp, 1, 6))], 1))
+        both = _to_body(
+            kin.R[:, i],
+            kin.p[:, i],
+            np.concatenate(
+                [kin.Sdot[:, js], kin.S[:, js], kin.V[:, i, None], np.broadcast_to(g_world, (nsamp, 1, 6))], 1
+            ),
+        )
         joints.append(js)
-        screws.append(np.concatenate([both[:, :k], both[:, k:2 * k]], 0))
+        screws.append(np.concatenate([both[:, :k], both[:, k : 2 * k]], 0))
         twist_grav.append(np.concatenate([both[:, 2 * k], both[:, 2 * k + 1]], 0))
     return _Factors(joints, screws, twist_grav, nsamp)
 
@@ -122,10 +128,10 @@ def integrated_rate_regressor(tree, q, v, t, bounds, integration="trapezoid", fa
         x = factors.twist_grav[i]
         gram = np.empty((len(bounds), k * 6, 6))
         for s, (a, b) in enumerate(bounds):
-            idx = np.r_[a:b + 1, N + a:N + b + 1]
+            idx = np.r_[a : b + 1, N + a : N + b + 1]
             ww = np.concatenate([weights[s], weights[s]])
             gram[s] = sT[:, idx] @ (x[idx] * ww[:, None])
-        out[:, js, 10 * i:10 * i + 10] = gram.reshape(len(bounds), k, 36) @ kbasis
+        out[:, js, 10 * i : 10 * i + 10] = gram.reshape(len(bounds), k, 36) @ kbasis
     return out
 
 
@@ -133,7 +139,7 @@ def segment_sums(values, t, bounds, integration):
     """∫ values dt per segment with the same quadrature, values (N, ...) -> (S, ...)."""
     out = np.empty((len(bounds),) + values.shape[1:])
     for s, (a, b) in enumerate(bounds):
-        out[s] = np.tensordot(sample_weights(t, a, b, integration), values[a:b + 1], 1)
+        out[s] = np.tensordot(sample_weights(t, a, b, integration), values[a : b + 1], 1)
     return out
 
 
@@ -151,7 +157,7 @@ def rate_regressor_samples(factors, n):
     """W_c,rigid at every sample (N, n, 10 n): the per-sample form of `integrated_rate_regressor`."""
     out = np.zeros((factors.nsamp, n, 10 * n))
     for i, joints, block in _rate_blocks(factors, n):
-        out[:, joints, 10 * i:10 * i + 10] = block
+        out[:, joints, 10 * i : 10 * i + 10] = block
     return out
 
 
@@ -160,8 +166,8 @@ def integrand_rates(t, factors, fric_cols, theta_centre, theta_radius):
     EVERY θ in θ_centre ± θ_radius (the mean of ḟ over the step), (N − 1, n). W_c = rigid part
     (from the factors, body by body: never the whole (N, n, 14 n) array) + fric_cols (N, n, 4 n)."""
     n = fric_cols.shape[1]
-    f = fric_cols @ theta_centre[10 * n:]
-    spread = np.abs(np.diff(fric_cols, axis=0)) @ theta_radius[10 * n:]
+    f = fric_cols @ theta_centre[10 * n :]
+    spread = np.abs(np.diff(fric_cols, axis=0)) @ theta_radius[10 * n :]
     for i, joints, block in _rate_blocks(factors, n):
         body = slice(10 * i, 10 * i + 10)
         f[:, joints] += block @ theta_centre[body]
@@ -229,8 +235,24 @@ class SegmentRows:
     @classmethod
     def empty(cls, n, nr):
         z = lambda *s: np.zeros(s)  # noqa: E731
-        return cls(z(0), z(0), z(0, n, 10), z(0, n, nr), z(0, n), z(0), z(0), z(0, n), z(0, n), z(0, n), z(0, n),
-                   np.zeros(0, bool), z(0, n), np.zeros(0, bool), np.zeros(0, int), np.zeros(0, int))
+        return cls(
+            z(0),
+            z(0),
+            z(0, n, 10),
+            z(0, n, nr),
+            z(0, n),
+            z(0),
+            z(0),
+            z(0, n),
+            z(0, n),
+            z(0, n),
+            z(0, n),
+            np.zeros(0, bool),
+            z(0, n),
+            np.zeros(0, bool),
+            np.zeros(0, int),
+            np.zeros(0, int),
+        )
 
     def __len__(self):
         return len(self.t0)
@@ -262,7 +284,7 @@ def build_segment_rows(robot, t, q, v, tau, bounds, settings, theta_box=None, in
         return SegmentRows.empty(n, int(rest.sum()))
     lo, hi = int(bounds[:, 0].min()), int(bounds[:, 1].max())
     loc = bounds - lo
-    tt, qq, vv, ta = t[lo:hi + 1], q[lo:hi + 1], v[lo:hi + 1], tau[lo:hi + 1]
+    tt, qq, vv, ta = t[lo : hi + 1], q[lo : hi + 1], v[lo : hi + 1], tau[lo : hi + 1]
     integ = settings.integration
     factors = _pair_factors(robot.tree, qq, vv)
     wc_rigid = integrated_rate_regressor(robot.tree, qq, vv, tt, loc, integ, factors)
@@ -284,8 +306,8 @@ def build_segment_rows(robot, t, q, v, tau, bounds, settings, theta_box=None, in
     for s, (a, b) in enumerate(loc):
         w = sample_weights(tt, a, b, rule)
         w_first[s], w_last[s] = w[0], w[-1]
-        r_inner[s] = w[1:-1] @ r[a + 1:b]
-        r_inner_sq[s] = w[1:-1] ** 2 @ r[a + 1:b] ** 2
+        r_inner[s] = w[1:-1] @ r[a + 1 : b]
+        r_inner_sq[s] = w[1:-1] ** 2 @ r[a + 1 : b] ** 2
     shared_prev = np.zeros(S, bool)
     shared_prev[1:] = loc[1:, 0] == loc[:-1, 1]
     centre, radius = (robot.theta, np.zeros_like(robot.theta)) if theta_box is None else theta_box
@@ -295,8 +317,21 @@ def build_segment_rows(robot, t, q, v, tau, bounds, settings, theta_box=None, in
     if settings.torque_signal == "continuous":
         err, violated = torque_rate_bound(tt, ta, r, loc, settings.torque_rate_limit_Nm_s)
         quad = quad + err
-    return SegmentRows(t0=tt[loc[:, 0]], t1=tt[loc[:, 1]], Y=D[..., ee], D_r=D[..., rest], T=T,
-                       w_first=w_first, w_last=w_last, r_first=r[loc[:, 0]], r_last=r[loc[:, 1]],
-                       r_inner=r_inner, r_inner_sq=r_inner_sq, shared_prev=shared_prev, quad=quad,
-                       violated=violated, start_index=bounds[:, 0] + index_offset,
-                       end_index=bounds[:, 1] + index_offset)
+    return SegmentRows(
+        t0=tt[loc[:, 0]],
+        t1=tt[loc[:, 1]],
+        Y=D[..., ee],
+        D_r=D[..., rest],
+        T=T,
+        w_first=w_first,
+        w_last=w_last,
+        r_first=r[loc[:, 0]],
+        r_last=r[loc[:, 1]],
+        r_inner=r_inner,
+        r_inner_sq=r_inner_sq,
+        shared_prev=shared_prev,
+        quad=quad,
+        violated=violated,
+        start_index=bounds[:, 0] + index_offset,
+        end_index=bounds[:, 1] + index_offset,
+    )

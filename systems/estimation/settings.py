@@ -1,4 +1,5 @@
 """Estimator settings (from a scenario's estimator and noise sections) and its error type."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -55,12 +56,22 @@ class EstimatorSettings:
     @classmethod
     def from_scenario(cls, s):
         e = s.estimator
-        return cls(horizon_s=e.horizon_s, max_gap_s=e.max_gap_s, integration=e.integration, solver=e.solver,
-                   torque_signal=e.torque_signal, hold_period_s=e.hold_period_s or s.plant.time_step_s,
-                   torque_rate_limit_Nm_s=e.torque_rate_limit_Nm_s, quadrature_safety=e.quadrature_safety,
-                   torque_ratio=s.noise.declared_torque_ratio, torque_floor_Nm=s.noise.declared_torque_floor_Nm,
-                   theta_r_ratio=s.noise.theta_r_ratio, theta_r_floor=s.noise.theta_r_floor,
-                   set_membership=e.set_membership, point_estimate=e.point_estimate)
+        return cls(
+            horizon_s=e.horizon_s,
+            max_gap_s=e.max_gap_s,
+            integration=e.integration,
+            solver=e.solver,
+            torque_signal=e.torque_signal,
+            hold_period_s=e.hold_period_s or s.plant.time_step_s,
+            torque_rate_limit_Nm_s=e.torque_rate_limit_Nm_s,
+            quadrature_safety=e.quadrature_safety,
+            torque_ratio=s.noise.declared_torque_ratio,
+            torque_floor_Nm=s.noise.declared_torque_floor_Nm,
+            theta_r_ratio=s.noise.theta_r_ratio,
+            theta_r_floor=s.noise.theta_r_floor,
+            set_membership=e.set_membership,
+            point_estimate=e.point_estimate,
+        )
 
     def segment_gap_s(self):
         """Longest step a segment may span: max_gap_s, and for a held torque 1.5 hold periods

@@ -1,6 +1,7 @@
 """Synthetic joint logs (validation, benchmarks, Table V): smooth Fourier motions within the
 joint limits, the held torque that produces them, bounded noise.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -8,8 +9,18 @@ import numpy as np
 from .settings import EstimatorError
 
 
-def fourier_motion(rng, robot, duration_s, rate_hz, harmonics=5, period_s=None, centre=None,
-                   velocity_fraction=0.7, position_amplitude_rad=0.6, t0=0.0):
+def fourier_motion(
+    rng,
+    robot,
+    duration_s,
+    rate_hz,
+    harmonics=5,
+    period_s=None,
+    centre=None,
+    velocity_fraction=0.7,
+    position_amplitude_rad=0.6,
+    t0=0.0,
+):
     """Smooth random finite Fourier series (Swevers form) within joint position/velocity limits.
 
     q_j(t) = c_j + Σ_l a_jl/(lω) sin(lωt) − b_jl/(lω) cos(lωt), scaled on the sample grid.
@@ -84,8 +95,18 @@ def perturbed_robot_theta(rng, robot, ratio):
     return theta
 
 
-def simulate_log(rng, robot, theta_true, duration_s=7.5, rate_hz=1000.0, noise_ratio=0.025, noise_floor_Nm=0.05,
-                 noise_scale=1.0, torque="held", **traj):
+def simulate_log(
+    rng,
+    robot,
+    theta_true,
+    duration_s=7.5,
+    rate_hz=1000.0,
+    noise_ratio=0.025,
+    noise_floor_Nm=0.05,
+    noise_scale=1.0,
+    torque="held",
+    **traj,
+):
     """Joint log of an open-loop exciting motion with θ_true, plus uniform noise inside
     |τ_meas − τ| ≤ noise_scale·(ratio|τ| + floor). torque "held": τ is the zero-order-hold
     torque that produces the motion (`held_torque`, what a digital controller applies);
