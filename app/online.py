@@ -9,6 +9,14 @@ Methods (paper Table III):
   random        random feasible plans + identification (the ablation)
   conservative  exciting plans, Table II interval throughout, no identification
   wrong         no payload in the model, zero-width interval, no identification
+
+Task phase (scenario `task` section; systems/task_phase.py): a TaskPhaseSource sits between the
+planner and the controller. One plant step after the identification horizon (at t = 0 for
+methods that do not identify, which then have no planner) it latches the method's parameters
+(ours: the identified box), and plays the move back to q0 and the cached task trajectory; at its
+end run_online releases the payload (RealArm.release), gives the controller the bare end
+effector, lets the payload settle and measures the placement on the simulated pose. The
+SafetyMonitor referees the whole run, both phases.
 """
 
 from __future__ import annotations
@@ -19,7 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from safesysid.scenario import Scenario, robot_from_scenario
+from safesysid.scenario import Scenario, robot_from_scenario, task_enabled
 
 IDENTIFYING = {"ours": True, "random": True, "conservative": False, "wrong": False}
 
@@ -45,6 +53,8 @@ class OnlineDiagram:
     meshcat: object | None
     theta_prior: tuple
     tracking: object
+    source: object = None  # TaskPhaseSource (None: no task phase)
+    task: tuple = ()  # (TaskProblem, TaskResult) of the scenario's task
 
 
 def _add_logger(builder, port, period, name):
@@ -79,6 +89,52 @@ def identification_horizon_s(scenario):
     return (p.num_plans - 1) * p.replan_period_s + p.duration_s
 
 
+def task_switch_time_s(scenario, method):
+    """Start of the task phase: one plant step after the identification horizon (so the
+    estimator's update due at the horizon is in the latched box), or 0 without identification."""
+    return identification_horizon_s(scenario) + scenario.plant.time_step_s if IDENTIFYING[method] else 0.0
+
+
+def released_parameters(robot, scenario, method):
+    """(theta0, lower, upper) after the release: the bare end effector (the model's own) with
+    the rest of the robot as in the method's prior box."""
+    from safesysid.systems.armour import parameter_box
+
+    if method == "wrong":
+        theta0, box = prior(robot, scenario, method)
+        return theta0, box.lo, box.hi
+    ee = robot.theta[robot.ee_slice]
+    ratio = scenario.noise.theta_r_ratio
+    floors = scenario.noise.theta_r_floor
+    theta0, box = parameter_box(robot, ee, ee, ee, rest_ratio=ratio, friction_ratio=ratio, floors=floors)
+    return theta0, box.lo, box.hi
+
+
+def make_task_source(robot, scenario, switch_time_s, problem, plan):
+    """The TaskPhaseSource of a scenario whose task trajectory `plan` (TaskResult) solves `problem`."""
+    from safesysid.systems.task_phase import return_move
+    from safesysid.systems.trajectory_source import TaskPhaseSource
+
+    def make_task(q_now):
+        if not plan.ok:
+            return [], [dict(kind="task_infeasible", detail=f"task trajectory {plan.status}: {plan.reason}")]
+        back = return_move(problem, q_now, scenario.task.return_duration_s)
+        curves, events = [], []
+        if back is not None:
+            solve = f"{back.status} ({back.solver}, {back.solve_time_s:.2f} s)"
+            events.append(dict(kind="return_move", detail=f"to q0 in {scenario.task.return_duration_s:.2f} s: {solve}"))
+            if not back.ok:
+                return [], events + [dict(kind="task_infeasible", detail=f"no return move: {back.reason}")]
+            curves.append(back.trajectory)
+        curves.append(plan.trajectory)
+        cache = plan.details.get("cache", "")
+        detail = f"task trajectory {plan.trajectory.duration:.2f} s ({plan.status}, cache {cache})"
+        events.append(dict(kind="task_start", detail=detail))
+        return curves, events
+
+    return TaskPhaseSource(robot.n, 14 * robot.n, scenario.q0_rad, switch_time_s, make_task)
+
+
 def make_estimator_system(robot, scenario, update_period_s=None):
     """The SysIdEstimator of a scenario: its estimator settings and initial interval, sampling at
     the plant step, updating every t_p (planner.replan_period_s unless given)."""
@@ -103,27 +159,36 @@ def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> On
     from safesysid.systems.armour import tracking_bounds_for
     from safesysid.systems.real_arm import add_real_arm
     from safesysid.systems.safety_monitor import SafetyMonitor
+    from safesysid.systems.task_phase import task_plan
 
     method = method or scenario.method
     robot = robot_from_scenario(scenario)
     h = scenario.plant.time_step_s
+    task = task_enabled(scenario)
     builder = DiagramBuilder()
-    arm = add_real_arm(builder, scenario, robot=robot, seed=seed)
+    arm = add_real_arm(builder, scenario, robot=robot, seed=seed, releasable=task and not scenario.task.goal_q_rad)
     theta0, box = prior(robot, scenario, method)
     controller, gains = add_controller(builder, arm, scenario)
     # The controller's certified bound (per-joint Kr; sigma_min from the armature lower bounds,
     # which identification never changes) is the tube the planner must respect.
     tracking = tracking_bounds_for(robot, gains.armour, box.lo)
-    planner = builder.AddSystem(
-        make_planner_system(
-            robot, scenario, method, tracking, arm.dumbbell, (theta0, box), scenario.seed if seed is None else seed
+    planner = desired = None
+    if IDENTIFYING[method] or not task:  # with a task, a method without identification goes straight to it
+        planner = builder.AddSystem(
+            make_planner_system(
+                robot, scenario, method, tracking, arm.dumbbell, (theta0, box), scenario.seed if seed is None else seed
+            )
         )
-    )
-    planner.set_name("planner")
-    desired = builder.AddSystem(Multiplexer([robot.n] * 3))
-    desired.set_name("desired_q_v_a")
-    for k, name in enumerate(("q_desired", "v_desired", "a_desired")):
-        builder.Connect(planner.GetOutputPort(name), desired.get_input_port(k))
+        planner.set_name("planner")
+        desired = builder.AddSystem(Multiplexer([robot.n] * 3))
+        desired.set_name("desired_q_v_a")
+        for k, name in enumerate(("q_desired", "v_desired", "a_desired")):
+            builder.Connect(planner.GetOutputPort(name), desired.get_input_port(k))
+    source, task_info = None, ()
+    if task:
+        task_info = task_plan(scenario)
+        source = builder.AddSystem(make_task_source(robot, scenario, task_switch_time_s(scenario, method), *task_info))
+        source.set_name("task_phase_source")
     estimator = None
     if IDENTIFYING[method]:
         estimator = builder.AddSystem(make_estimator_system(robot, scenario))
@@ -134,15 +199,32 @@ def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> On
     else:
         theta_ports = [_constant(builder, v, f"prior_{k}") for k, v in enumerate((theta0, box.lo, box.hi))]
     for name, port in zip(("theta0", "theta_lower", "theta_upper"), theta_ports):
-        builder.Connect(port, planner.GetInputPort(name))
-        builder.Connect(planner.GetOutputPort(f"plan_{name}"), controller.GetInputPort(name))
-    if estimator is not None and estimator.HasOutputPort("consistent"):
-        builder.Connect(estimator.GetOutputPort("consistent"), planner.GetInputPort("estimate_consistent"))
+        if planner is not None:
+            builder.Connect(port, planner.GetInputPort(name))
+        if source is None:
+            builder.Connect(planner.GetOutputPort(f"plan_{name}"), controller.GetInputPort(name))
+            continue
+        # Identification: the parameters the executing plan was certified with; task: the method's.
+        if planner is not None:
+            builder.Connect(planner.GetOutputPort(f"plan_{name}"), source.GetInputPort(f"plan_{name}"))
+        builder.Connect(port, source.GetInputPort(f"task_{name}"))
+        builder.Connect(source.GetOutputPort(name), controller.GetInputPort(name))
+    if planner is not None:
+        if estimator is not None and estimator.HasOutputPort("consistent"):
+            builder.Connect(estimator.GetOutputPort("consistent"), planner.GetInputPort("estimate_consistent"))
+        else:
+            consistent = _constant(builder, [1.0], "estimate_consistent")
+            builder.Connect(consistent, planner.GetInputPort("estimate_consistent"))
+    if source is not None:
+        if desired is not None:
+            builder.Connect(desired.get_output_port(), source.GetInputPort("plan_desired"))
+        desired_port = source.GetOutputPort("desired")
     else:
-        builder.Connect(_constant(builder, [1.0], "estimate_consistent"), planner.GetInputPort("estimate_consistent"))
-    builder.Connect(desired.get_output_port(), controller.GetInputPort("desired"))
+        desired_port = desired.get_output_port()
+    builder.Connect(desired_port, controller.GetInputPort("desired"))
 
-    monitor = builder.AddSystem(SafetyMonitor(arm.plant, arm.scene_graph, robot, period_s=h))
+    ignore = [arm.released_body] if arm.released_body is not None else []
+    monitor = builder.AddSystem(SafetyMonitor(arm.plant, arm.scene_graph, robot, period_s=h, ignore_bodies=ignore))
     monitor.set_name("safety_monitor")
     builder.Connect(arm.query_output, monitor.query_port)
     builder.Connect(arm.plant_state_output, monitor.state_port)
@@ -153,7 +235,7 @@ def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> On
         "state": _add_logger(builder, arm.state_output, h, "state"),
         "measured_torque": _add_logger(builder, arm.measured_torque_output, h, "measured_torque"),
         "command": _add_logger(builder, controller.GetOutputPort("torque"), h, "command"),
-        "desired": _add_logger(builder, desired.get_output_port(), h, "desired"),
+        "desired": _add_logger(builder, desired_port, h, "desired"),
     }
     visualizer = None
     if meshcat is not None:
@@ -163,7 +245,19 @@ def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> On
     diagram = builder.Build()
     diagram.set_name(f"safesysid_{method}")
     return OnlineDiagram(
-        diagram, arm, controller, planner, estimator, monitor, loggers, visualizer, meshcat, (theta0, box), tracking
+        diagram,
+        arm,
+        controller,
+        planner,
+        estimator,
+        monitor,
+        loggers,
+        visualizer,
+        meshcat,
+        (theta0, box),
+        tracking,
+        source,
+        task_info,
     )
 
 
@@ -178,22 +272,89 @@ def merge_events(*sources):
     return sorted((dict(e) for source in sources for e in source), key=lambda e: e["t"])
 
 
-def classify_failure(safety, plans, tracking_ratio):
-    """The first failure of a run (contracts.md order), or None. Torque is judged on the
-    controller's command before saturation (the saturated torque can never exceed the limit)."""
-    if safety["collisions"] > 0:
-        return "collision"
-    if safety["max_commanded_torque_ratio"] > 1.0 + 1e-9:
-        return "torque_limit"
-    if safety["max_joint_limit_ratio"] > 1.0:
-        return "joint_limit"
-    if safety["max_velocity_ratio"] > 1.0:
-        return "velocity_limit"
-    if plans and not plans[0]["ok"]:
-        return "planner_infeasible"
-    if tracking_ratio > 1 + 1e-9:
-        return "tracking"
-    return None
+def judge(record, plans, t, tracking_ratio, task, t_switch):
+    """(failure, phase, time) of the first failure of a run in contracts.md's order, or
+    (None, None, None). Torque is judged on the controller's command before saturation (the
+    saturated torque can never exceed the limit). record: the SafetyMonitor's; tracking_ratio:
+    max over joints of |error| / tube bound at the logger's times t; task: _run_task_phase's
+    summary (None: no task phase)."""
+    from safesysid.systems.task_phase import first_failure
+
+    times = np.asarray(record.times, float)
+
+    def above(values, limit):
+        return times[np.asarray(values, float) > limit]
+
+    infeasible = [p["t_s"] for p in plans[:1] if not p["ok"]]
+    placement = []
+    if task is not None:
+        infeasible += [] if task["executed"] else [task["switch_time_s"]]
+        place = task["placement"]
+        if place["error_m"] is not None and not place["error_m"] <= place["tolerance_m"]:
+            placement = [task["release_time_s"]]
+    checks = [
+        ("collision", times[np.asarray(record.clearance, float) < 0]),
+        ("torque_limit", above(record.commanded_ratio, 1.0 + 1e-9)),
+        ("joint_limit", above(record.joint_ratio, 1.0)),
+        ("velocity_limit", above(record.velocity_ratio, 1.0)),
+        ("planner_infeasible", infeasible),
+        ("tracking", np.asarray(t)[tracking_ratio > 1 + 1e-9]),
+        ("placement", placement),
+    ]
+    return first_failure(checks, t_switch)
+
+
+def _run_task_phase(built, sim, scenario, method):
+    """Advance a built run through identification, the task phase, the release and the settling;
+    returns the task's summary (placement measured on the simulated payload pose)."""
+    from safesysid.systems.task_phase import placement_target
+
+    ctx = sim.get_mutable_context()
+    arm, source = built.arm, built.source
+    source_ctx = source.GetMyMutableContextFromRoot(ctx)
+    # The switch fires at switch_time_s; one step later its curves are in the context.
+    sim.AdvanceTo(source.switch_time_s + scenario.plant.time_step_s)
+    st = source.phase_state(source_ctx)
+    t_release = max(st.t_end, ctx.get_time())
+    sim.AdvanceTo(t_release)
+    release_xyz = None
+    if arm.released_body is not None and st.ready:
+        release_xyz = arm.release(ctx).translation()
+        detail = f"payload released at {np.round(release_xyz, 4).tolist()} m; controller: bare end effector"
+        event = dict(t=t_release, kind="release", detail=detail)
+        source.set_thetas(source_ctx, released_parameters(arm.robot, scenario, method), event)
+    end = t_release + scenario.task.settle_time_s
+    sim.AdvanceTo(end)
+    target, kind = placement_target(scenario, arm.dumbbell)
+    settled = arm.payload_pose(ctx).translation() if arm.dumbbell is not None else None
+    measured = release_xyz if kind == "release" and release_xyz is not None else settled
+    error = None if target is None else float(np.linalg.norm(measured - target))
+    problem, plan = built.task
+    as_list = lambda x: None if x is None else np.asarray(x, float).tolist()  # noqa: E731
+    return {
+        "switch_time_s": float(st.t_switch),
+        "release_time_s": float(t_release),
+        "end_time_s": float(end),
+        "executed": bool(st.ready),
+        "return_move": len(st.curves) > 1,
+        "trajectory": {
+            "status": plan.status,
+            "solver": plan.solver,
+            "cost": plan.cost,
+            "cache": plan.details.get("cache"),
+            "payload_model": scenario.task.payload_model,
+        },
+        "placement": {
+            "kind": kind or None,
+            "target_m": as_list(target),
+            "measured_m": as_list(measured),
+            "release_m": as_list(release_xyz),
+            "error_m": error,
+            "tolerance_m": scenario.task.placement_tolerance_m,
+            "speed_at_end_m_s": arm.payload_speed(ctx) if arm.dumbbell is not None else None,
+        },
+        "events": source.events(source_ctx),
+    }
 
 
 def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat=False, write=True):
@@ -220,8 +381,14 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
         built.visualizer.StartRecording()
     sim.Initialize()
     horizon = identification_horizon_s(scenario)
-    # One step past the horizon so the estimator's update due at exactly t = horizon is applied.
-    sim.AdvanceTo(horizon + scenario.plant.time_step_s)
+    if built.source is None:
+        # One step past the horizon so the estimator's update due at exactly t = horizon is applied.
+        sim.AdvanceTo(horizon + scenario.plant.time_step_s)
+        t_switch, sim_end, task_summary = np.inf, horizon, None
+    else:
+        t_switch = built.source.switch_time_s
+        task_summary = _run_task_phase(built, sim, scenario, method)
+        sim_end = task_summary["end_time_s"]
     wall = time.perf_counter() - wall0
 
     t, state = _log(built.loggers["state"], ctx)
@@ -238,34 +405,46 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
     truth = arm.true_theta()[robot.ee_slice]
     est = built.estimator
     if est is not None:
+        # The identification phase's estimate (the estimator keeps sampling in the task phase,
+        # the payload's release included: nothing after the switch is the identification's).
         est_ctx = est.GetMyContextFromRoot(ctx)
-        theta_e0, lo, hi = est.final_estimate(est_ctx, robot.ee_slice)
-        history = est.history(est_ctx)
+        history = [h for h in est.history(est_ctx) if h["t"] <= t_switch]
+        if history:
+            theta_e0, lo, hi = (np.asarray(history[-1][k], float) for k in ("nominal", "lower", "upper"))
+        else:
+            theta_e0, lo, hi = est.final_estimate(est_ctx, robot.ee_slice)
         cond_y = history[-1]["cond_Y"] if history else float("nan")
         update_times = [h["update_time_s"] for h in history]
-        consistent, estimator_events = est.consistent(est_ctx), est.events(est_ctx)
+        consistent = all(h["consistent"] for h in history)
+        estimator_events = [e for e in est.events(est_ctx) if e["t"] <= t_switch]
     else:
         theta0, box = built.theta_prior
         theta_e0, lo, hi = theta0[robot.ee_slice], box.lo[robot.ee_slice], box.hi[robot.ee_slice]
         history, cond_y, update_times = [], float("nan"), []
         consistent, estimator_events = True, []
     contains = bool(np.all((lo <= truth) & (truth <= hi)))
-    planner_context = built.planner.GetMyContextFromRoot(ctx)
-    plans = built.planner.records(planner_context)
-    events = merge_events(estimator_events, built.planner.events(planner_context))  # every system's, in time order
+    plans, planner_events = [], []
+    if built.planner is not None:
+        planner_context = built.planner.GetMyContextFromRoot(ctx)
+        plans, planner_events = built.planner.records(planner_context), built.planner.events(planner_context)
+    task_events = task_summary.pop("events") if task_summary else []
+    events = merge_events(estimator_events, planner_events, task_events)  # every system's, in time order
     solve_times = [p["solve_time_s"] for p in plans]
     deadline = scenario.planner.replan_period_s
     bound = np.asarray(built.tracking.position, float)
     tracking_bound = float(np.max(bound))
     max_err = float(np.abs(error).max())
-    worst_ratio = float(np.max(np.abs(error) / bound))  # per joint: Kr differs between joints
-    failure = classify_failure(safety, plans, worst_ratio)
+    ratio_t = np.max(np.abs(error) / bound, axis=1)  # per joint: Kr differs between joints
+    worst_ratio = float(ratio_t.max())
+    failure, phase, t_fail = judge(record, plans, t, ratio_t, task_summary, t_switch)
     summary = {
         "scenario": scenario.name,
         "method": method,
         "seed": seed,
         "success": failure is None,
         "failure": failure,
+        "phase": phase,
+        "failure_time_s": t_fail,
         "collisions": safety["collisions"],
         "min_clearance_m": safety["min_clearance_m"],
         "max_torque_ratio": safety["max_torque_ratio"],
@@ -276,6 +455,8 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
         "tracking_bound_rad": tracking_bound,
         "max_tracking_error_ratio": worst_ratio,
         "tracking_bound_per_joint_rad": bound.tolist(),
+        "placement_error_m": task_summary["placement"]["error_m"] if task_summary else None,
+        "task": task_summary,
         "payload_true": {"theta": truth.tolist(), "dumbbell": arm.dumbbell.name if arm.dumbbell else None},
         "estimate": {
             "nominal": np.asarray(theta_e0).tolist(),
@@ -298,7 +479,7 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
         },
         "sysid": {"updates": len(history), "update_time_s": update_times},
         "wall_time_s": wall,
-        "sim_time_s": float(horizon),
+        "sim_time_s": float(sim_end),
     }
     if not write:
         return summary
@@ -337,7 +518,8 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
             truth,
         )
     if built.visualizer is not None:
-        draw_plans(meshcat, robot, built.planner.results(planner_context))
+        if built.planner is not None:
+            draw_plans(meshcat, robot, built.planner.results(built.planner.GetMyContextFromRoot(ctx)))
         viz.save_replay(meshcat, built.visualizer, out / "replay.html")
     return summary
 

@@ -187,6 +187,8 @@ def _validate_task(s: Scenario, need):
     )
     need(t.release_height_m >= 0, "task.release_height_m", "must be >= 0")
     need(t.placement_tolerance_m > 0, "task.placement_tolerance_m", "must be > 0")
+    need(t.return_duration_s > 0, "task.return_duration_s", "must be > 0")
+    need(t.settle_time_s >= 0, "task.settle_time_s", "must be >= 0")
     need(t.duration_s > 0, "task.duration_s", "must be > 0")
     need(t.num_pieces >= 1, "task.num_pieces", "must be >= 1")
     need(t.collision_samples >= 2, "task.collision_samples", "must be >= 2")

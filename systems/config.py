@@ -195,13 +195,29 @@ class Task:
     optimization); with neither, the centre goes above the top centre of the obstacle named
     `platform` so that its lowest point is `release_height_m` above it. No goal, no platform:
     no task phase.
+
+    In `safesysid run` (app/online.py): after the identification phase (at once for methods
+    without one) the arm returns to q0_rad by a verified minimum-jerk move of `return_duration_s`
+    if identification left it elsewhere, follows the (cached) task trajectory, releases the
+    payload at its end and waits `settle_time_s` for it to come to rest.
+
+    Success (summary.json `success`; the first failure and its `phase` otherwise): no contact of
+    the link shapes or payload with the environment (min clearance > 0 m, the referee's Drake
+    geometry), commanded torque <= limit BEFORE saturation, joints and velocities within their
+    limits, tracking error <= the controller's certified tube bound (rad, per joint), and, with a
+    placement, the settled payload centre within `placement_tolerance_m` of its target (resting on
+    the platform under the release point: platform top + the payload's resting radius; with
+    `place_xyz_m` and no platform, the centre at release vs `place_xyz_m`).
     """
 
     goal_q_rad: List[float] = dc.field(default_factory=list)
     place_xyz_m: List[float] = dc.field(default_factory=list)  # payload centre target, base frame
     platform: str = ""  # name of the obstacle (in `obstacles`) the payload is placed on
     release_height_m: float = 0.03  # payload's lowest point above the platform top at release
-    placement_tolerance_m: float = 0.01  # success: |payload centre at release - target|
+    placement_tolerance_m: float = 0.01  # success: |settled payload centre - target| (see above)
+    return_duration_s: float = 2.0  # identification end -> q0_rad (one degree-5 piece)
+    settle_time_s: float = 1.0  # simulated after the release before the placement is measured
+    cache_dir: str = ""  # task-trajectory cache; empty: $XDG_CACHE_HOME (or ~/.cache)/safesysid/task
     duration_s: float = 2.0  # paper: 2 s
     num_pieces: int = 2  # degree-5 Bézier pieces of equal length, C2 at the junctions
     payload_model: str = "8lb"  # dumbbell whose model the trajectory is computed with

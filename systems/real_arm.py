@@ -17,6 +17,11 @@ Signal path (everything from the scenario and the RobotModel; nothing hard-coded
   `RealArm.set_payload(context, dumbbell | None)` grasps or releases it at run time by setting
   the body's spatial inertia in the context; a released payload is massless and loses its
   collision role in the context (the shape stays the one the arm was built with; visual stays).
+- Release onto a platform (`releasable=True`, the task phase of app/online.py): a second,
+  free body "released_payload" with the same shape and inertia waits locked far below the floor;
+  `RealArm.release(context)` hands the welded payload's pose and spatial velocity to it, unlocks
+  it and empties the welded one (set_payload(None)), so the identification phase runs on exactly
+  the welded dynamics and the released dumbbell falls and settles under Drake contact.
 - Torque sensor: tau_meas = scale * (tau_m + n) + offset, n uniform in +-(ratio |tau_m| + floor)
   per sample and joint (noise.distribution "none": n = 0); scale = 1, offset = 0 by default. The
   draws come from a Drake RandomSource inside the station: seed them per context with
@@ -327,6 +332,7 @@ class RealArm:
     query_output: object = None  # OutputPort: SceneGraph's QueryObject (true geometry)
     noise_source: object = None  # RandomSource of the torque sensor's noise (None: noiseless)
     seed: int = 0  # the run's seed: drawn parameters at build, sensor noise via seed_noise
+    released_body: object = None  # free body taking the payload over at release (None: not releasable)
 
     @property
     def n(self):
@@ -364,6 +370,37 @@ class RealArm:
                 CollisionFilterDeclaration().ExcludeWithin(self.robot_geometries)
             )
 
+    def payload_pose(self, root_context):
+        """RigidTransform of the payload in the world: the released body once released, else the
+        welded one (its frame: the dumbbell centre, x along the handle)."""
+
+        ctx = self.plant_context(root_context)
+        released = self.released_body is not None and not self.released_body.is_locked(ctx)
+        return (self.released_body if released else self.payload_body).EvalPoseInWorld(ctx)
+
+    def payload_speed(self, root_context):
+        """|v| of the payload centre in the world [m/s]."""
+
+        ctx = self.plant_context(root_context)
+        released = self.released_body is not None and not self.released_body.is_locked(ctx)
+        body = self.released_body if released else self.payload_body
+        return float(np.linalg.norm(body.EvalSpatialVelocityInWorld(ctx).translational()))
+
+    def release(self, root_context):
+        """Let go of the payload: the free body takes the welded payload's pose and spatial
+        velocity (momentum kept) and is unlocked; the welded one is emptied. Returns the pose."""
+
+        if self.released_body is None or self.dumbbell is None:
+            raise RuntimeError("release: the station was built without a releasable payload")
+        ctx = self.plant_context(root_context)
+        pose = self.payload_body.EvalPoseInWorld(ctx)
+        velocity = self.payload_body.EvalSpatialVelocityInWorld(ctx)
+        self.set_payload(root_context, None)
+        self.released_body.Unlock(ctx)
+        self.plant.SetFreeBodyPose(ctx, self.released_body, pose)
+        self.plant.SetFreeBodySpatialVelocity(ctx, self.released_body, velocity)
+        return pose
+
     def seed_noise(self, root_context, seed=None):
         """Seed the sensor noise of this context (the station's seed unless given): Drake's
         SetRandomContext(RandomGenerator(seed)) on the noise source only, so the rest of the
@@ -378,6 +415,9 @@ class RealArm:
         ctx = self.plant_context(root_context)
         self.plant.SetPositions(ctx, self.instance, np.asarray(q, float))
         self.plant.SetVelocities(ctx, self.instance, np.zeros(self.n) if v is None else np.asarray(v, float))
+        if self.released_body is not None:  # waiting, locked, for a release
+            self.plant.SetFreeBodyPose(ctx, self.released_body, _PARKED)
+            self.released_body.Lock(ctx)
 
     def true_theta(self, dumbbell="current"):
         return true_theta(self.robot, self.dumbbell if dumbbell == "current" else dumbbell, self.theta)
@@ -388,13 +428,16 @@ def _dumbbell_spatial_inertia(db: Dumbbell):
     return inertial.to_spatial_inertia(db.theta_about_centre())
 
 
-def _register_dumbbell_geometry(plant, body, db: Dumbbell):
+_PARKED = RigidTransform([0.0, 0.0, -3.0])  # the released body's pose until the release: far below the floor
+
+
+def _register_dumbbell_geometry(plant, body, db: Dumbbell, prefix="dumbbell"):
 
     along_x = RotationMatrix.MakeYRotation(np.pi / 2)  # Drake cylinders run along z
     friction = CoulombFriction(0.8, 0.6)
     for k, (_, x, radius, length) in enumerate(db.parts()):
         pose = RigidTransform(along_x, [x, 0.0, 0.0])
-        name = f"dumbbell_{db.name}_{['handle', 'head_pos', 'head_neg'][k]}"
+        name = f"{prefix}_{db.name}_{['handle', 'head_pos', 'head_neg'][k]}"
         plant.RegisterVisualGeometry(body, pose, Cylinder(radius, length), name + "_visual", [0.15, 0.15, 0.18, 1.0])
         plant.RegisterCollisionGeometry(body, pose, Cylinder(radius, length), name, friction)
 
@@ -416,12 +459,13 @@ def _register_obstacles(plant, scenario):
     plant.RegisterCollisionGeometry(world, pose, Box(4.0, 4.0, thickness), "floor", friction)
 
 
-def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
+def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None, releasable=False):
     """Add the real arm station to `builder` as one sub-Diagram named "real_arm"; returns a
     RealArm with its exported ports: input commanded_torque; outputs state (encoders),
     measured_torque, motor_torque, applied_torque, plant_state, query_object.
 
     dumbbell: "scenario" (the scenario's payload), a Dumbbell, or None (no payload at start).
+    releasable: add the free body RealArm.release hands the payload to (module docstring).
     """
 
     robot = robot or robot_from_scenario(scenario)
@@ -456,6 +500,13 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
     plant.WeldFrames(ee_body.body_frame(), payload_body.body_frame(), RigidTransform(robot.extra["grasp_point"]))
     if db is not None:
         _register_dumbbell_geometry(plant, payload_body, db)
+    released_body = None
+    if releasable and db is not None:
+        released_body = plant.AddRigidBody(
+            "released_payload", plant.AddModelInstance("released_payload"), _dumbbell_spatial_inertia(db)
+        )
+        _register_dumbbell_geometry(plant, released_body, db, prefix="released")
+        plant.SetDefaultFloatingBaseBodyPose(released_body, _PARKED)
     _register_obstacles(plant, scenario)
     tilt = _per_joint(eff.base_tilt_rad, 2, 0.0, "base_tilt_rad")
     if np.any(tilt != 0):
@@ -470,6 +521,12 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
     robot_bodies = [plant.get_body(i) for i in plant.GetBodyIndices(instance)] + [payload_body]
     robot_geometries = plant.CollectRegisteredGeometries(robot_bodies)
     scene_graph.collision_filter_manager().Apply(CollisionFilterDeclaration().ExcludeWithin(robot_geometries))
+    if released_body is not None:  # it leaves the gripper through the fingers, held or falling
+        scene_graph.collision_filter_manager().Apply(
+            CollisionFilterDeclaration().ExcludeBetween(
+                robot_geometries, plant.CollectRegisteredGeometries([released_body])
+            )
+        )
     inspector = scene_graph.model_inspector()
     payload_collision = tuple(
         (gid, ProximityProperties(inspector.GetProximityProperties(gid)))
@@ -582,4 +639,5 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None):
         query_output=out("query_object"),
         noise_source=noise_source,
         seed=int(seed),
+        released_body=released_body,
     )

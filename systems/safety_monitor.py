@@ -14,6 +14,11 @@ Torque is read twice: the controller's command (before the actuator saturation: 
 the planner's torque bound certifies, and it may exceed the limit) and the motor torque after
 saturation (what reaches the joints, never above the limit).
 
+Bodies passed as `ignore_bodies` are neither robot nor environment: the released payload of the
+task phase (systems/real_arm.py), which is meant to touch the platform once let go (before the
+release it waits locked far below the floor, and the arm carries the welded payload, which the
+monitor does check).
+
 The record lives in the Context (abstract state, appended by a periodic unrestricted update at
 t_k, which sees the state and inputs of t_k as a logger does): `record(context)`.
 """
@@ -85,12 +90,14 @@ class SafetyMonitor(LeafSystem):
     """Inputs: geometry query, plant state (q, v), applied (motor) torque, commanded torque.
     Records every `period_s`."""
 
-    def __init__(self, plant, scene_graph, robot, period_s, max_distance_m=0.5, supports=("floor",)):
-        """supports: names of environment geometries the fixed base stands on (not collisions)."""
+    def __init__(self, plant, scene_graph, robot, period_s, max_distance_m=0.5, supports=("floor",), ignore_bodies=()):
+        """supports: names of environment geometries the fixed base stands on (not collisions);
+        ignore_bodies: bodies whose geometry takes no part (module docstring)."""
         super().__init__()
         self._robot = robot
         self._inspector = scene_graph.model_inspector()
         self._world = plant.GetBodyFrameIdOrThrow(plant.world_body().index())
+        self._ignored = {plant.GetBodyFrameIdOrThrow(b.index()) for b in ignore_bodies}
         self._max_distance = max_distance_m
         self._fixed_pairs = self._base_environment_pairs(plant, set(supports))
         n = robot.n
@@ -128,7 +135,10 @@ class SafetyMonitor(LeafSystem):
         distances = list(query.ComputeSignedDistancePairwiseClosestPoints(self._max_distance))
         distances += [query.ComputeSignedDistancePairClosestPoints(a, b) for a, b in self._fixed_pairs]
         best, pair = np.inf, None
+        frame = self._inspector.GetFrameId
         for d in distances:
+            if self._ignored and (frame(d.id_A) in self._ignored or frame(d.id_B) in self._ignored):
+                continue
             if self._is_environment(d.id_A) != self._is_environment(d.id_B) and d.distance < min(
                 best, self._max_distance
             ):

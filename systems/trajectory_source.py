@@ -1,4 +1,5 @@
-"""Desired trajectory source: [q_d, qd_d, qdd_d] (3 n) from degree-5 Bezier pieces.
+"""Desired trajectory sources: [q_d, qd_d, qdd_d] (3 n) from degree-5 Bezier pieces; TaskPhaseSource
+(below) switches a run from the planner's plans to the task phase.
 
 A piece is (t_start_s, QuinticBezier, q_end). At time t the latest piece with t_start <= t is
 evaluated at t - t_start (after its duration it rests at q_end: the built-in brake). Pieces
@@ -7,9 +8,11 @@ live in the context (abstract state), so a planner can append pieces while the d
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
+from pydrake.systems.framework import EventStatus, LeafSystem
 
 from .bezier import DEGREE, QuinticBezier, _monomial_of_bernstein
 
@@ -101,3 +104,156 @@ def make_trajectory_source(n, trajectory):
             output.SetFromVector(np.concatenate([q, qd, qdd]))
 
     return TrajectorySource()
+
+
+# ---------------------------------------------------------------------------------------------
+# The run's source: the planner's plans during identification, then the task
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class TimedCurve:
+    """A rest-to-rest curve (task_trajectory.PiecewiseBezier: .duration, .evaluate(t, orders))
+    started at t_start (absolute)."""
+
+    t_start: float
+    curve: object
+
+    @property
+    def t_end(self):
+        return self.t_start + self.curve.duration
+
+
+def evaluate_timed(curves, t, q_rest):
+    """(q, qd, qdd) at time t: the latest curve started by t (at rest at its end afterwards);
+    before the first, at rest at q_rest."""
+    active = None
+    for c in curves:
+        if c.t_start <= t + 1e-12:
+            active = c
+    if active is None:
+        return at_rest(q_rest)
+    q, v, a = active.curve.evaluate([t - active.t_start], orders=2)
+    return q[0], v[0], a[0]
+
+
+@dataclass(frozen=True)
+class PhaseState:
+    """TaskPhaseSource's run data (abstract state; immutable, replaced on change)."""
+
+    phase: str = "identification"  # identification | task
+    t_switch: float = float("nan")  # when the task phase started
+    q_switch: np.ndarray | None = None  # desired q at the switch (at rest)
+    curves: tuple = ()  # TimedCurve: the return move (if any) and the task trajectory
+    ready: bool = False  # the task's curves were found (False: holding at q_switch)
+    thetas: tuple = ()  # (theta0, lower, upper) the controller uses in the task phase
+    events: tuple = ()  # {t, kind, detail}
+
+    def __deepcopy__(self, memo):
+        return self  # immutable: Drake's state copies (every step, for the monitor's update) share it
+
+    @property
+    def t_end(self):
+        """End of the last curve (the release instant), or the switch when there is none."""
+        return self.curves[-1].t_end if self.curves else self.t_switch
+
+
+class TaskPhaseSource(LeafSystem):
+    """Desired trajectory and controller parameters of a run with a task phase.
+
+    Until `switch_time_s` it passes the planner's desired [q, qd, qdd] (input plan_desired) and
+    the parameters the executing plan was certified with (plan_theta0, plan_theta_lower,
+    plan_theta_upper) through. At `switch_time_s` (at initialization when it is 0: methods
+    without an identification phase) it latches the method's task parameters (inputs
+    task_theta0, task_theta_lower, task_theta_upper: the identified box for ours) and asks
+    `make_task(q_now)` for the curves from the desired q at that instant, which must be at rest
+    (the last plan's end; q0 when plan_desired is unconnected). make_task returns (curves
+    [rest-to-rest, played one after the other], events [{kind, detail}]); no curves: the arm holds.
+    Outputs: desired (3n), theta0, theta_lower, theta_upper (p), phase (1: 0 identification,
+    1 task). `set_thetas` replaces the task parameters (the payload's release).
+    """
+
+    def __init__(self, n, num_params, q0, switch_time_s, make_task):
+        super().__init__()
+        from pydrake.common.value import AbstractValue
+        from pydrake.systems.framework import BasicVector
+
+        self._n, self._q0, self._make_task = n, np.asarray(q0, float).copy(), make_task
+        self.switch_time_s = float(switch_time_s)
+        self._plan_desired = self.DeclareVectorInputPort("plan_desired", 3 * n)
+        names = ("theta0", "theta_lower", "theta_upper")
+        self._plan_thetas = [self.DeclareVectorInputPort(f"plan_{k}", num_params) for k in names]
+        self._task_thetas = [self.DeclareVectorInputPort(f"task_{k}", num_params) for k in names]
+        self._state = self.DeclareAbstractState(AbstractValue.Make(PhaseState()))
+        deps = {self.abstract_state_ticket(self._state), self.time_ticket(), self.all_input_ports_ticket()}
+        self.DeclareVectorOutputPort("desired", BasicVector(3 * n), self._calc_desired, prerequisites_of_calc=deps)
+        for k, name in enumerate(names):
+            self.DeclareVectorOutputPort(
+                name,
+                BasicVector(num_params),
+                lambda c, out, k=k: out.SetFromVector(self._thetas(c)[k]),
+                prerequisites_of_calc=deps,
+            )
+        self.DeclareVectorOutputPort(
+            "phase",
+            BasicVector(1),
+            lambda c, out: out.SetFromVector([float(self.phase_state(c).phase == "task")]),
+            prerequisites_of_calc={self.abstract_state_ticket(self._state)},
+        )
+        self.DeclareInitializationUnrestrictedUpdateEvent(self._on_init)
+        if self.switch_time_s > 0:
+            # Fires at the switch (and at its multiples, ignored once in the task phase).
+            self.DeclarePeriodicUnrestrictedUpdateEvent(self.switch_time_s, self.switch_time_s, self._on_switch)
+
+    def phase_state(self, context) -> PhaseState:
+        return context.get_abstract_state(int(self._state)).get_value()
+
+    def events(self, context):
+        return list(self.phase_state(context).events)
+
+    def set_thetas(self, context, thetas, event=None):
+        """Replace the task parameters (this system's context), logging `event` ({t, kind, detail})."""
+        st = self.phase_state(context)
+        events = st.events + ((event,) if event else ())
+        new = dataclasses.replace(st, thetas=tuple(np.array(x, float) for x in thetas), events=events)
+        context.get_mutable_abstract_state(int(self._state)).set_value(new)
+
+    def _thetas(self, context):
+        st = self.phase_state(context)
+        if st.phase == "task":
+            return st.thetas
+        return [port.Eval(context) for port in self._plan_thetas]
+
+    def _calc_desired(self, context, output):
+        st = self.phase_state(context)
+        if st.phase == "task":
+            q, v, a = evaluate_timed(st.curves, context.get_time(), st.q_switch)
+            output.SetFromVector(np.concatenate([q, v, a]))
+        elif self._plan_desired.HasValue(context):
+            output.SetFromVector(self._plan_desired.Eval(context))
+        else:
+            output.SetFromVector(np.concatenate(at_rest(self._q0)))
+
+    def _on_init(self, context, state):
+        if self.switch_time_s <= 0:
+            self._switch(context, state)
+        else:
+            state.get_mutable_abstract_state(int(self._state)).set_value(PhaseState())
+        return EventStatus.Succeeded()
+
+    def _on_switch(self, context, state):
+        if self.phase_state(context).phase != "task":
+            self._switch(context, state)
+        return EventStatus.Succeeded()
+
+    def _switch(self, context, state):
+        t = context.get_time()
+        desired = self._plan_desired.Eval(context) if self._plan_desired.HasValue(context) else None
+        q_now = self._q0 if desired is None else np.array(desired[: self._n])
+        thetas = tuple(np.array(port.Eval(context), float) for port in self._task_thetas)
+        curves, start = [], t
+        made, events = self._make_task(q_now)
+        for curve in made:
+            curves.append(TimedCurve(start, curve))
+            start += curve.duration
+        found = tuple(dict(t=t, **e) for e in events)
+        new = PhaseState("task", t, q_now, tuple(curves), bool(curves), thetas, found)
+        state.get_mutable_abstract_state(int(self._state)).set_value(new)
