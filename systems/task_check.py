@@ -1,0 +1,153 @@
+"""Checks of a task trajectory (systems/task_trajectory.py) that do not trust the optimizer: the
+independent verification on the referee's geometry and Drake's dynamics, and the ARMOUR
+controller's certified torque bound over the tube and a parameter box."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import reachability as reach
+from .bezier import _difference, restriction_matrix
+from .task_constraints import GRIPPER_TILT_TOL_RAD, PLACEMENT_TOL_M
+from .task_curve import DEGREE, PiecewiseBezier
+from .task_trajectory import TaskProblem, _jsonable
+
+
+def certified_torque_ratio(
+    problem: TaskProblem, trajectory: PiecewiseBezier, theta0, theta_lo, theta_hi, windows_per_piece=100
+):
+    """max_j sup |u_j| / limit_j of the ARMOUR command while tracking `trajectory`: over every
+    instant (windows tiling each piece, Bézier hulls of q, dq, ddq), every tracking error in the
+    tube and every theta in [theta_lo, theta_hi] (reachability's interval passivity regressor and
+    robust-term bound, as the planner certifies its plans). <= 1: the controller's certificate
+    covers the task trajectory with that parameter box. Returns (ratio, per-joint sup |u| (n,))."""
+    from .intervals import Interval, _down, _up
+
+    tb = problem.tracking
+    edges = np.linspace(0.0, 1.0, windows_per_piece + 1)
+    hulls = []
+    for order in range(3):
+        lo, hi = [], []
+        for pts in trajectory.control_points:
+            d = _difference(pts, order) / trajectory.piece_duration**order
+            sub = np.stack([restriction_matrix(DEGREE - order, a, b) @ d for a, b in zip(edges[:-1], edges[1:])])
+            lo.append(sub.min(1))
+            hi.append(sub.max(1))
+        hulls.append((np.concatenate(lo), np.concatenate(hi)))
+    (q_lo, q_hi), (v_lo, v_hi), (a_lo, a_hi) = hulls
+
+    def pad(lo, hi, r):  # outward, as reachability.PlanReach.state_boxes
+        return Interval(_down(_down(lo - r) - 1e-12 * np.abs(lo)), _up(_up(hi + r) + 1e-12 * np.abs(hi)))
+
+    q_box = pad(q_lo, q_hi, tb.position)
+    wp = reach.interval_passivity_regressor(
+        problem.robot, q_box, pad(v_lo, v_hi, tb.velocity), pad(v_lo, v_hi, tb.qd_a), pad(a_lo, a_hi, tb.qdd_a)
+    )
+    # The robust input may exceed |w_bar| on the tube (h < 0): the same excess the planner adds.
+    excess = reach.barrier_excess(problem.robot, q_box, theta_lo, theta_hi, tb)
+    sup, _, _ = reach.torque_bound(wp, theta0, theta_lo, theta_hi, excess)
+    per_joint = sup.max(0)
+    return float(np.max(per_joint / problem.robot.joint_params.torque_limit)), per_joint
+
+
+# ---------------------------------------------------------------------------------------------
+# Independent verification (the referee's geometry and Drake's dynamics)
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class TaskVerification:
+    ok: bool  # no contact with obstacles/floor, limits respected with the stated margins
+    min_clearance_m: float  # Drake signed distance, link shapes + payload vs obstacles + floor
+    closest_pair: tuple
+    max_torque_ratio: float  # max |tau_j| / limit_j, Drake inverse dynamics + joint friction
+    max_velocity_ratio: float  # max |v_j| / limit_j
+    max_joint_limit_ratio: float  # safety_monitor.limit_ratio (1 = at a limit)
+    placement_error_m: float  # |payload centre at the end - target| (nan for a joint goal)
+    gripper_tilt_rad: float  # angle of the gripper axis from vertical at the end
+    num_samples: int
+    failures: list = field(default_factory=list)
+
+    def to_dict(self):
+        return _jsonable(self.__dict__)
+
+
+def verify_task_trajectory(problem: TaskProblem, trajectory: PiecewiseBezier, rate_hz=1000.0) -> TaskVerification:
+    """Re-check a trajectory at `rate_hz` with what the closed-loop referee uses: the real arm's
+    scene (systems/real_arm.py: link shapes, the payload's cylinders, obstacles, floor) queried
+    by SafetyMonitor.min_clearance, and Drake's CalcInverseDynamics on that plant (rotor inertia
+    = armature, the payload model) plus the plant's joint friction law. Nothing here uses the
+    planner spheres or the regressors. Pass/fail against the margins the optimizer claims: no
+    contact; velocity <= limit - tube velocity bound; position within limits - tube position
+    bound; torque <= limit (the margin ratio is claimed at the optimizer's torque samples only,
+    so the dense check asks for the limit itself and reports the ratio)."""
+    from pydrake.multibody.tree import MultibodyForces
+    from pydrake.systems.framework import DiagramBuilder
+
+    from .config import Planner, Scenario
+    from .real_arm import add_real_arm
+    from .regressors import coulomb_shape
+    from .safety_monitor import SafetyMonitor, limit_ratio
+
+    robot = problem.robot
+    jp = robot.joint_params
+    tb = problem.tracking
+    builder = DiagramBuilder()
+    scene = Scenario(
+        obstacles=list(problem.obstacles),
+        planner=Planner(floor_z_m=problem.floor_z if problem.floor_z is not None else -100.0),
+    )
+    arm = add_real_arm(builder, scene, robot=robot, dumbbell=problem.dumbbell)
+    monitor = builder.AddSystem(SafetyMonitor(arm.plant, arm.scene_graph, robot, period_s=1.0))
+    diagram = builder.Build()
+    root = diagram.CreateDefaultContext()
+    plant = arm.plant
+    pctx = plant.GetMyMutableContextFromRoot(root)
+    sg_ctx = arm.scene_graph.GetMyContextFromRoot(root)
+    t = np.linspace(0.0, trajectory.duration, int(round(trajectory.duration * rate_hz)) + 1)
+    q, v, a = trajectory.evaluate(t, orders=2)
+    clearance, pair, tau = np.inf, None, np.zeros_like(q)
+    forces = MultibodyForces(plant)
+    friction = lambda vel: jp.coulomb * coulomb_shape(vel, robot.coulomb_smoothing) + jp.viscous * vel + jp.offset  # noqa: E731
+    for k in range(len(t)):
+        plant.SetPositions(pctx, arm.instance, q[k])
+        plant.SetVelocities(pctx, arm.instance, v[k])
+        d, p = monitor.min_clearance(arm.scene_graph.get_query_output_port().Eval(sg_ctx))
+        if d < clearance:
+            clearance, pair = d, p
+        plant.CalcForceElementsContribution(pctx, forces)
+        tau[k] = plant.CalcInverseDynamics(pctx, a[k], forces) + friction(v[k])
+    torque_ratio = float(np.max(np.abs(tau) / jp.torque_limit))
+    vel_ratio = float(np.max(np.abs(v) / jp.velocity_limit))
+    joint_ratio = float(np.max(limit_ratio(q, jp.position_lower, jp.position_upper)))
+    ee = plant.GetBodyByName(robot.body_names[robot.end_effector]).body_frame()
+    plant.SetPositions(pctx, arm.instance, q[-1])
+    pose = plant.CalcRelativeTransform(pctx, plant.world_frame(), ee)
+    tilt = float(np.arccos(np.clip(pose.rotation().matrix()[2, 2], -1.0, 1.0)))
+    place_err = float("nan")
+    if problem.place_xyz is not None:
+        place_err = float(np.linalg.norm(pose @ np.asarray(robot.extra["grasp_point"], float) - problem.place_xyz))
+    failures = []
+    if clearance <= 0:
+        failures.append(f"contact: clearance {clearance:.4f} m ({pair})")
+    if np.any(np.abs(v) > jp.velocity_limit - tb.velocity + 1e-9):
+        failures.append("velocity above limit - tube bound")
+    if np.any(q < jp.position_lower + tb.position - 1e-9) or np.any(q > jp.position_upper - tb.position + 1e-9):
+        failures.append("position outside limits - tube bound")
+    if torque_ratio > 1:
+        failures.append(f"torque ratio {torque_ratio:.3f} > 1")
+    if (
+        np.max(np.abs(v[[0, -1]])) > 1e-9
+        or np.max(np.abs(a[[0, -1]])) > 1e-9
+        or np.max(np.abs(q[0] - problem.q_start)) > 1e-9
+    ):
+        failures.append("does not start at q_start at rest or does not end at rest")
+    if problem.place_xyz is not None and (
+        place_err > PLACEMENT_TOL_M * np.sqrt(3) + 1e-9 or tilt > GRIPPER_TILT_TOL_RAD
+    ):
+        failures.append(f"placement error {place_err:.4g} m, gripper tilt {tilt:.3g} rad")
+    if problem.goal_q is not None and np.max(np.abs(q[-1] - problem.goal_q)) > 1e-6:
+        failures.append("does not end at goal_q")
+    return TaskVerification(
+        not failures, float(clearance), pair, torque_ratio, vel_ratio, joint_ratio, place_err, tilt, len(t), failures
+    )

@@ -1,0 +1,147 @@
+"""Task phase of `safesysid run` (app/online.py, systems/trajectory_source.TaskPhaseSource,
+systems/task_phase.py, RealArm.release): the phase switch in a diagram, and closed-loop runs of
+experiment (a) that succeed, miss the placement, or collide in the task phase."""
+
+import dataclasses as dc
+
+import numpy as np
+import pytest
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.primitives import ConstantVectorSource
+from safesysid.online import run_online
+from safesysid.scenario import SCENARIOS_DIR, Obstacle, load_scenario
+from safesysid.systems import task_phase
+from safesysid.systems import task_trajectory as tt
+from safesysid.systems.trajectory_source import TaskPhaseSource
+
+N, P = 7, 14 * 7
+
+
+def straight(q_from, q_to, duration):
+    """A rest-to-rest minimum-jerk straight line (one degree-5 piece)."""
+    par = tt.Parametrization.make(1)
+    x = par.control_points(np.zeros((par.r, N)), q_from, q_to)
+    return tt.PiecewiseBezier(x.reshape(1, 6, N), duration)
+
+
+def source_diagram(switch_time_s, plan_q, connect_plan=True):
+    """TaskPhaseSource with constant planner inputs (at rest at plan_q, parameters 1.0) and task
+    parameters 2.0; make_task records the q it is given and returns one 1-s move to q_goal."""
+    q_goal = np.linspace(0.1, 0.7, N)
+    asked = []
+
+    def make_task(q_now):
+        asked.append(np.array(q_now))
+        return [straight(q_now, q_goal, 1.0)], [dict(kind="task_start", detail="test")]
+
+    builder = DiagramBuilder()
+    src = builder.AddSystem(TaskPhaseSource(N, P, np.zeros(N), switch_time_s, make_task))
+    consts = {}
+    if connect_plan:
+        consts["plan_desired"] = np.concatenate([plan_q, np.zeros(2 * N)])
+        consts.update({f"plan_{k}": np.full(P, 1.0) for k in ("theta0", "theta_lower", "theta_upper")})
+    consts.update({f"task_{k}": np.full(P, 2.0) for k in ("theta0", "theta_lower", "theta_upper")})
+    for name, value in consts.items():
+        builder.Connect(builder.AddSystem(ConstantVectorSource(value)).get_output_port(), src.GetInputPort(name))
+    diagram = builder.Build()
+    return diagram, src, q_goal, asked
+
+
+def outputs(src, diagram, ctx):
+    sub = src.GetMyContextFromRoot(ctx)
+    return {name: src.GetOutputPort(name).Eval(sub) for name in ("desired", "theta0", "theta_upper", "phase")}
+
+
+def test_source_switches_from_the_planner_to_the_task_at_the_phase_boundary():
+    plan_q = np.linspace(-0.3, 0.3, N)
+    diagram, src, q_goal, asked = source_diagram(0.5, plan_q)
+    sim = Simulator(diagram)
+    ctx = sim.get_mutable_context()
+    sim.Initialize()
+    sim.AdvanceTo(0.25)
+    out = outputs(src, diagram, ctx)
+    assert out["phase"][0] == 0 and np.allclose(out["desired"][:N], plan_q) and np.all(out["theta0"] == 1.0)
+    assert not asked  # nothing planned before the boundary
+    sim.AdvanceTo(0.5 + 0.25)  # half way through the task's 1-s move
+    out = outputs(src, diagram, ctx)
+    assert out["phase"][0] == 1 and np.all(out["theta0"] == 2.0) and np.all(out["theta_upper"] == 2.0)
+    assert len(asked) == 1 and np.allclose(asked[0], plan_q)  # started from where the plans left the arm
+    q, v, a = straight(plan_q, q_goal, 1.0).evaluate([0.25], orders=2)
+    assert np.allclose(out["desired"], np.concatenate([q[0], v[0], a[0]]))
+    st = src.phase_state(src.GetMyContextFromRoot(ctx))
+    assert st.t_switch == pytest.approx(0.5) and st.t_end == pytest.approx(1.5) and st.ready
+    assert [e["kind"] for e in src.events(src.GetMyContextFromRoot(ctx))] == ["task_start"]
+    sim.AdvanceTo(2.2)  # after the end: at rest at the goal; the periodic event at 1.0, 1.5, 2.0 s did not re-plan
+    out = outputs(src, diagram, ctx)
+    assert np.allclose(out["desired"][:N], q_goal) and np.allclose(out["desired"][N:], 0.0)
+    assert len(asked) == 1
+
+
+def test_source_without_identification_starts_the_task_at_q0():
+    diagram, src, q_goal, asked = source_diagram(0.0, None, connect_plan=False)
+    sim = Simulator(diagram)
+    sim.Initialize()
+    out = outputs(src, diagram, sim.get_context())
+    assert out["phase"][0] == 1 and np.all(out["theta0"] == 2.0)
+    assert len(asked) == 1 and np.allclose(asked[0], 0.0)
+
+
+# ---- closed loop -------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    return str(tmp_path_factory.mktemp("task_cache"))
+
+
+def experiment_a(cache, *texts):
+    return load_scenario(
+        SCENARIOS_DIR / "experiment_a.yaml",
+        overrides=["payload: {dumbbell: 4lb}", f"task: {{cache_dir: {cache}}}", *texts],
+    )
+
+
+def test_experiment_a_ours_4lb_identifies_then_places_within_tolerance(cache):
+    scene = experiment_a(cache)
+    s = run_online(scene, None, method="ours", write=False)
+    task = s["task"]
+    print({k: s[k] for k in ("failure", "placement_error_m", "max_commanded_torque_ratio", "min_clearance_m")})
+    assert s["success"] and s["failure"] is None and s["phase"] is None, s["events"]
+    assert s["contains_truth"]
+    assert task["executed"] and task["switch_time_s"] > 7.5 and task["placement"]["kind"] == "settled"
+    assert s["placement_error_m"] < scene.task.placement_tolerance_m
+    # The payload came to rest ON the platform (its resting height), not somewhere below.
+    assert task["placement"]["measured_m"][2] == pytest.approx(task["placement"]["target_m"][2], abs=2e-3)
+    assert task["placement"]["speed_at_end_m_s"] < 0.01
+    assert s["max_commanded_torque_ratio"] <= 1.0 and s["min_clearance_m"] > 0
+    kinds = [e["kind"] for e in s["events"]]
+    assert kinds.index("task_start") < kinds.index("release")
+
+
+def test_wrong_placement_target_fails_with_placement_in_the_task_phase(cache):
+    """The trajectory puts the payload 5 cm beside the platform centre the success criterion
+    measures against (conservative: no identification, so the task starts at t = 0)."""
+    scene = experiment_a(cache, "task: {place_xyz_m: [0.25, 0.05, 0.16]}")
+    s = run_online(scene, None, method="conservative", write=False)
+    assert s["task"]["switch_time_s"] == 0.0 and s["planner"]["iterations"] == 0
+    assert s["failure"] == "placement" and s["phase"] == "task" and not s["success"], s
+    assert s["placement_error_m"] > 0.03
+
+
+def test_collision_in_the_task_phase_is_reported_with_phase_task(cache, monkeypatch):
+    """An obstacle the task trajectory was not computed with sits on its path half way: ours
+    identifies (one plan) without touching it, then hits it in the task phase."""
+    base = experiment_a(cache)
+    problem, plan = task_phase.task_plan(base)
+    q_mid = plan.trajectory.evaluate([1.0], orders=0)[0]
+    robot = problem.robot
+    kin = robot.forward_kinematics(q_mid)
+    ee = robot.end_effector
+    centre = kin.p[0, ee] + kin.R[0, ee] @ np.asarray(robot.extra["grasp_point"], float)
+    intruder = Obstacle(name="intruder", xyz_m=centre.tolist(), size_m=[0.05, 0.05, 0.05])
+    scene = dc.replace(experiment_a(cache, "planner: {num_plans: 1}"), obstacles=base.obstacles + [intruder])
+    unaware = dc.replace(scene, obstacles=base.obstacles)
+    original = task_phase.task_plan
+    monkeypatch.setattr(task_phase, "task_plan", lambda s, problem=None: original(unaware))
+    s = run_online(scene, None, method="ours", write=False)
+    assert s["failure"] == "collision" and s["phase"] == "task", s
+    assert s["failure_time_s"] > s["task"]["switch_time_s"] and s["collisions"] >= 1
