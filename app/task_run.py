@@ -1,0 +1,132 @@
+"""The task phase of a run (app/online.py): the TaskPhaseSource of a scenario, the driver that
+advances a built run through the task, the release and the settling, and the judgement of a run
+(its first failure and the phase it happened in). The math is in systems/task_phase.py."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def released_parameters(robot, scenario, method):
+    """(theta0, lower, upper) after the release: the bare end effector (the model's own) with
+    the rest of the robot as in the method's prior box."""
+    from safesysid.systems.armour import parameter_box
+
+    if method == "wrong":  # its model is exact: the bare end effector without any uncertainty
+        theta0 = robot.theta.copy()
+        return theta0, theta0, theta0
+    ee = robot.theta[robot.ee_slice]
+    ratio = scenario.noise.theta_r_ratio
+    floors = scenario.noise.theta_r_floor
+    theta0, box = parameter_box(robot, ee, ee, ee, rest_ratio=ratio, friction_ratio=ratio, floors=floors)
+    return theta0, box.lo, box.hi
+
+
+def make_task_source(robot, scenario, switch_time_s, problem, plan):
+    """The TaskPhaseSource of a scenario whose task trajectory `plan` (TaskResult) solves `problem`."""
+    from safesysid.systems.task_phase import return_move
+    from safesysid.systems.trajectory_source import TaskPhaseSource
+
+    def make_task(q_now):
+        if not plan.ok:
+            return [], [dict(kind="task_infeasible", detail=f"task trajectory {plan.status}: {plan.reason}")]
+        back = return_move(problem, q_now, scenario.task.return_duration_s)
+        curves, events = [], []
+        if back is not None:
+            solve = f"{back.status} ({back.solver}, {back.solve_time_s:.2f} s)"
+            events.append(dict(kind="return_move", detail=f"to q0 in {scenario.task.return_duration_s:.2f} s: {solve}"))
+            if not back.ok:
+                return [], events + [dict(kind="task_infeasible", detail=f"no return move: {back.reason}")]
+            curves.append(back.trajectory)
+        curves.append(plan.trajectory)
+        cache = plan.details.get("cache", "")
+        detail = f"task trajectory {plan.trajectory.duration:.2f} s ({plan.status}, cache {cache})"
+        events.append(dict(kind="task_start", detail=detail))
+        return curves, events
+
+    return TaskPhaseSource(robot.n, 14 * robot.n, scenario.q0_rad, switch_time_s, make_task)
+
+
+def judge(record, plans, t, tracking_ratio, task, t_switch):
+    """(failure, phase, time) of the first failure of a run in contracts.md's order, or
+    (None, None, None). Torque is judged on the controller's command before saturation (the
+    saturated torque can never exceed the limit). record: the SafetyMonitor's; tracking_ratio:
+    max over joints of |error| / tube bound at the logger's times t; task: _run_task_phase's
+    summary (None: no task phase)."""
+    from safesysid.systems.task_phase import first_failure
+
+    times = np.asarray(record.times, float)
+
+    def above(values, limit):
+        return times[np.asarray(values, float) > limit]
+
+    infeasible = [p["t_s"] for p in plans[:1] if not p["ok"]]
+    placement = []
+    if task is not None:
+        infeasible += [] if task["executed"] else [task["switch_time_s"]]
+        place = task["placement"]
+        if place["error_m"] is not None and not place["error_m"] <= place["tolerance_m"]:
+            placement = [task["release_time_s"]]
+    checks = [
+        ("collision", times[np.asarray(record.clearance, float) < 0]),
+        ("torque_limit", above(record.commanded_ratio, 1.0 + 1e-9)),
+        ("joint_limit", above(record.joint_ratio, 1.0)),
+        ("velocity_limit", above(record.velocity_ratio, 1.0)),
+        ("planner_infeasible", infeasible),
+        ("tracking", np.asarray(t)[tracking_ratio > 1 + 1e-9]),
+        ("placement", placement),
+    ]
+    return first_failure(checks, t_switch)
+
+
+def run_task_phase(built, sim, scenario, method):
+    """Advance a built run through identification, the task phase, the release and the settling;
+    returns the task's summary (placement measured on the simulated payload pose)."""
+    from safesysid.systems.task_phase import placement_target
+
+    ctx = sim.get_mutable_context()
+    arm, source = built.arm, built.source
+    source_ctx = source.GetMyMutableContextFromRoot(ctx)
+    # The switch fires at switch_time_s; one step later its curves are in the context.
+    sim.AdvanceTo(source.switch_time_s + scenario.plant.time_step_s)
+    st = source.phase_state(source_ctx)
+    t_release = max(st.t_end, ctx.get_time())
+    sim.AdvanceTo(t_release)
+    release_xyz = None
+    if arm.released_body is not None and st.ready:
+        release_xyz = arm.release(ctx).translation()
+        detail = f"payload released at {np.round(release_xyz, 4).tolist()} m; controller: bare end effector"
+        event = dict(t=t_release, kind="release", detail=detail)
+        source.set_thetas(source_ctx, released_parameters(arm.robot, scenario, method), event)
+    end = t_release + scenario.task.settle_time_s
+    sim.AdvanceTo(end)
+    target, kind = placement_target(scenario, arm.dumbbell)
+    settled = arm.payload_pose(ctx).translation() if arm.dumbbell is not None else None
+    measured = release_xyz if kind == "release" and release_xyz is not None else settled
+    error = None if target is None else float(np.linalg.norm(measured - target))
+    problem, plan = built.task
+    as_list = lambda x: None if x is None else np.asarray(x, float).tolist()  # noqa: E731
+    return {
+        "switch_time_s": float(st.t_switch),
+        "release_time_s": float(t_release),
+        "end_time_s": float(end),
+        "executed": bool(st.ready),
+        "return_move": len(st.curves) > 1,
+        "trajectory": {
+            "status": plan.status,
+            "solver": plan.solver,
+            "cost": plan.cost,
+            "cache": plan.details.get("cache"),
+            "payload_model": scenario.task.payload_model,
+        },
+        "placement": {
+            "kind": kind or None,
+            "target_m": as_list(target),
+            "measured_m": as_list(measured),
+            "release_m": as_list(release_xyz),
+            "error_m": error,
+            "tolerance_m": scenario.task.placement_tolerance_m,
+            "speed_at_end_m_s": arm.payload_speed(ctx) if arm.dumbbell is not None else None,
+        },
+        "events": source.events(source_ctx),
+    }
