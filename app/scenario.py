@@ -126,9 +126,7 @@ def _validate(s: Scenario, where):
         need(obj in allowed, key, f"{obj!r} is not one of {', '.join(allowed)}")
     need(len(s.q0_rad) == 7 or len(s.q0_rad) > 0, "q0_rad", "must list one angle per joint")
     for k, ob in enumerate(s.obstacles):
-        need(len(ob.xyz_m) == 3, f"obstacles[{k}].xyz_m", "needs 3 values")
-        need(len(ob.rpy_rad) == 3, f"obstacles[{k}].rpy_rad", "needs 3 values")
-        need(len(ob.size_m) == 3 and min(ob.size_m) > 0, f"obstacles[{k}].size_m", "needs 3 positive values")
+        _validate_obstacle(ob, f"obstacles[{k}]", need)
     ii = s.initial_interval
     for name in ("nominal", "lower", "upper"):
         need(len(getattr(ii, name)) == 10, f"initial_interval.{name}", "needs 10 values")
@@ -221,13 +219,13 @@ def _validate_faults(s: Scenario, need):
     need(all(k >= 0 for k in f.planner_failure_calls), "faults.planner_failure_calls", "must be >= 0")
     for k, ob in enumerate(f.appearing_obstacles):
         need(ob.t_s >= 0, f"faults.appearing_obstacles[{k}].t_s", "must be >= 0")
-        need(len(ob.xyz_m) == 3, f"faults.appearing_obstacles[{k}].xyz_m", "needs 3 values")
-        need(len(ob.rpy_rad) == 3, f"faults.appearing_obstacles[{k}].rpy_rad", "needs 3 values")
-        need(
-            len(ob.size_m) == 3 and min(ob.size_m) > 0,
-            f"faults.appearing_obstacles[{k}].size_m",
-            "needs 3 positive values",
-        )
+        _validate_obstacle(ob, f"faults.appearing_obstacles[{k}]", need)
+
+
+def _validate_obstacle(ob, field, need):
+    need(len(ob.xyz_m) == 3, f"{field}.xyz_m", "needs 3 values")
+    need(len(ob.rpy_rad) == 3, f"{field}.rpy_rad", "needs 3 values")
+    need(len(ob.size_m) == 3 and min(ob.size_m) > 0, f"{field}.size_m", "needs 3 positive values")
 
 
 def load_scenario(path=None, text=None, overrides=None) -> Scenario:

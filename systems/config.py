@@ -214,15 +214,12 @@ class Task:
 
 
 @dc.dataclass
-class ScheduledObstacle:
+class ScheduledObstacle(Obstacle):
     """An obstacle that appears at t_s (systems/faults.py): the planner learns of it then; the
     referee's world holds it from the start (stricter: a contact at any time counts)."""
 
-    t_s: float = 1.0
     name: str = "appearing"
-    xyz_m: List[float] = dc.field(default_factory=lambda: [0.5, 0.0, 0.2])
-    rpy_rad: List[float] = dc.field(default_factory=lambda: [0.0, 0.0, 0.0])
-    size_m: List[float] = dc.field(default_factory=lambda: [0.1, 0.1, 0.1])
+    t_s: float = 1.0
 
 
 @dc.dataclass
