@@ -80,7 +80,18 @@ def make_planner_system(robot, scenario, method, tracking, dumbbell, theta_prior
     mode = "random" if method == "random" else scenario.planner.cost
     planner = SafePlanner(robot, scenario.planner, obstacles=scenario.obstacles, payload=dumbbell, tracking=tracking)
     theta0, box = theta_prior
-    return ExcitingPlanner(planner, np.asarray(scenario.q0_rad, float), theta0, box.lo, box.hi, mode=mode, seed=seed)
+    f = scenario.faults
+    return ExcitingPlanner(
+        planner,
+        np.asarray(scenario.q0_rad, float),
+        theta0,
+        box.lo,
+        box.hi,
+        mode=mode,
+        seed=seed,
+        forced_failures={k: f.planner_failure_kind for k in f.planner_failure_calls},
+        appearing=[(ob.t_s, ob) for ob in f.appearing_obstacles],
+    )
 
 
 def identification_horizon_s(scenario):
@@ -156,6 +167,8 @@ def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> On
         estimator.set_name("estimator")
         builder.Connect(arm.state_output, estimator.GetInputPort("state"))
         builder.Connect(arm.measured_torque_output, estimator.GetInputPort("measured_torque"))
+        if arm.estimator_samples_output is not None:  # injected sample faults (scenario `faults`)
+            builder.Connect(arm.estimator_samples_output, estimator.GetInputPort("samples"))
         theta_ports = [estimator.GetOutputPort(name) for name in ("theta0", "theta_lower", "theta_upper")]
     else:
         theta_ports = [_constant(builder, v, f"prior_{k}") for k, v in enumerate((theta0, box.lo, box.hi))]
@@ -305,7 +318,11 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
         planner_context = built.planner.GetMyContextFromRoot(ctx)
         plans, planner_events = built.planner.records(planner_context), built.planner.events(planner_context)
     task_events = task_summary.pop("events") if task_summary else []
-    events = merge_events(estimator_events, planner_events, task_events)  # every system's, in time order
+    from safesysid.systems.faults import scenario_events
+
+    events = merge_events(  # every system's, in time order
+        estimator_events, planner_events, task_events, arm.fault_events(ctx), scenario_events(scenario)
+    )
     solve_times = [p["solve_time_s"] for p in plans]
     deadline = scenario.planner.replan_period_s
     bound = np.asarray(built.tracking.position, float)

@@ -72,6 +72,7 @@ _CHOICES = {
     "noise.distribution": ("uniform", "none"),
     "controller.kind": ("armour", "pid", "adaptive", "adaptive_robust"),
     "task.solver": ("snopt", "ipopt"),
+    "faults.planner_failure_kind": ("solver_failed", "timeout"),
 }
 
 
@@ -125,9 +126,7 @@ def _validate(s: Scenario, where):
         need(obj in allowed, key, f"{obj!r} is not one of {', '.join(allowed)}")
     need(len(s.q0_rad) == 7 or len(s.q0_rad) > 0, "q0_rad", "must list one angle per joint")
     for k, ob in enumerate(s.obstacles):
-        need(len(ob.xyz_m) == 3, f"obstacles[{k}].xyz_m", "needs 3 values")
-        need(len(ob.rpy_rad) == 3, f"obstacles[{k}].rpy_rad", "needs 3 values")
-        need(len(ob.size_m) == 3 and min(ob.size_m) > 0, f"obstacles[{k}].size_m", "needs 3 positive values")
+        _validate_obstacle(ob, f"obstacles[{k}]", need)
     ii = s.initial_interval
     for name in ("nominal", "lower", "upper"):
         need(len(getattr(ii, name)) == 10, f"initial_interval.{name}", "needs 10 values")
@@ -163,6 +162,7 @@ def _validate(s: Scenario, where):
     if s.robot.model:
         need(resolve_path(s.robot.model, scenario_dir(s)).is_file(), "robot.model", f"file {s.robot.model!r} not found")
     _validate_task(s, need)
+    _validate_faults(s, need)
     if s.payload.dumbbell.lower() != "none":
         from safesysid.systems.payload import load_dumbbells
 
@@ -201,6 +201,33 @@ def _validate_task(s: Scenario, need):
 
         names = list(load_dumbbells(resolve_path(s.payload.dumbbells_file, scenario_dir(s))))
         need(t.payload_model in names, "task.payload_model", f"{t.payload_model!r} is not one of {', '.join(names)}")
+
+
+def _validate_faults(s: Scenario, need):
+    f = s.faults
+    for key in (
+        "torque_spike_magnitude_Nm",
+        "torque_dropout_start_s",
+        "torque_dropout_duration_s",
+        "payload_extra_mass_kg",
+        "velocity_clip_rad_s",
+    ):
+        need(getattr(f, key) >= 0, f"faults.{key}", "must be >= 0")
+    for key in ("torque_spike", "sample_drop", "sample_duplicate", "sample_reorder", "sample_nan"):
+        rate = getattr(f, f"{key}_rate_per_s")
+        need(0 <= rate * s.plant.time_step_s <= 1, f"faults.{key}_rate_per_s", "must be in [0, 1 / plant.time_step_s]")
+    n = len(s.q0_rad)
+    need(all(1 <= j <= n for j in f.torque_spike_joints), "faults.torque_spike_joints", f"joints are 1..{n}")
+    need(all(k >= 0 for k in f.planner_failure_calls), "faults.planner_failure_calls", "must be >= 0")
+    for k, ob in enumerate(f.appearing_obstacles):
+        need(ob.t_s >= 0, f"faults.appearing_obstacles[{k}].t_s", "must be >= 0")
+        _validate_obstacle(ob, f"faults.appearing_obstacles[{k}]", need)
+
+
+def _validate_obstacle(ob, field, need):
+    need(len(ob.xyz_m) == 3, f"{field}.xyz_m", "needs 3 values")
+    need(len(ob.rpy_rad) == 3, f"{field}.rpy_rad", "needs 3 values")
+    need(len(ob.size_m) == 3 and min(ob.size_m) > 0, f"{field}.size_m", "needs 3 positive values")
 
 
 def load_scenario(path=None, text=None, overrides=None) -> Scenario:

@@ -230,6 +230,55 @@ class Task:
 
 
 @dc.dataclass
+class ScheduledObstacle(Obstacle):
+    """An obstacle that appears at t_s (systems/faults.py): the planner learns of it then; the
+    referee's world holds it from the start (stricter: a contact at any time counts)."""
+
+    name: str = "appearing"
+    t_s: float = 1.0
+
+
+@dc.dataclass
+class Faults:
+    """Injected faults (systems/faults.py; all off by default), each logged in summary.json events.
+    Random faults draw from the run's seeded noise (Drake RandomSource), a rate r per second
+    firing at a step with probability r * plant.time_step_s."""
+
+    # Torque sensor: spikes of +-magnitude on one random joint (of `torque_spike_joints`, 1-based;
+    # empty: all) at a rate; a dropout (the sensor reads 0 N m) over [start, start + duration).
+    torque_spike_magnitude_Nm: float = 0.0
+    torque_spike_rate_per_s: float = 0.0
+    torque_spike_joints: List[int] = dc.field(default_factory=list)
+    torque_dropout_start_s: float = 0.0
+    torque_dropout_duration_s: float = 0.0
+    # Samples reaching the estimator: lost, delivered twice, delivered one step late (after the
+    # next one), or with a NaN in one field.
+    sample_drop_rate_per_s: float = 0.0
+    sample_duplicate_rate_per_s: float = 0.0
+    sample_reorder_rate_per_s: float = 0.0
+    sample_nan_rate_per_s: float = 0.0
+    # Planner: the planning calls (0-based) whose solver fails or times out (no verified plan).
+    planner_failure_calls: List[int] = dc.field(default_factory=list)
+    planner_failure_kind: str = "solver_failed"  # solver_failed | timeout
+    appearing_obstacles: List[ScheduledObstacle] = dc.field(default_factory=list)
+    # The real payload is heavier than the scenario's dumbbell by this much (same shape, denser).
+    payload_extra_mass_kg: float = 0.0
+    # Joint-velocity sensor reading clipped to +-limit (encoders' v, seen by controller and estimator).
+    velocity_clip_rad_s: float = 0.0  # 0: off
+
+    def samples_faulty(self):
+        return any(
+            r > 0
+            for r in (
+                self.sample_drop_rate_per_s,
+                self.sample_duplicate_rate_per_s,
+                self.sample_reorder_rate_per_s,
+                self.sample_nan_rate_per_s,
+            )
+        )
+
+
+@dc.dataclass
 class Scenario:
     name: str = "scenario"
     robot: Robot = dc.field(default_factory=Robot)
@@ -243,6 +292,7 @@ class Scenario:
     estimator: Estimator = dc.field(default_factory=Estimator)
     initial_interval: InitialInterval = dc.field(default_factory=InitialInterval)
     task: Task = dc.field(default_factory=Task)
+    faults: Faults = dc.field(default_factory=Faults)
     method: str = "ours"  # ours | random | conservative | wrong
     seed: int = 0
     # Where the loader found the file (not a YAML field).

@@ -21,6 +21,15 @@ reads 0 the planner does not plan again (the identified box is no longer trusted
 finishes, and so brakes on, its verified plan. Events (plan_failed, plan_refused, brake) are kept
 as {t, kind, detail} in the state for summary.json.
 
+Injected faults (scenario `faults`, systems/faults.py): `forced_failures` {call index: status}
+makes those planning calls fail as a solver failure or timeout would (no verified plan: the robot
+brakes on the executing one). `appearing` [(t_s, Obstacle)]: at t_s the obstacle joins the
+planner's world (every later plan is certified against it), and the executing plan, certified
+without it, is checked against it on its certified swept spheres: if they still clear it the
+plan keeps its certificate; if not, it is invalidated: no further plans, and the robot brakes on
+it, which is then NOT certified against the new obstacle (events obstacle_appeared,
+plan_invalidated, brake say so).
+
 Everything a run accumulates (the plans, their records and results, the random generator) is in
 the abstract state PlannerState, so two contexts of one diagram never share it.
 """
@@ -35,6 +44,8 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import EventStatus, LeafSystem
 
+from .faults import remaining_plan_clearance, with_obstacle
+from .planner import PlanResult
 from .trajectory_source import at_rest
 
 
@@ -53,10 +64,27 @@ class PlannerState:
 
 class ExcitingPlanner(LeafSystem):
     def __init__(
-        self, planner, q0, theta0, theta_lower, theta_upper, num_plans=None, replan_period_s=None, mode=None, seed=0
+        self,
+        planner,
+        q0,
+        theta0,
+        theta_lower,
+        theta_upper,
+        num_plans=None,
+        replan_period_s=None,
+        mode=None,
+        seed=0,
+        forced_failures=None,
+        appearing=(),
     ):
         super().__init__()
         self._planner = planner
+        self._forced = dict(forced_failures or {})
+        # (t_s, the obstacle, the planner of the world from t_s on), in time order.
+        self._worlds = []
+        for t_s, obstacle in sorted(appearing, key=lambda a: a[0]):
+            before = self._worlds[-1][2] if self._worlds else planner
+            self._worlds.append((float(t_s), obstacle, with_obstacle(before, obstacle)))
         cfg = planner.config
         n = planner.robot.n
         self._q0 = np.asarray(q0, float).copy()
@@ -91,6 +119,11 @@ class ExcitingPlanner(LeafSystem):
         )
         self.DeclareInitializationUnrestrictedUpdateEvent(self._on_init)
         self.DeclarePeriodicUnrestrictedUpdateEvent(self._period, self._period, self._on_period)
+        for index, (t_s, _, _) in enumerate(self._worlds):
+            # One-shot: Drake has no timed one-shot event; a period longer than any run.
+            self.DeclarePeriodicUnrestrictedUpdateEvent(
+                1e9, t_s, lambda c, s, index=index: self._on_obstacle(c, s, index)
+            )
 
     # -- helpers ---------------------------------------------------------------------------------
     def _get(self, context) -> PlannerState:
@@ -140,6 +173,33 @@ class ExcitingPlanner(LeafSystem):
             self._plan_into(context, state, st)
         return EventStatus.Succeeded()
 
+    def _planner_at(self, t):
+        """The planner of the world at t (every obstacle appeared by then)."""
+        known = [p for t_s, _, p in self._worlds if t_s <= t]
+        return known[-1] if known else self._planner
+
+    def _on_obstacle(self, context, state, index):
+        st, t = self._get(context), context.get_time()
+        _, obstacle, _ = self._worlds[index]
+        appeared = dict(t=t, kind="obstacle_appeared", detail=f"obstacle {obstacle.name!r}: every later plan avoids it")
+        if st.plan is None:
+            events = (appeared,)
+        else:
+            margin, first = remaining_plan_clearance(st.plan, t - st.t_start, [obstacle])
+            if margin >= 0:
+                appeared["detail"] += f"; the executing plan's certified spheres clear it by {margin:.4f} m"
+                events = (appeared,)
+            else:
+                detail = (
+                    f"the executing plan (started at {st.t_start:.3f} s, certified without {obstacle.name!r}) reaches "
+                    f"{-margin:.4f} m into it on its certified spheres from {st.t_start + first:.3f} s"
+                )
+                note = f"; NOT certified against {obstacle.name!r}"
+                events = (appeared,) + self._stop_events(st, t, "plan_invalidated", detail, note)
+                st = dataclasses.replace(st, done=True)
+        state.get_mutable_abstract_state(int(self._state)).set_value(dataclasses.replace(st, events=st.events + events))
+        return EventStatus.Succeeded()
+
     def _plan_into(self, context, state, st: PlannerState):
         t = context.get_time()
         if not self._estimate_consistent(context):
@@ -156,7 +216,14 @@ class ExcitingPlanner(LeafSystem):
         k_prev = None if st.plan is None else st.plan.k
         rng = copy.deepcopy(st.rng)  # the stored one may be shared with other copies of this state
         wall = time.perf_counter()
-        res = self._planner.plan(q, v, a, *thetas, k_init=k_prev, rng=rng, mode=self._mode)
+        forced = self._forced.get(st.calls)
+        if forced is None:
+            res = self._planner_at(t).plan(q, v, a, *thetas, k_init=k_prev, rng=rng, mode=self._mode)
+        else:  # injected: the solver failed or did not return in time, no verified plan
+            res = PlanResult(ok=False, status=forced, reason="injected fault", solver=self._planner.config.solver)
+            st = dataclasses.replace(
+                st, events=st.events + (dict(t=t, kind="fault_planner", detail=f"planning call {st.calls}: {forced}"),)
+            )
         wall = time.perf_counter() - wall
         calls = st.calls + 1
         record = dict(
@@ -187,7 +254,7 @@ class ExcitingPlanner(LeafSystem):
         new.done = (not res.ok) or calls >= self._num_plans
         state.get_mutable_abstract_state(int(self._state)).set_value(new)
 
-    def _stop_events(self, st: PlannerState, t, kind, detail):
+    def _stop_events(self, st: PlannerState, t, kind, detail, note=""):
         """The event that ends planning, and the brake it implies when a plan is executing."""
         events = (dict(t=t, kind=kind, detail=detail),)
         if st.plan is not None:
@@ -196,7 +263,7 @@ class ExcitingPlanner(LeafSystem):
                 dict(
                     t=t,
                     kind="brake",
-                    detail=f"finishing the verified plan started at {st.t_start:.3f} s (at rest at {end:.3f} s)",
+                    detail=f"finishing the verified plan started at {st.t_start:.3f} s (at rest at {end:.3f} s){note}",
                 ),
             )
         return events

@@ -73,7 +73,7 @@ from pydrake.multibody.tree import SpatialInertia
 from pydrake.systems.framework import BasicVector, DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import DiscreteTimeDelay, RandomSource, Saturation, ZeroOrderHold
 
-from . import inertial
+from . import faults, inertial
 from .config import ScenarioError, resolve_path, robot_from_scenario, scenario_dir
 from .payload import Dumbbell, load_dumbbells, payload_theta_in_end_effector
 from .robot_model import make_plant
@@ -333,6 +333,11 @@ class RealArm:
     noise_source: object = None  # RandomSource of the torque sensor's noise (None: noiseless)
     seed: int = 0  # the run's seed: drawn parameters at build, sensor noise via seed_noise
     released_body: object = None  # free body taking the payload over at release (None: not releasable)
+    # Injected faults (scenario `faults`, systems/faults.py): the stages (their events), their
+    # RandomSources (seeded with the noise), and the estimator's packet port when samples are faulty.
+    fault_stages: tuple = ()
+    fault_sources: tuple = ()
+    estimator_samples_output: object = None  # OutputPort faults.packet_size(n) or None
 
     @property
     def n(self):
@@ -405,11 +410,16 @@ class RealArm:
         """Seed the sensor noise of this context (the station's seed unless given): Drake's
         SetRandomContext(RandomGenerator(seed)) on the noise source only, so the rest of the
         context is kept. Unseeded, a RandomSource draws from a default seed of its own."""
-        if self.noise_source is not None:
-            self.noise_source.SetRandomContext(
-                self.noise_source.GetMyMutableContextFromRoot(root_context),
-                RandomGenerator(int(self.seed if seed is None else seed)),
-            )
+        seed = int(self.seed if seed is None else seed)
+        for k, source in enumerate((self.noise_source, *self.fault_sources)):
+            if source is not None:  # a stream per source (k = 0: the sensor noise, as before)
+                source.SetRandomContext(
+                    source.GetMyMutableContextFromRoot(root_context), RandomGenerator(seed + 7919 * k)
+                )
+
+    def fault_events(self, root_context):
+        """[{t, kind, detail}] of the injected faults (scenario `faults`)."""
+        return [e for stage in self.fault_stages for e in stage.events(stage.GetMyContextFromRoot(root_context))]
 
     def set_state(self, root_context, q, v=None):
         ctx = self.plant_context(root_context)
@@ -446,7 +456,8 @@ def _register_obstacles(plant, scenario):
 
     world = plant.world_body()
     friction = CoulombFriction(0.8, 0.6)
-    for k, ob in enumerate(scenario.obstacles):
+    # Obstacles that appear later (faults) are in the referee's world from the start (stricter).
+    for k, ob in enumerate(list(scenario.obstacles) + list(scenario.faults.appearing_obstacles)):
         pose = RigidTransform(RollPitchYaw(np.asarray(ob.rpy_rad, float)), np.asarray(ob.xyz_m, float))
         box = Box(*np.asarray(ob.size_m, float))
         name = f"obstacle_{k}_{ob.name}"
@@ -457,6 +468,56 @@ def _register_obstacles(plant, scenario):
     pose = RigidTransform([0.0, 0.0, scenario.planner.floor_z_m - thickness / 2])
     plant.RegisterVisualGeometry(world, pose, Box(4.0, 4.0, thickness), "floor_visual", [0.6, 0.6, 0.6, 0.3])
     plant.RegisterCollisionGeometry(world, pose, Box(4.0, 4.0, thickness), "floor", friction)
+
+
+@dataclass
+class _Injected:
+    stages: tuple = ()
+    sources: tuple = ()
+    samples: object = None  # the estimator's packet port (SampleFaults), or None
+
+
+def _add_fault_stages(station, scenario, n, h, measured, state_out):
+    """The scenario's fault stages (systems/faults.py) on the measured torque and the encoders,
+    and the faulty link to the estimator: (measured torque, state, _Injected)."""
+
+    f, injected = scenario.faults, _Injected()
+
+    def add(system, name, draws=0):
+        system.set_name(name)
+        injected.stages += (station.AddSystem(system),)
+        if draws:
+            source = station.AddSystem(RandomSource(RandomDistribution.kUniform, draws, h))
+            source.set_name(f"{name}_draws")
+            station.Connect(source.get_output_port(), system.unit_noise)
+            injected.sources += (source,)
+        return system
+
+    if f.torque_spike_magnitude_Nm * f.torque_spike_rate_per_s > 0 or f.torque_dropout_duration_s > 0:
+        joints = [j - 1 for j in f.torque_spike_joints]
+        spikes = f.torque_spike_magnitude_Nm * f.torque_spike_rate_per_s > 0
+        stage = faults.TorqueSensorFaults(
+            n,
+            h,
+            f.torque_spike_magnitude_Nm,
+            f.torque_spike_rate_per_s,
+            joints,
+            f.torque_dropout_start_s,
+            f.torque_dropout_duration_s,
+        )
+        add(stage, "fault_torque_sensor", 2 if spikes else 0)
+        station.Connect(measured, stage.torque)
+        measured = stage.get_output_port()
+    if f.velocity_clip_rad_s > 0:
+        stage = add(faults.VelocityClip(n, h, f.velocity_clip_rad_s), "fault_velocity_clip")
+        station.Connect(state_out, stage.state)
+        state_out = stage.get_output_port()
+    if f.samples_faulty():
+        stage = add(faults.SampleFaults(n, h, faults.SampleRates.from_faults(f, h)), "fault_samples", 5)
+        station.Connect(state_out, stage.state)
+        station.Connect(measured, stage.torque)
+        injected.samples = stage.get_output_port()
+    return measured, state_out, injected
 
 
 def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None, releasable=False):
@@ -473,6 +534,7 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None, 
     h = scenario.plant.time_step_s
     eff = scenario.plant.effects
     db = scenario_dumbbell(scenario) if isinstance(dumbbell, str) and dumbbell == "scenario" else dumbbell
+    db = faults.heavier_payload(db, scenario.faults.payload_extra_mass_kg)
 
     seed = scenario.seed if seed is None else seed
     theta, inertials = real_robot_theta(robot, scenario, seed)
@@ -603,8 +665,11 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None, 
         late.set_name("torque_sensor_delay")
         station.Connect(measured, late.get_input_port())
         measured = late.get_output_port()
+    measured, state_out, injected = _add_fault_stages(station, scenario, n, h, measured, state_out)
 
     station.ExportInput(sat.get_input_port(), "commanded_torque")
+    if injected.samples is not None:
+        station.ExportOutput(injected.samples, "estimator_samples")
     for port, name in (
         (state_out, "state"),
         (measured, "measured_torque"),
@@ -640,4 +705,7 @@ def add_real_arm(builder, scenario, robot=None, dumbbell="scenario", seed=None, 
         noise_source=noise_source,
         seed=int(seed),
         released_body=released_body,
+        fault_stages=injected.stages,
+        fault_sources=injected.sources,
+        estimator_samples_output=out("estimator_samples") if injected.samples else None,
     )

@@ -8,6 +8,12 @@ with [θ_e]); `consistent` (1: every enclosure so far met the others; 0 from the
 inconsistency on, latched — the published box is then the last consistent one, and a planner
 should stop planning); plus `update_info` [updates, last update wall time s, cond(Y), consistent].
 
+Input sanitation (`_accept`): a sample with a NaN/inf, a duplicate time stamp, or a time already
+handed to the estimator is rejected; a late one still in the buffer is put in place; a gap
+is noted (the estimator's segments never span it). None of these make the data violate a
+declared bound, so `consistent` is not touched; each is an event. Optional input `samples`
+(systems/faults.py packets of timestamped samples) replaces state + measured_torque when connected.
+
 Everything a run accumulates lives in the Context (abstract state `SysIdState`: the incremental
 estimator, the samples since the last update, the update history), so two contexts of one diagram
 never share data. One periodic unrestricted update at the sampling period (the plant rate) stores
@@ -29,6 +35,8 @@ from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import BasicVector, EventStatus, LeafSystem
 
 from .estimation import EstimatorError, EstimatorSettings, IncrementalEstimator
+from .faults import packet_size, unpack
+from .inertial import NAMES
 
 
 @dataclass(frozen=True)
@@ -39,6 +47,8 @@ class SysIdState:
     estimator: IncrementalEstimator
     samples: tuple = ()  # rows [t, q (n), v (n), τ (n)] since the last update
     history: tuple = ()  # one dict per update instant (a skipped one has "skipped")
+    handed_t: float = -np.inf  # time of the last sample handed to the estimator
+    input_issues: tuple = ()  # (t, kind, detail) of each sample the input sanitation acted on
 
     def __deepcopy__(self, memo):
         return self
@@ -66,6 +76,9 @@ class SysIdEstimator(LeafSystem):
         self.n = n
         self._state_input = self.DeclareVectorInputPort("state", 2 * n)
         self._torque_input = self.DeclareVectorInputPort("measured_torque", n)
+        # Optional: timestamped samples as delivered by a (faulty) link, faults.pack packets;
+        # when connected it replaces state + measured_torque.
+        self._samples_input = self.DeclareVectorInputPort("samples", packet_size(n))
         initial = self._initial_state()
         self._run = self.DeclareAbstractState(AbstractValue.Make(initial))
         first = initial.estimator.prior_estimate()
@@ -102,28 +115,67 @@ class SysIdEstimator(LeafSystem):
 
     def _on_sample(self, context, state):
         t = context.get_time()
-        x = self._state_input.Eval(context)
-        tau = self._torque_input.Eval(context)
-        n = self.n
         run = self._get(context)
-        run = replace(run, samples=run.samples + (np.concatenate([[t], x[:n], x[n : 2 * n], tau]),))
+        for row in self._arrived(context):
+            run = self._accept(run, row)
         step = int(round(t / self.sample_period_s))
         if step > 0 and step % self._samples_per_update == 0:
             run = self._update(t, run, state)
         state.get_mutable_abstract_state(int(self._run)).set_value(run)
         return EventStatus.Succeeded()
 
+    def _arrived(self, context):
+        """The rows [t, q, v, τ] that reach the estimator at this step."""
+        if self._samples_input.HasValue(context):
+            return unpack(self._samples_input.Eval(context), self.n)
+        x = self._state_input.Eval(context)
+        return [np.concatenate([[context.get_time()], x, self._torque_input.Eval(context)])]
+
+    def _accept(self, run: SysIdState, row) -> SysIdState:
+        """Input sanitation: the samples handed to the estimator are finite and strictly increasing
+        in time; a bad one is rejected, a late one put in place. Each action is an input issue (events)."""
+        t = float(row[0])
+
+        def issue(kind, detail, samples=run.samples):
+            return replace(run, samples=samples, input_issues=run.input_issues + ((t, kind, detail),))
+
+        if not np.all(np.isfinite(row)):
+            return issue("sample_nonfinite", "rejected (NaN or inf)")
+        last = run.samples[-1][0] if run.samples else run.handed_t
+        if t > last:
+            return replace(run, samples=run.samples + (row,))
+        if t <= run.handed_t:
+            return issue("sample_out_of_order", "rejected (older than the data already estimated on)")
+        times = np.array([r[0] for r in run.samples])
+        k = int(np.searchsorted(times, t))
+        if k < len(times) and times[k] == t:
+            same = np.array_equal(run.samples[k], row)
+            return issue("sample_duplicate", "rejected" + ("" if same else " (its values differ from the first)"))
+        return issue("sample_out_of_order", "put in place", run.samples[:k] + (row,) + run.samples[k:])
+
     def _update(self, t, run: SysIdState, state) -> SysIdState:
         """Algorithm 1 on the new samples, on a copy of the estimator (the stored one is shared)."""
+        if not run.samples:  # every sample of the period was lost or rejected
+            return replace(run, history=run.history + ({"t": t, "skipped": "no valid samples"},))
         data = np.array(run.samples)
         n = self.n
+        times = data[:, 0] if np.isinf(run.handed_t) else np.concatenate([[run.handed_t], data[:, 0]])
+        gaps = times[1:][np.diff(times) > 1.5 * self.sample_period_s]
+        detail = "follow a gap (the estimator's segments never span one)"
+        run = replace(run, input_issues=run.input_issues + tuple((float(g), "sample_gap", detail) for g in gaps))
         old = run.estimator
         estimator = copy.deepcopy(old, {id(old.robot): old.robot, id(old.settings): old.settings})
         try:
             estimator.add(data[:, 0], data[:, 1 : 1 + n], data[:, 1 + n : 1 + 2 * n], data[:, 1 + 2 * n :])
             est = estimator.update()
         except EstimatorError as err:  # not enough data yet (or bad samples): keep the outputs
-            return SysIdState(estimator, (), run.history + ({"t": t, "skipped": str(err)},))
+            return replace(
+                run,
+                estimator=estimator,
+                samples=(),
+                handed_t=data[-1, 0],
+                history=run.history + ({"t": t, "skipped": str(err)},),
+            )
         record = {
             "t": t,
             "update_time_s": est.update_time_s,
@@ -133,11 +185,15 @@ class SysIdEstimator(LeafSystem):
             "nominal": est.theta_e.tolist(),
             "lower": est.lower.tolist(),
             "upper": est.upper.tolist(),
+            # the data's own least-squares centre and enclosure, before the prior / published box
+            "data_centre": np.asarray(est.theta_ls).tolist(),
+            "data_lower": np.asarray(est.update_lower).tolist(),
+            "data_upper": np.asarray(est.update_upper).tolist(),
             "message": est.message,
             "problems": list(est.problems),
             "quadrature_ratio": est.quadrature_ratio,
         }
-        new = SysIdState(estimator, (), run.history + (record,))
+        new = replace(run, estimator=estimator, samples=(), handed_t=data[-1, 0], history=run.history + (record,))
         self._write(state, est, len(self.history_of(new)))
         return new
 
@@ -168,8 +224,9 @@ class SysIdEstimator(LeafSystem):
         return self._get(context).estimator.consistent
 
     def events(self, context):
-        """[{t, kind, detail}]: the first inconsistent update ("inconsistent_estimate") and
-        updates whose quadrature term was large ("quadrature_unresolved")."""
+        """[{t, kind, detail}]: the first inconsistent update ("inconsistent_estimate"), updates
+        whose quadrature term was large ("quadrature_unresolved"), and what the input sanitation
+        did (sample_nonfinite, sample_duplicate, sample_out_of_order, sample_gap; one per kind)."""
         out, seen = [], False
         for h in self.history(context):
             if not h["consistent"] and not seen:
@@ -183,7 +240,40 @@ class SysIdEstimator(LeafSystem):
                         "detail": f"quadrature bound up to {h['quadrature_ratio']:.2f} of a row's torque radius",
                     }
                 )
-        return out
+        return out + self._prior_events(self.history(context)) + self._input_events(self._get(context).input_issues)
+
+    def _prior_events(self, history):
+        """The first update whose least-squares centre lies outside the prior (A2) in a parameter
+        the data determine better than the prior (enclosure narrower than the prior): not a proof
+        that A2 fails (the data's enclosure still meets the prior, or `consistent` would be off),
+        but the published bound there is the prior's assumption, not the data's."""
+        if self.prior is None:
+            return []
+        lo, hi = (np.asarray(x, float) for x in self.prior)
+        for h in history:
+            centre = np.asarray(h.get("data_centre", ()), float)
+            if h["consistent"] and len(centre):
+                # only where the data pin the parameter down better than the prior does
+                determined = np.asarray(h["data_upper"]) - np.asarray(h["data_lower"]) < hi - lo
+                out = np.flatnonzero(determined & ((centre < lo) | (centre > hi)))
+                if len(out):
+                    names = ", ".join(f"{NAMES[k]} = {centre[k]:.4g} (prior [{lo[k]:.4g}, {hi[k]:.4g}])" for k in out)
+                    detail = (
+                        f"the data's best fit is outside the prior: {names}; the published bound there is the prior's"
+                    )
+                    return [{"t": h["t"], "kind": "estimate_outside_prior", "detail": detail}]
+        return []
+
+    @staticmethod
+    def _input_events(issues):
+        """One event per kind and detail of input issue: its first time and how many samples."""
+        first = {}
+        for t, kind, detail in issues:
+            first.setdefault((kind, detail), [t, 0])[1] += 1
+        return [
+            {"t": t, "kind": kind, "detail": f"{count} sample(s) {detail}, the first at {t:.3f} s"}
+            for (kind, detail), (t, count) in first.items()
+        ]
 
     def final_estimate(self, context, ee_slice=None):
         """(θ_e0, lower, upper) of the last update, or the prior before the first one."""
