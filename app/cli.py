@@ -66,8 +66,15 @@ def build_parser():
     p = sub.add_parser("sweep", help="randomized adversarial closed-loop trials; aggregate safety evidence")
     p.add_argument("scenario")
     p.add_argument("--trials", type=int, default=20)
-    p.add_argument("--methods", help="comma-separated methods (default: the scenario's)")
-    p.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    p.add_argument("--methods", help="comma-separated methods, or all (default: the scenario's)")
+    p.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="parallel trials (local pool or Ray CPUs)")
+    p.add_argument(
+        "--ray",
+        nargs="?",
+        const="local",
+        metavar="ADDRESS",
+        help="run the trials as Ray tasks: a local Ray instance, or the cluster at ADDRESS (auto: `ray start`'s)",
+    )
     p.add_argument("--seed", type=int, default=0, help="trial k uses seed SEED + k")
     p.add_argument(
         "--nominal",

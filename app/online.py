@@ -368,6 +368,7 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
             "missed_deadlines": int(sum(t_ > deadline for t_ in solve_times)),
             "brakes": sum(e["kind"] == "brake" for e in events),
             "solver": scenario.planner.solver if method != "random" else "random",
+            "budget": scenario.planner.budget,  # iterations (deterministic) | wall_time (real time)
             "status": [p["status"] for p in plans],
             "cond_W": [p.get("cond") for p in plans],
         },

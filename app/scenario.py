@@ -63,6 +63,7 @@ _CHOICES = {
     "method": METHODS,
     "planner.cost": ("exciting", "goal", "random"),
     "planner.solver": ("ipopt", "snopt"),
+    "planner.budget": ("iterations", "wall_time"),
     "estimator.solver": ("ipopt", "snopt"),
     "estimator.integration": ("trapezoid", "euler"),
     "estimator.set_membership": ("none", "mass", "all"),

@@ -90,7 +90,7 @@ def _solve_series(robot, payload, thetas, bounds, solver, scenes, plans_per_scen
     for scene in range(scenes):
         rng = np.random.default_rng(100 + scene)
         q = Q0 + rng.uniform(-0.3, 0.3, 7) * np.array([1, 0.5, 1, 0.5, 1, 0.5, 1])
-        cfg = Planner(solver=solver)
+        cfg = Planner(solver=solver, budget="wall_time")  # the real-time mode: the deadline is what is measured
         planner = SafePlanner(robot, cfg, near_boxes(robot, q, rng, payload=payload), payload, bounds)
         v = a = np.zeros(7)
         k_prev = None

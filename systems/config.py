@@ -156,8 +156,13 @@ class Planner:
     cost: str = "exciting"  # exciting | goal | random
     goal_q_rad: List[float] = dc.field(default_factory=list)
     solver: str = "ipopt"  # ipopt | snopt
-    max_solve_time_s: float = 1.2  # wall cap inside t_p
+    max_solve_time_s: float = 1.2  # wall cap inside t_p (budget: wall_time only)
     max_iterations: int = 100
+    # What stops a planning call's solver. iterations: max_iterations alone, so the same scenario
+    # and seed give the same plans (and summary.json) under any machine load; the default, used
+    # by run, compare, sweep and the tests. wall_time: also max_solve_time_s, the real-time mode
+    # (the deadline benchmark): which iterate is kept then depends on the machine's speed and load.
+    budget: str = "iterations"  # iterations | wall_time
     floor_z_m: float = 0.0  # floor plane height (an obstacle)
 
 

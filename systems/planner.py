@@ -12,8 +12,10 @@ inside the controller's ultimate bound) comes from systems/reachability.py:
 Cost: "exciting" = log cond of the stacked end-effector regressor W_e(k) at N_s instants (exact
 gradient through the singular vectors; dW/dk by complex-step, exact to rounding: the regressor is
 analytic in (q, qd, qdd) and dq/dk_j = w(t) k_r,j e_j), "goal" = |q_end - goal|^2, "random" =
-random feasible k (the ablation). Solved with Drake MathematicalProgram (Ipopt or SNOPT) under a
-wall-time cap; the best iterate that our own constraint evaluation finds feasible is returned.
+random feasible k (the ablation). Solved with Drake MathematicalProgram (Ipopt or SNOPT) under an
+iteration budget (config.budget "iterations": no clock read decides anything, so a seed replays
+exactly) or, in the real-time mode "wall_time", also a wall-time cap; the best iterate that our own
+constraint evaluation finds feasible is returned.
 """
 
 from __future__ import annotations
@@ -466,7 +468,7 @@ class SafePlanner:
     """ARMOUR-style planner for one robot, scene and payload.
 
     config: scenario `Planner` record (duration_s, num_time_intervals, num_cost_samples, cost,
-    goal_q_rad, solver, max_solve_time_s, max_iterations, k_center_rad, k_range_rad, floor_z_m).
+    goal_q_rad, solver, max_solve_time_s, max_iterations, budget, k_center_rad, k_range_rad, floor_z_m).
     obstacles: scenario Obstacle records or a reachability.Boxes. payload: Dumbbell or None.
     tracking: controller.TrackingBounds (the controller's ultimate bound with ITS gains Kr; None
     means perfect tracking, for tests only).
@@ -521,7 +523,7 @@ class SafePlanner:
         res.details["solver_constraints"] = prob.num_constraints
         res.max_torque_ratio = prob.torque_ratio
         if mode == "random":
-            k = self._random(prob, rng or np.random.default_rng(), t_start + self.config.max_solve_time_s)
+            k = self._random(prob, rng or np.random.default_rng(0), self._deadline(t_start))
             status, solver_status = "random", "sampled"
         else:
             k, status, solver_status = self._optimize(prob, k_init, t_start)
@@ -572,6 +574,11 @@ class SafePlanner:
                 return c, c
         return (usable[0] if usable else cands[0]), fallback
 
+    def _deadline(self, t_start):
+        """perf_counter time at which a call stops: the wall-time cap in the real-time mode, never
+        in the iteration-budget mode (there the solver's iteration limit alone ends it)."""
+        return t_start + self.config.max_solve_time_s if self.config.budget == "wall_time" else np.inf
+
     # -- random feasible k (ablation) ------------------------------------------------------------
     def _random(self, prob, rng, deadline, tries=200):
         for _ in range(tries):
@@ -594,10 +601,10 @@ class SafePlanner:
         def key(x):
             return np.asarray(x, float).tobytes()
 
-        deadline = t_start + cfg.max_solve_time_s
+        deadline = self._deadline(t_start)
 
         def check_time():
-            if time.perf_counter() > deadline:
+            if deadline < np.inf and time.perf_counter() > deadline:
                 raise _WallTimeExceeded(_CAP_MESSAGE)
 
         def cost_eval(x):
@@ -643,20 +650,22 @@ class SafePlanner:
             prog.AddConstraint(con_fn, np.full(m, COLLISION_SOLVER_MARGIN_M), np.full(m, np.inf), k)
         k0, fallback = self._initial_guess(prob, k_init)
         prog.SetInitialGuess(k, k0)
-        remaining = max(0.05, cfg.max_solve_time_s - (time.perf_counter() - t_start))
+        remaining = max(0.05, deadline - time.perf_counter())  # inf: no time limit for the solver
         options = SolverOptions()
         if cfg.solver == "snopt":
             solver = SnoptSolver()
             sid = solver.solver_id()
             options.SetOption(sid, "Major iterations limit", int(cfg.max_iterations))
-            options.SetOption(sid, "Time limit", float(remaining))
+            if remaining < np.inf:
+                options.SetOption(sid, "Time limit", float(remaining))
             options.SetOption(sid, "Major optimality tolerance", 1e-4)
             options.SetOption(sid, "Major feasibility tolerance", 1e-6)
         else:
             solver = IpoptSolver()
             sid = solver.solver_id()
             options.SetOption(sid, "max_iter", int(cfg.max_iterations))
-            options.SetOption(sid, "max_wall_time", float(remaining))
+            if remaining < np.inf:
+                options.SetOption(sid, "max_wall_time", float(remaining))
             options.SetOption(sid, "hessian_approximation", "limited-memory")
             if prob.mode == "exciting":
                 # log cond is nonsmooth where the two smallest singular values cross, so the dual

@@ -353,7 +353,9 @@ def test_swept_spheres_of_a_plan_contain_the_spheres_along_the_tube(robot, paylo
 
 def test_wall_time_cap_stops_the_solver_and_keeps_a_verified_point(robot, payload):
     for solver in ("ipopt", "snopt"):
-        planner, thetas = make_planner(robot, payload, scene_obstacles(), solver=solver, max_solve_time_s=0.0)
+        planner, thetas = make_planner(
+            robot, payload, scene_obstacles(), solver=solver, max_solve_time_s=0.0, budget="wall_time"
+        )
         res = planner.plan(Q0, np.zeros(7), np.zeros(7), *thetas)
         assert res.solver_status == "wall_time_cap"
         assert res.ok and res.status == "best_feasible"  # the warm start, verified feasible

@@ -91,7 +91,7 @@ def _solver(name):
     return IpoptSolver(), "ipopt"
 
 
-def solve_log_cholesky(A, b, c, eta0, solver="ipopt", newton_steps=50, scale=None, max_iterations=20, max_time_s=0.08):
+def solve_log_cholesky(A, b, c, eta0, solver="ipopt", newton_steps=50, scale=None, max_iterations=20, max_time_s=None):
     """min_η ½‖Y P(η) − U‖² with Drake MathematicalProgram.
 
     The cost is a Python function evaluated on AutoDiffXd that returns the EXACT gradient
@@ -99,8 +99,9 @@ def solve_log_cholesky(A, b, c, eta0, solver="ipopt", newton_steps=50, scale=Non
     expose an exact Hessian callback (its eval_h is not implemented: Ipopt runs with a
     limited-memory quasi-Newton Hessian, and "hessian_approximation exact" aborts), so the answer
     is then polished by a trust-region Newton method on the exact Hessian (`cost_grad_hess`),
-    kept only if it lowers the cost. Ipopt is capped (iterations, time): L-BFGS is slow on this
-    badly scaled map, and the exact-Hessian polish converges in a few steps from its answer. When the unconstrained
+    kept only if it lowers the cost. Ipopt is capped in iterations (a time cap, max_time_s, only if
+    asked: it makes the answer depend on machine load): L-BFGS is slow on this badly scaled map,
+    and the exact-Hessian polish converges in a few steps from its answer. When the unconstrained
     optimum is not physically consistent the infimum sits on the LMI boundary and is not attained
     in η: the solvers then stop at an iterate close to it (reported, not an error).
     """
@@ -138,7 +139,8 @@ def solve_log_cholesky(A, b, c, eta0, solver="ipopt", newton_steps=50, scale=Non
         opts.SetOption(slv.solver_id(), "acceptable_tol", 1e-6)
         opts.SetOption(slv.solver_id(), "acceptable_iter", 3)
         opts.SetOption(slv.solver_id(), "max_iter", max_iterations)
-        opts.SetOption(slv.solver_id(), "max_cpu_time", max_time_s)
+        if max_time_s is not None:  # a CPU-time cap makes the estimate depend on machine load
+            opts.SetOption(slv.solver_id(), "max_cpu_time", max_time_s)
     else:
         opts.SetOption(slv.solver_id(), "Major iterations limit", max_iterations)
     import logging
