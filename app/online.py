@@ -239,7 +239,7 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
     est = built.estimator
     if est is not None:
         est_ctx = est.GetMyContextFromRoot(ctx)
-        theta_e0, lo, hi = est.final_estimate(est_ctx, robot.ee_slice)
+        theta_e0, lo, hi = est.final_estimate(est_ctx)
         history = est.history(est_ctx)
         cond_y = history[-1]["cond_Y"] if history else float("nan")
         update_times = [h["update_time_s"] for h in history]
