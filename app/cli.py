@@ -9,6 +9,7 @@ import argparse
 import importlib
 import os
 import sys
+from collections.abc import Sequence
 
 
 class BadInput(ValueError):
@@ -43,7 +44,7 @@ def _add_scenario_text(p):
     )
 
 
-def build_parser():
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="safesysid", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="verb", metavar="VERB")
     sub.required = True
@@ -121,7 +122,7 @@ def _dispatch(args):
     return getattr(importlib.import_module(module_name), fn_name)(args)
 
 
-def main(argv=None):
+def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(_dispatch(args) or 0)
