@@ -79,7 +79,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_scenario_text(p)
 
     p = sub.add_parser("sysid", help="Algorithm 1 offline on a joint log")
-    p.add_argument("log", help="joint log: CSV (contracts.md) or a ROS bag (see --topic)")
+    p.add_argument(
+        "log", help="joint log: CSV (t, q1..qn, v1..vn, optional a1..an, tau1..taun) or a ROS bag (see --topic)"
+    )
     p.add_argument("--scenario", help="scenario YAML (robot, noise, estimator settings)")
     p.add_argument("--model", help="corrected_model.yaml from `safesysid diagnose`: the robot model to identify with")
     p.add_argument("--out", default="out/sysid")

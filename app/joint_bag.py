@@ -127,7 +127,7 @@ def _joint_rows(reader, cons, where, joints):
 def read_log(
     path: str | Path, n_joints: int | None = None, topic: str = "/joint_states", joints: Sequence[str] | None = None
 ) -> JointLog:
-    """A joint log from a CSV (contracts.md) or a ROS bag (`topic`, `joints` in model order)."""
+    """A joint log from a CSV (joint_log.py) or a ROS bag (`topic`, `joints` in model order)."""
     if is_bag(path):
         return read_joint_bag(path, topic, joints, n_joints)
     return read_joint_log(path, n_joints)

@@ -58,7 +58,7 @@ class Effect:
 
 @dataclass
 class Correction:
-    """The parts of corrected_model.yaml the consumers use (schema: contracts.md)."""
+    """The parts of corrected_model.yaml the consumers use (schema: diagnosis/corrected_model.py)."""
 
     model: str  # starting URDF/SDF/scenario, as written
     effects: list[Effect]

@@ -3,7 +3,7 @@ fitted parameters, one schema, written by `safesysid diagnose` and read back by
 `safesysid diagnose --model corrected_model.yaml --check X.csv` (frozen scoring) and by the
 consumers of a corrected model (scenario loading, the simulated arm, `sysid --model`).
 
-Schema (contracts.md; add keys, never rename):
+Schema (a stable contract: add keys, never rename or drop):
     model: path of the starting URDF/SDF/scenario YAML, as given to `diagnose`
     model_resolved: the same path, absolute
     effects:                         # most explanatory first
