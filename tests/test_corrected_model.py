@@ -17,7 +17,7 @@ DURATION_S = 5.0
 
 
 def write_corrected_model(path, model, diagnosis):
-    """corrected_model.yaml (contracts.md) of a diagnosis' significant effects."""
+    """corrected_model.yaml (systems/diagnosis/corrected_model.py) of a diagnosis' significant effects."""
     effects = [
         {"name": e["name"], "joints": e["joints"], "params": e["params"]}
         for e in diagnosis.result["effects"]

@@ -1,5 +1,6 @@
-"""Layering: systems/ (Drake systems and their math) imports nothing from app/ (loading, CLI,
-reports); the scenario schema it needs is systems/config.py."""
+"""Layout rules: systems/ (Drake systems and their math) imports nothing from app/ (loading, CLI,
+reports; the scenario schema it needs is systems/config.py); every LeafSystem of the online
+diagram is a module-level class; public functions and dataclass fields carry type hints."""
 
 import ast
 from pathlib import Path
