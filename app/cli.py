@@ -9,6 +9,7 @@ import argparse
 import importlib
 import os
 import sys
+from collections.abc import Sequence
 
 
 class BadInput(ValueError):
@@ -43,7 +44,7 @@ def _add_scenario_text(p):
     )
 
 
-def build_parser():
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="safesysid", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="verb", metavar="VERB")
     sub.required = True
@@ -85,7 +86,9 @@ def build_parser():
     _add_scenario_text(p)
 
     p = sub.add_parser("sysid", help="Algorithm 1 offline on a joint log")
-    p.add_argument("log", help="joint log: CSV (contracts.md) or a ROS bag (see --topic)")
+    p.add_argument(
+        "log", help="joint log: CSV (t, q1..qn, v1..vn, optional a1..an, tau1..taun) or a ROS bag (see --topic)"
+    )
     p.add_argument("--scenario", help="scenario YAML (robot, noise, estimator settings)")
     p.add_argument("--model", help="corrected_model.yaml from `safesysid diagnose`: the robot model to identify with")
     p.add_argument("--out", default="out/sysid")
@@ -128,7 +131,7 @@ def _dispatch(args):
     return getattr(importlib.import_module(module_name), fn_name)(args)
 
 
-def main(argv=None):
+def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(_dispatch(args) or 0)

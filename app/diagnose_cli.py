@@ -1,5 +1,5 @@
 """`safesysid diagnose`: where a model and logs disagree, which unmodelled effect explains it,
-and how much of the gap goes away on held-out logs (systems/gap.py does the math).
+and how much of the gap goes away on held-out logs (systems/diagnosis/ does the math).
 
     safesysid diagnose --model MODEL --fit A.csv [B.csv ...] --check C.csv [...] --out DIR
     safesysid diagnose --model corrected_model.yaml --check NEW.csv [...] --out DIR   (frozen: fits nothing)
@@ -13,15 +13,22 @@ scored once (`test` in diagnosis.json) with the frozen selection and parameters,
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+if TYPE_CHECKING:  # the CLI imports the math only when a verb runs
+    from safesysid.systems.diagnosis import Diagnosis
+    from safesysid.systems.robot_model import RobotModel
 
-def load_model(path):
+
+def load_model(path: str | Path) -> RobotModel:
     """RobotModel from a URDF/SDF (root welded, limits from the file, friction zero) or a
     scenario YAML (its robot section)."""
     from safesysid.cli import BadInput
@@ -39,7 +46,7 @@ def load_model(path):
     raise BadInput(f"{path}: --model must be a .urdf/.sdf model or a scenario .yaml")
 
 
-def corrected_params_doc(model, diagnosis):
+def corrected_params_doc(model: RobotModel, diagnosis: Diagnosis) -> dict:
     """Joint-parameter YAML (models/kinova_gen3_params.yaml format) with the fitted friction,
     armature and offset; the other fitted effects under `diagnosed_effects` / `plant_effects`."""
     jp = model.joint_params
@@ -83,19 +90,27 @@ def _clean(x):
     return x
 
 
-def run_diagnosis(model, fit_paths, check_paths, out, model_path="", plots=True, bag=None):
+def run_diagnosis(
+    model: RobotModel,
+    fit_paths: Sequence[str | Path],
+    check_paths: Sequence[str | Path],
+    out: str | Path,
+    model_path: str | Path = "",
+    plots: bool = True,
+    bag: dict | None = None,
+) -> Diagnosis:
     """Read logs (CSV or ROS bag; `bag`: read_log's topic/joints), diagnose, write diagnosis.json,
     corrected_model.yaml, corrected_params.yaml, report.md/.html and plots."""
     from safesysid.joint_bag import read_log
-    from safesysid.systems import gap
-    from safesysid.systems.corrected_model import write_corrected_model
+    from safesysid.systems import diagnosis
+    from safesysid.systems.diagnosis import write_corrected_model
 
     t0 = time.perf_counter()
     fit = [read_log(p, model.n, **(bag or {})) for p in fit_paths]
     check = [read_log(p, model.n, **(bag or {})) for p in check_paths]
-    with gap.single_threaded_blas():
-        d = gap.diagnose(model, fit, check, model_path=str(model_path or ""))
-        d.result["gap"]["residual_forms"] = {log.source: gap.residual_forms(model, log) for log in check}
+    with diagnosis.single_threaded_blas():
+        d = diagnosis.diagnose(model, fit, check, model_path=str(model_path or ""))
+        d.result["gap"]["residual_forms"] = {log.source: diagnosis.residual_forms(model, log) for log in check}
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_corrected_model(
@@ -119,7 +134,8 @@ def run_diagnosis(model, fit_paths, check_paths, out, model_path="", plots=True,
 
 
 def _write_outputs(out, d, model_path, fit_paths, check_paths, t0, plots, params_file=None, frozen=False):
-    from .diagnose_report import write_plots, write_report
+    from .diagnose_plots import write_plots
+    from .diagnose_report import write_report
 
     files = write_plots(out, d) if plots else {}
     wall = time.perf_counter() - t0
@@ -128,13 +144,19 @@ def _write_outputs(out, d, model_path, fit_paths, check_paths, t0, plots, params
     write_report(out, d, model_path, fit_paths, check_paths, files, wall, params_file, frozen=frozen)
 
 
-def score_corrected(path, check_paths, out, plots=True, bag_args=None):
+def score_corrected(
+    path: str | Path,
+    check_paths: Sequence[str | Path],
+    out: str | Path,
+    plots: bool = True,
+    bag_args: argparse.Namespace | None = None,
+) -> int:
     """`--model corrected_model.yaml --check X.csv`: score the frozen model on X (the same code
     path diagnose scores its check logs with); nothing is fitted."""
     from safesysid.cli import BadInput
     from safesysid.joint_bag import read_log
-    from safesysid.systems import gap
-    from safesysid.systems.corrected_model import CorrectedModelError, read_corrected_model
+    from safesysid.systems import diagnosis
+    from safesysid.systems.diagnosis import CorrectedModelError, read_corrected_model
 
     t0 = time.perf_counter()
     if not check_paths:
@@ -148,7 +170,7 @@ def score_corrected(path, check_paths, out, plots=True, bag_args=None):
         corrected.check_joints(model.n)
         bag = bag_options(bag_args, model) if bag_args is not None else {}
         logs = [read_log(p, model.n, **bag) for p in check_paths]
-        d = gap.frozen_diagnosis(model, corrected, logs)
+        d = diagnosis.frozen_diagnosis(model, corrected, logs)
     except CorrectedModelError as err:
         raise BadInput(str(err)) from err
     out = Path(out)
@@ -189,8 +211,8 @@ def _print_summary(d, out):
     print(f"wrote {out}/diagnosis.json, report.md, report.html, corrected_model.yaml, corrected_params.yaml")
 
 
-def self_check(args):
-    from safesysid.systems import gap_simulate as gs
+def self_check(args: argparse.Namespace) -> int:
+    from safesysid.systems import diagnosis
     from safesysid.systems.robot_model import load_robot
 
     model = load_model(args.model) if args.model else load_robot()
@@ -206,15 +228,16 @@ def self_check(args):
             flush=True,
         )
 
-    cases, summary, table = gs.run_self_check(model, args.cases, args.seed, progress, getattr(args, "workers", 1))
+    workers = getattr(args, "workers", 1)
+    cases, summary, table = diagnosis.run_self_check(model, args.cases, args.seed, progress, workers)
     summary["wall_time_s"] = time.perf_counter() - t0
     summary["targets"] = {
         "injected_named_rate>=0.95": summary["injected_named_rate"] >= 0.95,
         "cases_with_false_effect_rate<=0.05": summary["cases_with_false_effect_rate"] <= 0.05,
         "null_cases_all_none": summary["null_correct"] == summary["null_cases"],
     }
-    md = gs.confusion_markdown(table)
-    errors = gs.error_markdown(summary["parameter_errors"])
+    md = diagnosis.confusion_markdown(table)
+    errors = diagnosis.error_markdown(summary["parameter_errors"])
     (out / "self_check.json").write_text(
         json.dumps(
             _clean({"summary": summary, "confusion": table, "cases": cases, "seed": args.seed, "model": model.source}),
@@ -226,7 +249,7 @@ def self_check(args):
         "# Diagnosis self-check (withheld effects, blind)",
         "",
         f"{summary['cases']} cases, seed {args.seed}, model `{model.source}`. Logs: exact inverse dynamics of "
-        "the model along random smooth trajectories plus the withheld effects (systems/gap_simulate.py), "
+        "the model along random smooth trajectories plus the withheld effects (systems/diagnosis/simulate.py), "
         "bounded noise up to 3% of each joint's torque range, half of the cases without accelerations. "
         "Honest protocol: effects are selected on the two fit logs only (inner cross-validation) and the "
         "check log is scored once.",
@@ -261,10 +284,12 @@ def self_check(args):
     return 0
 
 
-def leave_one_out(model, paths, out, model_path, bag=None):
+def leave_one_out(
+    model: RobotModel, paths: Sequence[str | Path], out: str | Path, model_path: str | Path, bag: dict | None = None
+) -> int:
     """Each log held out once (fit on the others): a diagnosis folder per fold, and the pooled
     held-out numbers in DIR/leave_one_out.json and DIR/report.md."""
-    from safesysid.systems import gap
+    from safesysid.systems import diagnosis
 
     from .diagnose_report import write_leave_one_out_report
 
@@ -273,7 +298,7 @@ def leave_one_out(model, paths, out, model_path, bag=None):
     folds = [
         run_diagnosis(model, paths[:k] + paths[k + 1 :], [paths[k]], d, model_path, bag=bag) for k, d in enumerate(dirs)
     ]
-    pooled = gap.pool_held_out(folds)
+    pooled = diagnosis.pool_held_out(folds)
     (out / "leave_one_out.json").write_text(json.dumps(_clean(pooled), indent=2))
     write_leave_one_out_report(out, pooled, model_path, dirs)
     p, m = pooled["pooled"], pooled["mean_over_folds"]
@@ -286,19 +311,19 @@ def leave_one_out(model, paths, out, model_path, bag=None):
     return 0
 
 
-def bag_options(args, model):
+def bag_options(args: argparse.Namespace, model: RobotModel) -> dict:
     """read_log's ROS bag options: --topic, --joints (default: the model's joint names)."""
     return {"topic": args.topic, "joints": args.joints or list(model.joint_params.names)}
 
 
-def cmd_diagnose(args):
+def cmd_diagnose(args: argparse.Namespace) -> int:
     from safesysid.cli import BadInput
 
     if args.self_check:
         return self_check(args)
     if not args.model:
         raise BadInput("--model: required (URDF/SDF of a fixed-base arm or a scenario YAML)")
-    from safesysid.systems.corrected_model import is_corrected_model_file
+    from safesysid.systems.diagnosis import is_corrected_model_file
 
     if is_corrected_model_file(args.model):
         if args.fit or args.leave_one_out:

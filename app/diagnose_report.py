@@ -1,118 +1,16 @@
-"""report.md and plots (matplotlib, Agg) of a gap diagnosis."""
+"""report.md and report.html of a gap diagnosis (plots: diagnose_plots.py; HTML: report_html.py)."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
+from .diagnose_plots import joint_bars
+from .report_html import write_html
 
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _grid(n):
-    cols = min(4, n)
-    return (n + cols - 1) // cols, cols
-
-
-def write_plots(out, diagnosis):
-    """Residual vs velocity / acceleration / gravity torque per joint, before/after time series,
-    per-joint bars. Returns {name: filename}."""
-    plt = _plt()
-    out = Path(out)
-    d = diagnosis
-    check = d.check_designs
-    n = check[0].y.shape[1]
-    before = np.concatenate(d.check_residual_before)
-    after = np.concatenate(d.check_residual_after)
-    files = {}
-    feats = {
-        "velocity": ("v", "velocity [rad/s]"),
-        "acceleration": ("a", "acceleration [rad/s²]"),
-        "gravity": ("g", "gravity torque [N·m]"),
-    }
-    for key, (f, label) in feats.items():
-        x = np.concatenate([c.features[f] for c in check])
-        rows, cols = _grid(n)
-        fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 2.6 * rows), squeeze=False)
-        for j in range(rows * cols):
-            ax = axes.flat[j]
-            if j >= n:
-                ax.axis("off")
-                continue
-            ax.scatter(x[:, j], before[:, j], s=2, c="0.6", label="nominal")
-            ax.scatter(x[:, j], after[:, j], s=2, c="tab:blue", label="corrected")
-            ax.set_title(f"joint {j + 1}", fontsize=9)
-            ax.set_xlabel(label, fontsize=8)
-            ax.tick_params(labelsize=7)
-            if j % cols == 0:
-                ax.set_ylabel("residual [N·m]", fontsize=8)
-        axes.flat[0].legend(fontsize=7, markerscale=4)
-        fig.suptitle(f"Held-out residual vs {key}", fontsize=10)
-        fig.tight_layout()
-        name = f"residual_vs_{key}.png"
-        fig.savefig(out / name, dpi=90)
-        plt.close(fig)
-        files[key] = name
-    # Time series of the first check log.
-    c0 = check[0]
-    fig, axes = plt.subplots(n, 1, figsize=(9, 1.4 * n + 0.6), sharex=True, squeeze=False)
-    for j in range(n):
-        ax = axes[j, 0]
-        ax.plot(c0.row_time, d.check_residual_before[0][:, j], lw=0.6, c="0.5", label="nominal")
-        ax.plot(c0.row_time, d.check_residual_after[0][:, j], lw=0.6, c="tab:blue", label="corrected")
-        if c0.row_saturated[:, j].any():
-            ax.fill_between(
-                c0.row_time,
-                0,
-                1,
-                where=c0.row_saturated[:, j],
-                color="tab:orange",
-                alpha=0.25,
-                transform=ax.get_xaxis_transform(),
-                label="speed-saturated",
-            )
-        ax.set_ylabel(f"j{j + 1} [N·m]", fontsize=8)
-        ax.tick_params(labelsize=7)
-    handles = {h.get_label(): h for ax in axes[:, 0] for h in ax.get_legend_handles_labels()[0]}
-    axes[0, 0].legend(handles.values(), handles.keys(), fontsize=7, loc="upper right")
-    axes[-1, 0].set_xlabel("time [s]")
-    fig.suptitle(f"Residual before/after, {Path(c0.source).name or 'check log 1'}", fontsize=10)
-    fig.tight_layout()
-    fig.savefig(out / "residual_timeseries.png", dpi=90)
-    plt.close(fig)
-    files["timeseries"] = "residual_timeseries.png"
-    # Per-joint bars.
-    res = d.result
-    files["bars"] = joint_bars(
-        out / "joint_rms.png",
-        res["gap"]["rms_check_per_joint"],
-        res["combined"]["rms_check_per_joint_after"],
-        "corrected",
-    )
-    return files
-
-
-def joint_bars(path, before, after, label_after):
-    """Per-joint held-out RMS bars, nominal vs corrected; returns the file name."""
-    plt = _plt()
-    idx = np.arange(len(before))
-    fig, ax = plt.subplots(figsize=(7, 3))
-    ax.bar(idx - 0.2, before, 0.4, color="0.6", label="nominal")
-    ax.bar(idx + 0.2, after, 0.4, color="tab:blue", label=label_after)
-    ax.set_xticks(idx, [f"j{j + 1}" for j in idx])
-    ax.set_ylabel("held-out RMS [N·m]")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return Path(path).name
+if TYPE_CHECKING:
+    from safesysid.systems.diagnosis import Diagnosis
 
 
 def _fmt(x, digits=3):
@@ -151,7 +49,7 @@ def _per_joint(values, joints, unit):
     return f"{min(vals):.3g}–{max(vals):.3g} {unit} on joints {_joint_list(joints)}".replace("  ", " ")
 
 
-def effect_text(entry):
+def effect_text(entry: dict) -> str:
     """One effect with its fitted values and units, as a user reads it."""
     name, p, joints = entry["name"], entry["params"], entry["joints"]
     if name == "coulomb_friction":
@@ -199,7 +97,7 @@ def _regime_text(gap):
     ]
 
 
-def verdict_lines(result, frozen=False):
+def verdict_lines(result: dict, frozen: bool = False) -> list[str]:
     """The three lines report.md opens with: where the model fails, the effects that explain
     it with fitted values and units, and the shrinkage on held-out (test) logs."""
     gap, test = result["gap"], result["test"]
@@ -258,8 +156,16 @@ def verdict_lines(result, frozen=False):
 
 
 def write_report(
-    out, diagnosis, model_path, fit_paths, check_paths, plots, wall_time_s, params_file=None, frozen=False
-):
+    out: str | Path,
+    diagnosis: Diagnosis,
+    model_path: str | Path,
+    fit_paths: Sequence[str | Path],
+    check_paths: Sequence[str | Path],
+    plots: dict[str, str],
+    wall_time_s: float,
+    params_file: str | None = None,
+    frozen: bool = False,
+) -> None:
     """report.md (verdict first, then tables and plots) and report.html (the same, plots embedded)."""
     res = diagnosis.result
     gap = res["gap"]
@@ -457,99 +363,9 @@ def _effects_section(res, frozen):
     return lines
 
 
-# ---- self-contained HTML of a report.md (the subset of markdown the reports use) -------------
-def _inline(text):
-    import html
-    import re
-
-    t = html.escape(text, quote=False)
-    t = re.sub(r"\*\*(.+?)\*\*", r"<strong>\1</strong>", t)
-    t = re.sub(r"`([^`]+)`", r"<code>\1</code>", t)
-    return re.sub(r"\[([^\]]+)\]\(([^)]+)\)", r'<a href="\2">\1</a>', t)
-
-
-def _image_tag(alt, src, folder):
-    import base64
-    import html
-
-    path = Path(folder, src)
-    data = base64.b64encode(path.read_bytes()).decode("ascii") if path.is_file() else ""
-    return f'<figure><img alt="{html.escape(alt)}" src="data:image/png;base64,{data}"></figure>'
-
-
-def markdown_to_html(text, folder, title):
-    """HTML of the markdown subset the reports write (headings, paragraphs, lists, tables,
-    images), images embedded as data URIs so the file stands alone. The page records in
-    <body data-images-decoded> how many images the browser decoded (checked by a test)."""
-    import html
-    import re
-
-    body, para, table, items = [], [], [], []
-
-    def flush():
-        if para:
-            body.append("<p>" + _inline(" ".join(para)) + "</p>")
-            para.clear()
-        if items:
-            body.append("<ul>" + "".join(f"<li>{_inline(x)}</li>" for x in items) + "</ul>")
-            items.clear()
-        if table:
-            head, rows = table[0], table[2:]
-            body.append(
-                "<table><thead><tr>"
-                + "".join(f"<th>{_inline(c)}</th>" for c in head)
-                + "</tr></thead><tbody>"
-                + "".join("<tr>" + "".join(f"<td>{_inline(c)}</td>" for c in r) + "</tr>" for r in rows)
-                + "</tbody></table>"
-            )
-            table.clear()
-
-    for line in text.splitlines():
-        image = re.fullmatch(r"!\[([^\]]*)\]\(([^)]+)\)", line.strip())
-        if not line.strip():
-            flush()
-        elif line.startswith("#"):
-            flush()
-            level = len(line) - len(line.lstrip("#"))
-            body.append(f"<h{level}>{_inline(line[level:].strip())}</h{level}>")
-        elif image:
-            flush()
-            body.append(_image_tag(image.group(1), image.group(2), folder))
-        elif line.startswith("|"):
-            table.append([c.strip() for c in line.strip().strip("|").split("|")])
-        elif line.startswith("- "):
-            items.append(line[2:])
-        else:
-            para.append(line.strip())
-    flush()
-    style = (
-        "body{font-family:sans-serif;max-width:72em;margin:1em auto;padding:0 1em;line-height:1.4}"
-        "table{border-collapse:collapse;margin:0.5em 0}td,th{border:1px solid #ccc;padding:2px 6px;"
-        "font-size:0.9em}th{background:#eee}img{max-width:100%}code{background:#f4f4f4}"
-    )
-    script = (
-        "window.addEventListener('load',function(){var n=0;document.querySelectorAll('img').forEach("
-        "function(i){if(i.complete&&i.naturalWidth>0)n++});document.body.dataset.imagesDecoded=n;});"
-    )
-    return (
-        '<!DOCTYPE html><html><head><meta charset="utf-8"><title>'
-        + html.escape(title)
-        + "</title><style>"
-        + style
-        + "</style><script>"
-        + script
-        + "</script></head><body>"
-        + "\n".join(body)
-        + "</body></html>"
-    )
-
-
-def write_html(path, markdown_text, folder, title):
-    Path(path).write_text(markdown_to_html(markdown_text, folder, title))
-    return Path(path)
-
-
-def write_leave_one_out_report(out, pooled, model_path, fold_dirs):
+def write_leave_one_out_report(
+    out: str | Path, pooled: dict, model_path: str | Path, fold_dirs: Sequence[Path]
+) -> None:
     """report.md/.html of a nested leave-one-log-out diagnosis: test RMS pooled over the folds per
     joint (all samples and without speed-saturated ones), the mean over folds, each fold, and the
     effects named in every fold."""

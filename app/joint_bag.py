@@ -12,6 +12,7 @@ diagnosis then uses its momentum form, as for a CSV without them).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +23,7 @@ JOINT_STATE_TYPES = ("sensor_msgs/msg/JointState", "sensor_msgs/JointState")
 ROS2_STORAGE_SUFFIXES = (".db3", ".mcap")
 
 
-def is_bag(path):
+def is_bag(path: str | Path) -> bool:
     """A ROS 2 bag folder (or its .db3/.mcap storage file) or a ROS 1 .bag file."""
     p = Path(path)
     return p.is_dir() or p.suffix.lower() in (".bag",) + ROS2_STORAGE_SUFFIXES
@@ -42,7 +43,9 @@ def _stamp_seconds(sec, nanosec):
     return np.array([f"{s}.{ns:09d}" for s, ns in zip(sec, nanosec)], float)
 
 
-def read_joint_bag(path, topic="/joint_states", joints=None, n_joints=None) -> JointLog:
+def read_joint_bag(
+    path: str | Path, topic: str = "/joint_states", joints: Sequence[str] | None = None, n_joints: int | None = None
+) -> JointLog:
     """JointLog from the JointState messages of `topic`; `joints` (names, in model order) picks
     and orders the columns (default: the names of the first message that has efforts).
     LogError, one line naming file, topic and field, on any problem."""
@@ -121,8 +124,10 @@ def _joint_rows(reader, cons, where, joints):
     return to(stamps), to(receive), np.array(q), np.array(v), np.array(tau)
 
 
-def read_log(path, n_joints=None, topic="/joint_states", joints=None) -> JointLog:
-    """A joint log from a CSV (contracts.md) or a ROS bag (`topic`, `joints` in model order)."""
+def read_log(
+    path: str | Path, n_joints: int | None = None, topic: str = "/joint_states", joints: Sequence[str] | None = None
+) -> JointLog:
+    """A joint log from a CSV (joint_log.py) or a ROS bag (`topic`, `joints` in model order)."""
     if is_bag(path):
         return read_joint_bag(path, topic, joints, n_joints)
     return read_joint_log(path, n_joints)

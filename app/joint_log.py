@@ -1,46 +1,19 @@
-"""Joint log CSV: t, q1..qn, v1..vn, optional a1..an, tau1..taun, extra columns."""
+"""Joint log CSV: t, q1..qn, v1..vn, optional a1..an, tau1..taun, extra columns (read into the
+JointLog of systems/joint_log.py, re-exported here)."""
 
 from __future__ import annotations
 
 import csv
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from safesysid.systems.joint_log import JointLog
+
+__all__ = ["JointLog", "LogError", "read_joint_log", "write_joint_log"]
 
 
 class LogError(ValueError):
     """Bad joint log; the message names file, row and column."""
-
-
-@dataclass
-class JointLog:
-    t: np.ndarray  # (N,)
-    q: np.ndarray  # (N, n)
-    v: np.ndarray
-    tau: np.ndarray
-    a: np.ndarray | None = None
-    extra: dict = field(default_factory=dict)  # other columns by name
-    source: str = ""
-
-    @property
-    def n(self):
-        return self.q.shape[1]
-
-    def __len__(self):
-        return len(self.t)
-
-    def slice(self, sl):
-        pick = lambda x: None if x is None else x[sl]  # noqa: E731
-        return JointLog(
-            self.t[sl],
-            self.q[sl],
-            self.v[sl],
-            self.tau[sl],
-            pick(self.a),
-            {k: x[sl] for k, x in self.extra.items()},
-            self.source,
-        )
 
 
 def _joint_count(header):
@@ -50,7 +23,7 @@ def _joint_count(header):
     return n
 
 
-def read_joint_log(path, n_joints=None) -> JointLog:
+def read_joint_log(path: str | Path, n_joints: int | None = None) -> JointLog:
     """Read and validate a joint log; LogError (one line) on any problem."""
     path = Path(path)
     try:
@@ -103,7 +76,7 @@ def read_joint_log(path, n_joints=None) -> JointLog:
     return JointLog(t, stack("q"), stack("v"), stack("tau"), stack("a") if has_a else None, extra, str(path))
 
 
-def write_joint_log(path, log: JointLog, extra_columns: dict | None = None):
+def write_joint_log(path: str | Path, log: JointLog, extra_columns: dict[str, np.ndarray] | None = None) -> Path:
     """Write a joint log (plus extra named columns)."""
     n = log.n
     cols = {"t": log.t}

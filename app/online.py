@@ -302,7 +302,7 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
         if history:
             theta_e0, lo, hi = (np.asarray(history[-1][k], float) for k in ("nominal", "lower", "upper"))
         else:
-            theta_e0, lo, hi = est.final_estimate(est_ctx, robot.ee_slice)
+            theta_e0, lo, hi = est.final_estimate(est_ctx)
         cond_y = history[-1]["cond_Y"] if history else float("nan")
         update_times = [h["update_time_s"] for h in history]
         consistent = all(h["consistent"] for h in history)

@@ -4,6 +4,7 @@ systems/config.py (re-exported here), checked field by field with errors naming 
 
 import dataclasses as dc
 import typing
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -30,11 +31,13 @@ from safesysid.systems.config import (
     scenario_dir,
     task_enabled,
 )
+from safesysid.systems.model_corrections import Correction
 
 SCENARIOS_DIR = Path(__file__).resolve().parent.parent / "scenarios"
 __all__ = [  # the loader, and the schema of systems/config.py re-exported
     "SCENARIOS_DIR",
     "load_scenario",
+    "check_starting_scenario",
     "MAX_CONTROL_STEP_S",
     "METHODS",
     "Controller",
@@ -231,7 +234,11 @@ def _validate_obstacle(ob, field, need):
     need(len(ob.size_m) == 3 and min(ob.size_m) > 0, f"{field}.size_m", "needs 3 positive values")
 
 
-def load_scenario(path=None, text=None, overrides=None) -> Scenario:
+def load_scenario(
+    path: str | Path | None = None,
+    text: str | None = None,
+    overrides: str | dict | Sequence[str | dict] | None = None,
+) -> Scenario:
     """Scenario from layers, the Drake way (examples/hardware_sim): the schema's defaults, then
     the YAML file `path` (or the YAML `text`), then each override, each layer read with
     yaml_load_typed(defaults=previous) so that it changes only the keys it names (a deep merge;
@@ -290,14 +297,24 @@ def _apply_corrected_model(s: Scenario, given, where):
     if not path.is_file():
         raise ScenarioError(f"{where}: robot.corrected_model: file {s.robot.corrected_model!r} not found")
     try:
-        fields = plant_effects(read_correction(path))
+        corr = read_correction(path)
+        fields = plant_effects(corr)
     except CorrectionError as err:
         raise ScenarioError(f"{where}: robot.corrected_model: {err}") from err
+    check_starting_scenario(corr)
     set_by_user = (given.get("plant") or {}).get("effects") or {}
     for key, value in fields.items():
         if key in set_by_user:
             raise ScenarioError(f"{where}: plant.effects.{key}: also set by robot.corrected_model ({path.name})")
         setattr(s.plant.effects, key, value)
+
+
+def check_starting_scenario(corr: Correction) -> None:
+    """A corrected model that starts from a scenario YAML: that scenario, validated (ScenarioError
+    naming its file and key); systems/config.py starting_robot then reads only its robot section."""
+    start = corr.model_path()
+    if start.suffix.lower() in (".yaml", ".yml") and start.is_file():
+        load_scenario(start)
 
 
 def _read_layer(previous: Scenario, layer, where) -> Scenario:

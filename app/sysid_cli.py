@@ -21,6 +21,7 @@ Fig. 5) and DIR/history.png (the intervals over the updates).
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import json
 from pathlib import Path
@@ -28,12 +29,28 @@ from pathlib import Path
 import numpy as np
 from safesysid.cli import BadInput
 from safesysid.joint_bag import read_log
-from safesysid.scenario import ScenarioError, load_scenario, resolve_path, robot_from_scenario, scenario_dir
+from safesysid.scenario import (
+    Scenario,
+    ScenarioError,
+    check_starting_scenario,
+    load_scenario,
+    resolve_path,
+    robot_from_scenario,
+    scenario_dir,
+)
 from safesysid.systems import inertial
-from safesysid.systems.estimation import EstimatorError, EstimatorSettings, IncrementalEstimator, torque_radius
+from safesysid.systems.estimation import (
+    EstimatorError,
+    EstimatorSettings,
+    IncrementalEstimator,
+    SegmentRows,
+    torque_radius,
+)
+from safesysid.systems.joint_log import JointLog
+from safesysid.systems.robot_model import RobotModel
 
 
-def payload_truth(scenario, robot):
+def payload_truth(scenario: Scenario, robot: RobotModel) -> np.ndarray | None:
     """θ_e of the end effector + the scenario's dumbbell, or None when it names none."""
     from safesysid.systems.payload import load_dumbbells, payload_theta_in_end_effector
 
@@ -47,7 +64,9 @@ def payload_truth(scenario, robot):
     return robot.theta_e + payload_theta_in_end_effector(dumbbells[name], robot.extra["grasp_point"])
 
 
-def undo_torque_lag(rows, tau_meas, lag_s, settings, first=0):
+def undo_torque_lag(
+    rows: SegmentRows, tau_meas: np.ndarray, lag_s: float, settings: EstimatorSettings, first: int = 0
+) -> None:
     """Rows `first`.. of the estimator's segments (SegmentRows, indices into tau_meas) for a
     torque signal logged through a first-order lag d: int tau = int tau_meas + d (tau_meas(b) -
     tau_meas(a)), the endpoint noise bounded by d (r_a + r_b) in the row's error term."""
@@ -57,7 +76,15 @@ def undo_torque_lag(rows, tau_meas, lag_s, settings, first=0):
     rows.quad[first:] += lag_s * (r[a] + r[b])
 
 
-def run_sysid(log, robot, settings, period_s, prior=None, prior_nominal=None, torque_lag_s=0.0):
+def run_sysid(
+    log: JointLog,
+    robot: RobotModel,
+    settings: EstimatorSettings,
+    period_s: float,
+    prior: tuple[np.ndarray, np.ndarray] | None = None,
+    prior_nominal: np.ndarray | None = None,
+    torque_lag_s: float = 0.0,
+) -> tuple[IncrementalEstimator, list[dict]]:
     """Replay a JointLog through the incremental estimator; returns (estimator, history)."""
     est = IncrementalEstimator(robot, settings, prior, prior_nominal)
     history = []
@@ -92,7 +119,9 @@ def run_sysid(log, robot, settings, period_s, prior=None, prior_nominal=None, to
     return est, history
 
 
-def plot_intervals(path, est, prior_nominal, truth, title):
+def plot_intervals(
+    path: str | Path, est: IncrementalEstimator, prior_nominal: np.ndarray, truth: np.ndarray | None, title: str
+) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -117,7 +146,7 @@ def plot_intervals(path, est, prior_nominal, truth, title):
     plt.close(fig)
 
 
-def plot_history(path, history, truth):
+def plot_history(path: str | Path, history: list[dict], truth: np.ndarray | None) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -140,13 +169,15 @@ def plot_history(path, history, truth):
     plt.close(fig)
 
 
-def corrected_model(path):
+def corrected_model(path: str | Path) -> tuple[RobotModel, float, dict]:
     """(robot, torque lag [s], corrections summary) of a corrected_model.yaml for the estimator."""
     from safesysid.systems import model_corrections as mc
+    from safesysid.systems.config import starting_robot
 
     try:
         corr = mc.read_correction(path)
-        robot = mc.corrected_robot(mc.load_starting_robot(corr), corr)
+        check_starting_scenario(corr)
+        robot = mc.corrected_robot(starting_robot(corr), corr)
         lag = mc.torque_lag_s(corr)
     except mc.CorrectionError as err:
         raise BadInput(f"--model: {err}") from err
@@ -161,7 +192,7 @@ def corrected_model(path):
     return robot, lag, summary
 
 
-def cmd_sysid(args):
+def cmd_sysid(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario, overrides=args.scenario_text)
     lag, corrections = 0.0, None
     if args.model:

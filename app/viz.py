@@ -5,14 +5,19 @@ the planner certified. Every run is recorded and saved as a self-contained repla
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:  # Drake's visualizer is imported when a run shows or records
+    from pydrake.geometry import Meshcat, MeshcatVisualizer
+    from pydrake.systems.framework import DiagramBuilder, OutputPort
 
 PLAN_PATH = "planner/plan"
 SWEPT_PATH = "planner/swept"
 
 
-def start_meshcat(live):
+def start_meshcat(live: bool) -> Meshcat:
     """Drake's Meshcat (a local server; works offline). Prints the URL when shown live."""
     import logging
 
@@ -31,7 +36,7 @@ def start_meshcat(live):
     return meshcat
 
 
-def add_visualizer(builder, query_object_port, meshcat):
+def add_visualizer(builder: DiagramBuilder, query_object_port: OutputPort, meshcat: Meshcat) -> MeshcatVisualizer:
     """Meshcat on a station's exported SceneGraph query port (the SceneGraph is inside it)."""
     from pydrake.geometry import MeshcatVisualizer, MeshcatVisualizerParams, Role
 
@@ -40,14 +45,19 @@ def add_visualizer(builder, query_object_port, meshcat):
     return MeshcatVisualizer.AddToBuilder(builder, query_object_port, meshcat, params)
 
 
-def draw_plan(meshcat, points_world, index, rgba=(0.1, 0.4, 1.0, 1.0)):
+def draw_plan(
+    meshcat: Meshcat,
+    points_world: np.ndarray,
+    index: int,
+    rgba: tuple[float, float, float, float] = (0.1, 0.4, 1.0, 1.0),
+) -> None:
     """Polyline of the planned end-effector path (3 x N points in world)."""
     from pydrake.geometry import Rgba
 
     meshcat.SetLine(f"{PLAN_PATH}/{index}", np.asarray(points_world, float).T, 3.0, Rgba(*rgba))
 
 
-def draw_swept_spheres(meshcat, centres, radii, index, every=4):
+def draw_swept_spheres(meshcat: Meshcat, centres: np.ndarray, radii: np.ndarray, index: int, every: int = 4) -> None:
     """The planner's certified spheres (a subset of time intervals), hidden by default."""
     from pydrake.geometry import Rgba, Sphere
     from pydrake.math import RigidTransform
@@ -62,7 +72,7 @@ def draw_swept_spheres(meshcat, centres, radii, index, every=4):
     meshcat.SetProperty(SWEPT_PATH, "visible", False)
 
 
-def save_replay(meshcat, visualizer, path):
+def save_replay(meshcat: Meshcat, visualizer: MeshcatVisualizer, path: str | Path) -> Path:
     """Publish the recorded animation and write Meshcat's self-contained HTML."""
     visualizer.PublishRecording()
     path = Path(path)

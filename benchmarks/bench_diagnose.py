@@ -14,8 +14,7 @@ from pathlib import Path
 
 import numpy as np
 from safesysid.joint_log import JointLog, read_joint_log
-from safesysid.systems import gap
-from safesysid.systems import gap_simulate as gs
+from safesysid.systems import diagnosis as dg
 from safesysid.systems.robot_model import load_robot
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
@@ -30,11 +29,11 @@ def logs_3x1500(model, seed, with_a):
     rng = np.random.default_rng(seed)
     logs = []
     for _ in range(3):
-        traj = gs.random_trajectory(model, rng)
-        t = np.arange(1500) / gs.RATE_HZ
-        t[750:] += gs.GAP_S
+        traj = dg.random_trajectory(model, rng)
+        t = np.arange(1500) / dg.RATE_HZ
+        t[750:] += dg.GAP_S
         effects = {"time_delay": {"delay_s": 0.02}, "viscous_friction": {"delta": np.r_[2.0, np.zeros(model.n - 1)]}}
-        q, v, a, tau = gs.true_torque(model, traj, t, effects)
+        q, v, a, tau = dg.true_torque(model, traj, t, effects)
         tau = tau + 0.5 * rng.uniform(-1, 1, tau.shape)
         logs.append(JointLog(t, q, v, tau, a if with_a else None))
     return logs
@@ -47,7 +46,7 @@ def timing_3x1500(seed=0):
     for with_a in (True, False):
         logs = logs_3x1500(model, seed, with_a)
         t0, c0 = time.perf_counter(), time.process_time()
-        d = gap.diagnose(model, logs[:2], logs[2:])
+        d = dg.diagnose(model, logs[:2], logs[2:])
         out["inverse_dynamics" if with_a else "momentum"] = {
             "wall_time_s": time.perf_counter() - t0,
             "cpu_time_s": time.process_time() - c0,
@@ -63,7 +62,7 @@ def real_leave_one_out():
         return {"skipped": f"{REAL} or {REFERENCE_URDF} not available"}
     model = load_robot(REFERENCE_URDF)
     logs = [read_joint_log(REAL / f"run{k}.csv", model.n) for k in (1, 2, 3)]
-    folds, out = gap.leave_one_out(model, logs)
+    folds, out = dg.leave_one_out(model, logs)
     for f, d in zip(out["folds"], folds):
         f["worst_regimes"] = sorted(d.result["gap"]["where"]["regimes"].items(), key=lambda x: -x[1])[:2]
     out.update(target_reduction=0.85, target_reduction_unsaturated=0.88, reference_cva_rms_after=1.9)
@@ -76,13 +75,13 @@ def self_check(seeds=SELF_CHECK_SEEDS, cases=40, workers=2):
     out, pooled = {}, []
     for seed in seeds:
         t0 = time.perf_counter()
-        seed_cases, summary, _ = gs.run_self_check(model, cases, seed, workers=workers)
+        seed_cases, summary, _ = dg.run_self_check(model, cases, seed, workers=workers)
         summary["wall_time_s"] = time.perf_counter() - t0
         out[f"seed_{seed}"] = summary
         pooled += seed_cases
-    out["pooled"] = gs.summarize(pooled)
-    out["pooled_confusion_markdown"] = gs.confusion_markdown(gs.confusion(pooled))
-    out["pooled_errors_markdown"] = gs.error_markdown(out["pooled"]["parameter_errors"])
+    out["pooled"] = dg.summarize(pooled)
+    out["pooled_confusion_markdown"] = dg.confusion_markdown(dg.confusion(pooled))
+    out["pooled_errors_markdown"] = dg.error_markdown(out["pooled"]["parameter_errors"])
     return out
 
 
@@ -101,14 +100,14 @@ if __name__ == "__main__":
         rest = sys.argv[sys.argv.index("--detection-limits") + 1 :]
         keys = rest[0].split(",") if rest and not rest[0].startswith("--") else None
         t0 = time.perf_counter()
-        limits = gs.detection_limits(
+        limits = dg.detection_limits(
             load_robot(),
             workers=2,
             seed=0,
             keys=keys,
             progress=lambda r: print(json.dumps(r, default=float), file=sys.stderr, flush=True),
         )
-        print(gs.detection_markdown(limits))
+        print(dg.detection_markdown(limits))
         print(
             json.dumps({"detection_limits": limits, "wall_time_s": time.perf_counter() - t0}, indent=2, default=float)
         )

@@ -8,30 +8,57 @@ second of 1 kHz simulation costs about a third of a second.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import Context, DiagramBuilder, DiscreteValues, LeafSystem
+from pydrake.systems.primitives import LogVectorOutput
+
+from .config import Scenario
+from .joint_log import JointLog
+from .robot_model import RobotModel
+
+
+class ComputedTorque(LeafSystem):
+    """u_k = feed_forward[k] + kp (q_d[k] - q) + kd (v_d[k] - v) at step k = t / h, held every
+    plant step (no direct feedthrough: the loop through motor-side encoders stays causal)."""
+
+    def __init__(
+        self, h: float, feed_forward: np.ndarray, q_d: np.ndarray, v_d: np.ndarray, kp: float, kd: float
+    ) -> None:
+        super().__init__()
+        n = feed_forward.shape[1]
+        self._h, self._feed_forward, self._q_d, self._v_d, self._kp, self._kd = h, feed_forward, q_d, v_d, kp, kd
+        self.state = self.DeclareVectorInputPort("state", 2 * n)
+        u_index = self.DeclareDiscreteState(n)
+        self.DeclarePeriodicDiscreteUpdateEvent(h, 0.0, self._update)
+        self.DeclareStateOutputPort("u", u_index)
+
+    def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
+        k = int(round(context.get_time() / self._h))
+        x = self.state.Eval(context)
+        n = len(x) // 2
+        u = self._feed_forward[k] + self._kp * (self._q_d[k] - x[:n]) + self._kd * (self._v_d[k] - x[n:])
+        discrete_state.get_mutable_vector().SetFromVector(u)
 
 
 def track_trajectory(
-    scenario,
-    plant_robot,
-    controller_robot,
-    traj,
-    seed,
-    duration_s,
-    rate_hz=100.0,
-    kp_Nm_rad=400.0,
-    kd_Nms_rad=40.0,
-    skip_s=0.2,
-):
+    scenario: Scenario,
+    plant_robot: RobotModel,
+    controller_robot: RobotModel,
+    traj: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]],
+    seed: int,
+    duration_s: float,
+    rate_hz: float = 100.0,
+    kp_Nm_rad: float = 400.0,
+    kd_Nms_rad: float = 40.0,
+    skip_s: float = 0.2,
+) -> JointLog:
     """JointLog (t, q, v, measured torque; no accelerations: the arm has no such sensor) of the
     real arm built from (scenario, plant_robot), no payload, tracking traj(t) -> (q, v, a) with
     u = ID_controller(q_d, v_d, a_d) + kp (q_d - q) + kd (v_d - v); the first skip_s seconds
     (start-up transient) are dropped."""
-    from pydrake.systems.analysis import Simulator
-    from pydrake.systems.framework import DiagramBuilder, LeafSystem
-    from pydrake.systems.primitives import VectorLogSink
-    from safesysid.joint_log import JointLog
-
     from .real_arm import add_real_arm
 
     n = controller_robot.n
@@ -42,30 +69,11 @@ def track_trajectory(
     builder = DiagramBuilder()
     arm = add_real_arm(builder, scenario, plant_robot, dumbbell=None, seed=seed)
 
-    class ComputedTorque(LeafSystem):
-        """Held every plant step (no direct feedthrough: the loop through motor-side encoders
-        stays causal)."""
-
-        def __init__(self):
-            super().__init__()
-            self.state = self.DeclareVectorInputPort("state", 2 * n)
-            u_index = self.DeclareDiscreteState(n)
-            self.DeclarePeriodicDiscreteUpdateEvent(h, 0.0, self._update)
-            self.DeclareStateOutputPort("u", u_index)
-
-        def _update(self, context, discrete_state):
-            k = int(round(context.get_time() / h))
-            x = self.state.Eval(context)
-            u = feed_forward[k] + kp_Nm_rad * (q_d[k] - x[:n]) + kd_Nms_rad * (v_d[k] - x[n:])
-            discrete_state.get_mutable_vector().SetFromVector(u)
-
-    ctrl = builder.AddSystem(ComputedTorque())
+    ctrl = builder.AddSystem(ComputedTorque(h, feed_forward, q_d, v_d, kp_Nm_rad, kd_Nms_rad))
     builder.Connect(arm.state_output, ctrl.state)
     builder.Connect(ctrl.get_output_port(), arm.commanded_torque_input)
-    log_x = builder.AddSystem(VectorLogSink(2 * n, 1.0 / rate_hz))
-    log_u = builder.AddSystem(VectorLogSink(n, 1.0 / rate_hz))
-    builder.Connect(arm.state_output, log_x.get_input_port())
-    builder.Connect(arm.measured_torque_output, log_u.get_input_port())
+    log_x = LogVectorOutput(arm.state_output, builder, 1.0 / rate_hz)
+    log_u = LogVectorOutput(arm.measured_torque_output, builder, 1.0 / rate_hz)
     sim = Simulator(builder.Build())
     ctx = sim.get_mutable_context()
     q0, v0, _ = traj(np.array([0.0]))

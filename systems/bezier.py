@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from math import comb
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 DEGREE = 5
 
@@ -34,7 +35,7 @@ def _monomial_of_bernstein(deg):
     return a
 
 
-def restriction_matrix(deg, s_a, s_b):
+def restriction_matrix(deg: int, s_a: float, s_b: float) -> np.ndarray:
     """R (deg+1, deg+1): control points of the curve on [s_a, s_b] are R @ control points."""
     a = _monomial_of_bernstein(deg)
     # Monomial coefficients c = A P; substitute s = s_a + (s_b - s_a) u.
@@ -61,7 +62,7 @@ class QuinticBezier:
     a0: np.ndarray
     duration: float
 
-    def control_points(self, q_end):
+    def control_points(self, q_end: ArrayLike) -> np.ndarray:
         """(6, n) control points for the end position q_end (n,)."""
         t = self.duration
         q0, v0, a0 = (np.asarray(x, float) for x in (self.q0, self.v0, self.a0))
@@ -69,7 +70,7 @@ class QuinticBezier:
         return np.stack([q0, q0 + t * v0 / 5, q0 + 2 * t * v0 / 5 + t * t * a0 / 20, q_end, q_end, q_end])
 
     @staticmethod
-    def end_weights(t, duration):
+    def end_weights(t: ArrayLike, duration: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """d q(t) / d q_end, d qd / d q_end, d qdd / d q_end (each (len(t),)), same for all joints."""
         s = np.clip(np.asarray(t, float) / duration, 0.0, 1.0)
         w = np.array([0, 0, 0, 1, 1, 1.0])
@@ -79,7 +80,7 @@ class QuinticBezier:
             _bernstein(3, s) @ _difference(w[:, None], 2)[:, 0] / duration**2,
         )
 
-    def evaluate(self, t, q_end):
+    def evaluate(self, t: ArrayLike, q_end: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """q, qd, qdd at times t (clamped to [0, T]; rest at q_end after T): each (len(t), n)."""
         t = np.atleast_1d(np.asarray(t, float))
         s = np.clip(t / self.duration, 0.0, 1.0)
@@ -90,7 +91,9 @@ class QuinticBezier:
         after = (t > self.duration)[:, None]
         return q, np.where(after, 0.0, qd), np.where(after, 0.0, qdd)
 
-    def interval_bounds(self, q_end, edges_s):
+    def interval_bounds(
+        self, q_end: ArrayLike, edges_s: ArrayLike
+    ) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
         """Rigorous bounds over time intervals [edges[i], edges[i+1]] (seconds).
 
         Returns three (lo, hi) pairs of arrays (n_intervals, n) for q, qd, qdd.

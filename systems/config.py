@@ -15,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .robot_model import MODELS_DIR
+from .model_corrections import Correction, CorrectionError, corrected_robot, read_correction
+from .robot_model import MODELS_DIR, RobotModel, load_robot
 
 List = list
 Optional = typing.Optional
@@ -42,7 +43,7 @@ class ParameterFloors:
     armature_kgm2: float = 0.01
     offset_Nm: float = 0.05
 
-    def per_parameter(self, n):
+    def per_parameter(self, n: int) -> np.ndarray:
         """(14 n,) floors in theta order: per body [m, m c (3), I (6)], per joint [Fc, Fv, Ia, beta]."""
         body = [self.mass_kg] + [self.first_moment_kgm] * 3 + [self.inertia_kgm2] * 6
         joint = [self.coulomb_Nm, self.viscous_Nms_rad, self.armature_kgm2, self.offset_Nm]
@@ -304,7 +305,7 @@ class Scenario:
     source: str = ""
 
 
-def resolve_path(text, base_dir):
+def resolve_path(text: str, base_dir: str | Path) -> Path:
     """`builtin:NAME` -> models/NAME; relative paths against the scenario's folder."""
     if text.startswith("builtin:"):
         return MODELS_DIR / text[len("builtin:") :]
@@ -312,27 +313,48 @@ def resolve_path(text, base_dir):
     return p if p.is_absolute() else Path(base_dir) / p
 
 
-def scenario_dir(s: Scenario):
+def scenario_dir(s: Scenario) -> Path:
     return Path(s.source).parent
 
 
-def task_enabled(s: Scenario):
+def task_enabled(s: Scenario) -> bool:
     """The scenario has a task phase (a goal or a platform)."""
     return bool(s.task.goal_q_rad or s.task.place_xyz_m or s.task.platform)
 
 
-def robot_from_scenario(s: Scenario):
+def robot_from_scenario(s: Scenario) -> RobotModel:
     """The RobotModel a scenario names (one source of truth for every system)."""
-    from .robot_model import load_robot
+    return _robot_of(s.robot, scenario_dir(s), s.source)
 
-    base = scenario_dir(s)
-    if s.robot.corrected_model:
-        from .model_corrections import CorrectionError, corrected_robot, load_starting_robot, read_correction
 
+def _robot_of(robot: Robot, base: Path, where: str) -> RobotModel:
+    """The RobotModel of a scenario's `robot` section (paths relative to `base`)."""
+    if robot.corrected_model:
         try:
-            corr = read_correction(resolve_path(s.robot.corrected_model, base))
-            return corrected_robot(load_starting_robot(corr, s.robot.coulomb_smoothing_rad_s), corr)
+            corr = read_correction(resolve_path(robot.corrected_model, base))
+            return corrected_robot(starting_robot(corr, robot.coulomb_smoothing_rad_s), corr)
         except CorrectionError as err:
-            raise ScenarioError(f"{s.source}: robot.corrected_model: {err}") from err
-    model = resolve_path(s.robot.model, base) if s.robot.model else None
-    return load_robot(model, resolve_path(s.robot.params, base), coulomb_smoothing=s.robot.coulomb_smoothing_rad_s)
+            raise ScenarioError(f"{where}: robot.corrected_model: {err}") from err
+    model = resolve_path(robot.model, base) if robot.model else None
+    return load_robot(model, resolve_path(robot.params, base), coulomb_smoothing=robot.coulomb_smoothing_rad_s)
+
+
+def starting_robot(corr: Correction, coulomb_smoothing: float = 0.0) -> RobotModel:
+    """The model a diagnosis started from (a corrected model's `model`): a URDF/SDF (root welded,
+    friction zero) or the robot of a scenario YAML, read from its `robot` section (the rest of
+    that scenario does not change the robot; app/scenario.py validates the whole file)."""
+    from pydrake.common.yaml import yaml_load_typed
+
+    path = corr.model_path()
+    if not path.is_file():
+        raise CorrectionError(f"{corr.path}: model: file {corr.model!r} not found")
+    if path.suffix.lower() not in (".yaml", ".yml"):
+        return load_robot(path, coulomb_smoothing=coulomb_smoothing)
+    import yaml
+
+    try:
+        section = (yaml.safe_load(path.read_text()) or {}).get("robot") or {}
+        robot = yaml_load_typed(schema=Robot, data=yaml.safe_dump(section), defaults=Robot())
+    except (yaml.YAMLError, RuntimeError, AttributeError) as err:
+        raise CorrectionError(f"{path}: robot: not a scenario robot section ({err})") from err
+    return _robot_of(robot, path.parent, str(path))

@@ -6,27 +6,33 @@ Parameter order everywhere (NAMES below), inertia about the body-frame origin:
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
+from numpy.typing import ArrayLike
+
+if TYPE_CHECKING:
+    from pydrake.multibody.tree import SpatialInertia
 
 NAMES = ("m", "mcx", "mcy", "mcz", "Ixx", "Iyy", "Izz", "Ixy", "Iyz", "Ixz")
 UNITS = ("kg", "kg m", "kg m", "kg m", "kg m^2", "kg m^2", "kg m^2", "kg m^2", "kg m^2", "kg m^2")
 
 
-def inertia_matrix(theta):
+def inertia_matrix(theta: ArrayLike) -> np.ndarray:
     """3x3 rotational inertia about the body origin from theta (... x 10)."""
     t = np.asarray(theta, float)
     xx, yy, zz, xy, yz, xz = (t[..., k] for k in range(4, 10))
     return np.stack([np.stack([xx, xy, xz], -1), np.stack([xy, yy, yz], -1), np.stack([xz, yz, zz], -1)], -2)
 
 
-def from_mass_com_inertia(mass, com, inertia_about_com):
+def from_mass_com_inertia(mass: float, com: ArrayLike, inertia_about_com: ArrayLike) -> np.ndarray:
     """theta from mass, centre of mass and the inertia about the centre of mass (body frame)."""
     c = np.asarray(com, float)
     i_o = np.asarray(inertia_about_com, float) + mass * (c @ c * np.eye(3) - np.outer(c, c))
     return np.array([mass, *(mass * c), i_o[0, 0], i_o[1, 1], i_o[2, 2], i_o[0, 1], i_o[1, 2], i_o[0, 2]])
 
 
-def from_spatial_inertia(spatial_inertia):
+def from_spatial_inertia(spatial_inertia: SpatialInertia) -> np.ndarray:
     """theta from a Drake SpatialInertia (about the body origin, in the body frame)."""
     m = spatial_inertia.get_mass()
     h = m * np.asarray(spatial_inertia.get_com())
@@ -34,7 +40,7 @@ def from_spatial_inertia(spatial_inertia):
     return np.array([m, *h, i[0, 0], i[1, 1], i[2, 2], i[0, 1], i[1, 2], i[0, 2]])
 
 
-def to_spatial_inertia(theta):
+def to_spatial_inertia(theta: ArrayLike) -> SpatialInertia:
     """Drake SpatialInertia about the body origin from theta (requires m > 0)."""
     from pydrake.multibody.tree import SpatialInertia, UnitInertia
 
@@ -46,7 +52,7 @@ def to_spatial_inertia(theta):
     return SpatialInertia(m, com, unit, skip_validity_check=True)
 
 
-def shift_to(theta, offset, rotation=None):
+def shift_to(theta: ArrayLike, offset: ArrayLike, rotation: ArrayLike | None = None) -> np.ndarray:
     """theta of a body whose frame sits at `offset` (rotated by `rotation`, default none) in frame F, in F."""
     rotation = np.eye(3) if rotation is None else rotation
     t = np.asarray(theta, float)
@@ -60,7 +66,7 @@ def shift_to(theta, offset, rotation=None):
     return from_mass_com_inertia(m, c_f, r @ i_c @ r.T) if m > 0 else np.zeros(10)
 
 
-def pseudo_inertia(theta):
+def pseudo_inertia(theta: ArrayLike) -> np.ndarray:
     """4x4 pseudo-inertia J = [[Sigma, h], [h^T, m]], Sigma = tr(I)/2 * 1 - I."""
     t = np.asarray(theta, float)
     i = inertia_matrix(t)
@@ -73,7 +79,7 @@ def pseudo_inertia(theta):
     return j
 
 
-def theta_from_pseudo_inertia(j):
+def theta_from_pseudo_inertia(j: np.ndarray) -> np.ndarray:
     """Inverse of pseudo_inertia (linear)."""
     j = np.asarray(j, float)
     sigma = j[..., :3, :3]
@@ -95,7 +101,7 @@ def theta_from_pseudo_inertia(j):
     )
 
 
-def is_physically_consistent(theta, tol=0.0):
+def is_physically_consistent(theta: ArrayLike, tol: float = 0.0) -> bool:
     """LMI check: the pseudo-inertia is positive definite (min eigenvalue > tol)."""
     return bool(np.linalg.eigvalsh(pseudo_inertia(theta)).min() > tol)
 
@@ -129,20 +135,20 @@ def _u_and_derivatives(eta):
     return u, du, ddu
 
 
-def log_cholesky_to_theta(eta):
+def log_cholesky_to_theta(eta: ArrayLike) -> np.ndarray:
     """P(eta): physically consistent theta for any eta in R^10."""
     u, _, _ = _u_and_derivatives(eta)
     return theta_from_pseudo_inertia(u @ u.T)
 
 
-def log_cholesky_jacobian(eta):
+def log_cholesky_jacobian(eta: ArrayLike) -> np.ndarray:
     """dP/deta (10 x 10), column k = dtheta/deta_k."""
     u, du, _ = _u_and_derivatives(eta)
     dj = du @ u.T
     return theta_from_pseudo_inertia(dj + np.swapaxes(dj, -1, -2)).T
 
 
-def log_cholesky_hessian(eta):
+def log_cholesky_hessian(eta: ArrayLike) -> np.ndarray:
     """d2P/deta2 (10 x 10 x 10): [i, k, l] = d2 theta_i / deta_k deta_l."""
     u, du, ddu = _u_and_derivatives(eta)
     ddj = ddu @ u.T + np.einsum("kab,lcb->klac", du, du)
@@ -150,7 +156,7 @@ def log_cholesky_hessian(eta):
     return np.moveaxis(theta_from_pseudo_inertia(ddj), -1, 0)
 
 
-def theta_to_log_cholesky(theta):
+def theta_to_log_cholesky(theta: ArrayLike) -> np.ndarray:
     """P^{-1}: eta for a physically consistent theta (raises if the LMI fails)."""
     j = pseudo_inertia(theta)
     flip = np.eye(4)[::-1]

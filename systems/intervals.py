@@ -8,6 +8,7 @@ operation rounds its result one ulp outward, so each returned box contains the e
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 
 def _down(x):
@@ -30,29 +31,29 @@ class Interval:
 
     # -- constructors / views ---------------------------------------------------------------------
     @classmethod
-    def from_mid_rad(cls, mid, rad):
+    def from_mid_rad(cls, mid: ArrayLike, rad: ArrayLike) -> Interval:
         mid, rad = np.asarray(mid, float), np.abs(np.asarray(rad, float))
         return cls(_down(mid - rad), _up(mid + rad))
 
     @property
-    def mid(self):
+    def mid(self) -> np.ndarray:
         return 0.5 * (self.lo + self.hi)
 
     @property
-    def rad(self):
+    def rad(self) -> np.ndarray:
         return _up(0.5 * (self.hi - self.lo))
 
     @property
-    def width(self):
+    def width(self) -> np.ndarray:
         return self.hi - self.lo
 
     @property
-    def mag(self):
+    def mag(self) -> np.ndarray:
         """max |x| over the interval."""
         return np.maximum(np.abs(self.lo), np.abs(self.hi))
 
     @property
-    def shape(self):
+    def shape(self) -> tuple[int, ...]:
         return self.lo.shape
 
     def __getitem__(self, idx):
@@ -70,16 +71,16 @@ class Interval:
     def __repr__(self):
         return f"Interval(lo={self.lo!r}, hi={self.hi!r})"
 
-    def contains(self, x, tol=0.0):
+    def contains(self, x: ArrayLike, tol: float = 0.0) -> np.ndarray:
         x = np.asarray(x, float)
         return (self.lo - tol <= x) & (x <= self.hi + tol)
 
-    def intersect(self, other):
+    def intersect(self, other: Interval) -> Interval:
         """Intersection; raises ValueError when it would be empty."""
         other = as_interval(other)
         return Interval(np.maximum(self.lo, other.lo), np.minimum(self.hi, other.hi))
 
-    def hull(self, other):
+    def hull(self, other: Interval) -> Interval:
         other = as_interval(other)
         return Interval(np.minimum(self.lo, other.lo), np.maximum(self.hi, other.hi))
 
@@ -107,20 +108,20 @@ class Interval:
 
     __rmul__ = __mul__
 
-    def square(self):
+    def square(self) -> Interval:
         lo2, hi2 = self.lo**2, self.hi**2
         low = np.where((self.lo <= 0) & (self.hi >= 0), 0.0, np.minimum(lo2, hi2))
         return Interval(_down(low), _up(np.maximum(lo2, hi2)))
 
-    def sum(self, axis=None):
+    def sum(self, axis: int | None = None) -> Interval:
         return Interval(_down(self.lo.sum(axis)), _up(self.hi.sum(axis)))
 
 
-def as_interval(x):
+def as_interval(x: Interval | ArrayLike) -> Interval:
     return x if isinstance(x, Interval) else Interval(x, x)
 
 
-def matmul(a, x):
+def matmul(a: np.ndarray, x: Interval) -> Interval:
     """Point matrix (..., m, k) times interval vectors/matrices (..., k[, p]): exact hull, outward.
 
     The product is linear in x, so mid/radius form is exact up to rounding.
@@ -133,11 +134,11 @@ def matmul(a, x):
     return Interval(_down(mid - rad - err), _up(mid + rad + err))
 
 
-def sin(x: Interval):
+def sin(x: Interval) -> Interval:
     return _trig(x, np.sin, 0.5 * np.pi)
 
 
-def cos(x: Interval):
+def cos(x: Interval) -> Interval:
     return _trig(x, np.cos, 0.0)
 
 

@@ -1,6 +1,7 @@
 """What a corrected model (`corrected_model.yaml`, written by `safesysid diagnose`) changes, for
 its consumers: the scenario (`robot.corrected_model`), the simulated arm built from it, and
-`safesysid sysid --model`.
+`safesysid sysid --model`. It changes a loaded RobotModel (the starting model, which
+systems/config.py starting_robot loads) and loads nothing itself.
 
 One file, two sides of one model truth:
   robot side   Coulomb and viscous friction, armature and torque offset: terms of the
@@ -16,9 +17,9 @@ dumbbell): asking for it is an error naming the effect. Every
 parameter applies to all joints (per-joint lists of n values); `joints` only says where the
 effect was found to matter, as in diagnosis.json.
 
-The params of each effect are gap.effect_params' (units in the key names); the time law is
+The params of each effect are diagnosis.effect_params' (units in the key names); the time law is
 `time_law: lag | shift` when present, else read from the `law` text. `read_correction` is a
-small local reader whose objects have the shape of systems/corrected_model.py's
+small local reader whose objects have the shape of systems/diagnosis/corrected_model.py's
 (CorrectedModel: model, effects, path, model_path(); CorrectedEffect: name, joints, params),
 so everything below works with either.
 """
@@ -28,8 +29,11 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+
+from .robot_model import RobotModel
 
 # effect -> (JointParameters field, params key of the increment on the starting model)
 ROBOT_SIDE = {
@@ -48,20 +52,20 @@ class CorrectionError(ValueError):
 @dataclass
 class Effect:
     name: str
-    joints: list  # 1-based, where the effect matters (information)
-    params: dict  # gap.effect_params
+    joints: list[int]  # 1-based, where the effect matters (information)
+    params: dict[str, Any]  # diagnosis.effect_params
 
 
 @dataclass
 class Correction:
-    """The parts of corrected_model.yaml the consumers use (schema: contracts.md)."""
+    """The parts of corrected_model.yaml the consumers use (schema: diagnosis/corrected_model.py)."""
 
     model: str  # starting URDF/SDF/scenario, as written
-    effects: list  # [Effect]
+    effects: list[Effect]
     path: str = ""
     model_resolved: str = ""
 
-    def model_path(self):
+    def model_path(self) -> Path:
         """The starting model: model_resolved when it exists, else `model` relative to this
         file's folder, else as written."""
         p = Path(self.model)
@@ -72,11 +76,11 @@ class Correction:
         return next((c for c in candidates if c.is_file()), candidates[-1])
 
 
-def find_effect(corr, name):
+def find_effect(corr: Correction, name: str) -> Effect | None:
     return next((e for e in corr.effects if e.name == name), None)
 
 
-def read_correction(path) -> Correction:
+def read_correction(path: str | Path) -> Correction:
     """Correction from a corrected_model.yaml (CorrectionError naming file and field)."""
     import yaml
 
@@ -120,7 +124,7 @@ def _param(corr, effect, key, n=None):
     return value
 
 
-def time_law(effect):
+def time_law(effect: Effect) -> str:
     """'lag' (first-order lag of the torque signal) or 'shift' (pure delay) of a time_delay."""
     params = effect.params
     if "time_law" in params:
@@ -128,13 +132,13 @@ def time_law(effect):
     return "lag" if str(params.get("law", "")).startswith("first-order") else "shift"
 
 
-def torque_lag_s(corr):
+def torque_lag_s(corr: Correction) -> float:
     """Time constant of a diagnosed first-order lag of the torque signal (0 when none)."""
     e = find_effect(corr, "time_delay")
     return float(_param(corr, e, "delay_s")) if e is not None and time_law(e) == "lag" else 0.0
 
 
-def corrected_robot(robot, corr):
+def corrected_robot(robot: RobotModel, corr: Correction) -> RobotModel:
     """The RobotModel with the robot-side corrections (increments on `robot`, the starting
     model): joint parameters and the friction part of theta (Fc, Fv, Ia, beta per joint)."""
     jp = robot.joint_params
@@ -151,7 +155,7 @@ def corrected_robot(robot, corr):
     return dataclasses.replace(robot, joint_params=jp, theta=theta)
 
 
-def plant_effects(corr, n=None):
+def plant_effects(corr: Correction, n: int | None = None) -> dict:
     """{scenario plant.effects field: value} of the plant-side effects (see module docstring)."""
     out = {}
     for e in corr.effects:
@@ -184,18 +188,3 @@ def plant_effects(corr, n=None):
         elif name not in ROBOT_SIDE:
             raise CorrectionError(f"{corr.path}: effects[{k}].name: unknown effect {name!r}")
     return out
-
-
-def load_starting_robot(corr, coulomb_smoothing=0.0):
-    """The model a diagnosis started from: a URDF/SDF (root welded, friction zero) or a
-    scenario YAML's robot."""
-    from safesysid.systems.robot_model import load_robot
-
-    path = corr.model_path()
-    if not path.is_file():
-        raise CorrectionError(f"{corr.path}: model: file {corr.model!r} not found")
-    if path.suffix.lower() in (".yaml", ".yml"):
-        from safesysid.scenario import load_scenario, robot_from_scenario
-
-        return robot_from_scenario(load_scenario(path))
-    return load_robot(path, coulomb_smoothing=coulomb_smoothing)

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from . import inertial
 
@@ -20,7 +21,7 @@ class Dumbbell:
     head_radius_m: float
     head_length_m: float
 
-    def parts(self):
+    def parts(self) -> list[tuple[float, float, float, float]]:
         """(mass, x-offset of centre, radius, length) of the handle and the two heads."""
         vol = lambda r, l: np.pi * r * r * l  # noqa: E731
         v_handle = vol(self.handle_radius_m, self.handle_length_m)
@@ -34,10 +35,10 @@ class Dumbbell:
         ]
 
     @property
-    def length_m(self):
+    def length_m(self) -> float:
         return self.handle_length_m + 2 * self.head_length_m
 
-    def theta_about_centre(self):
+    def theta_about_centre(self) -> np.ndarray:
         """theta in a frame at the dumbbell centre, x along the handle (exact for the shape)."""
         total = np.zeros(10)
         for m, x, r, l in self.parts():
@@ -46,7 +47,7 @@ class Dumbbell:
             total += inertial.from_mass_com_inertia(m, [x, 0, 0], i_c)
         return total
 
-    def covering_spheres(self):
+    def covering_spheres(self) -> list[tuple[tuple[float, float, float], float]]:
         """Spheres (centre in the dumbbell frame, radius) that contain the shape."""
         out = []
         for _, x, r, l in self.parts()[1:]:  # heads: a sphere around each
@@ -55,7 +56,7 @@ class Dumbbell:
         return out
 
 
-def load_dumbbells(path):
+def load_dumbbells(path: str | Path) -> dict[str, Dumbbell]:
     import yaml
 
     path = Path(path)
@@ -69,7 +70,7 @@ def load_dumbbells(path):
     return out
 
 
-def payload_theta_in_end_effector(dumbbell: Dumbbell | None, grasp_point):
+def payload_theta_in_end_effector(dumbbell: Dumbbell | None, grasp_point: ArrayLike) -> np.ndarray:
     """theta of the payload alone, about the end-effector frame origin (zeros without one)."""
     if dumbbell is None:
         return np.zeros(10)

@@ -17,6 +17,7 @@ Friction columns per joint [Fc, Fv, Ia, beta] are appended by `friction_columns`
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,7 +25,7 @@ import numpy as np
 from .spatial import to_body
 
 
-def skew(v):
+def skew(v: np.ndarray) -> np.ndarray:
     """(..., 3) -> (..., 3, 3) cross-product matrices."""
     v = np.asarray(v)
     z = np.zeros(v.shape[:-1])
@@ -38,13 +39,13 @@ def skew(v):
     )
 
 
-def cross_motion(v, m):
+def cross_motion(v: np.ndarray, m: np.ndarray) -> np.ndarray:
     """v x m for spatial motion vectors (..., 6)."""
     w, u = v[..., :3], v[..., 3:]
     return np.concatenate([np.cross(w, m[..., :3]), np.cross(w, m[..., 3:]) + np.cross(u, m[..., :3])], -1)
 
 
-def cross_force_matrix(v):
+def cross_force_matrix(v: np.ndarray) -> np.ndarray:
     """(..., 6, 6) matrix of v x* (force cross product)."""
     sw, su = skew(v[..., :3]), skew(v[..., 3:])
     out = np.zeros(v.shape[:-1] + (6, 6))
@@ -54,7 +55,7 @@ def cross_force_matrix(v):
     return out
 
 
-def inertia_times(x):
+def inertia_times(x: np.ndarray) -> np.ndarray:
     """K(x) (..., 6, 10) such that I(theta) x = K(x) theta for a body-frame spatial inertia."""
     w, u = x[..., :3], x[..., 3:]
     k = np.zeros(x.shape[:-1] + (6, 10))
@@ -68,7 +69,7 @@ def inertia_times(x):
     return k
 
 
-def body_wrench_regressor(v, va, a):
+def body_wrench_regressor(v: np.ndarray, va: np.ndarray, a: np.ndarray) -> np.ndarray:
     """Y(v, va, a) with Y theta = I a + B(v) va in the body frame (..., 6, 10)."""
     kv, kva = inertia_times(v), inertia_times(va)
     return inertia_times(a) + 0.5 * (
@@ -94,10 +95,10 @@ class KinematicTree:
     gravity: np.ndarray
 
     @property
-    def n(self):
+    def n(self) -> int:
         return len(self.parent)
 
-    def ancestors(self):
+    def ancestors(self) -> np.ndarray:
         """Boolean (n, n): [j, i] true when joint j moves body i (j == i included)."""
         anc = np.eye(self.n, dtype=bool)
         for i in range(self.n):
@@ -132,7 +133,7 @@ class Kinematics:
     Sdot: np.ndarray | None = None  # (N, n, 6) dS/dt
 
 
-def forward_kinematics(tree: KinematicTree, q, v=None):
+def forward_kinematics(tree: KinematicTree, q: np.ndarray, v: np.ndarray | None = None) -> Kinematics:
     """Poses, screws (and twists, screw rates when v is given) for q (N, n).
 
     Each joint axis is rotated onto z once (R_F A, A^T X_MC), so the only per-sample rotation is
@@ -224,7 +225,14 @@ def _gravity_accel(tree, nsamp):
     return np.broadcast_to(np.concatenate([np.zeros(3), -tree.gravity]), (nsamp, 6))
 
 
-def passivity_regressor(tree, q, v, va, aa, bodies=None):
+def passivity_regressor(
+    tree: KinematicTree,
+    q: np.ndarray,
+    v: np.ndarray,
+    va: np.ndarray,
+    aa: np.ndarray,
+    bodies: Sequence[int] | None = None,
+) -> np.ndarray:
     """Wp (N, n, 10n): Wp theta = M(q) aa + C(q, v) va + g(q), C Christoffel-consistent.
 
     With `bodies`, only those bodies' column blocks (N, n, 10 len(bodies)).
@@ -245,12 +253,16 @@ def passivity_regressor(tree, q, v, va, aa, bodies=None):
     return _project(tree, kin, y, kin.S, sel)
 
 
-def standard_regressor(tree, q, v, a, bodies=None):
+def standard_regressor(
+    tree: KinematicTree, q: np.ndarray, v: np.ndarray, a: np.ndarray, bodies: Sequence[int] | None = None
+) -> np.ndarray:
     """W (N, n, 10n): W theta = M(q) a + C(q, v) v + g(q) (rigid-body part)."""
     return passivity_regressor(tree, q, v, v, a, bodies)
 
 
-def momentum_regressor(tree, q, v, bodies=None):
+def momentum_regressor(
+    tree: KinematicTree, q: np.ndarray, v: np.ndarray, bodies: Sequence[int] | None = None
+) -> np.ndarray:
     """Wm (N, n, 10n): Wm theta = M(q) v."""
     kin = forward_kinematics(tree, q, v)
     sel = _selection(tree, bodies)
@@ -258,7 +270,9 @@ def momentum_regressor(tree, q, v, bodies=None):
     return _project(tree, kin, inertia_times(vb), kin.S, sel)
 
 
-def momentum_rate_regressor(tree, q, v, bodies=None):
+def momentum_rate_regressor(
+    tree: KinematicTree, q: np.ndarray, v: np.ndarray, bodies: Sequence[int] | None = None
+) -> np.ndarray:
     """Wc (N, n, 10n): Wc theta = C(q, v)^T v - g(q), the rate of M v without input torque."""
     q = np.atleast_2d(np.asarray(q, float))
     kin = forward_kinematics(tree, q, v)
@@ -269,7 +283,7 @@ def momentum_rate_regressor(tree, q, v, bodies=None):
     return _project(tree, kin, inertia_times(vb), kin.Sdot, sel) + _project(tree, kin, inertia_times(gb), kin.S, sel)
 
 
-def coulomb_shape(v, smoothing_velocity=0.0):
+def coulomb_shape(v: np.ndarray, smoothing_velocity: float = 0.0) -> np.ndarray:
     """sign(v), or tanh(v / vs) when a smoothing velocity vs > 0 is given (one law for all)."""
     v = np.asarray(v, float)
     if smoothing_velocity > 0:
@@ -277,7 +291,9 @@ def coulomb_shape(v, smoothing_velocity=0.0):
     return np.sign(v)
 
 
-def friction_columns(v, a=None, kind="standard", smoothing_velocity=0.0):
+def friction_columns(
+    v: np.ndarray, a: np.ndarray | None = None, kind: str = "standard", smoothing_velocity: float = 0.0
+) -> np.ndarray:
     """Friction regressor (N, n, 4n), columns per joint [Fc, Fv, Ia, beta].
 
     standard:  Fc sgn(v) + Fv v + Ia a + beta  (part of tau)

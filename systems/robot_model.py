@@ -11,13 +11,22 @@ friction_j = [Fc, Fv, Ia, beta].
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from . import inertial, regressors
 from .regressors import KinematicTree
+
+if TYPE_CHECKING:  # Drake is imported where a plant is built
+    from pydrake.geometry import SceneGraph
+    from pydrake.multibody.plant import MultibodyPlant
+    from pydrake.multibody.tree import ModelInstanceIndex
+    from pydrake.systems.framework import Context, DiagramBuilder
 
 MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
 FRICTION_NAMES = ("Fc", "Fv", "Ia", "beta")
@@ -31,7 +40,7 @@ class ModelError(ValueError):
 class JointParameters:
     """Limits and friction per joint (SI units; +-inf position limits for continuous joints)."""
 
-    names: list
+    names: list[str]
     position_lower: np.ndarray
     position_upper: np.ndarray
     velocity_limit: np.ndarray
@@ -41,11 +50,11 @@ class JointParameters:
     armature: np.ndarray
     offset: np.ndarray
 
-    def friction_theta(self):
+    def friction_theta(self) -> np.ndarray:
         return np.stack([self.coulomb, self.viscous, self.armature, self.offset], -1).ravel()
 
     @property
-    def continuous(self):
+    def continuous(self) -> np.ndarray:
         return ~np.isfinite(self.position_lower) & ~np.isfinite(self.position_upper)
 
 
@@ -55,47 +64,47 @@ class RobotModel:
     joint_params: JointParameters
     theta: np.ndarray  # nominal 14 n parameters
     end_effector: int  # body index of the end effector (identified body)
-    body_names: list
+    body_names: list[str]
     source: str = ""
     coulomb_smoothing: float = 0.0  # rad/s; 0 means sign(v)
-    extra: dict = field(default_factory=dict)
+    extra: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
-    def n(self):
+    def n(self) -> int:
         return self.tree.n
 
     # ---- parameter bookkeeping ---------------------------------------------------------------
-    def body_slice(self, i):
+    def body_slice(self, i: int) -> slice:
         return slice(10 * i, 10 * i + 10)
 
     @property
-    def ee_slice(self):
+    def ee_slice(self) -> slice:
         return self.body_slice(self.end_effector)
 
     @property
-    def theta_e(self):
+    def theta_e(self) -> np.ndarray:
         return self.theta[self.ee_slice].copy()
 
-    def rest_mask(self):
+    def rest_mask(self) -> np.ndarray:
         """Boolean mask of theta entries that are not the end effector's (theta_r)."""
         mask = np.ones(14 * self.n, bool)
         mask[self.ee_slice] = False
         return mask
 
-    def with_theta(self, theta):
+    def with_theta(self, theta: ArrayLike) -> RobotModel:
         return replace(self, theta=np.asarray(theta, float).copy())
 
-    def with_end_effector_theta(self, theta_e):
+    def with_end_effector_theta(self, theta_e: ArrayLike) -> RobotModel:
         t = self.theta.copy()
         t[self.ee_slice] = theta_e
         return self.with_theta(t)
 
-    def parameter_names(self):
+    def parameter_names(self) -> list[str]:
         names = [f"{b}.{p}" for b in self.body_names for p in inertial.NAMES]
         return names + [f"{j}.{f}" for j in self.joint_params.names for f in FRICTION_NAMES]
 
     # ---- regressors (inertial + friction columns) ---------------------------------------------
-    def standard_regressor(self, q, v, a):
+    def standard_regressor(self, q: np.ndarray, v: np.ndarray, a: np.ndarray) -> np.ndarray:
         """W (N, n, 14n): W theta = M a + C v + g + F(v, a)."""
         return np.concatenate(
             [
@@ -105,13 +114,13 @@ class RobotModel:
             -1,
         )
 
-    def momentum_regressor(self, q, v):
+    def momentum_regressor(self, q: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Wm (N, n, 14n): Wm theta = (M + diag(Ia)) v."""
         return np.concatenate(
             [regressors.momentum_regressor(self.tree, q, v), regressors.friction_columns(v, kind="momentum")], -1
         )
 
-    def momentum_rate_regressor(self, q, v):
+    def momentum_rate_regressor(self, q: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Wc (N, n, 14n): Wc theta = C^T v - g - (Fc sgn v + Fv v + beta).
 
         With Ia carried in the momentum, d/dt (Wm theta) = Wc theta + tau along any motion.
@@ -124,7 +133,7 @@ class RobotModel:
             -1,
         )
 
-    def passivity_regressor(self, q, v, va, aa):
+    def passivity_regressor(self, q: np.ndarray, v: np.ndarray, va: np.ndarray, aa: np.ndarray) -> np.ndarray:
         """Wp (N, n, 14n): Wp theta = M aa + C(q, v) va + g + F(va, aa) (controller form)."""
         return np.concatenate(
             [
@@ -134,11 +143,13 @@ class RobotModel:
             -1,
         )
 
-    def inverse_dynamics(self, q, v, a, theta=None):
+    def inverse_dynamics(
+        self, q: np.ndarray, v: np.ndarray, a: np.ndarray, theta: np.ndarray | None = None
+    ) -> np.ndarray:
         theta = self.theta if theta is None else theta
         return self.standard_regressor(q, v, a) @ theta
 
-    def mass_matrix(self, q, theta=None):
+    def mass_matrix(self, q: np.ndarray, theta: np.ndarray | None = None) -> np.ndarray:
         """(N, n, n) mass matrix including armature, from the momentum regressor."""
         theta = self.theta if theta is None else theta
         q = np.atleast_2d(q)
@@ -146,12 +157,12 @@ class RobotModel:
         cols = [self.momentum_regressor(q, np.broadcast_to(eye[k], q.shape)) @ theta for k in range(self.n)]
         return np.stack(cols, -1)
 
-    def forward_kinematics(self, q):
+    def forward_kinematics(self, q: np.ndarray) -> regressors.Kinematics:
         return regressors.forward_kinematics(self.tree, q)
 
 
 # ---- loading -----------------------------------------------------------------------------------
-def load_joint_parameters(path, joint_names=None):
+def load_joint_parameters(path: str | Path, joint_names: Sequence[str] | None = None) -> tuple[dict, JointParameters]:
     """Joint parameters from the YAML (see models/kinova_gen3_params.yaml)."""
     import yaml
 
@@ -190,7 +201,9 @@ def load_joint_parameters(path, joint_names=None):
     return doc, params
 
 
-def make_plant(model_path, time_step=0.0, scene_graph=False, builder=None):
+def make_plant(
+    model_path: str | Path, time_step: float = 0.0, scene_graph: bool = False, builder: DiagramBuilder | None = None
+) -> tuple[MultibodyPlant, SceneGraph | None, ModelInstanceIndex]:
     """Drake MultibodyPlant of a fixed-base arm (root welded to the world if it floats).
 
     Returns (plant, scene_graph or None, model_instance). With `builder`, the plant is added
@@ -258,7 +271,9 @@ def _root_body(plant, instance):
     return roots[0]
 
 
-def tree_from_plant(plant, context, joint_names=None):
+def tree_from_plant(
+    plant: MultibodyPlant, context: Context, joint_names: Sequence[str] | None = None
+) -> tuple[KinematicTree, np.ndarray, list[str], list[str]]:
     """KinematicTree + composite body thetas + body names from a finalized plant."""
     from pydrake.multibody.tree import BodyIndex, PrismaticJoint, RevoluteJoint
 
@@ -324,7 +339,7 @@ def tree_from_plant(plant, context, joint_names=None):
     return tree, np.concatenate(thetas), [j.child_body().name() for j in movable], [j.name() for j in movable]
 
 
-def joint_parameters_from_plant(plant, joint_names):
+def joint_parameters_from_plant(plant: MultibodyPlant, joint_names: Sequence[str]) -> JointParameters:
     """Limits from the model file when no parameter YAML is given (friction zero)."""
     lo, hi, vel, eff = [], [], [], []
     for name in joint_names:
@@ -344,7 +359,12 @@ def joint_parameters_from_plant(plant, joint_names):
     )
 
 
-def load_robot(model_path=None, params_path=None, coulomb_smoothing=0.0, end_effector=None):
+def load_robot(
+    model_path: str | Path | None = None,
+    params_path: str | Path | None = None,
+    coulomb_smoothing: float = 0.0,
+    end_effector: str | None = None,
+) -> RobotModel:
     """RobotModel from a URDF/SDF and (optionally) a joint-parameter YAML.
 
     With neither path, the project's Kinova Gen3 (models/kinova_gen3_params.yaml).

@@ -28,24 +28,25 @@ from __future__ import annotations
 from dataclasses import dataclass, field, fields
 
 import numpy as np
+from numpy.typing import ArrayLike
 from pydrake.common.value import AbstractValue
 from pydrake.geometry import QueryObject
-from pydrake.systems.framework import EventStatus, LeafSystem
+from pydrake.systems.framework import Context, EventStatus, LeafSystem
 
 
 @dataclass
 class SafetyRecord:
     """One entry per sample in each list."""
 
-    times: list = field(default_factory=list)
-    clearance: list = field(default_factory=list)  # min signed distance [m]
-    joint_ratio: list = field(default_factory=list)  # max over joints of limit usage (1 = at limit)
-    velocity_ratio: list = field(default_factory=list)
-    torque_ratio: list = field(default_factory=list)  # motor torque (after saturation)
-    commanded_ratio: list = field(default_factory=list)  # controller command (before saturation)
-    closest_pair: list = field(default_factory=list)
+    times: list[float] = field(default_factory=list)
+    clearance: list[float] = field(default_factory=list)  # min signed distance [m]
+    joint_ratio: list[float] = field(default_factory=list)  # max over joints of limit usage (1 = at limit)
+    velocity_ratio: list[float] = field(default_factory=list)
+    torque_ratio: list[float] = field(default_factory=list)  # motor torque (after saturation)
+    commanded_ratio: list[float] = field(default_factory=list)  # controller command (before saturation)
+    closest_pair: list[tuple[str, str] | None] = field(default_factory=list)
 
-    def summary(self):
+    def summary(self) -> dict:
         arr = lambda x: np.asarray(x, float) if x else np.zeros(1)  # noqa: E731
         clearance = arr(self.clearance)
         return {
@@ -77,7 +78,7 @@ class _Samples:
         return SafetyRecord(*(list(c) for c in columns))
 
 
-def limit_ratio(x, lower, upper):
+def limit_ratio(x: ArrayLike, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
     """Per-sample max over joints of how far x is into [lower, upper] from the centre (1 = at a limit)."""
     finite = np.isfinite(lower) & np.isfinite(upper)
     if not finite.any():
@@ -109,7 +110,7 @@ class SafetyMonitor(LeafSystem):
         self.DeclareInitializationUnrestrictedUpdateEvent(self._clear)
         self.DeclarePeriodicUnrestrictedUpdateEvent(period_s, 0.0, self._record)
 
-    def record(self, context) -> SafetyRecord:
+    def record(self, context: Context) -> SafetyRecord:
         """Every sample of the run so far (this system's context)."""
         return context.get_abstract_state(int(self._samples)).get_value().record()
 
@@ -131,7 +132,7 @@ class SafetyMonitor(LeafSystem):
         ]
         return [(a, b) for a in fixed for b in environment]
 
-    def min_clearance(self, query):
+    def min_clearance(self, query: QueryObject) -> tuple[float, tuple[str, str] | None]:
         distances = list(query.ComputeSignedDistancePairwiseClosestPoints(self._max_distance))
         distances += [query.ComputeSignedDistancePairClosestPoints(a, b) for a, b in self._fixed_pairs]
         best, pair = np.inf, None
@@ -146,7 +147,7 @@ class SafetyMonitor(LeafSystem):
                 pair = (self._inspector.GetName(d.id_A), self._inspector.GetName(d.id_B))
         return (self._max_distance if pair is None else best), pair
 
-    def measure(self, context):
+    def measure(self, context: Context) -> tuple:
         """One sample (t, clearance, joint, velocity, torque and command ratios, closest pair),
         in SafetyRecord's field order."""
         jp = self._robot.joint_params

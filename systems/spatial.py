@@ -12,7 +12,7 @@ import numpy as np
 _CROSS3 = np.cross(np.eye(3)[:, None], np.eye(3)[None, :]).reshape(9, 3)  # a x b = vec(a bᵀ) @ _CROSS3
 
 
-def cross(a, b):
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """a x b over the last axis (length 3), broadcasting, any dtype."""
     return np.stack(
         [
@@ -24,12 +24,12 @@ def cross(a, b):
     )
 
 
-def cross_rows(a, b):
+def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise a x b for (m, 3) arrays as one matrix product (fastest at a single sample)."""
     return (a[:, :, None] * b[:, None, :]).reshape(len(a), 9) @ _CROSS3
 
 
-def to_body(R, p, x):
+def to_body(R: np.ndarray, p: np.ndarray, x: np.ndarray) -> np.ndarray:
     """Motion vectors about the world origin (..., 6) -> the body frames at (R (..., 3, 3), p (..., 3))."""
     w, u = x[..., :3], x[..., 3:]
     rt = np.swapaxes(R, -1, -2)

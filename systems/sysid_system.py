@@ -32,11 +32,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from pydrake.common.value import AbstractValue
-from pydrake.systems.framework import BasicVector, EventStatus, LeafSystem
+from pydrake.systems.framework import BasicVector, Context, EventStatus, LeafSystem
 
 from .estimation import EstimatorError, EstimatorSettings, IncrementalEstimator
 from .faults import packet_size, unpack
 from .inertial import NAMES
+from .robot_model import RobotModel
 
 
 @dataclass(frozen=True)
@@ -45,8 +46,8 @@ class SysIdState:
     built on a copy of the estimator, so Drake's state copies may share it."""
 
     estimator: IncrementalEstimator
-    samples: tuple = ()  # rows [t, q (n), v (n), τ (n)] since the last update
-    history: tuple = ()  # one dict per update instant (a skipped one has "skipped")
+    samples: tuple[np.ndarray, ...] = ()  # rows [t, q (n), v (n), τ (n)] since the last update
+    history: tuple[dict, ...] = ()  # one dict per update instant (a skipped one has "skipped")
     handed_t: float = -np.inf  # time of the last sample handed to the estimator
     input_issues: tuple = ()  # (t, kind, detail) of each sample the input sanitation acted on
 
@@ -55,7 +56,15 @@ class SysIdState:
 
 
 class SysIdEstimator(LeafSystem):
-    def __init__(self, robot, settings: EstimatorSettings, sample_period_s, update_period_s, prior, prior_nominal):
+    def __init__(
+        self,
+        robot: RobotModel,
+        settings: EstimatorSettings,
+        sample_period_s: float,
+        update_period_s: float,
+        prior: tuple[np.ndarray, np.ndarray],
+        prior_nominal: np.ndarray,
+    ) -> None:
         """settings: the estimator's (EstimatorSettings.from_scenario); sample_period_s: the plant
         step; update_period_s: t_p; prior: (lower, upper) of θ_e; prior_nominal: θ_e published
         before the first update. app/online.py make_estimator_system takes them from a scenario."""
@@ -201,29 +210,29 @@ class SysIdEstimator(LeafSystem):
         return context.get_abstract_state(int(self._run)).get_value()
 
     @staticmethod
-    def history_of(run: SysIdState):
+    def history_of(run: SysIdState) -> list[dict]:
         return [h for h in run.history if "skipped" not in h]
 
     # -- results for reports (functions of this system's context) ---------------------------------
-    def estimator(self, context) -> IncrementalEstimator:
+    def estimator(self, context: Context) -> IncrementalEstimator:
         return self._get(context).estimator
 
-    def samples(self, context):
+    def samples(self, context: Context) -> np.ndarray:
         """Samples not yet handed to the estimator: (N, 1 + 3 n) rows [t, q, v, τ]."""
         return np.array(self._get(context).samples).reshape(-1, 1 + 3 * self.n)
 
-    def update_times_s(self, context):
+    def update_times_s(self, context: Context) -> list[float]:
         return [h["update_time_s"] for h in self.history(context)]
 
-    def history(self, context):
+    def history(self, context: Context) -> list[dict]:
         """One dict per completed update (t, update_time_s, cond_Y, case, consistent, θ_e box)."""
         return self.history_of(self._get(context))
 
-    def consistent(self, context):
+    def consistent(self, context: Context) -> bool:
         """False from the first update whose data contradicted a declared bound (latched)."""
         return self._get(context).estimator.consistent
 
-    def events(self, context):
+    def events(self, context: Context) -> list[dict]:
         """[{t, kind, detail}]: the first inconsistent update ("inconsistent_estimate"), updates
         whose quadrature term was large ("quadrature_unresolved"), and what the input sanitation
         did (sample_nonfinite, sample_duplicate, sample_out_of_order, sample_gap; one per kind)."""
@@ -275,7 +284,7 @@ class SysIdEstimator(LeafSystem):
             for (kind, detail), (t, count) in first.items()
         ]
 
-    def final_estimate(self, context, ee_slice=None):
+    def final_estimate(self, context: Context) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(θ_e0, lower, upper) of the last update, or the prior before the first one."""
         estimator = self._get(context).estimator
         est = estimator.estimate or estimator.prior_estimate()

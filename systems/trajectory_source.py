@@ -12,14 +12,16 @@ import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
-from pydrake.systems.framework import EventStatus, LeafSystem
+from numpy.typing import ArrayLike
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import BasicVector, Context, EventStatus, LeafSystem
 
 from .bezier import DEGREE, QuinticBezier, _monomial_of_bernstein
 
 _POWERS = np.arange(DEGREE + 1)
 
 
-def at_rest(q):
+def at_rest(q: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(q, qd, qdd) holding still at q (fresh arrays)."""
     q = np.array(q, float)
     return q, np.zeros_like(q), np.zeros_like(q)
@@ -40,7 +42,7 @@ class Piece:
         object.__setattr__(self, "_c1", coef[1:] * _POWERS[1:, None] / T)
         object.__setattr__(self, "_c2", coef[2:] * (_POWERS[2:] * (_POWERS[2:] - 1))[:, None] / T**2)
 
-    def evaluate(self, t):
+    def evaluate(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(q, qd, qdd) at absolute time t; at rest at q_end after the duration."""
         s = (t - self.t_start) / self.curve.duration
         if s >= 1.0:
@@ -49,7 +51,7 @@ class Piece:
         return pw @ self._c0, pw[:-1] @ self._c1, pw[:-2] @ self._c2
 
 
-def evaluate_pieces(pieces, t):
+def evaluate_pieces(pieces: list[Piece], t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(q, qd, qdd) of a sorted piece list at time t (before the first piece: its start, at rest)."""
     if not pieces:
         raise ValueError("trajectory has no pieces")
@@ -73,37 +75,38 @@ def _as_pieces(trajectory):
     return sorted(pieces, key=lambda p: p.t_start)
 
 
-def make_trajectory_source(n, trajectory):
-    """LeafSystem with output 'desired' (3 n); trajectory = (QuinticBezier, q_end) or [Piece]."""
-    from pydrake.common.value import AbstractValue
-    from pydrake.systems.framework import BasicVector, LeafSystem
+class TrajectorySource(LeafSystem):
+    """Output 'desired' (3 n): (q, qd, qdd) of its pieces at the context's time; the pieces are
+    abstract state, so a planner replaces them per context (set_pieces, append_piece)."""
 
-    class TrajectorySource(LeafSystem):
-        def __init__(self):
-            super().__init__()
-            self._pieces_index = self.DeclareAbstractState(AbstractValue.Make(_as_pieces(trajectory)))
-            self.DeclareVectorOutputPort(
-                "desired",
-                BasicVector(3 * n),
-                self._calc,
-                prerequisites_of_calc={self.time_ticket(), self.abstract_state_ticket(self._pieces_index)},
-            )
+    def __init__(self, n: int, trajectory: tuple[QuinticBezier, np.ndarray] | list[Piece]) -> None:
+        super().__init__()
+        self._pieces_index = self.DeclareAbstractState(AbstractValue.Make(_as_pieces(trajectory)))
+        self.DeclareVectorOutputPort(
+            "desired",
+            BasicVector(3 * n),
+            self._calc,
+            prerequisites_of_calc={self.time_ticket(), self.abstract_state_ticket(self._pieces_index)},
+        )
 
-        def pieces(self, context):
-            return context.get_abstract_state(self._pieces_index).get_value()
+    def pieces(self, context: Context) -> list[Piece]:
+        return context.get_abstract_state(self._pieces_index).get_value()
 
-        def set_pieces(self, context, pieces):
-            """Replace the pieces (context: this system's context)."""
-            context.get_mutable_abstract_state(self._pieces_index).set_value(_as_pieces(pieces))
+    def set_pieces(self, context: Context, pieces: tuple[QuinticBezier, np.ndarray] | list[Piece]) -> None:
+        """Replace the pieces (context: this system's context)."""
+        context.get_mutable_abstract_state(self._pieces_index).set_value(_as_pieces(pieces))
 
-        def append_piece(self, context, piece: Piece):
-            self.set_pieces(context, list(self.pieces(context)) + [piece])
+    def append_piece(self, context: Context, piece: Piece) -> None:
+        self.set_pieces(context, list(self.pieces(context)) + [piece])
 
-        def _calc(self, context, output):
-            q, qd, qdd = evaluate_pieces(self.pieces(context), context.get_time())
-            output.SetFromVector(np.concatenate([q, qd, qdd]))
+    def _calc(self, context: Context, output: BasicVector) -> None:
+        q, qd, qdd = evaluate_pieces(self.pieces(context), context.get_time())
+        output.SetFromVector(np.concatenate([q, qd, qdd]))
 
-    return TrajectorySource()
+
+def make_trajectory_source(n: int, trajectory: tuple[QuinticBezier, np.ndarray] | list[Piece]) -> TrajectorySource:
+    """TrajectorySource with output 'desired' (3 n); trajectory = (QuinticBezier, q_end) or [Piece]."""
+    return TrajectorySource(n, trajectory)
 
 
 # ---------------------------------------------------------------------------------------------

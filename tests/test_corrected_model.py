@@ -7,8 +7,7 @@ import numpy as np
 import pytest
 import yaml
 from safesysid.scenario import ScenarioError, load_scenario, robot_from_scenario
-from safesysid.systems import gap
-from safesysid.systems import gap_simulate as gs
+from safesysid.systems import diagnosis as dg
 from safesysid.systems.arm_tracking import track_trajectory
 from safesysid.systems.robot_model import MODELS_DIR, load_robot
 
@@ -18,7 +17,7 @@ DURATION_S = 5.0
 
 
 def write_corrected_model(path, model, diagnosis):
-    """corrected_model.yaml (contracts.md) of a diagnosis' significant effects."""
+    """corrected_model.yaml (systems/diagnosis/corrected_model.py) of a diagnosis' significant effects."""
     effects = [
         {"name": e["name"], "joints": e["joints"], "params": e["params"]}
         for e in diagnosis.result["effects"]
@@ -44,9 +43,9 @@ def reproduce(tmp_path, effects, seed):
     real = load_scenario(overrides={"payload": {"dumbbell": "none"}, "noise": NOISE, "plant": {"effects": effects}})
     controller = robot_from_scenario(real)  # the same commanded trajectory drives every plant
     rng = np.random.default_rng(seed)
-    trajs = [gs.random_trajectory(controller, rng) for _ in range(3)]
+    trajs = [dg.random_trajectory(controller, rng) for _ in range(3)]
     logs = [track_trajectory(real, controller, controller, tr, seed + k, DURATION_S) for k, tr in enumerate(trajs)]
-    d = gap.diagnose(load_robot(URDF), logs[:2], logs[2:])
+    d = dg.diagnose(load_robot(URDF), logs[:2], logs[2:])
     check = logs[2]
     quiet = load_scenario(
         overrides={"payload": {"dumbbell": "none"}, "noise": {"distribution": "none"}, "plant": {"effects": effects}}
@@ -218,8 +217,8 @@ def test_late_torque_reading_is_diagnosed_as_its_delay():
     )
     robot = robot_from_scenario(real)
     rng = np.random.default_rng(4)
-    logs = [track_trajectory(real, robot, robot, gs.random_trajectory(robot, rng), 20 + k, 4.0) for k in range(3)]
-    d = gap.diagnose(robot, logs[:2], logs[2:])
+    logs = [track_trajectory(real, robot, robot, dg.random_trajectory(robot, rng), 20 + k, 4.0) for k in range(3)]
+    d = dg.diagnose(robot, logs[:2], logs[2:])
     assert d.result["cause"] == ["time_delay"]
     params = next(e for e in d.result["effects"] if e["name"] == "time_delay")["params"]
     assert params["law"].startswith("pure delay") and params["delay_s"] == pytest.approx(0.03, abs=5e-4)

@@ -7,8 +7,7 @@ import numpy as np
 import pytest
 from safesysid.cli import main
 from safesysid.joint_log import JointLog, write_joint_log
-from safesysid.systems import gap
-from safesysid.systems import gap_simulate as gs
+from safesysid.systems import diagnosis as dg
 from safesysid.systems.robot_model import load_robot
 from test_gap import TWO_LINK
 
@@ -23,9 +22,9 @@ def case(tmp_path_factory):
     rng = np.random.default_rng(21)
     paths = []
     for k in range(3):
-        traj = gs.random_trajectory(model, rng)
-        t = gs.sample_times(rng, 10.0)
-        q, v, a, tau = gs.true_torque(model, traj, t, {"viscous_friction": {"delta": np.array([1.5, 0.0])}})
+        traj = dg.random_trajectory(model, rng)
+        t = dg.sample_times(rng, 10.0)
+        q, v, a, tau = dg.true_torque(model, traj, t, {"viscous_friction": {"delta": np.array([1.5, 0.0])}})
         tau = tau + 0.2 * rng.uniform(-1, 1, tau.shape)
         paths.append(write_joint_log(root / f"log{k}.csv", JointLog(t, q, v, tau, a if k != 1 else None)))
     return root, urdf, paths
@@ -42,7 +41,7 @@ def test_diagnose_writes_the_contract(case, capsys):
     assert len(g["rms_check_per_joint"]) == 2 and set(g["where"]["joints"]) == {1, 2}
     assert set(g["where"]["regimes"]) >= {"near_zero_velocity", "high_acceleration", "high_speed", "high_gravity_load"}
     assert [e["name"] for e in res["effects"]][0] == "viscous_friction"
-    assert sorted(e["name"] for e in res["effects"]) == sorted(gap.EFFECTS)
+    assert sorted(e["name"] for e in res["effects"]) == sorted(dg.EFFECTS)
     for e in res["effects"]:
         assert set(e) >= {"name", "joints", "params", "rms_check_after", "reduction", "significant"}
         assert 0.0 <= e["reduction"] <= 1.0
@@ -90,7 +89,7 @@ def test_corrected_model_closes_the_gap(case):
     assert main(["diagnose", "--model", str(urdf), "--fit", str(a), str(b), "--check", str(c), "--out", str(out)]) == 0
     fixed = load_robot(params_path=out / "corrected_params.yaml")
     logs = [read_joint_log(p, 2) for p in (a, b, c)]
-    d = gap.diagnose(fixed, logs[:2], logs[2:])
+    d = dg.diagnose(fixed, logs[:2], logs[2:])
     assert d.result["cause"] == []
 
 
@@ -184,9 +183,9 @@ def test_scenario_yaml_as_model(tmp_path, capsys):
     rng = np.random.default_rng(5)
     paths = []
     for k in range(2):
-        traj = gs.random_trajectory(model, rng)
-        t = gs.sample_times(rng, 6.0)
-        q, v, a, tau = gs.true_torque(model, traj, t, {"torque_offset": {"delta": np.r_[0, 2.0, 0, 0, 0, 0, 0]}})
+        traj = dg.random_trajectory(model, rng)
+        t = dg.sample_times(rng, 6.0)
+        q, v, a, tau = dg.true_torque(model, traj, t, {"torque_offset": {"delta": np.r_[0, 2.0, 0, 0, 0, 0, 0]}})
         tau = tau + 0.2 * rng.uniform(-1, 1, tau.shape)
         paths.append(write_joint_log(tmp_path / f"k{k}.csv", JointLog(t, q, v, tau, a)))
     out = tmp_path / "out"
@@ -212,8 +211,9 @@ def test_corrected_model_is_scored_frozen_on_new_logs(case, capsys, monkeypatch)
     def no_fitting(*args, **kwargs):
         raise AssertionError("a frozen model must not be fitted")
 
-    monkeypatch.setattr(gap, "fit_effects", no_fitting)
-    monkeypatch.setattr(gap.Problem, "solve", no_fitting)
+    monkeypatch.setattr(dg.problem, "fit_effects", no_fitting)
+    monkeypatch.setattr(dg.cross_validation, "fit_effects", no_fitting)
+    monkeypatch.setattr(dg.Problem, "solve", no_fitting)
     capsys.readouterr()
     scored = root / "frozen_out"
     assert (

@@ -1,16 +1,12 @@
-"""Layering: systems/ (Drake systems and their math) imports nothing from app/ (loading, CLI,
-reports); the scenario schema it needs is systems/config.py."""
+"""Layout rules: systems/ (Drake systems and their math) imports nothing from app/ (loading, CLI,
+reports; the scenario schema it needs is systems/config.py); every LeafSystem of the online
+diagram is a module-level class; public functions and dataclass fields carry type hints."""
 
 import ast
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 APP_MODULES = {p.stem for p in (ROOT / "app").glob("*.py")} - {"__init__"}
-# Pending: the gap-diagnosis split (gap_simulate builds its log from app's JointLog and
-# load_scenario); remove it from here when that module moves.
-# Still importing app/ (JointLog and the scenario loader live there); the next step of the
-# architecture issue moves JointLog to systems/ and passes model_corrections a loaded robot.
-PENDING = {"gap_simulate.py", "arm_tracking.py", "model_corrections.py"}
 
 
 def app_imports(path):
@@ -32,11 +28,7 @@ def app_imports(path):
 
 
 def test_systems_import_nothing_from_app():
-    offenders = {
-        str(p.relative_to(ROOT)): app_imports(p)
-        for p in sorted((ROOT / "systems").rglob("*.py"))
-        if p.name not in PENDING
-    }
+    offenders = {str(p.relative_to(ROOT)): app_imports(p) for p in sorted((ROOT / "systems").rglob("*.py"))}
     assert {k: v for k, v in offenders.items() if v} == {}
 
 
@@ -66,3 +58,90 @@ def test_every_system_of_the_online_diagram_is_a_module_level_class():
         types = {s.GetSystemType() for s in leaves(built.diagram)}
         assert not [t for t in types if "<locals>" in t]
         assert any(t.endswith("real_arm.TorqueSensor") for t in types)
+
+
+# Files other engineers were changing while the annotations went in; the lead removes each
+# entry once that file is annotated (the test then holds it to the rule).
+NOT_YET_TYPED = {
+    "app/bench_cli.py",
+    "app/closed_loop.py",
+    "app/online.py",
+    "app/run_cli.py",
+    "app/sweep_cli.py",
+    "app/sweeps.py",
+    "systems/armour.py",
+    "systems/controller_systems.py",
+    "systems/estimation/",  # every module of the package
+    "systems/planner.py",
+    "systems/planner_system.py",
+    "systems/reachability.py",
+    "systems/real_arm.py",
+    "systems/task_trajectory.py",
+}
+
+
+def _is_dataclass(node):
+    names = [d.func if isinstance(d, ast.Call) else d for d in node.decorator_list]
+    return any((n.attr if isinstance(n, ast.Attribute) else getattr(n, "id", "")) == "dataclass" for n in names)
+
+
+def untyped(path):
+    """'line name: problem' for each public top-level function and public method of a top-level
+    class without annotations on every parameter (self/cls aside) and on its return, and each
+    dataclass field typed `object`."""
+    found = []
+
+    def check_function(fn, method):
+        args = fn.args.posonlyargs + fn.args.args + fn.args.kwonlyargs
+        if method and args and args[0].arg in ("self", "cls"):
+            args = args[1:]
+        args += [a for a in (fn.args.vararg, fn.args.kwarg) if a is not None]
+        missing = [a.arg for a in args if a.annotation is None]
+        if missing:
+            found.append(f"{fn.lineno} {fn.name}: parameters {', '.join(missing)} not annotated")
+        if fn.returns is None:
+            found.append(f"{fn.lineno} {fn.name}: no return annotation")
+
+    functions = (ast.FunctionDef, ast.AsyncFunctionDef)
+    for node in ast.parse(path.read_text()).body:
+        if isinstance(node, functions) and not node.name.startswith("_"):
+            check_function(node, method=False)
+        elif isinstance(node, ast.ClassDef):
+            for item in node.body:
+                if isinstance(item, functions) and not item.name.startswith("_") and not node.name.startswith("_"):
+                    check_function(item, method=True)
+                elif isinstance(item, ast.AnnAssign) and _is_dataclass(node):
+                    if any(isinstance(n, ast.Name) and n.id == "object" for n in ast.walk(item.annotation)):
+                        found.append(f"{item.lineno} {node.name}.{ast.unparse(item.target)}: typed object")
+    return found
+
+
+def test_the_annotation_check_sees_what_is_missing(tmp_path):
+    probe = tmp_path / "probe.py"
+    probe.write_text(
+        "from dataclasses import dataclass\n"
+        "def f(a: int, b) -> int: ...\n"
+        "def g(a: int): ...\n"
+        "def _private(a): ...\n"
+        "@dataclass\n"
+        "class D:\n"
+        "    x: object = None\n"
+        "    y: int | None = None\n"
+        "    def m(self, k): ...\n"
+        "    def ok(self, k: int) -> None: ...\n"
+    )
+    assert untyped(probe) == [
+        "2 f: parameters b not annotated",
+        "3 g: no return annotation",
+        "7 D.x: typed object",
+        "9 m: parameters k not annotated",
+        "9 m: no return annotation",
+    ]
+
+
+def test_public_functions_and_dataclass_fields_are_annotated():
+    files = [p for folder in ("app", "systems") for p in sorted((ROOT / folder).rglob("*.py"))]
+    pending = [p for p in files if any(str(p.relative_to(ROOT)).startswith(k) for k in NOT_YET_TYPED)]
+    assert len(pending) >= len(NOT_YET_TYPED)  # every entry names files that exist
+    offenders = {str(p.relative_to(ROOT)): untyped(p) for p in files if p not in pending}
+    assert {k: v for k, v in offenders.items() if v} == {}

@@ -54,9 +54,10 @@ class StubEstimator(LeafSystem):
     def events(self, context):
         return []
 
-    def final_estimate(self, context, ee_slice):
+    def final_estimate(self, context):
         theta0, lo, hi, _ = self.boxes[-1]
-        return theta0[ee_slice], lo[ee_slice], hi[ee_slice]
+        ee = self.robot.ee_slice
+        return theta0[ee], lo[ee], hi[ee]
 
 
 def stub_boxes(robot, scenario, prior):

@@ -1,14 +1,13 @@
 """Effects of the simulated arm that the diagnosis names but the robot model has no term for:
 load-dependent friction mu |tau| sgn v and Stribeck friction Fs sgn v exp(-(v/vs)^2), both in the
-diagnosis' law (systems/gap.py), and a late torque reading, as plant.effects of the real arm."""
+diagnosis' law (systems/dg.py), and a late torque reading, as plant.effects of the real arm."""
 
 import numpy as np
 import pytest
 from helpers import FULL
 from pydrake.systems.framework import DiagramBuilder
 from safesysid.scenario import ScenarioError, load_scenario, robot_from_scenario
-from safesysid.systems import gap
-from safesysid.systems import gap_simulate as gs
+from safesysid.systems import diagnosis as dg
 from safesysid.systems.real_arm import add_real_arm
 from safesysid.systems.regressors import coulomb_shape, friction_columns
 
@@ -54,13 +53,13 @@ def test_bad_friction_effects_are_named():
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not FULL, reason="3 Drake logs through gap_simulate.real_arm_log (~60 s); SAFESYSID_FULL=1")
+@pytest.mark.skipif(not FULL, reason="3 Drake logs through diagnosis.real_arm_log (~60 s); SAFESYSID_FULL=1")
 def test_load_friction_of_the_simulated_arm_is_diagnosed_blind():
     """Drake-simulated logs with load friction on joints 2 and 4: the diagnosis names it, on
     those joints, with mu near the injected value (its law is the plant's)."""
-    runs = [gs.real_arm_log({"load_friction_mu": MU}, seed=70 + k, duration_s=6.0) for k in range(3)]
+    runs = [dg.real_arm_log({"load_friction_mu": MU}, seed=70 + k, duration_s=6.0) for k in range(3)]
     logs, robot = [log for log, _ in runs], runs[0][1]
-    d = gap.diagnose(robot, logs[:2], logs[2:])
+    d = dg.diagnose(robot, logs[:2], logs[2:])
     assert d.result["cause"] == ["load_friction"], d.result["cause"]
     entry = next(e for e in d.result["effects"] if e["name"] == "load_friction")
     assert set(entry["joints"]) == {2, 4}

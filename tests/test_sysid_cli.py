@@ -113,7 +113,7 @@ def unmodelled(robot, tmp_path_factory):
     0.5 N m offset on joint 2) and whose torque signal is logged through a first-order lag;
     noise inside the declared bound of the logged signal. The corrected_model.yaml carries
     exactly those differences (the diagnosis' job is tested elsewhere)."""
-    from safesysid.systems.gap import first_order_lag, segments
+    from safesysid.systems.diagnosis import first_order_lag, segments
 
     rng = np.random.default_rng(8)
     db = load_dumbbells(MODELS_DIR / "dumbbells.yaml")["6lb"]
@@ -225,13 +225,13 @@ def test_real_gen3_log_with_the_corrected_model(tmp_path, capsys):
     bare URDF contradicts the declared noise bound at its first update (the estimator latches
     'inconsistent' and keeps the prior), the corrected one only later (the speed-saturated spans
     of run3 violate any torque-noise bound)."""
-    from safesysid.systems import gap
+    from safesysid.systems import diagnosis as dg
     from safesysid.systems.robot_model import load_robot
 
     urdf = shared_path("models", "reference", "kinova_gen3_raptor_nomesh.urdf")
     runs = [shared_path("data", "kinova_gen3_real", f"run{k}.csv") for k in (1, 2, 3)]
     model = load_robot(urdf)
-    d = gap.diagnose(model, [read_joint_log(p, 7) for p in runs[:2]], [read_joint_log(runs[2], 7)])
+    d = dg.diagnose(model, [read_joint_log(p, 7) for p in runs[:2]], [read_joint_log(runs[2], 7)])
     effects = [
         {"name": e["name"], "joints": e["joints"], "params": e["params"]}
         for e in d.result["effects"]

@@ -139,7 +139,7 @@ def test_estimator_system_in_a_diagram(rigid_robot):
     assert [round(h["t"], 6) for h in hist] == [1.0, 2.0, 3.0]
     assert all(h["update_time_s"] > 0 for h in hist)
     assert len(est.update_times_s(est_ctx)) == 3
-    th_e0, lo_e, hi_e = est.final_estimate(est_ctx, ee)
+    th_e0, lo_e, hi_e = est.final_estimate(est_ctx)
     assert np.allclose(lo_e, lo[ee])
     # A re-initialised simulation starts from the prior again.
     ctx.SetTime(0.0)

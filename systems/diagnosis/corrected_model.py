@@ -3,13 +3,13 @@ fitted parameters, one schema, written by `safesysid diagnose` and read back by
 `safesysid diagnose --model corrected_model.yaml --check X.csv` (frozen scoring) and by the
 consumers of a corrected model (scenario loading, the simulated arm, `sysid --model`).
 
-Schema (contracts.md; add keys, never rename):
+Schema (a stable contract: add keys, never rename or drop):
     model: path of the starting URDF/SDF/scenario YAML, as given to `diagnose`
     model_resolved: the same path, absolute
     effects:                         # most explanatory first
-      - name: one of gap.EFFECTS
+      - name: one of diagnosis.EFFECTS
         joints: [1-based joints where the effect matters]
-        params: {...}                # exactly gap.effect_params (units in the key names), plus
+        params: {...}                # exactly diagnosis.effect_params (units in the key names), plus
                                      # time_delay.time_law: lag | shift (machine-readable law)
     scoring:                         # what a frozen scoring needs besides the effects
       residual_form: inverse_dynamics | momentum
@@ -25,22 +25,16 @@ only says where the effect was found to matter.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
-EFFECT_NAMES = (
-    "coulomb_friction",
-    "viscous_friction",
-    "stribeck_friction",
-    "load_friction",
-    "armature",
-    "torque_offset",
-    "torque_scale",
-    "payload",
-    "time_delay",
-    "base_tilt",
-    "joint_elasticity",
-)
+import numpy as np
+
+from .effects import EFFECTS
+
+EFFECT_NAMES = EFFECTS
 TIME_LAWS = ("lag", "shift")  # first-order lag of the model side, pure delay
 # Parameter keys a frozen model needs per effect (the others are derived, for people), and
 # whether each is a per-joint list (True), a fixed-length list (int) or a number (None).
@@ -67,15 +61,15 @@ class CorrectedModelError(ValueError):
 @dataclass
 class CorrectedEffect:
     name: str
-    joints: list  # 1-based
-    params: dict  # gap.effect_params(...) (+ time_law for time_delay)
+    joints: list[int]  # 1-based
+    params: dict[str, Any]  # diagnosis.effect_params(...) (+ time_law for time_delay)
 
 
 @dataclass
 class Saturation:
-    """Speed-saturation rule frozen on the fit logs (gap.velocity_saturation)."""
+    """Speed-saturation rule frozen on the fit logs (design.velocity_saturation)."""
 
-    top_speed_rad_s: list
+    top_speed_rad_s: list[float]
     level: float
     band_rad_s: float
     min_duration_s: float
@@ -91,17 +85,17 @@ class Scoring:
 @dataclass
 class CorrectedModel:
     model: str  # as given to diagnose
-    effects: list = field(default_factory=list)  # [CorrectedEffect]
+    effects: list[CorrectedEffect] = field(default_factory=list)
     scoring: Scoring = field(default_factory=Scoring)
     model_resolved: str = ""
-    fitted_on: list = field(default_factory=list)
+    fitted_on: list[str] = field(default_factory=list)
     path: str = ""  # the file it was read from
 
     @property
-    def names(self):
+    def names(self) -> list[str]:
         return [e.name for e in self.effects]
 
-    def model_path(self):
+    def model_path(self) -> Path:
         """The starting model file: model_resolved when it exists, else `model` relative to
         this file's folder, else `model` as written."""
         candidates = [Path(self.model_resolved)] if self.model_resolved else []
@@ -110,7 +104,7 @@ class CorrectedModel:
         candidates.append(Path(self.model))
         return next((p for p in candidates if p.is_file()), candidates[-1])
 
-    def check_joints(self, n):
+    def check_joints(self, n: int) -> None:
         """Per-joint lists must have the model's n entries; raise naming file and field."""
         for k, e in enumerate(self.effects):
             for key, kind in REQUIRED[e.name].items():
@@ -130,7 +124,7 @@ class CorrectedModel:
                 f"{len(sat.top_speed_rad_s)} values for a model with {n} joints"
             )
 
-    def to_doc(self):
+    def to_doc(self) -> dict:
         doc = {
             "model": self.model,
             "model_resolved": self.model_resolved,
@@ -167,7 +161,7 @@ def _plain(x):
     return float(x)
 
 
-def write_corrected_model(path, corrected, header=""):
+def write_corrected_model(path: str | Path, corrected: CorrectedModel, header: str = "") -> Path:
     """Write `corrected` (CorrectedModel) as YAML; floats round-trip exactly (repr)."""
     import yaml
 
@@ -176,7 +170,7 @@ def write_corrected_model(path, corrected, header=""):
     return Path(path)
 
 
-def is_corrected_model_file(path):
+def is_corrected_model_file(path: str | Path) -> bool:
     """True for a YAML whose top level has both `model` and `effects` (a scenario has neither)."""
     import yaml
 
@@ -190,7 +184,7 @@ def is_corrected_model_file(path):
     return isinstance(doc, dict) and "model" in doc and "effects" in doc
 
 
-def read_corrected_model(path):
+def read_corrected_model(path: str | Path) -> CorrectedModel:
     """CorrectedModel from a corrected_model.yaml; CorrectedModelError (one line naming file and
     field) on anything missing or malformed. Joint counts are checked against a model with
     CorrectedModel.check_joints(n) once the model is loaded."""
@@ -293,11 +287,9 @@ def _read_scoring(doc, bad):
     return Scoring(form, float(window), sat)
 
 
-def group_params(effects):
-    """{gap column group: parameter array} of CorrectedEffects, the inverse of gap.effect_params
-    (the form gap's residuals take)."""
-    import numpy as np
-
+def group_params(effects: Sequence[CorrectedEffect]) -> dict[str, np.ndarray]:
+    """{column group: parameter array} of CorrectedEffects, the inverse of effects.effect_params
+    (the form the diagnosis' residuals take)."""
     out = {}
     for e in effects:
         p = e.params
