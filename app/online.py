@@ -22,6 +22,9 @@ import numpy as np
 from safesysid.scenario import Scenario, robot_from_scenario
 
 IDENTIFYING = {"ours": True, "random": True, "conservative": False, "wrong": False}
+# summary.json estimate fields besides nominal/lower/upper: the data-driven box before physical
+# pruning, and the paper's first-order interval on the same data (systems/estimation Estimate).
+ESTIMATE_EXTRA = ("data_lower", "data_upper", "first_order_lower", "first_order_upper")
 
 
 def prior(robot, scenario: Scenario, method):
@@ -244,11 +247,14 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
         cond_y = history[-1]["cond_Y"] if history else float("nan")
         update_times = [h["update_time_s"] for h in history]
         consistent, estimator_events = est.consistent(est_ctx), est.events(est_ctx)
+        last = est.estimator(est_ctx).estimate
+        extra_estimate = {} if last is None else {k: v for k, v in last.to_json().items() if k in ESTIMATE_EXTRA}
     else:
         theta0, box = built.theta_prior
         theta_e0, lo, hi = theta0[robot.ee_slice], box.lo[robot.ee_slice], box.hi[robot.ee_slice]
         history, cond_y, update_times = [], float("nan"), []
         consistent, estimator_events = True, []
+        extra_estimate = {}
     contains = bool(np.all((lo <= truth) & (truth <= hi)))
     planner_context = built.planner.GetMyContextFromRoot(ctx)
     plans = built.planner.records(planner_context)
@@ -282,6 +288,7 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
             "lower": np.asarray(lo).tolist(),
             "upper": np.asarray(hi).tolist(),
             "consistent": bool(consistent),
+            **extra_estimate,
         },
         "events": events,
         "contains_truth": contains,
