@@ -12,7 +12,9 @@ per joint, torque noise uniform at the declared bound, robot parameters drawn in
   volume of the payload, estimation/physical.py) on top of the LP box.
 
 Swept over the motion amplitude (→ peak joint acceleration) and the data length. Prints one table;
-`python -m safesysid.benchmarks.interval_budget [--quick]`.
+`python -m safesysid.benchmarks.interval_budget [--quick]`. With `--closed-loop N`: the median
+width / prior width per parameter over N closed-loop seeds of scenarios/identify_all.yaml (ours and
+random; published, data-driven and the paper's first-order interval).
 """
 
 from __future__ import annotations
@@ -138,5 +140,53 @@ def print_table(result: dict) -> None:
             print(f"| {label:<20} | " + " | ".join(f"{x:7.3f}" for x in case[key]) + " |")
 
 
+def closed_loop(seeds, scenario="identify_all.yaml", methods=("ours", "random")) -> dict:
+    """Median width / prior width per parameter over closed-loop runs of a scenario (payloads 4-8 lb
+    by seed): published, data-driven (before pruning) and the paper's first-order interval."""
+    from safesysid.online import run_online
+    from safesysid.scenario import SCENARIOS_DIR, load_scenario
+
+    base = load_scenario(SCENARIOS_DIR / scenario)
+    payloads = ["4lb", "5lb", "6lb", "7lb", "8lb"]
+    out = {}
+    for method in methods:
+        runs = []
+        for seed in seeds:
+            scene = dataclasses.replace(base, payload=dataclasses.replace(base.payload, dumbbell=payloads[seed % 5]))
+            runs.append(run_online(scene, None, method=method, seed=seed, write=False))
+        width = lambda s, key: np.array(s["estimate"][f"{key}upper"]) - np.array(s["estimate"][f"{key}lower"])  # noqa: E731
+        prior = PRIOR[1] - PRIOR[0]
+        out[method] = {
+            "contains": [bool(s["contains_truth"]) for s in runs],
+            "consistent": [bool(s["estimate"]["consistent"]) for s in runs],
+            "mass_half_width_kg": [float(width(s, "")[0] / 2) for s in runs],
+            **{
+                f"{key or 'published_'}ratio": np.median([width(s, key) / prior for s in runs], 0).tolist()
+                for key in ("", "data_", "first_order_")
+            },
+        }
+    return out
+
+
+def print_closed_loop(result: dict) -> None:
+    print(f"| {'median width / prior':<26} | " + " | ".join(f"{n:>6}" for n in NAMES) + " |")
+    print("|" + "-" * 28 + "|" + "|".join(["-" * 8] * len(NAMES)) + "|")
+    for method, r in result.items():
+        for key, label in (
+            ("published_ratio", "pruned"),
+            ("data_ratio", "data-driven"),
+            ("first_order_ratio", "paper first-order"),
+        ):
+            print(f"| {method + ' ' + label:<26} | " + " | ".join(f"{x:6.3f}" for x in r[key]) + " |")
+    for method, r in result.items():
+        print(
+            f"{method}: contains {sum(r['contains'])}/{len(r['contains'])}, consistent {sum(r['consistent'])}, "
+            f"mass half-width kg {[round(x, 3) for x in r['mass_half_width_kg']]}"
+        )
+
+
 if __name__ == "__main__":
-    print_table(run(quick="--quick" in sys.argv))
+    if "--closed-loop" in sys.argv:  # --closed-loop N: seeds 0..N-1 of scenarios/identify_all.yaml
+        print_closed_loop(closed_loop(range(int(sys.argv[sys.argv.index("--closed-loop") + 1]))))
+    else:
+        print_table(run(quick="--quick" in sys.argv))
