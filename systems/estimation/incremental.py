@@ -136,6 +136,7 @@ class IncrementalEstimator:
         # what the payload's bounding volume is subtracted from (estimation/physical.py).
         rad_g = parameter_radius(robot, st.theta_r_ratio, st.theta_r_ratio, st.theta_r_floor)[robot.ee_slice]
         self.gripper_box = (robot.theta_e - rad_g, robot.theta_e + rad_g)
+        self._cuts = []  # cutting planes of the pruning LPs (valid for every box: kept across updates)
         self.eta = (
             inertial.theta_to_log_cholesky(nominal) if inertial.is_physically_consistent(nominal) else np.zeros(10)
         )
@@ -278,7 +279,7 @@ class IncrementalEstimator:
         # ... then prune it with physical knowledge and keep it inside the published one.
         new_lo, new_hi = data_lo, data_hi
         if st.physical_pruning and not problems:
-            p_lo, p_hi, feasible = prune_box(data_lo, data_hi, st.payload_volume, self.gripper_box)
+            p_lo, p_hi, feasible = prune_box(data_lo, data_hi, st.payload_volume, self.gripper_box, cuts=self._cuts)
             if not feasible:
                 problems.append("the data box contradicts the payload's physical knowledge (LMI, bounding volume)")
             elif prev is not None:

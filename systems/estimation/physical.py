@@ -30,6 +30,7 @@ from .. import inertial
 from .enclosure import certified_lp_min
 from .settings import EstimatorError
 
+MAX_KEPT_CUTS = 200  # cutting planes carried to the next call (the LPs stay small)
 _J_BASIS = np.stack([inertial.pseudo_inertia(e) for e in np.eye(10)])  # (10, 4, 4): J(θ) = Σ θ_j J_j
 
 
@@ -93,10 +94,12 @@ def _linear_form(M):
     return np.einsum("jkl,kl->j", _J_BASIS, M)
 
 
-def prune_box(lo, hi, volume: BoundingVolume | None = None, gripper=None, max_cuts=5, tol=1e-10):
+def prune_box(lo, hi, volume: BoundingVolume | None = None, gripper=None, max_cuts=5, tol=1e-10, cuts=None):
     """Outer bound of {θ_e ∈ [lo, hi] : J(θ_e) ⪰ 0, and with a volume J(θ_p) ⪰ 0, tr(J(θ_p) Q) ≥ 0}.
 
     θ_p = θ_e − θ_g, θ_g ∈ gripper = (lower, upper) (None: the volume contains the whole θ_e).
+    cuts: a list the cutting planes found are appended to and reused from (they hold for every box:
+    an estimator passes the same list at every update, and later updates need fewer LPs).
     Returns (lo, hi, feasible): each bound is a certified LP bound of a cutting-plane relaxation,
     intersected with the input; feasible False when the LP proves the set empty (the data box
     contradicts the physical knowledge).
@@ -114,6 +117,8 @@ def prune_box(lo, hi, volume: BoundingVolume | None = None, gripper=None, max_cu
         rows += [(1, _linear_form(Q)) for Q in volume.forms()]
         if with_g:
             rows += [(1, _linear_form(np.outer(e, e))) for e in np.eye(4)]
+    cuts = [] if cuts is None else cuts
+    rows += cuts
     bodies = [0, 1] if (volume is not None and with_g) else [0]
 
     def a_ub():
@@ -139,7 +144,9 @@ def prune_box(lo, hi, volume: BoundingVolume | None = None, gripper=None, max_cu
                     lam, vec = np.linalg.eigh(inertial.pseudo_inertia(to_x[b] @ sol[0]))
                     scale = max(np.abs(lam).max(), 1e-12)
                     for k in np.flatnonzero(lam < -tol * scale):
-                        rows.append((b, _linear_form(np.outer(vec[:, k], vec[:, k]))))
+                        cut = (b, _linear_form(np.outer(vec[:, k], vec[:, k])))
+                        rows.append(cut)
+                        cuts.append(cut)
                         added = True
                 if not added:
                     break
@@ -148,6 +155,7 @@ def prune_box(lo, hi, volume: BoundingVolume | None = None, gripper=None, max_cu
                     out_lo[i] = max(out_lo[i], best)
                 else:
                     out_hi[i] = min(out_hi[i], -best)
+    del cuts[:-MAX_KEPT_CUTS]
     if np.any(out_lo > out_hi):
         return lo, hi, False
     return out_lo, out_hi, True
