@@ -94,3 +94,27 @@ def test_consistency_alone_prunes_and_keeps_the_truth(robot, dumbbells):
     p_lo, p_hi, feasible = prune_box(lo, hi)
     assert feasible and np.all((p_lo <= truth) & (truth <= p_hi))
     assert np.any(p_hi - p_lo < 0.9 * (hi - lo))
+
+
+def test_estimator_reports_the_data_box_and_the_pruned_box_separately(robot, dumbbells):
+    from helpers import CENTRE, PRIOR, PRIOR_NOMINAL
+    from safesysid.systems import estimation as E
+    from safesysid.systems.payload import payload_theta_in_end_effector
+
+    rng = np.random.default_rng(21)
+    theta = E.perturbed_robot_theta(rng, robot, 0.05)
+    theta[robot.ee_slice] = robot.theta_e + payload_theta_in_end_effector(dumbbells["8lb"], robot.extra["grasp_point"])
+    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 3.0, 1000.0, centre=CENTRE, position_amplitude_rad=0.3)
+    vol = BoundingVolume("box", np.array([0.0, 0.0, -0.2]), np.array([0.11, 0.055, 0.055]), np.eye(3))
+    settings = E.EstimatorSettings(physical_pruning=True, payload_volume=vol)
+    est = E.IncrementalEstimator(robot, settings, PRIOR, PRIOR_NOMINAL)
+    truth = theta[robot.ee_slice]
+    for k in range(0, len(t), 1500):
+        est.add(t[k : k + 1500], q[k : k + 1500], v[k : k + 1500], tau[k : k + 1500])
+        e = est.update()
+        assert e.consistent and e.contains(truth)
+        assert np.all((e.data_lower <= truth) & (truth <= e.data_upper))
+        assert np.all((e.data_lower <= e.lower) & (e.upper <= e.data_upper))
+    # Prior knowledge shrinks the inertias (measured: 1.61 -> 0.53 kg·m² of summed width).
+    data_widths = (e.data_upper - e.data_lower)[4:]
+    assert np.all(e.widths[4:] < data_widths) and e.widths[4:].sum() < 0.5 * data_widths.sum()
