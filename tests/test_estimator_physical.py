@@ -118,3 +118,22 @@ def test_estimator_reports_the_data_box_and_the_pruned_box_separately(robot, dum
     # Prior knowledge shrinks the inertias (measured: 1.61 -> 0.53 kg·m² of summed width).
     data_widths = (e.data_upper - e.data_lower)[4:]
     assert np.all(e.widths[4:] < data_widths) and e.widths[4:].sum() < 0.5 * data_widths.sum()
+
+
+def test_identify_all_volume_contains_every_dumbbell(robot, dumbbells):
+    """A9 in the simulation: scenarios/identify_all.yaml's box holds each 4-8 lb dumbbell (every
+    cylinder's rim points), so its LMI holds for the simulated payload."""
+    from safesysid.scenario import SCENARIOS_DIR, load_scenario
+    from safesysid.systems.estimation.settings import payload_volume
+    from safesysid.systems.payload import payload_theta_in_end_effector
+
+    vol = payload_volume(load_scenario(SCENARIOS_DIR / "identify_all.yaml").payload.bounding_volume)
+    grasp = robot.extra["grasp_point"]
+    angle = np.linspace(0, 2 * np.pi, 64)
+    for name, db in dumbbells.items():
+        for _, x, r, length in db.parts():
+            for end in (x - length / 2, x + length / 2):
+                rim = np.stack([np.full_like(angle, end), r * np.cos(angle), r * np.sin(angle)], 1)
+                assert np.all(vol.contains(rim + grasp)), name  # handle along the end-effector x axis
+        j = inertial.pseudo_inertia(payload_theta_in_end_effector(db, grasp))
+        assert all(np.trace(j @ Q) >= 0 for Q in vol.forms())
