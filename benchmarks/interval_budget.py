@@ -59,7 +59,8 @@ def budget(robot, theta_true, amplitude_rad, duration_s, seed=0):
     q, v, acc = motion(t)
     tau = E.held_torque(robot, motion, t, theta_true)
     noise = 0.025 * np.abs(tau) + 0.05
-    est = _estimator(robot, t, q, v, tau + rng.uniform(-1, 1, tau.shape) * noise)
+    tau_meas = tau + rng.uniform(-1, 1, tau.shape) * noise
+    est = _estimator(robot, t, q, v, tau_meas)
     hull, _ = interval_hull(est.rows, est.theta_r, est.theta_r_radius, est.settings)
     out = {"peak_acc_rad_s2": np.abs(acc).max(0), "cond_Y": est.estimate.cond_Y}
     for k, key in SOURCES.items():
@@ -86,7 +87,26 @@ def budget(robot, theta_true, amplitude_rad, duration_s, seed=0):
     p_lo, p_hi, ok = prune_box(*clipped, VOLUME, est.gripper_box)
     out["pruned_half"] = 0.5 * (p_hi - p_lo) if ok else np.full(10, np.nan)
     out["prior_half"] = 0.5 * (PRIOR[1] - PRIOR[0])
+    out.update(_update_times(robot, t, q, v, tau_meas))
     return out
+
+
+def _update_times(robot, t, q, v, tau, repeat=2):
+    """Best-of-`repeat` wall time of one estimator update on the whole log: LP over all ten
+    parameters, then also with LMI pruning (a fresh estimator each time: no cutting planes kept)."""
+    import time
+
+    times = {}
+    for key, kw in (("update_all_s", {}), ("update_all_pruned_s", dict(physical_pruning=True, payload_volume=VOLUME))):
+        best = np.inf
+        for _ in range(repeat):
+            est = E.IncrementalEstimator(robot, E.EstimatorSettings(set_membership="all", **kw), PRIOR, PRIOR_NOMINAL)
+            est.add(t, q, v, tau)
+            start = time.perf_counter()
+            est.update()
+            best = min(best, time.perf_counter() - start)
+        times[key] = best
+    return times
 
 
 def _lp_bounds(est):
@@ -132,7 +152,8 @@ def print_table(result: dict) -> None:
         acc = " ".join(f"{a:.1f}" for a in case["peak_acc_rad_s2"])
         print(
             f"\namplitude {case['amplitude_rad']} rad, {case['duration_s']} s, peak |q̈| per joint [{acc}] rad/s², "
-            f"cond(Y) {case['cond_Y']:.3g}; half-widths:"
+            f"cond(Y) {case['cond_Y']:.3g}; update {case['update_all_s']:.2f} s (LP all), "
+            f"{case['update_all_pruned_s']:.2f} s (+ LMI pruning); half-widths:"
         )
         print(f"| {'source':<20} | " + " | ".join(f"{n:>7}" for n in names) + " |")
         print("|" + "-" * 22 + "|" + "|".join(["-" * 9] * len(names)) + "|")
