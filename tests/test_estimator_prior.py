@@ -86,3 +86,18 @@ def test_not_identifiable_and_latched_updates_publish_inside_the_prior(robot, wr
     est.add(t[500:], q[500:], v[500:], 10 * tau[500:])  # far outside the declared noise: latched off
     e = est.update()
     assert not e.consistent and not wider_than_prior(e, robot)
+
+
+def test_predicted_radius_is_the_update_radius_and_ranks_excitation(robot, wrist_log):
+    """The width a candidate log would give (for a planner's cost) equals the box the update then
+    computes, and a barely moving candidate predicts a wider box than an exciting one."""
+    t, q, v, tau, _ = wrist_log
+    est = E.IncrementalEstimator(robot, E.EstimatorSettings(set_membership="none"), PRIOR, PRIOR_NOMINAL)
+    predicted = est.predicted_radius(t, q, v, tau)
+    assert len(est.rows) == 0  # not changed
+    est.add(t, q, v, tau)
+    e = est.update()
+    assert np.allclose(predicted, e.radius_torque + e.radius_theta_r + e.radius_quadrature, rtol=1e-9)
+    slow = E.IncrementalEstimator(robot, E.EstimatorSettings(), PRIOR, PRIOR_NOMINAL)
+    q_slow = q[0] + 0.1 * (q - q[0])  # the same path at a tenth of the amplitude (same torque level)
+    assert np.all(slow.predicted_radius(t, q_slow, 0.1 * v, tau)[4:] > predicted[4:])

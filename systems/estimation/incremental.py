@@ -173,6 +173,20 @@ class IncrementalEstimator:
         self._pending = tuple(x[next_start:] for x in (t, q, v, tau))
         return len(bounds)
 
+    def predicted_radius(self, t, q, v, tau):
+        """Half-widths of the Theorem-2 box (torque + θ_r + quadrature terms, the `map` left
+        inverse) if the candidate log (t, q, v, τ: e.g. a plan's samples with its predicted
+        torque) were added to the data so far; the estimator is not changed. A planner can rank
+        candidate plans by it (it does not depend on the noise, only on the motion and the torque
+        level). None when the data would not identify θ_e."""
+        t, q, v, tau = (np.asarray(x, float) for x in (t, q, v, tau))
+        bounds, _ = segment_bounds(t, self.settings.horizon_s, self.settings.segment_gap_s())
+        new = build_segment_rows(self.robot, t, q, v, tau, bounds, self.settings, self.theta_box())
+        hull, cond = interval_hull(self.rows.concat(new), self.theta_r, self.theta_r_radius, self.settings)
+        if hull is None or cond > self.settings.max_condition:
+            return None
+        return hull["rad_torque"] + hull["rad_theta_r"] + hull["rad_quad"]
+
     def theta_box(self):
         """(centre, radius) of the box the whole-robot θ lies in: [θ_r] and the published [θ_e]
         (or the prior), for the quadrature bound."""
