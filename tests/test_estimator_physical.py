@@ -137,3 +137,18 @@ def test_identify_all_volume_contains_every_dumbbell(robot, dumbbells):
                 assert np.all(vol.contains(rim + grasp)), name  # handle along the end-effector x axis
         j = inertial.pseudo_inertia(payload_theta_in_end_effector(db, grasp))
         assert all(np.trace(j @ Q) >= 0 for Q in vol.forms())
+
+
+@pytest.mark.parametrize(
+    "text, field",
+    [
+        ("payload: {bounding_volume: {shape: cube}}", "payload.bounding_volume.shape"),
+        ("payload: {bounding_volume: {shape: box, half_extent_m: [0.1, 0.0, 0.1]}}", "half_extent_m"),
+        ("payload: {bounding_volume: {shape: ellipsoid, centre_m: [0.0, 0.0]}}", "centre_m"),
+    ],
+)
+def test_a_bad_bounding_volume_is_refused_naming_the_field(text, field):
+    from safesysid.scenario import SCENARIOS_DIR, ScenarioError, load_scenario
+
+    with pytest.raises(ScenarioError, match=field):
+        load_scenario(SCENARIOS_DIR / "identify_all.yaml", overrides=[text])
