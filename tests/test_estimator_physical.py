@@ -120,17 +120,20 @@ def test_estimator_reports_the_data_box_and_the_pruned_box_separately(robot, dum
     assert np.all(e.widths[4:] < data_widths) and e.widths[4:].sum() < 0.5 * data_widths.sum()
 
 
-def test_identify_all_volume_contains_every_dumbbell(robot, dumbbells):
-    """A9 in the simulation: scenarios/identify_all.yaml's box holds each 4-8 lb dumbbell (every
-    cylinder's rim points), so its LMI holds for the simulated payload."""
+@pytest.mark.parametrize("scenario, payloads", [("identify_all.yaml", None), ("one_of_everything.yaml", ["5lb"])])
+def test_scenario_volumes_contain_their_dumbbells(robot, dumbbells, scenario, payloads):
+    """A9 in the simulation: identify_all.yaml's box holds each 4-8 lb dumbbell, one_of_everything's
+    ellipsoid its 5 lb one (every cylinder's rim points), so their LMI holds for the simulated payload."""
     from safesysid.scenario import SCENARIOS_DIR, load_scenario
     from safesysid.systems.estimation.settings import payload_volume
     from safesysid.systems.payload import payload_theta_in_end_effector
 
-    vol = payload_volume(load_scenario(SCENARIOS_DIR / "identify_all.yaml").payload.bounding_volume)
+    vol = payload_volume(load_scenario(SCENARIOS_DIR / scenario).payload.bounding_volume)
     grasp = robot.extra["grasp_point"]
     angle = np.linspace(0, 2 * np.pi, 64)
     for name, db in dumbbells.items():
+        if payloads is not None and name not in payloads:
+            continue
         for _, x, r, length in db.parts():
             for end in (x - length / 2, x + length / 2):
                 rim = np.stack([np.full_like(angle, end), r * np.cos(angle), r * np.sin(angle)], 1)
