@@ -96,8 +96,10 @@ def test_consistency_alone_prunes_and_keeps_the_truth(robot, dumbbells):
     assert np.any(p_hi - p_lo < 0.9 * (hi - lo))
 
 
-def test_estimator_reports_the_data_box_and_the_pruned_box_separately(robot, dumbbells):
-    from helpers import CENTRE, PRIOR, PRIOR_NOMINAL
+@pytest.fixture(scope="module")
+def log8(robot, dumbbells):
+    """3 s of an 8 lb payload moved 0.3 rad per joint, noise inside the declared bound."""
+    from helpers import CENTRE
     from safesysid.systems import estimation as E
     from safesysid.systems.payload import payload_theta_in_end_effector
 
@@ -105,10 +107,21 @@ def test_estimator_reports_the_data_box_and_the_pruned_box_separately(robot, dum
     theta = E.perturbed_robot_theta(rng, robot, 0.05)
     theta[robot.ee_slice] = robot.theta_e + payload_theta_in_end_effector(dumbbells["8lb"], robot.extra["grasp_point"])
     t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 3.0, 1000.0, centre=CENTRE, position_amplitude_rad=0.3)
+    return t, q, v, tau, theta[robot.ee_slice]
+
+
+def pruning_estimator(robot, volume):
+    from helpers import PRIOR, PRIOR_NOMINAL
+    from safesysid.systems import estimation as E
+
+    settings = E.EstimatorSettings(physical_pruning=True, payload_volume=volume)
+    return E.IncrementalEstimator(robot, settings, PRIOR, PRIOR_NOMINAL)
+
+
+def test_estimator_reports_the_data_box_and_the_pruned_box_separately(robot, log8):
+    t, q, v, tau, truth = log8
     vol = BoundingVolume("box", np.array([0.0, 0.0, -0.2]), np.array([0.11, 0.055, 0.055]), np.eye(3))
-    settings = E.EstimatorSettings(physical_pruning=True, payload_volume=vol)
-    est = E.IncrementalEstimator(robot, settings, PRIOR, PRIOR_NOMINAL)
-    truth = theta[robot.ee_slice]
+    est = pruning_estimator(robot, vol)
     for k in range(0, len(t), 1500):
         est.add(t[k : k + 1500], q[k : k + 1500], v[k : k + 1500], tau[k : k + 1500])
         e = est.update()
@@ -118,6 +131,17 @@ def test_estimator_reports_the_data_box_and_the_pruned_box_separately(robot, dum
     # Prior knowledge shrinks the inertias (measured: 1.61 -> 0.53 kg·m² of summed width).
     data_widths = (e.data_upper - e.data_lower)[4:]
     assert np.all(e.widths[4:] < data_widths) and e.widths[4:].sum() < 0.5 * data_widths.sum()
+
+
+def test_a_payload_outside_the_declared_volume_latches_inconsistency(robot, log8):
+    """The volume is an assumption (A9): data that contradict it are flagged, the box is kept."""
+    t, q, v, tau, truth = log8
+    wrong = BoundingVolume("ellipsoid", np.array([0.0, 0.0, 0.3]), np.array([0.02, 0.02, 0.02]), np.eye(3))
+    est = pruning_estimator(robot, wrong)
+    est.add(t, q, v, tau)
+    e = est.update()
+    assert not e.consistent and "physical knowledge" in e.message
+    assert e.contains(truth)  # the prior, published unchanged
 
 
 @pytest.mark.parametrize("scenario, payloads", [("identify_all.yaml", None), ("one_of_everything.yaml", ["5lb"])])

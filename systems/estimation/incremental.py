@@ -296,10 +296,12 @@ class IncrementalEstimator:
             p_lo, p_hi, feasible = prune_box(data_lo, data_hi, st.payload_volume, self.gripper_box, cuts=self._cuts)
             if not feasible:
                 problems.append("the data box contradicts the payload's physical knowledge (LMI, bounding volume)")
-            elif prev is not None:
-                new_lo, new_hi = np.maximum(p_lo, prev.lower), np.minimum(p_hi, prev.upper)
             else:
-                new_lo, new_hi = p_lo, p_hi
+                new_lo, new_hi = (
+                    (p_lo, p_hi) if prev is None else (np.maximum(p_lo, prev.lower), np.minimum(p_hi, prev.upper))
+                )
+                if np.any(new_lo > new_hi):
+                    problems.append(f"the pruned interval does not meet the published one in {_names(new_lo > new_hi)}")
         notes = []
         quad_ratio = float(np.max(self.rows.quad / np.maximum(torque_row_radius(self.rows), 1e-300)))
         if quad_ratio > st.quadrature_warn_ratio:
