@@ -99,15 +99,9 @@ def test_consistency_alone_prunes_and_keeps_the_truth(robot, dumbbells):
 @pytest.fixture(scope="module")
 def log8(robot, dumbbells):
     """3 s of an 8 lb payload moved 0.3 rad per joint, noise inside the declared bound."""
-    from helpers import CENTRE
-    from safesysid.systems import estimation as E
-    from safesysid.systems.payload import payload_theta_in_end_effector
+    from test_estimator_prior import payload_log
 
-    rng = np.random.default_rng(21)
-    theta = E.perturbed_robot_theta(rng, robot, 0.05)
-    theta[robot.ee_slice] = robot.theta_e + payload_theta_in_end_effector(dumbbells["8lb"], robot.extra["grasp_point"])
-    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 3.0, 1000.0, centre=CENTRE, position_amplitude_rad=0.3)
-    return t, q, v, tau, theta[robot.ee_slice]
+    return payload_log(robot, dumbbells["8lb"], 21, 0.3)
 
 
 def pruning_estimator(robot, volume):

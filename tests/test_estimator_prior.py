@@ -44,13 +44,22 @@ def wider_than_prior(est, robot, skip=("first_order",)):
     return bad
 
 
+def payload_log(robot, dumbbell, seed, amplitude_rad, duration_s=3.0):
+    """(t, q, v, τ_meas, θ_e true): the payload moved `amplitude_rad` per joint about CENTRE, robot
+    parameters drawn in their box, noise uniform inside the declared bound (also used by
+    test_estimator_physical.py)."""
+    rng = np.random.default_rng(seed)
+    theta = E.perturbed_robot_theta(rng, robot, 0.05)
+    theta[robot.ee_slice] = robot.theta_e + payload_theta_in_end_effector(dumbbell, robot.extra["grasp_point"])
+    t, q, v, tau, _ = E.simulate_log(
+        rng, robot, theta, duration_s, 1000.0, centre=CENTRE, position_amplitude_rad=amplitude_rad
+    )
+    return t, q, v, tau, theta[robot.ee_slice]
+
+
 @pytest.fixture(scope="module")
 def wrist_log(robot, dumbbells):
-    rng = np.random.default_rng(15)
-    theta = E.perturbed_robot_theta(rng, robot, 0.05)
-    theta[robot.ee_slice] = robot.theta_e + payload_theta_in_end_effector(dumbbells["4lb"], robot.extra["grasp_point"])
-    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 3.0, 1000.0, centre=CENTRE, position_amplitude_rad=0.6)
-    return t, q, v, tau, theta[robot.ee_slice]
+    return payload_log(robot, dumbbells["4lb"], 15, 0.6)
 
 
 @pytest.mark.parametrize("mode", ["all", "mass", "none"])
