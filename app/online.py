@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 from safesysid.scenario import Scenario, robot_from_scenario, task_enabled
+from safesysid.systems.sysid_system import ESTIMATE_EXTRA
 
 IDENTIFYING = {"ours": True, "random": True, "conservative": False, "wrong": False}
 
@@ -307,11 +308,14 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
         update_times = [h["update_time_s"] for h in history]
         consistent = all(h["consistent"] for h in history)
         estimator_events = [e for e in est.events(est_ctx) if e["t"] <= t_switch]
+        # the data-driven box before pruning and the paper's first-order interval, of that update
+        extra_estimate = {k: history[-1][k] for k in ESTIMATE_EXTRA} if history else {}
     else:
         theta0, box = built.theta_prior
         theta_e0, lo, hi = theta0[robot.ee_slice], box.lo[robot.ee_slice], box.hi[robot.ee_slice]
         history, cond_y, update_times = [], float("nan"), []
         consistent, estimator_events = True, []
+        extra_estimate = {}
     contains = bool(np.all((lo <= truth) & (truth <= hi)))
     plans, planner_events = [], []
     if built.planner is not None:
@@ -357,6 +361,7 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
             "lower": np.asarray(lo).tolist(),
             "upper": np.asarray(hi).tolist(),
             "consistent": bool(consistent),
+            **extra_estimate,
         },
         "events": events,
         "contains_truth": contains,

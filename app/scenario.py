@@ -72,6 +72,7 @@ _CHOICES = {
     "estimator.set_membership": ("none", "mass", "all"),
     "estimator.point_estimate": ("map", "paper"),
     "estimator.torque_signal": ("held", "continuous"),
+    "payload.bounding_volume.shape": ("none", "ellipsoid", "box"),
     "plant.robot_parameters": ("nominal", "drawn", "corner"),
     "noise.distribution": ("uniform", "none"),
     "controller.kind": ("armour", "pid", "adaptive", "adaptive_robust"),
@@ -157,6 +158,10 @@ def _validate(s: Scenario, where):
     need(s.estimator.quadrature_safety >= 2, "estimator.quadrature_safety", "must be >= 2")
     need(s.estimator.hold_period_s >= 0, "estimator.hold_period_s", "must be >= 0")
     need(s.estimator.torque_rate_limit_Nm_s > 0, "estimator.torque_rate_limit_Nm_s", "must be > 0")
+    vol = s.payload.bounding_volume
+    for key in ("centre_m", "half_extent_m", "rpy_rad"):
+        need(len(getattr(vol, key)) == 3, f"payload.bounding_volume.{key}", "needs 3 values")
+    need(vol.shape == "none" or min(vol.half_extent_m) > 0, "payload.bounding_volume.half_extent_m", "must be > 0")
     for key, value in dc.asdict(s.noise.theta_r_floor).items():
         need(value >= 0, f"noise.theta_r_floor.{key}", "must be >= 0")
     need(0 < s.planner.replan_period_s <= s.planner.duration_s, "planner.replan_period_s", "must be in (0, duration_s]")

@@ -62,9 +62,22 @@ class Robot:
 
 
 @dc.dataclass
+class BoundingVolume:
+    """A region known to contain the payload (not the gripper), in the end-effector frame: an
+    ellipsoid (half_extent_m = semi-axes) or a box (half side lengths), centre_m and rpy_rad of its
+    axes. Used by estimator.physical_pruning (systems/estimation/physical.py)."""
+
+    shape: str = "none"  # none | ellipsoid | box
+    centre_m: List[float] = dc.field(default_factory=lambda: [0.0, 0.0, 0.0])
+    half_extent_m: List[float] = dc.field(default_factory=lambda: [0.0, 0.0, 0.0])
+    rpy_rad: List[float] = dc.field(default_factory=lambda: [0.0, 0.0, 0.0])
+
+
+@dc.dataclass
 class Payload:
     dumbbell: str = "4lb"  # key of models/dumbbells.yaml, or "none"
     dumbbells_file: str = "builtin:dumbbells.yaml"
+    bounding_volume: BoundingVolume = dc.field(default_factory=BoundingVolume)
 
 
 @dc.dataclass
@@ -180,6 +193,9 @@ class Estimator:
     hold_period_s: float = 0.0  # held: the hold period; 0 = plant.time_step_s
     torque_rate_limit_Nm_s: float = 200.0  # continuous: declared |dtau/dt|, checked on the data
     quadrature_safety: float = 2.0  # kappa of the quadrature bound (estimation/segments.py), >= 2
+    # Prune the published box with physical knowledge: J(theta_e) >= 0 and, with a
+    # payload.bounding_volume, its density-realizability LMI (estimation/physical.py).
+    physical_pruning: bool = False
 
 
 @dc.dataclass

@@ -39,6 +39,10 @@ from .faults import packet_size, unpack
 from .inertial import NAMES
 from .robot_model import RobotModel
 
+# summary.json estimate fields besides nominal/lower/upper: the data-driven box before physical
+# pruning, and the paper's first-order interval on the same data (systems/estimation Estimate).
+ESTIMATE_EXTRA = ("data_lower", "data_upper", "first_order_lower", "first_order_upper")
+
 
 @dataclass(frozen=True)
 class SysIdState:
@@ -194,10 +198,12 @@ class SysIdEstimator(LeafSystem):
             "nominal": est.theta_e.tolist(),
             "lower": est.lower.tolist(),
             "upper": est.upper.tolist(),
-            # the data's own least-squares centre and enclosure, before the prior / published box
-            "data_centre": np.asarray(est.theta_ls).tolist(),
-            "data_lower": np.asarray(est.update_lower).tolist(),
-            "data_upper": np.asarray(est.update_upper).tolist(),
+            # the data's own least-squares centre and this update's enclosure (Theorem 2 box)
+            "ls_centre": np.asarray(est.theta_ls).tolist(),
+            "update_lower": np.asarray(est.update_lower).tolist(),
+            "update_upper": np.asarray(est.update_upper).tolist(),
+            # summary.json extras: the data-driven box before physical pruning, the paper's interval
+            **{k: v for k, v in est.to_json().items() if k in ESTIMATE_EXTRA},
             "message": est.message,
             "problems": list(est.problems),
             "quadrature_ratio": est.quadrature_ratio,
@@ -260,10 +266,10 @@ class SysIdEstimator(LeafSystem):
             return []
         lo, hi = (np.asarray(x, float) for x in self.prior)
         for h in history:
-            centre = np.asarray(h.get("data_centre", ()), float)
+            centre = np.asarray(h.get("ls_centre", ()), float)
             if h["consistent"] and len(centre):
                 # only where the data pin the parameter down better than the prior does
-                determined = np.asarray(h["data_upper"]) - np.asarray(h["data_lower"]) < hi - lo
+                determined = np.asarray(h["update_upper"]) - np.asarray(h["update_lower"]) < hi - lo
                 out = np.flatnonzero(determined & ((centre < lo) | (centre > hi)))
                 if len(out):
                     names = ", ".join(f"{NAMES[k]} = {centre[k]:.4g} (prior [{lo[k]:.4g}, {hi[k]:.4g}])" for k in out)

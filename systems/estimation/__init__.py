@@ -29,12 +29,17 @@ inverse L: the box encloses the truth in every case. `case` says which one appli
 interval enclosure of the Jacobian is needed for the near-singular case: the linear-map box
 stays valid there; it is reported, not replaced.
 Two left inverses are used (whitened/θ_r-marginalised and bound-scaled rows) and their boxes
-intersected; then an optional certified LP (`set_membership_bounds`, exact projection of the
+intersected, then the prior (the truth is in it by assumption: no reported interval is ever wider
+than the prior); then an optional certified LP (`set_membership_bounds`, exact projection of the
 feasible polytope, dual-certified) tightens the mass (default) or all parameters. Each update
-is intersected with the published interval (or the prior). Any empty set — the two boxes, the
-LP's polytope, the intersection, a torque faster than declared — is evidence that a declared
-bound failed: consistency is latched off and the last consistent box is published unchanged
-(never the gap between boxes, never wider than before, never outside the prior).
+is intersected with the previous data-driven interval (or the prior): `data_lower/upper`.
+Optionally (`physical_pruning`, module physical) that box is pruned with J(θ_e) ⪰ 0 and the
+density-realizability LMI of a payload inside a bounding volume, by certified cutting-plane LPs
+(an outer bound of the SDP), and intersected with the published interval. The paper's own
+first-order interval (Jacobian at m only, no quadrature term) is reported next to ours. Any empty
+set — the two boxes, the LP's polytope, the intersection, the pruning LP, a torque faster than
+declared — is evidence that a declared bound failed: consistency is latched off and the last
+consistent box is published unchanged (never the gap between boxes, never wider than before, never outside the prior).
 
 Error terms of the box, per parameter (all exact hulls of linear maps, then outward rounding):
     torque:  |L ∂U/∂τ| r_τ   with r_τ = (ratio·|τ_meas| + floor)/(1 − ratio) per sample
@@ -55,10 +60,18 @@ torque, nor 1.5 hold periods: a lost sample's held torque is unknown).
 
 Modules: settings (EstimatorSettings, EstimatorError), segments (segmentation, integrated
 regressor, quadrature bound, rows), log_cholesky (the NLP), enclosure (the interval),
-incremental (Algorithm 1 chunk by chunk), synthetic (joint logs for tests and benchmarks).
+incremental (Algorithm 1 chunk by chunk), physical (LMI pruning with prior physical knowledge),
+synthetic (joint logs for tests and benchmarks).
 """
 
-from .enclosure import box_is_consistent, interval_hull, row_bounds, set_membership_bounds, torque_row_radius
+from .enclosure import (
+    box_is_consistent,
+    certified_lp_min,
+    interval_hull,
+    row_bounds,
+    set_membership_bounds,
+    torque_row_radius,
+)
 from .incremental import Estimate, IncrementalEstimator, identify
 from .log_cholesky import (
     ETA_LOWER,
@@ -71,6 +84,7 @@ from .log_cholesky import (
     nearest_consistent,
     solve_log_cholesky,
 )
+from .physical import BoundingVolume, prune_box
 from .segments import (
     SegmentRows,
     build_segment_rows,
@@ -88,6 +102,7 @@ from .settings import EPS, EstimatorError, EstimatorSettings
 from .synthetic import fourier_motion, fourier_trajectory, held_torque, perturbed_robot_theta, simulate_log
 
 __all__ = [
+    "BoundingVolume",
     "EPS",
     "ETA_LOWER",
     "ETA_UPPER",
@@ -99,6 +114,7 @@ __all__ = [
     "SolveResult",
     "box_is_consistent",
     "build_segment_rows",
+    "certified_lp_min",
     "cost_and_gradient",
     "cost_grad_hess",
     "fourier_motion",
@@ -112,6 +128,7 @@ __all__ = [
     "ls_cost_terms",
     "nearest_consistent",
     "perturbed_robot_theta",
+    "prune_box",
     "quadrature_bound",
     "rate_regressor_samples",
     "row_bounds",

@@ -151,9 +151,8 @@ def set_membership_bounds(rows: SegmentRows, theta_r, rad_r, settings, box_lo, b
     Variables x = (θ_e, θ_r); rows |Y θ_e + D_r θ_r − ∫τ| ≤ Σ_k w_k r_k + quadrature term (a
     boundary sample shared by two segments is let vary independently in each: a relaxation,
     so still an enclosure); θ_r in its box; θ_e in the Theorem-2 box (already proven).
-    The LP solver's answer is not trusted: each bound is recomputed from its dual multipliers
-    y ≥ 0 by weak duality, min c·x ≥ Σ_j min(r_j l_j, r_j u_j) − yᵀb with r = c + Aᵀy, which
-    holds for ANY y ≥ 0. Returns (lo, hi, feasible); lo/hi are NaN where not refined.
+    Each bound is certified by weak duality (`certified_lp_min`). Returns (lo, hi, feasible);
+    lo/hi are NaN where not refined.
     """
     S, n = rows.T.shape
     Y2 = rows.Y.reshape(S * n, 10)
@@ -179,28 +178,46 @@ def set_membership_bounds(rows: SegmentRows, theta_r, rad_r, settings, box_lo, b
         for sign in (1.0, -1.0):
             c = np.zeros(A.shape[1])
             c[i] = sign
-            res = linprog(
-                c,
-                A_ub=A_ub,
-                b_ub=b_ub,
-                bounds=np.stack([lo_x, hi_x], 1),
-                method="highs-ds",
-                options={"presolve": False},
-            )
-            if res.status == 2:  # infeasible: the data contradict the declared bounds
+            status, bound = certified_lp_min(c, A_ub, b_ub, lo_x, hi_x)
+            if status == "infeasible":  # the data contradict the declared bounds
                 return out_lo, out_hi, False
-            if res.status != 0:
+            if status != "ok":
                 continue
-            y = np.maximum(-res.ineqlin.marginals, 0.0)
-            r = c + A_ub.T @ y
-            bound = np.sum(np.minimum(r * lo_x, r * hi_x)) - y @ b_ub
-            # Rounding of the certificate's own float sums (relative, generous).
-            bound -= 1e-12 * (np.abs(r) @ np.maximum(np.abs(lo_x), np.abs(hi_x)) + np.abs(y) @ np.abs(b_ub)) + 1e-300
             if sign > 0:
-                out_lo[i] = np.nextafter(bound, -np.inf)
+                out_lo[i] = bound
             else:
-                out_hi[i] = np.nextafter(-bound, np.inf)
+                out_hi[i] = -bound
     return out_lo, out_hi, True
+
+
+def certified_lp_min(c, A_ub, b_ub, lo_x, hi_x, solution=None):
+    """A certified lower bound on min c·x s.t. A_ub x ≤ b_ub, lo_x ≤ x ≤ hi_x (HiGHS dual simplex).
+
+    The solver's answer is not trusted: the bound is recomputed from its dual multipliers y ≥ 0
+    by weak duality, min c·x ≥ Σ_j min(r_j l_j, r_j u_j) − yᵀb with r = c + Aᵀy, which holds for
+    ANY y ≥ 0, then padded for the rounding of its own float sums and rounded outward.
+    Returns (status, bound): status "ok", "infeasible" or "failed" (bound NaN). `solution`, a
+    list, receives the primal minimiser (the cutting planes of `physical.prune_box` use it).
+    """
+    res = linprog(
+        c,
+        A_ub=A_ub,
+        b_ub=b_ub,
+        bounds=np.stack([lo_x, hi_x], 1),
+        method="highs-ds",
+        options={"presolve": False},
+    )
+    if res.status == 2:
+        return "infeasible", np.nan
+    if res.status != 0:
+        return "failed", np.nan
+    if solution is not None:
+        solution.append(res.x)
+    y = np.maximum(-res.ineqlin.marginals, 0.0)
+    r = c + A_ub.T @ y
+    bound = np.sum(np.minimum(r * lo_x, r * hi_x)) - y @ b_ub
+    bound -= 1e-12 * (np.abs(r) @ np.maximum(np.abs(lo_x), np.abs(hi_x)) + np.abs(y) @ np.abs(b_ub)) + 1e-300
+    return "ok", float(np.nextafter(bound, -np.inf))
 
 
 def box_is_consistent(centre, radius):

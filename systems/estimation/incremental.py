@@ -13,6 +13,7 @@ from .. import inertial
 from ..uncertainty import parameter_radius
 from .enclosure import box_is_consistent, interval_hull, set_membership_bounds, torque_row_radius
 from .log_cholesky import cost_grad_hess, nearest_consistent, solve_log_cholesky
+from .physical import prune_box
 from .segments import SegmentRows, build_segment_rows, segment_bounds
 from .settings import EstimatorError, EstimatorSettings
 
@@ -43,6 +44,14 @@ class Estimate:
     problems: list = field(default_factory=list)  # this update's evidence that an assumption failed
     quadrature_ratio: float = 0.0  # max over rows of quadrature bound / torque radius
     update_time_s: float = 0.0
+    # The data-driven box (data ∩ prior ∩ the previous data box) before physical pruning; equals
+    # lower/upper when settings.physical_pruning is off.
+    data_lower: np.ndarray | None = None
+    data_upper: np.ndarray | None = None
+    # The paper's first-order interval (Theorem 2 with the Jacobian at m only): Y⁺U(m) ± |Y⁺ ∂U/∂m|
+    # rad([m]), unweighted rows, no quadrature or rounding term, no prior: reported, never used.
+    first_order_lower: np.ndarray | None = None
+    first_order_upper: np.ndarray | None = None
 
     @property
     def widths(self):
@@ -78,7 +87,15 @@ class Estimate:
             "problems": list(self.problems),
             "quadrature_ratio": float(self.quadrature_ratio),
             "update_time_s": float(self.update_time_s),
+            "data_lower": f(self.lower if self.data_lower is None else self.data_lower),
+            "data_upper": f(self.upper if self.data_upper is None else self.data_upper),
+            "first_order_lower": None if self.first_order_lower is None else f(self.first_order_lower),
+            "first_order_upper": None if self.first_order_upper is None else f(self.first_order_upper),
         }
+
+
+def _names(mask):
+    return [inertial.NAMES[k] for k in np.flatnonzero(mask)]
 
 
 class IncrementalEstimator:
@@ -115,6 +132,11 @@ class IncrementalEstimator:
         self.prior = None if prior is None else (np.asarray(prior[0], float), np.asarray(prior[1], float))
         nominal = robot.theta_e if prior_nominal is None else np.asarray(prior_nominal, float)
         self.prior_nominal = nominal.copy()  # published before the first update (need not be consistent)
+        # The gripper's own parameters (the end-effector link without payload) in the robot box:
+        # what the payload's bounding volume is subtracted from (estimation/physical.py).
+        rad_g = parameter_radius(robot, st.theta_r_ratio, st.theta_r_ratio, st.theta_r_floor)[robot.ee_slice]
+        self.gripper_box = (robot.theta_e - rad_g, robot.theta_e + rad_g)
+        self._cuts = []  # cutting planes of the pruning LPs (valid for every box: kept across updates)
         self.eta = (
             inertial.theta_to_log_cholesky(nominal) if inertial.is_physically_consistent(nominal) else np.zeros(10)
         )
@@ -150,6 +172,20 @@ class IncrementalEstimator:
         self._consumed += next_start
         self._pending = tuple(x[next_start:] for x in (t, q, v, tau))
         return len(bounds)
+
+    def predicted_radius(self, t, q, v, tau):
+        """Half-widths of the Theorem-2 box (torque + θ_r + quadrature terms, the `map` left
+        inverse) if the candidate log (t, q, v, τ: e.g. a plan's samples with its predicted
+        torque) were added to the data so far; the estimator is not changed. A planner can rank
+        candidate plans by it (it does not depend on the noise, only on the motion and the torque
+        level). None when the data would not identify θ_e."""
+        t, q, v, tau = (np.asarray(x, float) for x in (t, q, v, tau))
+        bounds, _ = segment_bounds(t, self.settings.horizon_s, self.settings.segment_gap_s())
+        new = build_segment_rows(self.robot, t, q, v, tau, bounds, self.settings, self.theta_box())
+        hull, cond = interval_hull(self.rows.concat(new), self.theta_r, self.theta_r_radius, self.settings)
+        if hull is None or cond > self.settings.max_condition:
+            return None
+        return hull["rad_torque"] + hull["rad_theta_r"] + hull["rad_quad"]
 
     def theta_box(self):
         """(centre, radius) of the box the whole-robot θ lies in: [θ_r] and the published [θ_e]
@@ -225,6 +261,12 @@ class IncrementalEstimator:
                     )
                 else:
                     lo, hi = lo_alt, hi_alt
+        # A2: the truth is in the prior, so the update box is intersected with it (before the LP,
+        # whose polytope it bounds: a tighter LP).
+        if self.prior is not None and not problems:
+            lo, hi = np.maximum(lo, self.prior[0]), np.minimum(hi, self.prior[1])
+            if np.any(lo > hi):
+                problems.append(f"the data box does not meet the prior in {_names(lo > hi)}")
         params = {"none": [], "mass": [0], "all": list(range(10))}[st.set_membership]
         if params and not problems:
             sm_lo, sm_hi, feasible = set_membership_bounds(
@@ -243,14 +285,23 @@ class IncrementalEstimator:
             case = "interior_at_m"  # LMI inactive at m but reachable inside [m]; box encloses truth
         else:
             case = "lmi_active"  # θ0 near the LMI boundary; box around Y⁺U(m) still encloses truth
-        # Intersect with the published interval (or the prior).
-        old = (prev.lower, prev.upper) if prev is not None else self.prior
-        new_lo, new_hi = (lo, hi) if old is None else (np.maximum(lo, old[0]), np.minimum(hi, old[1]))
-        if np.any(new_lo > new_hi):
-            problems.append(
-                "the new interval does not meet the published one in "
-                f"{[inertial.NAMES[k] for k in np.flatnonzero(new_lo > new_hi)]}"
-            )
+        # Intersect with the previous data-driven interval (or the prior) ...
+        old = (prev.data_lower, prev.data_upper) if prev is not None else self.prior
+        data_lo, data_hi = (lo, hi) if old is None else (np.maximum(lo, old[0]), np.minimum(hi, old[1]))
+        if np.any(data_lo > data_hi):
+            problems.append(f"the new interval does not meet the published one in {_names(data_lo > data_hi)}")
+        # ... then prune it with physical knowledge and keep it inside the published one.
+        new_lo, new_hi = data_lo, data_hi
+        if st.physical_pruning and not problems:
+            p_lo, p_hi, feasible = prune_box(data_lo, data_hi, st.payload_volume, self.gripper_box, cuts=self._cuts)
+            if not feasible:
+                problems.append("the data box contradicts the payload's physical knowledge (LMI, bounding volume)")
+            else:
+                new_lo, new_hi = (
+                    (p_lo, p_hi) if prev is None else (np.maximum(p_lo, prev.lower), np.minimum(p_hi, prev.upper))
+                )
+                if np.any(new_lo > new_hi):
+                    problems.append(f"the pruned interval does not meet the published one in {_names(new_lo > new_hi)}")
         notes = []
         quad_ratio = float(np.max(self.rows.quad / np.maximum(torque_row_radius(self.rows), 1e-300)))
         if quad_ratio > st.quadrature_warn_ratio:
@@ -270,11 +321,14 @@ class IncrementalEstimator:
         if not self.consistent:  # latched: publish the last consistent box (or the prior) unchanged
             keep = prev or self._prior_estimate(np.inf, 0, "")
             theta_e, new_lo, new_hi = keep.theta_e.copy(), keep.lower.copy(), keep.upper.copy()
+            data_lo, data_hi = keep.data_lower.copy(), keep.data_upper.copy()
+            lo, hi = data_lo, data_hi  # this update's own box is evidence of a failure, not an interval
         else:
             self.eta = sol.eta  # the consistent least-squares solution stays the warm start
             # Publish the nominal clipped into the interval: the truth is inside it, so per parameter
             # the projection is never farther from the truth (it matters for barely excited inertias).
             theta_e = np.clip(sol.theta, new_lo, new_hi)
+        first = self._first_order()
         theta = robot.theta.copy()
         theta[robot.ee_slice] = theta_e
         t_lo, t_hi = self._robot_box()
@@ -310,8 +364,21 @@ class IncrementalEstimator:
             message="; ".join(notes),
             problems=problems,
             quadrature_ratio=quad_ratio,
+            data_lower=data_lo,
+            data_upper=data_hi,
+            first_order_lower=None if first is None else first[0],
+            first_order_upper=None if first is None else first[1],
         )
         return self._finish(est, start)
+
+    def _first_order(self):
+        """The paper's first-order interval on the same data (see Estimate.first_order_lower)."""
+        paper = replace(self.settings, point_estimate="paper", row_weighting="none")
+        hull, _ = interval_hull(self.rows, self.theta_r, self.theta_r_radius, paper)
+        if hull is None:
+            return None
+        radius = hull["rad_torque"] + hull["rad_theta_r"]
+        return hull["centre"] - radius, hull["centre"] + radius
 
     def _finish(self, est, start):
         est.update_time_s = time.perf_counter() - start
@@ -337,7 +404,7 @@ class IncrementalEstimator:
         theta = self.robot.theta.copy()
         theta[self.robot.ee_slice] = theta_e
         z = np.zeros(10)
-        return Estimate(
+        est = Estimate(
             theta_e,
             lo.copy(),
             hi.copy(),
@@ -360,6 +427,8 @@ class IncrementalEstimator:
             {},
             message,
         )
+        est.data_lower, est.data_upper = lo.copy(), hi.copy()
+        return est
 
     def prior_estimate(self):
         """What to publish before the first identification (nominal θ_e, prior box)."""

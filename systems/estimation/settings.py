@@ -15,6 +15,17 @@ class EstimatorError(ValueError):
     """Bad estimator input (too little data, wrong shapes, non-finite values)."""
 
 
+def payload_volume(field):
+    """The scenario's payload.bounding_volume as a physical.BoundingVolume (None for shape none)."""
+    if field.shape == "none":
+        return None
+    from .physical import BoundingVolume, rpy_matrix
+
+    return BoundingVolume(
+        field.shape, np.array(field.centre_m, float), np.array(field.half_extent_m, float), rpy_matrix(field.rpy_rad)
+    )
+
+
 @dataclass
 class EstimatorSettings:
     horizon_s: float = 0.1
@@ -52,6 +63,11 @@ class EstimatorSettings:
     # Point estimate θ0: "map" (θ_r marginalised with its box as prior, rows whitened) or
     # "paper" (the paper's ‖Y P(η) − U‖², rows scaled per `row_weighting`); see _left_inverse.
     point_estimate: str = "map"
+    # Prior physical knowledge (estimation/physical.py): prune the published box with J(θ_e) ⪰ 0
+    # and, given a volume containing the payload, its density-realizability LMI. The data-driven
+    # box is reported separately (Estimate.data_lower/upper).
+    physical_pruning: bool = False
+    payload_volume: object = None  # physical.BoundingVolume | None
 
     @classmethod
     def from_scenario(cls, s):
@@ -71,6 +87,8 @@ class EstimatorSettings:
             theta_r_floor=s.noise.theta_r_floor,
             set_membership=e.set_membership,
             point_estimate=e.point_estimate,
+            physical_pruning=e.physical_pruning,
+            payload_volume=payload_volume(s.payload.bounding_volume),
         )
 
     def segment_gap_s(self):

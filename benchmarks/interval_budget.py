@@ -1,0 +1,213 @@
+"""Where the width of each payload interval comes from (issue 15), and how it scales.
+
+For one synthetic identification run (4 lb payload, the arm's centre pose, a smooth Fourier motion
+per joint, torque noise uniform at the declared bound, robot parameters drawn in their ±5 % box):
+
+- Theorem-2 box (least squares, `map` left inverse): its half-width is an exact SUM of four terms,
+  torque noise, robot-parameter box θ_r, quadrature (discretisation) and rounding.
+- Set-membership LP over all ten parameters (the intersection over all segments): its half-width
+  with all sources, and on the same motion's noise-free log with θ_r at nominal, the half-width
+  each source gives alone (quadrature always on: the discretisation error is in every log).
+- Prior clipping (what the Table II box removes) and physical pruning (J ⪰ 0 and the bounding
+  volume of the payload, estimation/physical.py) on top of the LP box.
+
+Swept over the motion amplitude (→ peak joint acceleration) and the data length. Prints one table;
+`python -m safesysid.benchmarks.interval_budget [--quick]`. With `--closed-loop N`: the median
+width / prior width per parameter over N closed-loop seeds of scenarios/identify_all.yaml (ours and
+random; published, data-driven and the paper's first-order interval).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+
+import numpy as np
+from safesysid.systems import estimation as E
+from safesysid.systems.estimation.enclosure import interval_hull, set_membership_bounds
+from safesysid.systems.estimation.physical import BoundingVolume, prune_box
+from safesysid.systems.inertial import NAMES
+from safesysid.systems.payload import load_dumbbells, payload_theta_in_end_effector
+from safesysid.systems.robot_model import MODELS_DIR, load_robot
+
+CENTRE = [0.0, 0.3, 0.0, 1.5, 0.0, 0.8, 0.0]
+PRIOR = (np.array([1.2, -0.4, -0.4, -1.0] + [-0.2] * 6), np.array([5.2, 0.4, 0.4, -0.1] + [0.2] * 6))
+PRIOR_NOMINAL = np.array([3.2, 0.0, 0.0, -0.5] + [0.0] * 6)
+# The 4 lb dumbbell (0.18 m long, heads of radius 0.04 m) at the grasp point, handle along x, with 1 cm to spare.
+VOLUME = BoundingVolume("box", np.array([0.0, 0.0, -0.2]), np.array([0.10, 0.05, 0.05]), np.eye(3))
+SOURCES = {"torque": "rad_torque", "theta_r": "rad_theta_r", "quadrature": "rad_quad", "rounding": "rad_round"}
+
+
+def _estimator(robot, t, q, v, tau):
+    est = E.IncrementalEstimator(robot, E.EstimatorSettings(set_membership="none"), PRIOR, PRIOR_NOMINAL)
+    est.add(t, q, v, tau)
+    est.update()
+    return est
+
+
+def _lp_half(est, rad_r, box, rows=None):
+    st = dataclasses.replace(est.settings, set_membership="all")
+    lo, hi, ok = set_membership_bounds(rows or est.rows, est.theta_r, rad_r, st, box[0], box[1], range(10))
+    return 0.5 * (hi - lo) if ok else np.full(10, np.nan)
+
+
+def budget(robot, theta_true, amplitude_rad, duration_s, seed=0):
+    """Half-widths per source for one run: a dict of (10,) arrays plus the peak |q̈| per joint."""
+    rng = np.random.default_rng(seed)
+    motion_kw = dict(centre=CENTRE, position_amplitude_rad=amplitude_rad)
+    t, motion = E.fourier_motion(np.random.default_rng(seed), robot, duration_s, 1000.0, **motion_kw)
+    q, v, acc = motion(t)
+    tau = E.held_torque(robot, motion, t, theta_true)
+    noise = 0.025 * np.abs(tau) + 0.05
+    tau_meas = tau + rng.uniform(-1, 1, tau.shape) * noise
+    est = _estimator(robot, t, q, v, tau_meas)
+    hull, _ = interval_hull(est.rows, est.theta_r, est.theta_r_radius, est.settings)
+    out = {"peak_acc_rad_s2": np.abs(acc).max(0), "cond_Y": est.estimate.cond_Y}
+    for k, key in SOURCES.items():
+        out[f"ls_{k}"] = hull[key]
+    out["ls_total"] = sum(out[f"ls_{k}"] for k in SOURCES)
+    wide = (np.full(10, -1e3), np.full(10, 1e3))
+    out["lp_all"] = _lp_half(est, est.theta_r_radius, wide)
+    # Same motion, exact torque, θ_r at nominal: each source alone (the others' radius set to 0).
+    nominal = robot.theta.copy()
+    nominal[robot.ee_slice] = theta_true[robot.ee_slice]
+    clean = _estimator(robot, t, q, v, E.held_torque(robot, motion, t, nominal))
+    no_tau = dataclasses.replace(
+        clean.rows, r_first=0 * clean.rows.r_first, r_last=0 * clean.rows.r_last, r_inner=0 * clean.rows.r_inner
+    )
+    zero_r = np.zeros_like(clean.theta_r_radius)
+    out["lp_torque"] = _lp_half(clean, zero_r, wide)
+    out["lp_theta_r"] = _lp_half(clean, clean.theta_r_radius, wide, no_tau)
+    out["lp_quadrature"] = _lp_half(clean, zero_r, wide, no_tau)
+    # Prior clipping and physical pruning of the LP box (the truth is in both by assumption).
+    full = _lp_bounds(est)
+    clipped = (np.maximum(full[0], PRIOR[0]), np.minimum(full[1], PRIOR[1]))
+    out["lp_box_half"] = 0.5 * (full[1] - full[0])
+    out["prior_clip"] = out["lp_box_half"] - 0.5 * (clipped[1] - clipped[0])
+    p_lo, p_hi, ok = prune_box(*clipped, VOLUME, est.gripper_box)
+    out["pruned_half"] = 0.5 * (p_hi - p_lo) if ok else np.full(10, np.nan)
+    out["prior_half"] = 0.5 * (PRIOR[1] - PRIOR[0])
+    out.update(_update_times(robot, t, q, v, tau_meas))
+    return out
+
+
+def _update_times(robot, t, q, v, tau, repeat=2):
+    """Best-of-`repeat` wall time of one estimator update on the whole log: LP over all ten
+    parameters, then also with LMI pruning (a fresh estimator each time: no cutting planes kept)."""
+    import time
+
+    times = {}
+    for key, kw in (("update_all_s", {}), ("update_all_pruned_s", dict(physical_pruning=True, payload_volume=VOLUME))):
+        best = np.inf
+        for _ in range(repeat):
+            est = E.IncrementalEstimator(robot, E.EstimatorSettings(set_membership="all", **kw), PRIOR, PRIOR_NOMINAL)
+            est.add(t, q, v, tau)
+            start = time.perf_counter()
+            est.update()
+            best = min(best, time.perf_counter() - start)
+        times[key] = best
+    return times
+
+
+def _lp_bounds(est):
+    """The LP box of all ten parameters inside the Theorem-2 box (what the estimator publishes
+    with set_membership: all, before the prior)."""
+    e = est.estimate
+    radius = e.radius_torque + e.radius_theta_r + e.radius_quadrature + e.radius_rounding
+    lo, hi = e.theta_ls - radius, e.theta_ls + radius
+    st = dataclasses.replace(est.settings, set_membership="all")
+    s_lo, s_hi, ok = set_membership_bounds(est.rows, est.theta_r, est.theta_r_radius, st, lo, hi, range(10))
+    return (np.maximum(lo, s_lo), np.minimum(hi, s_hi)) if ok else (lo, hi)
+
+
+def run(quick: bool = False) -> dict:
+    robot = load_robot(coulomb_smoothing=0.01)
+    db = load_dumbbells(MODELS_DIR / "dumbbells.yaml")["4lb"]
+    theta = E.perturbed_robot_theta(np.random.default_rng(15), robot, 0.05)
+    theta[robot.ee_slice] = robot.theta_e + payload_theta_in_end_effector(db, robot.extra["grasp_point"])
+    cases = [(0.6, 3.0)] if quick else [(0.15, 7.5), (0.3, 7.5), (0.6, 7.5), (0.6, 1.5), (0.6, 3.0)]
+    rows = []
+    for amp, dur in cases:
+        b = budget(robot, theta, amp, dur)
+        rows.append({"amplitude_rad": amp, "duration_s": dur, **{k: np.asarray(v).tolist() for k, v in b.items()}})
+    return {"payload": "4lb", "names": list(NAMES), "cases": rows}
+
+
+def print_table(result: dict) -> None:
+    names = result["names"]
+    keys = [
+        ("prior_half", "prior"),
+        ("ls_torque", "LS torque"),
+        ("ls_theta_r", "LS θ_r ±5%"),
+        ("ls_quadrature", "LS quadrature"),
+        ("ls_total", "LS total"),
+        ("lp_torque", "LP torque only"),
+        ("lp_theta_r", "LP θ_r only"),
+        ("lp_quadrature", "LP quadrature only"),
+        ("lp_all", "LP all sources"),
+        ("prior_clip", "prior clipping"),
+        ("pruned_half", "LMI-pruned"),
+    ]
+    for case in result["cases"]:
+        acc = " ".join(f"{a:.1f}" for a in case["peak_acc_rad_s2"])
+        print(
+            f"\namplitude {case['amplitude_rad']} rad, {case['duration_s']} s, peak |q̈| per joint [{acc}] rad/s², "
+            f"cond(Y) {case['cond_Y']:.3g}; update {case['update_all_s']:.2f} s (LP all), "
+            f"{case['update_all_pruned_s']:.2f} s (+ LMI pruning); half-widths:"
+        )
+        print(f"| {'source':<20} | " + " | ".join(f"{n:>7}" for n in names) + " |")
+        print("|" + "-" * 22 + "|" + "|".join(["-" * 9] * len(names)) + "|")
+        for key, label in keys:
+            print(f"| {label:<20} | " + " | ".join(f"{x:7.3f}" for x in case[key]) + " |")
+
+
+def closed_loop(seeds, scenario="identify_all.yaml", methods=("ours", "random")) -> dict:
+    """Median width / prior width per parameter over closed-loop runs of a scenario (payloads 4-8 lb
+    by seed): published, data-driven (before pruning) and the paper's first-order interval."""
+    from safesysid.online import run_online
+    from safesysid.scenario import SCENARIOS_DIR, load_scenario
+
+    base = load_scenario(SCENARIOS_DIR / scenario)
+    payloads = ["4lb", "5lb", "6lb", "7lb", "8lb"]
+    out = {}
+    for method in methods:
+        runs = []
+        for seed in seeds:
+            scene = dataclasses.replace(base, payload=dataclasses.replace(base.payload, dumbbell=payloads[seed % 5]))
+            runs.append(run_online(scene, None, method=method, seed=seed, write=False))
+        width = lambda s, key: np.array(s["estimate"][f"{key}upper"]) - np.array(s["estimate"][f"{key}lower"])  # noqa: E731
+        prior = PRIOR[1] - PRIOR[0]
+        out[method] = {
+            "contains": [bool(s["contains_truth"]) for s in runs],
+            "consistent": [bool(s["estimate"]["consistent"]) for s in runs],
+            "mass_half_width_kg": [float(width(s, "")[0] / 2) for s in runs],
+            **{
+                f"{key or 'published_'}ratio": np.median([width(s, key) / prior for s in runs], 0).tolist()
+                for key in ("", "data_", "first_order_")
+            },
+        }
+    return out
+
+
+def print_closed_loop(result: dict) -> None:
+    print(f"| {'median width / prior':<26} | " + " | ".join(f"{n:>6}" for n in NAMES) + " |")
+    print("|" + "-" * 28 + "|" + "|".join(["-" * 8] * len(NAMES)) + "|")
+    for method, r in result.items():
+        for key, label in (
+            ("published_ratio", "pruned"),
+            ("data_ratio", "data-driven"),
+            ("first_order_ratio", "paper first-order"),
+        ):
+            print(f"| {method + ' ' + label:<26} | " + " | ".join(f"{x:6.3f}" for x in r[key]) + " |")
+    for method, r in result.items():
+        print(
+            f"{method}: contains {sum(r['contains'])}/{len(r['contains'])}, consistent {sum(r['consistent'])}, "
+            f"mass half-width kg {[round(x, 3) for x in r['mass_half_width_kg']]}"
+        )
+
+
+if __name__ == "__main__":
+    if "--closed-loop" in sys.argv:  # --closed-loop N: seeds 0..N-1 of scenarios/identify_all.yaml
+        print_closed_loop(closed_loop(range(int(sys.argv[sys.argv.index("--closed-loop") + 1]))))
+    else:
+        print_table(run(quick="--quick" in sys.argv))

@@ -1,0 +1,62 @@
+"""scenarios/identify_all.yaml over paired seeds (issue 15), SAFESYSID_FULL=1 only (40 closed-loop
+runs, ~15 min on a quiet 2-core machine):
+
+    SAFESYSID_FULL=1 python -m pytest -q tests/test_estimator_identify_all.py
+
+Payloads 4-8 lb, robot parameters drawn in their box (the scenario's plant.robot_parameters: drawn),
+torque noise uniform inside the declared bound; ours and random with the same seeds. CI checks the
+same estimator paths on synthetic logs (tests/test_estimator_prior.py, test_estimator_physical.py).
+"""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from helpers import FULL, PAYLOADS, PRIOR
+from safesysid.online import run_online
+from safesysid.scenario import SCENARIOS_DIR, load_scenario
+
+pytestmark = pytest.mark.skipif(not FULL, reason="20 paired closed-loop seeds: SAFESYSID_FULL=1")
+SEEDS = range(20)
+WIDTH_PRIOR = PRIOR[1] - PRIOR[0]
+
+
+@pytest.fixture(scope="module")
+def runs():
+    base = load_scenario(SCENARIOS_DIR / "identify_all.yaml")
+    out = {}
+    for seed in SEEDS:
+        scene = dataclasses.replace(
+            base, payload=dataclasses.replace(base.payload, dumbbell=PAYLOADS[seed % len(PAYLOADS)])
+        )
+        for method in ("ours", "random"):
+            out[method, seed] = run_online(scene, None, method=method, seed=seed, write=False)
+    return out
+
+
+def widths(summary, key=""):
+    e = summary["estimate"]
+    return np.array(e[f"{key}upper"]) - np.array(e[f"{key}lower"])
+
+
+def test_truth_inside_every_published_interval(runs):
+    assert all(s["contains_truth"] and s["estimate"]["consistent"] for s in runs.values())
+    for s in runs.values():
+        truth, e = np.array(s["payload_true"]["theta"]), s["estimate"]
+        assert np.all((np.array(e["data_lower"]) <= truth) & (truth <= np.array(e["data_upper"])))
+
+
+def test_every_interval_narrower_than_the_prior_and_inertias_within_half_of_it(runs):
+    for (method, seed), s in runs.items():
+        ratio = widths(s) / WIDTH_PRIOR
+        assert np.all(ratio < 1.0), (method, seed, ratio)
+        assert np.all(ratio[4:] <= 0.5), (method, seed, ratio)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="out of reach with the robot-parameter box: the LP with the +-5 % robot box alone (no torque "
+    "noise) leaves a mass half-width of 0.104-0.122 kg (benchmarks/interval_budget.py)",
+)
+def test_mass_half_width_at_most_a_tenth_of_a_kilogram(runs):
+    assert max(widths(s)[0] / 2 for s in runs.values()) <= 0.1
