@@ -199,7 +199,7 @@ def classify_failure(safety, plans, tracking_ratio):
 def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat=False, write=True):
     """Run Algorithm 2 on a scenario; write summary.json, log.csv, plots, replay.html."""
     from pydrake.systems.analysis import Simulator
-    from safesysid import report, viz
+    from safesysid import figures, progress, report, viz
     from safesysid.joint_log import JointLog, write_joint_log
     from safesysid.systems.inertial import NAMES
 
@@ -213,6 +213,7 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
     built = build_online(scenario, method, meshcat=meshcat, seed=seed)
     arm, robot = built.arm, built.arm.robot
     sim = Simulator(built.diagram)
+    progress.watch(sim, scenario, live_meshcat, getattr(getattr(built, "source", None), "switch_time_s", None))
     ctx = sim.get_mutable_context()
     arm.seed_noise(ctx)
     arm.set_state(ctx, np.asarray(scenario.q0_rad, float))
@@ -326,6 +327,7 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
         np.max(np.abs(command) / robot.joint_params.torque_limit, 1),
     )
     report.plot_clearance(out / "clearance.png", np.array(rec.times), np.array(rec.clearance))
+    figures.write_run_figures(out, summary, history, robot.joint_params.torque_limit)  # joints, conditioning
     report.plot_intervals(out / "intervals.png", theta_e0, lo, hi, truth, title=f"{scenario.name} / {method}")
     if history:
         report.plot_estimate_history(
@@ -336,9 +338,12 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
             [h["upper"] for h in history],
             truth,
         )
+    replay = viz.ReplayScene(robot, t, q, desired[:, :n], figures.phases_of(summary), scenario.obstacles)
+    viz.decorate(meshcat, built.visualizer, replay)
     if built.visualizer is not None:
         draw_plans(meshcat, robot, built.planner.results(planner_context))
         viz.save_replay(meshcat, built.visualizer, out / "replay.html")
+    viz.add_phase_banner(out / "replay.html", replay.phases)
     return summary
 
 
