@@ -95,7 +95,7 @@ def _box_corners(box) -> np.ndarray:
     return np.asarray(box.xyz_m, float) + (signs * np.asarray(box.size_m, float) / 2) @ rot.T
 
 
-def frame_camera(meshcat, points, direction=(1.0, -1.1, 0.75), fov_deg=75.0, margin=1.35):
+def frame_camera(meshcat, points, direction=(1.0, -1.1, 0.75), fov_deg=75.0, margin=1.0):
     """Aim Meshcat's default camera at the bounding box of `points` (N x 3, world) from
     `direction`, close enough that the box's enclosing sphere fills the (vertical) field of view."""
     points = np.asarray(points, float).reshape(-1, 3)
