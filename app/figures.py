@@ -26,7 +26,7 @@ def phases_of(summary: dict) -> list[tuple[str, float, float]]:
     return phases + [("task", switch, release), ("settle", release, end)]
 
 
-def shade_phases(ax, phases, label: bool = True) -> None:
+def shade_phases(ax, phases: list[tuple[str, float, float]], label: bool = True) -> None:
     for name, t0, t1 in phases:
         ax.axvspan(t0, t1, color=PHASE_COLOURS.get(name, "#999"), alpha=0.08, lw=0)
         if label:
@@ -35,7 +35,7 @@ def shade_phases(ax, phases, label: bool = True) -> None:
             )
 
 
-def run_log(folder: Path):
+def run_log(folder: Path) -> tuple:
     """(t, tracking error qd - q [rad, wrapped], commanded torque u [N m], log) of a run folder."""
     from safesysid.joint_log import read_joint_log
 
@@ -46,7 +46,7 @@ def run_log(folder: Path):
     return log.t, np.angle(np.exp(1j * (qd - log.q))), u, log
 
 
-def plot_joints(path, series, bound, limit, phases=(), title: str = ""):
+def plot_joints(path: Path, series: list[tuple], bound, limit, phases=(), title: str = "") -> Path:
     """Per joint: tracking error (left, with the certified bound) and commanded torque before
     saturation (right, with the limit); series: [(label, t, error, torque)]."""
     n = series[0][2].shape[1]
@@ -74,13 +74,14 @@ def plot_joints(path, series, bound, limit, phases=(), title: str = ""):
     return save_figure(fig, path)
 
 
-def plot_conditioning(path, cond_w, updates, title: str = ""):
+def plot_conditioning(path: Path, cond_w: list, updates: list[tuple[float, float]], title: str = "") -> Path:
     """cond(W) of each accepted plan (the planner's excitation) and cond(Y) after each
     identification update (updates: [(t, cond_Y)])."""
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 3.2))
     plans = [(k + 1, c) for k, c in enumerate(cond_w) if c is not None and np.isfinite(c)]
     if plans:
         ax1.semilogy(*zip(*plans), "o-")
+        ax1.set_xticks([k for k, _ in plans])
     ax1.set_xlabel("plan k")
     ax1.set_ylabel("cond(W) of the plan")
     finite = [(t, c) for t, c in updates if c is not None and np.isfinite(c)]
@@ -113,7 +114,7 @@ def _first_runs(done, dumbbell):
     return chosen
 
 
-def plot_mass_over_time(path, series: dict, truth_kg: float, title: str = ""):
+def plot_mass_over_time(path: Path, series: dict, truth_kg: float, title: str = "") -> Path:
     """Fig. 6: each method's estimated end-effector mass over time (series: {method: (t, m,
     switch_time_s or None)}), the task switch dotted, the truth dashed."""
     fig, ax = plt.subplots(figsize=(9, 3.6))
@@ -183,7 +184,7 @@ def compare_figures(out: Path, done: list[dict], torque_limit=None) -> list[Path
     return written
 
 
-def table_figure(path, scenario_name: str, rows: dict, dumbbells: list[str]):
+def table_figure(path: Path, scenario_name: str, rows: dict, dumbbells: list[str]) -> Path:
     """The compare table as a picture: per method and dumbbell the share of successful runs,
     coloured by outcome (green all succeeded, orange a failure, red a collision), and the
     Table III cell."""

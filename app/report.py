@@ -12,7 +12,7 @@ import numpy as np  # noqa: E402
 from safesysid.systems.inertial import NAMES, UNITS  # noqa: E402
 
 
-def save_figure(fig, path):
+def save_figure(fig, path) -> Path:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -47,7 +47,7 @@ def plot_intervals(path, nominal, lower, upper, truth=None, title=""):
     return plot_intervals_side_by_side(path, {"estimate": (nominal, lower, upper)}, truth, title)
 
 
-def plot_intervals_side_by_side(path, estimates: dict, truth=None, title: str = ""):
+def plot_intervals_side_by_side(path, estimates: dict, truth=None, title: str = "") -> Path:
     """Fig. 5: per parameter, each estimate's interval and nominal side by side (estimates:
     {label: (nominal, lower, upper)}), and the truth when known."""
     fig, axes = plt.subplots(2, 5, figsize=(13 + len(estimates), 5.5))

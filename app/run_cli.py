@@ -62,6 +62,9 @@ def _headline(s):
 def _mark_interrupted(out: Path, summary: dict) -> dict:
     """A run stopped by Ctrl-C did not succeed: say so in its summary.json."""
     summary.update(interrupted=True, success=False, failure=summary["failure"] or "interrupted")
+    log = out / "log.csv"
+    if log.exists():  # the simulated time reached (sim_time_s is the time the run was meant to last)
+        summary["interrupted_at_s"] = float(log.read_text().rstrip().rsplit("\n", 1)[-1].split(",", 1)[0])
     path = out / "summary.json"
     if path.exists():
         path.write_text(json.dumps(summary, indent=2, default=float))

@@ -49,11 +49,11 @@ def add_visualizer(builder, query_object_port, meshcat):
     return MeshcatVisualizer.AddToBuilder(builder, query_object_port, meshcat, params)
 
 
-def draw_plan(meshcat, points_world, index, rgba=(0.1, 0.4, 1.0, 1.0), prefix=PLAN_PATH):
-    """Polyline of a planned gripper-centre path (N x 3 points in world)."""
+def draw_plan(meshcat, points_world, index, rgba=(0.1, 0.4, 1.0, 1.0)):
+    """Polyline of the planned end-effector path (3 x N points in world)."""
     from pydrake.geometry import Rgba
 
-    meshcat.SetLine(f"{prefix}/{index}", np.asarray(points_world, float).T, 3.0, Rgba(*rgba))
+    meshcat.SetLine(f"{PLAN_PATH}/{index}", np.asarray(points_world, float).T, 3.0, Rgba(*rgba))
 
 
 def draw_swept_spheres(meshcat, centres, radii, index, every=4):
@@ -95,7 +95,9 @@ def _box_corners(box) -> np.ndarray:
     return np.asarray(box.xyz_m, float) + (signs * np.asarray(box.size_m, float) / 2) @ rot.T
 
 
-def frame_camera(meshcat, points, direction=(1.0, -1.1, 0.75), fov_deg=75.0, margin=1.0):
+def frame_camera(
+    meshcat, points: np.ndarray, direction=(1.0, -1.1, 0.75), fov_deg: float = 75.0, margin: float = 1.0
+) -> tuple[np.ndarray, float]:
     """Aim Meshcat's default camera at the bounding box of `points` (N x 3, world) from
     `direction`, close enough that the box's enclosing sphere fills the (vertical) field of view."""
     points = np.asarray(points, float).reshape(-1, 3)
@@ -108,17 +110,19 @@ def frame_camera(meshcat, points, direction=(1.0, -1.1, 0.75), fov_deg=75.0, mar
     return centre, distance
 
 
-def _grasp_path(robot, q):
+def _grasp_path(robot, q: np.ndarray) -> np.ndarray:
     kin = robot.forward_kinematics(np.asarray(q, float))
     ee = robot.end_effector
     return kin.p[:, ee] + kin.R[:, ee] @ robot.extra["grasp_point"]
 
 
-def decorate(meshcat, visualizer, scene: ReplayScene, samples=200):
+def decorate(meshcat, visualizer, scene: ReplayScene, samples: int = 200) -> None:
     """Camera on the arm's swept workspace, the task path (desired gripper centre over the task
     phase, shown from the task's start in the recording). No-op without a visualizer."""
     if visualizer is None:
         return
+    from pydrake.geometry import Rgba
+
     every = max(1, len(scene.t) // samples)
     q = np.asarray(scene.q[::every], float)
     points = [np.zeros((1, 3)), scene.robot.forward_kinematics(q).p.reshape(-1, 3), _grasp_path(scene.robot, q)]
@@ -131,14 +135,14 @@ def decorate(meshcat, visualizer, scene: ReplayScene, samples=200):
         if inside.sum() < 2:
             continue
         path = _grasp_path(scene.robot, scene.qd[inside][:: max(1, inside.sum() // samples)])
-        draw_plan(meshcat, path, 0, rgba=(0.1, 0.62, 0.23, 1.0), prefix=TASK_PATH)
+        meshcat.SetLine(TASK_PATH, path.T, 3.0, Rgba(0.1, 0.62, 0.23, 1.0))
         recording = visualizer.get_mutable_recording()
         full = f"/drake/{TASK_PATH}"
         recording.SetProperty(0, full, "visible", False)
         recording.SetProperty(recording.frame(t0), full, "visible", True)
 
 
-def phase_banner(phases) -> str:
+def phase_banner(phases: list[tuple[str, float, float]]) -> str:
     """HTML + script appended to replay.html: the phases with their times, the current one (from
     the Meshcat animation time) highlighted."""
     items = "".join(
@@ -169,7 +173,7 @@ def save_replay(meshcat, visualizer, path):
     return path
 
 
-def add_phase_banner(path, phases) -> None:
+def add_phase_banner(path: Path, phases: list[tuple[str, float, float]]) -> None:
     """Name the phases in a written replay.html (no-op when there is none)."""
     path = Path(path)
     if phases and path.exists():
