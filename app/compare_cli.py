@@ -208,12 +208,13 @@ def cmd_compare(args) -> int:
             done.append(summary)
     except KeyboardInterrupt:
         interrupted = True
-    rows = table(done, methods, dumbbells, args.trials)
-    write_tables(out, scenario.name, rows, dumbbells, args.trials)
-    write_runs_csv(out, done)
-    figures.table_figure(out / "table.png", scenario.name, rows, dumbbells)
-    limit = robot_from_scenario(scenario).joint_params.torque_limit
-    figures.compare_figures(out, [s for s in done if s["method"] in methods and s["dumbbell"] in dumbbells], limit)
+    finally:  # a run that raised still leaves the table of those that finished
+        rows = table(done, methods, dumbbells, args.trials)
+        write_tables(out, scenario.name, rows, dumbbells, args.trials)
+        write_runs_csv(out, done)
+        figures.table_figure(out / "table.png", scenario.name, rows, dumbbells)
+        limit = robot_from_scenario(scenario).joint_params.torque_limit
+        figures.compare_figures(out, [s for s in done if s["method"] in methods and s["dumbbell"] in dumbbells], limit)
+        print(f"wrote {', '.join(str(out / f) for f in TABLE_FILES)}, runs.csv, figures", file=sys.stderr)
     print((out / "table.md").read_text())
-    print(f"wrote {', '.join(str(out / f) for f in TABLE_FILES)}, runs.csv, figures", file=sys.stderr)
     return 130 if interrupted else 0

@@ -164,7 +164,8 @@ def compare_figures(out: Path, done: list[dict], torque_limit=None) -> list[Path
         if m in first:
             t, _, _, log = run_log(out / first[m]["folder"])
             task = first[m].get("task")
-            series[m] = (t, log.extra["est_m"], task["switch_time_s"] if task else None)
+            if "est_m" in log.extra:  # the estimate in force at each sample (log.csv of `safesysid run`)
+                series[m] = (t, log.extra["est_m"], task["switch_time_s"] if task else None)
     if series:
         title = f"{scenario}, {lightest}: estimated end-effector mass (Fig. 6)"
         written.append(plot_mass_over_time(out / "fig6_mass.png", series, truth[0], title))

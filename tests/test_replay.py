@@ -2,9 +2,11 @@
 the arm must fill a fair share of the central frame (the camera is framed on it), with the
 phases named. The arm's pixels are those that change when the arm alone is hidden, so the
 check fails on a page whose camera looks away from the arm (tested) or where the arm is a
-small figure far away (the replay before the camera was framed: 0.7 % of the frame; now 6.8 %)."""
+small figure far away (the replay before the camera was framed: 0.7 % of the frame; now 6.8 %).
+Also what a person sees of a running `safesysid run`: Ctrl-C and the progress line."""
 
 import base64
+import json
 import re
 import shutil
 import subprocess
@@ -104,3 +106,43 @@ def test_replay_shows_the_arm_framed_in_the_centre(replay, tmp_path):
 def test_replay_names_its_phases(replay):
     page = replay.read_text()
     assert 'id="safesysid-phases"' in page and "identification 0.0-1.0 s" in page
+
+
+def test_first_ctrl_c_stops_the_simulation_the_second_aborts():
+    import os
+    import signal
+
+    from safesysid.progress import RunDisplay, interruptible
+
+    display = RunDisplay()
+    with interruptible(display):
+        os.kill(os.getpid(), signal.SIGINT)
+        assert display.interrupted  # asked to stop, no exception: the run writes what it has
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGINT)
+
+
+def test_an_interrupted_run_stops_at_once_and_writes_what_was_done(tmp_path, capsys):
+    """The monitor ends the simulation as soon as Ctrl-C was seen; summary.json and log.csv are
+    still written, the summary says it did not succeed."""
+    from safesysid.online import run_online
+    from safesysid.progress import RunDisplay
+    from safesysid.run_cli import _mark_interrupted
+    from safesysid.scenario import SCENARIOS_DIR, load_scenario
+
+    display = RunDisplay(progress=False, interrupted=True)
+    scenario = load_scenario(SCENARIOS_DIR / "quickstart.yaml")
+    summary = _mark_interrupted(tmp_path, run_online(scenario, tmp_path, live_meshcat=display))
+    assert summary["success"] is False and summary["failure"] == "interrupted"
+    assert summary["interrupted_at_s"] < 0.01  # the run was meant to last 7.5 s
+    assert json.loads((tmp_path / "summary.json").read_text())["interrupted"] is True
+
+
+def test_progress_line_names_phase_and_plan():
+    from safesysid.progress import phase_at
+    from safesysid.scenario import SCENARIOS_DIR, load_scenario
+
+    s = load_scenario(SCENARIOS_DIR / "quickstart.yaml")  # 4 plans every 1.5 s, each 3 s long
+    assert phase_at(0.2, s, None) == "identification, plan 1/4"
+    assert phase_at(4.6, s, None) == "identification, plan 4/4"
+    assert phase_at(7.6, s, 7.501) == "task"
