@@ -20,6 +20,26 @@ from pathlib import Path
 from safesysid.cli import BadInput
 
 TABLE_FILES = ("table.md", "table.csv", "table.json", "table.png")
+# runs.csv: one line per run (what the former per-run table.csv held)
+SUMMARY_COLUMNS = [
+    "method",
+    "trial",
+    "seed",
+    "success",
+    "failure",
+    "collisions",
+    "min_clearance_m",
+    "max_torque_ratio",
+    "max_tracking_error_rad",
+    "tracking_bound_rad",
+    "contains_truth",
+    "cond_Y",
+    "mass_estimate_kg",
+    "mass_width_kg",
+    "brakes",
+    "median_solve_s",
+    "wall_time_s",
+]
 
 
 def dumbbell_catalogue(scenario) -> dict[str, float]:
@@ -151,10 +171,32 @@ def write_tables(out: Path, scenario_name: str, rows: dict, dumbbells: list[str]
     (out / "table.json").write_text(json.dumps(doc, indent=2))
 
 
+def row_of(summary: dict, trial: int) -> dict:
+    est = summary["estimate"]
+    times = sorted(summary["planner"]["solve_time_s"])
+    return {
+        "method": summary["method"],
+        "trial": trial,
+        "seed": summary["seed"],
+        "success": summary["success"],
+        "failure": summary["failure"] or "",
+        "collisions": summary["collisions"],
+        "min_clearance_m": summary["min_clearance_m"],
+        "max_torque_ratio": summary["max_torque_ratio"],
+        "max_tracking_error_rad": summary["max_tracking_error_rad"],
+        "tracking_bound_rad": summary["tracking_bound_rad"],
+        "contains_truth": summary["contains_truth"],
+        "cond_Y": summary["cond_Y"],
+        "mass_estimate_kg": est["nominal"][0],
+        "mass_width_kg": est["upper"][0] - est["lower"][0],
+        "brakes": summary["planner"]["brakes"],
+        "median_solve_s": times[len(times) // 2] if times else float("nan"),
+        "wall_time_s": summary["wall_time_s"],
+    }
+
+
 def write_runs_csv(out: Path, done: list[dict]) -> None:
     """runs.csv: one line per run (the per-run columns of `safesysid run`'s headline)."""
-    from safesysid.run_cli import SUMMARY_COLUMNS, row_of
-
     columns = ["dumbbell", *SUMMARY_COLUMNS, "phase", "placement_error_m", "folder"]
     with (out / "runs.csv").open("w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=columns, extrasaction="ignore")

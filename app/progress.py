@@ -112,6 +112,13 @@ def watch(simulator, scenario, display, switch_time_s: float | None = None, stre
 
     if not isinstance(display, RunDisplay):
         return
+    if display.meshcat and display.viewer is not None:  # the live view framed on the arm at its start
+        from safesysid import viz
+        from safesysid.scenario import robot_from_scenario
+
+        viz.frame_camera(
+            display.viewer, viz.frame_points(robot_from_scenario(scenario), scenario.q0_rad, scenario.obstacles)
+        )
     if display.meshcat and display.wait_for_viewer:
         wait_for_viewer(display)
     if display.realtime_rate > 0:

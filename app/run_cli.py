@@ -9,26 +9,6 @@ from pathlib import Path
 from safesysid.cli import BadInput
 from safesysid.scenario import METHODS, SCENARIOS_DIR, load_scenario
 
-SUMMARY_COLUMNS = [
-    "method",
-    "trial",
-    "seed",
-    "success",
-    "failure",
-    "collisions",
-    "min_clearance_m",
-    "max_torque_ratio",
-    "max_tracking_error_rad",
-    "tracking_bound_rad",
-    "contains_truth",
-    "cond_Y",
-    "mass_estimate_kg",
-    "mass_width_kg",
-    "brakes",
-    "median_solve_s",
-    "wall_time_s",
-]
-
 
 def scenario_path(args) -> Path:
     return Path(args.scenario) if args.scenario else SCENARIOS_DIR / "quickstart.yaml"
@@ -94,27 +74,3 @@ def cmd_run(args):
     print(f"wrote {out / 'summary.json'}, log.csv, plots, replay.html", file=sys.stderr)
     serve_until_interrupt(display)
     return 130 if display.interrupted else 0
-
-
-def row_of(summary, trial):
-    est = summary["estimate"]
-    times = sorted(summary["planner"]["solve_time_s"])
-    return {
-        "method": summary["method"],
-        "trial": trial,
-        "seed": summary["seed"],
-        "success": summary["success"],
-        "failure": summary["failure"] or "",
-        "collisions": summary["collisions"],
-        "min_clearance_m": summary["min_clearance_m"],
-        "max_torque_ratio": summary["max_torque_ratio"],
-        "max_tracking_error_rad": summary["max_tracking_error_rad"],
-        "tracking_bound_rad": summary["tracking_bound_rad"],
-        "contains_truth": summary["contains_truth"],
-        "cond_Y": summary["cond_Y"],
-        "mass_estimate_kg": est["nominal"][0],
-        "mass_width_kg": est["upper"][0] - est["lower"][0],
-        "brakes": summary["planner"]["brakes"],
-        "median_solve_s": times[len(times) // 2] if times else float("nan"),
-        "wall_time_s": summary["wall_time_s"],
-    }

@@ -110,6 +110,15 @@ def frame_camera(
     return centre, distance
 
 
+def frame_points(robot, q: np.ndarray, obstacles=()) -> np.ndarray:
+    """What the camera frames: the base, the link origins and the grasp point at the
+    configurations q (N x n), and the corners of the obstacles within REACH_M of the base."""
+    q = np.atleast_2d(np.asarray(q, float))
+    points = [np.zeros((1, 3)), robot.forward_kinematics(q).p.reshape(-1, 3), _grasp_path(robot, q)]
+    points += [_box_corners(b) for b in obstacles if np.linalg.norm(b.xyz_m) < REACH_M]
+    return np.vstack(points)
+
+
 def _grasp_path(robot, q: np.ndarray) -> np.ndarray:
     kin = robot.forward_kinematics(np.asarray(q, float))
     ee = robot.end_effector
@@ -124,10 +133,7 @@ def decorate(meshcat, visualizer, scene: ReplayScene, samples: int = 200) -> Non
     from pydrake.geometry import Rgba
 
     every = max(1, len(scene.t) // samples)
-    q = np.asarray(scene.q[::every], float)
-    points = [np.zeros((1, 3)), scene.robot.forward_kinematics(q).p.reshape(-1, 3), _grasp_path(scene.robot, q)]
-    points += [_box_corners(b) for b in scene.obstacles if np.linalg.norm(b.xyz_m) < REACH_M]
-    frame_camera(meshcat, np.vstack(points))
+    frame_camera(meshcat, frame_points(scene.robot, scene.q[::every], scene.obstacles))
     for name, t0, t1 in scene.phases:
         if name != "task":
             continue
