@@ -12,37 +12,24 @@ the safety violation, so it ranks first. Runs stream to DIR/runs.jsonl: an inter
 
 from __future__ import annotations
 
+import argparse
 import csv
 import json
 import sys
 from pathlib import Path
 
 from safesysid.cli import BadInput
+from safesysid.scenario import Scenario
 
 TABLE_FILES = ("table.md", "table.csv", "table.json", "table.png")
 # runs.csv: one line per run (what the former per-run table.csv held)
-SUMMARY_COLUMNS = [
-    "method",
-    "trial",
-    "seed",
-    "success",
-    "failure",
-    "collisions",
-    "min_clearance_m",
-    "max_torque_ratio",
-    "max_tracking_error_rad",
-    "tracking_bound_rad",
-    "contains_truth",
-    "cond_Y",
-    "mass_estimate_kg",
-    "mass_width_kg",
-    "brakes",
-    "median_solve_s",
-    "wall_time_s",
-]
+SUMMARY_COLUMNS = (
+    "method trial seed success failure collisions min_clearance_m max_torque_ratio max_tracking_error_rad"
+    " tracking_bound_rad contains_truth cond_Y mass_estimate_kg mass_width_kg brakes median_solve_s wall_time_s"
+).split()
 
 
-def dumbbell_catalogue(scenario) -> dict[str, float]:
+def dumbbell_catalogue(scenario: Scenario) -> dict[str, float]:
     """{name: mass_kg} of the scenario's dumbbells file, lightest first."""
     from safesysid.systems.config import resolve_path, scenario_dir
     from safesysid.systems.payload import load_dumbbells
@@ -205,9 +192,9 @@ def write_runs_csv(out: Path, done: list[dict]) -> None:
             writer.writerow({**s, **row_of(s, s["trial"])})
 
 
-def cmd_compare(args) -> int:
+def cmd_compare(args: argparse.Namespace) -> int:
     from safesysid import figures
-    from safesysid.pool import read_jsonl, run_pool
+    from safesysid.pool import read_jsonl, run_streamed
     from safesysid.run_cli import scenario_path
     from safesysid.scenario import load_scenario, robot_from_scenario
 
@@ -228,7 +215,7 @@ def cmd_compare(args) -> int:
     if setup_file.exists() and json.loads(setup_file.read_text()) != setup:
         raise BadInput(f"--out: {out} holds a compare of another scenario or --scenario-text; use a new folder")
     setup_file.write_text(json.dumps(setup, indent=2))
-    done = [s for s in read_jsonl(jsonl) if s.get("scenario") == scenario.name]
+    done = [s for s in read_jsonl(jsonl, _key) if s.get("scenario") == scenario.name]
     have = {_key(s) for s in done}
     jobs = [
         (str(path), list(args.scenario_text), m, d, k, str(out))
@@ -241,16 +228,13 @@ def cmd_compare(args) -> int:
         f"compare: {len(have)} runs already in {jsonl}, {len(jobs)} to run on {args.workers} worker(s)", file=sys.stderr
     )
 
-    def note(job, s):
+    def note(job: tuple, s: dict) -> str:
         return f"{job[2]} {job[3]} trial {job[4]}: {'success' if s['success'] else s['failure']}"
 
-    interrupted = False
     try:
-        for _, summary in run_pool(jobs, run_one, args.workers, jsonl, note, label="compare"):
-            done.append(summary)
-    except KeyboardInterrupt:
-        interrupted = True
-    finally:  # a run that raised still leaves the table of those that finished
+        _, interrupted = run_streamed(run_one, jobs, args.workers, jsonl, note, label="compare")
+    finally:  # a run that raised still leaves the table of those that finished (they are in runs.jsonl)
+        done = [s for s in read_jsonl(jsonl, _key) if s.get("scenario") == scenario.name]
         rows = table(done, methods, dumbbells, args.trials)
         write_tables(out, scenario.name, rows, dumbbells, args.trials)
         write_runs_csv(out, done)

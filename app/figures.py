@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +27,7 @@ def phases_of(summary: dict) -> list[tuple[str, float, float]]:
     return phases + [("task", switch, release), ("settle", release, end)]
 
 
-def shade_phases(ax, phases: list[tuple[str, float, float]], label: bool = True) -> None:
+def shade_phases(ax: plt.Axes, phases: list[tuple[str, float, float]], label: bool = True) -> None:
     for name, t0, t1 in phases:
         ax.axvspan(t0, t1, color=PHASE_COLOURS.get(name, "#999"), alpha=0.08, lw=0)
         if label:
@@ -46,7 +47,14 @@ def run_log(folder: Path) -> tuple:
     return log.t, np.angle(np.exp(1j * (qd - log.q))), u, log
 
 
-def plot_joints(path: Path, series: list[tuple], bound, limit, phases=(), title: str = "") -> Path:
+def plot_joints(
+    path: Path,
+    series: list[tuple],
+    bound: Sequence[float] | None,
+    limit: Sequence[float] | None,
+    phases: Sequence[tuple[str, float, float]] = (),
+    title: str = "",
+) -> Path:
     """Per joint: tracking error (left, with the certified bound) and commanded torque before
     saturation (right, with the limit); series: [(label, t, error, torque)]."""
     n = series[0][2].shape[1]
@@ -93,7 +101,7 @@ def plot_conditioning(path: Path, cond_w: list, updates: list[tuple[float, float
     return save_figure(fig, path)
 
 
-def write_run_figures(out: Path, summary: dict, history: list, torque_limit) -> None:
+def write_run_figures(out: Path, summary: dict, history: list, torque_limit: Sequence[float]) -> None:
     """joints.png (Figs. 8/9 for one run, phases shaded) and conditioning.png (cond per plan)."""
     out = Path(out)
     t, error, u, _ = run_log(out)
@@ -136,7 +144,7 @@ def _task_window(summary, t):
     return (t >= t0) & (t <= t1), t0
 
 
-def compare_figures(out: Path, done: list[dict], torque_limit=None) -> list[Path]:
+def compare_figures(out: Path, done: list[dict], torque_limit: Sequence[float] | None = None) -> list[Path]:
     """Fig. 5 (ours and random), Fig. 6 (ours, random, adap-1, adap-1-excit: those present) for
     the lightest dumbbell's first trial, and Figs. 8/9 per method (task phase, one line per
     dumbbell; time from the task's start). Methods absent from the compare are skipped."""

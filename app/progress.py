@@ -7,8 +7,15 @@ from __future__ import annotations
 import signal
 import sys
 import time
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, TextIO
+
+if TYPE_CHECKING:
+    from pydrake.geometry import Meshcat
+    from pydrake.systems.analysis import Simulator
+    from safesysid.systems.config import Scenario
 
 
 def _clock(seconds: float) -> str:
@@ -20,7 +27,7 @@ class Progress:
     """A progress bar on stderr: redrawn in place on a terminal, one line per step otherwise
     (logs and CI keep every line). No dependency (neither tqdm nor rich is installed)."""
 
-    def __init__(self, total: int, label: str, stream=None, width: int = 24):
+    def __init__(self, total: int, label: str, stream: TextIO | None = None, width: int = 24) -> None:
         self.total, self.label, self.width = total, label, width
         self.stream = stream or sys.stderr
         self.done = 0
@@ -57,14 +64,14 @@ class RunDisplay:
     after_s: float = 3.0  # the progress line starts once a run has taken this long (wall)
     every_s: float = 2.0
     interrupted: bool = False
-    viewer: object = field(default=None, repr=False)  # the Meshcat instance (viz.start_meshcat)
+    viewer: Meshcat | None = field(default=None, repr=False)  # the Meshcat instance (viz.start_meshcat)
 
     def __bool__(self) -> bool:
         return self.meshcat
 
 
 @contextmanager
-def interruptible(display: RunDisplay):
+def interruptible(display: RunDisplay) -> Iterator[RunDisplay]:
     """The first Ctrl-C asks the running simulation to stop (display.interrupted; the run then
     writes what it has), a second one raises KeyboardInterrupt as usual."""
 
@@ -81,7 +88,7 @@ def interruptible(display: RunDisplay):
         signal.signal(signal.SIGINT, previous)
 
 
-def phase_at(t: float, scenario, switch_time_s: float | None) -> str:
+def phase_at(t: float, scenario: Scenario, switch_time_s: float | None) -> str:
     """`identification, plan k/N` before the task switch (or the horizon), `task` after it."""
     p = scenario.planner
     horizon = (p.num_plans - 1) * p.replan_period_s + p.duration_s
@@ -104,7 +111,13 @@ def wait_for_viewer(display: RunDisplay, poll_s: float = 0.2) -> None:
     display.interrupted = False  # a Ctrl-C here skips the wait, it does not stop the run
 
 
-def watch(simulator, scenario, display, switch_time_s: float | None = None, stream=None) -> None:
+def watch(
+    simulator: Simulator,
+    scenario: Scenario,
+    display: RunDisplay | bool,
+    switch_time_s: float | None = None,
+    stream: TextIO | None = None,
+) -> None:
     """Before a run's first AdvanceTo: apply the live options and install a monitor that prints
     the progress line and stops the simulation on Ctrl-C (display.interrupted). No-op unless
     `display` is a RunDisplay (compare and sweep workers pass nothing)."""

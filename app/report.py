@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import matplotlib
@@ -12,14 +13,16 @@ import numpy as np  # noqa: E402
 from safesysid.systems.inertial import NAMES, UNITS  # noqa: E402
 
 
-def save_figure(fig, path) -> Path:
+def save_figure(fig: plt.Figure, path: str | Path) -> Path:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return Path(path)
 
 
-def plot_tracking(path, t, error, bound, torque_ratio):
+def plot_tracking(
+    path: str | Path, t: np.ndarray, error: np.ndarray, bound: np.ndarray, torque_ratio: np.ndarray
+) -> Path:
     """Per-joint |e_i| / bound_i (1 = the certified ultimate bound), and max |u|/limit."""
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
     ax1.plot(t, np.abs(error) / np.asarray(bound), lw=0.8, label=[f"joint {k + 1}" for k in range(error.shape[1])])
@@ -33,7 +36,7 @@ def plot_tracking(path, t, error, bound, torque_ratio):
     return save_figure(fig, path)
 
 
-def plot_clearance(path, t, clearance):
+def plot_clearance(path: str | Path, t: np.ndarray, clearance: np.ndarray) -> Path:
     fig, ax = plt.subplots(figsize=(8, 3))
     ax.plot(t, clearance)
     ax.axhline(0.0, color="r", ls="--")
@@ -42,12 +45,21 @@ def plot_clearance(path, t, clearance):
     return save_figure(fig, path)
 
 
-def plot_intervals(path, nominal, lower, upper, truth=None, title=""):
+def plot_intervals(
+    path: str | Path,
+    nominal: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    truth: np.ndarray | None = None,
+    title: str = "",
+) -> Path:
     """The 10 end-effector intervals with nominal (and truth), like the paper's Fig. 5."""
     return plot_intervals_side_by_side(path, {"estimate": (nominal, lower, upper)}, truth, title)
 
 
-def plot_intervals_side_by_side(path, estimates: dict, truth=None, title: str = "") -> Path:
+def plot_intervals_side_by_side(
+    path: str | Path, estimates: dict[str, tuple], truth: np.ndarray | None = None, title: str = ""
+) -> Path:
     """Fig. 5: per parameter, each estimate's interval and nominal side by side (estimates:
     {label: (nominal, lower, upper)}), and the truth when known."""
     fig, axes = plt.subplots(2, 5, figsize=(13 + len(estimates), 5.5))
@@ -69,7 +81,15 @@ def plot_intervals_side_by_side(path, estimates: dict, truth=None, title: str = 
     return save_figure(fig, path)
 
 
-def plot_estimate_history(path, times, nominal, lower, upper, truth=None, index=0):
+def plot_estimate_history(
+    path: str | Path,
+    times: np.ndarray,
+    nominal: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    truth: np.ndarray | None = None,
+    index: int = 0,
+) -> Path:
     """Evolution of one parameter's estimate and interval over the updates (default: mass)."""
     fig, ax = plt.subplots(figsize=(8, 3))
     ax.fill_between(
@@ -84,7 +104,7 @@ def plot_estimate_history(path, times, nominal, lower, upper, truth=None, index=
     return save_figure(fig, path)
 
 
-def markdown_table(rows, columns):
+def markdown_table(rows: Sequence[dict], columns: Sequence[str]) -> str:
     head = "| " + " | ".join(columns) + " |\n|" + "---|" * len(columns) + "\n"
     fmt = lambda x: f"{x:.4g}" if isinstance(x, float) else str(x)  # noqa: E731
     return head + "".join("| " + " | ".join(fmt(r.get(c, "")) for c in columns) + " |\n" for r in rows)

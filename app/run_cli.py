@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from pathlib import Path
@@ -10,7 +11,7 @@ from safesysid.cli import BadInput
 from safesysid.scenario import METHODS, SCENARIOS_DIR, load_scenario
 
 
-def scenario_path(args) -> Path:
+def scenario_path(args: argparse.Namespace) -> Path:
     return Path(args.scenario) if args.scenario else SCENARIOS_DIR / "quickstart.yaml"
 
 
@@ -51,7 +52,7 @@ def _mark_interrupted(out: Path, summary: dict) -> dict:
     return summary
 
 
-def cmd_run(args):
+def cmd_run(args: argparse.Namespace) -> int:
     from safesysid.online import run_online
     from safesysid.progress import RunDisplay, interruptible, serve_until_interrupt
 

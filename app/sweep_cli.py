@@ -11,13 +11,14 @@ stopped; aggregate.json and report.md count every failure with the seeds that re
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
 from safesysid.cli import BadInput
-from safesysid.pool import read_jsonl, run_pool
 
 LIMIT_KEYS = ("max_commanded_torque_ratio", "max_joint_limit_ratio", "max_velocity_ratio")
 PARAMETERS = ("m", "mcx", "mcy", "mcz", "Ixx", "Iyy", "Izz", "Ixy", "Iyz", "Ixz")
@@ -55,6 +56,18 @@ def run_trial(scenario_path, seed, method, adversarial=True, scenario_text=()):
     summary["obstacles"] = [{"xyz_m": o.xyz_m, "rpy_rad": o.rpy_rad, "size_m": o.size_m} for o in scene.obstacles]
     summary["q0_rad"] = list(scene.q0_rad)
     return summary
+
+
+def _read_done(path):
+    done = []
+    if path.exists():
+        for line in path.read_text().splitlines():
+            if line.strip():
+                try:
+                    done.append(json.loads(line))
+                except json.JSONDecodeError:  # a line cut by a crash: run that trial again
+                    continue
+    return done
 
 
 def _limit_violated(s):
@@ -150,16 +163,29 @@ def cmd_sweep(args):
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     jsonl = out / "trials.jsonl"
-    done = read_jsonl(jsonl)
+    done = _read_done(jsonl)
     have = {(s["method"], int(s["trial_seed"])) for s in done}
     todo = [(m, args.seed + k) for k in range(args.trials) for m in methods if (m, args.seed + k) not in have]
     print(
         f"sweep: {len(have)} trials already in {jsonl}, {len(todo)} to run on {args.workers} worker(s)", file=sys.stderr
     )
     wall0 = time.perf_counter()
-    jobs = [(str(path), seed, m, not args.nominal, args.scenario_text) for m, seed in todo]
-    note = lambda job, s: f"{job[2]} seed {job[1]}: {'ok' if s['success'] else s['failure']}"  # noqa: E731
-    done += [summary for _, summary in run_pool(jobs, run_trial, args.workers, jsonl, note, label="sweep")]
+    with jsonl.open("a") as fh, ProcessPoolExecutor(max_workers=args.workers) as pool:
+        futures = {
+            pool.submit(run_trial, str(path), seed, m, not args.nominal, args.scenario_text): (m, seed)
+            for m, seed in todo
+        }
+        for k, fut in enumerate(as_completed(futures), 1):
+            summary = fut.result()
+            fh.write(json.dumps(summary, default=float) + "\n")
+            fh.flush()
+            os.fsync(fh.fileno())
+            done.append(summary)
+            m, seed = futures[fut]
+            print(
+                f"[{k}/{len(todo)}] {m} seed {seed}: {'ok' if summary['success'] else summary['failure']}",
+                file=sys.stderr,
+            )
     wall = time.perf_counter() - wall0
     agg = aggregate(
         [s for s in done if s["method"] in methods and args.seed <= s["trial_seed"] < args.seed + args.trials]

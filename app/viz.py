@@ -10,8 +10,17 @@ import html
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:  # Drake's visualizer is imported when a run shows or records
+    from collections.abc import Sequence
+
+    from pydrake.geometry import Meshcat, MeshcatVisualizer
+    from pydrake.systems.framework import DiagramBuilder, OutputPort
+    from safesysid.systems.config import Obstacle
+    from safesysid.systems.robot_model import RobotModel
 
 PLAN_PATH = "planner/plan"
 SWEPT_PATH = "planner/swept"
@@ -19,7 +28,7 @@ TASK_PATH = "task/path"
 PHASE_COLOURS = {"identification": "#1f66ff", "task": "#1a9e3a", "settle": "#8a8a8a"}
 
 
-def start_meshcat(live):
+def start_meshcat(live: bool) -> Meshcat:
     """Drake's Meshcat (a local server; works offline). Prints the URL when shown live."""
     import logging
 
@@ -40,7 +49,7 @@ def start_meshcat(live):
     return meshcat
 
 
-def add_visualizer(builder, query_object_port, meshcat):
+def add_visualizer(builder: DiagramBuilder, query_object_port: OutputPort, meshcat: Meshcat) -> MeshcatVisualizer:
     """Meshcat on a station's exported SceneGraph query port (the SceneGraph is inside it)."""
     from pydrake.geometry import MeshcatVisualizer, MeshcatVisualizerParams, Role
 
@@ -49,14 +58,19 @@ def add_visualizer(builder, query_object_port, meshcat):
     return MeshcatVisualizer.AddToBuilder(builder, query_object_port, meshcat, params)
 
 
-def draw_plan(meshcat, points_world, index, rgba=(0.1, 0.4, 1.0, 1.0)):
+def draw_plan(
+    meshcat: Meshcat,
+    points_world: np.ndarray,
+    index: int,
+    rgba: tuple[float, float, float, float] = (0.1, 0.4, 1.0, 1.0),
+) -> None:
     """Polyline of the planned end-effector path (3 x N points in world)."""
     from pydrake.geometry import Rgba
 
     meshcat.SetLine(f"{PLAN_PATH}/{index}", np.asarray(points_world, float).T, 3.0, Rgba(*rgba))
 
 
-def draw_swept_spheres(meshcat, centres, radii, index, every=4):
+def draw_swept_spheres(meshcat: Meshcat, centres: np.ndarray, radii: np.ndarray, index: int, every: int = 4) -> None:
     """The planner's certified spheres (a subset of time intervals), hidden by default."""
     from pydrake.geometry import Rgba, Sphere
     from pydrake.math import RigidTransform
@@ -71,23 +85,31 @@ def draw_swept_spheres(meshcat, centres, radii, index, every=4):
     meshcat.SetProperty(SWEPT_PATH, "visible", False)
 
 
+def save_replay(meshcat: Meshcat, visualizer: MeshcatVisualizer, path: str | Path) -> Path:
+    """Publish the recorded animation and write Meshcat's self-contained HTML."""
+    visualizer.PublishRecording()
+    path = Path(path)
+    path.write_text(meshcat.StaticHtml())
+    return path
+
+
 @dataclass
 class ReplayScene:
     """What replay.html frames and names: the logged joint positions q and desired positions qd
     (N x n) at times t, and the phases [(name, t0, t1)] (figures.phases_of)."""
 
-    robot: object
+    robot: RobotModel
     t: np.ndarray
     q: np.ndarray
     qd: np.ndarray
     phases: list
-    obstacles: list = ()  # scenario Obstacles: those within REACH_M of the base are framed too
+    obstacles: Sequence[Obstacle] = ()  # scenario Obstacles: those within REACH_M of the base are framed too
 
 
 REACH_M = 1.2  # Gen3 reach (0.9 m) plus a held dumbbell and margin: obstacles beyond are not framed
 
 
-def _box_corners(box) -> np.ndarray:
+def _box_corners(box: Obstacle) -> np.ndarray:
     from pydrake.math import RollPitchYaw
 
     rot = RollPitchYaw(box.rpy_rad).ToRotationMatrix().matrix()
@@ -96,7 +118,11 @@ def _box_corners(box) -> np.ndarray:
 
 
 def frame_camera(
-    meshcat, points: np.ndarray, direction=(1.0, -1.1, 0.75), fov_deg: float = 75.0, margin: float = 1.0
+    meshcat: Meshcat,
+    points: np.ndarray,
+    direction: tuple[float, float, float] = (1.0, -1.1, 0.75),
+    fov_deg: float = 75.0,
+    margin: float = 1.0,
 ) -> tuple[np.ndarray, float]:
     """Aim Meshcat's default camera at the bounding box of `points` (N x 3, world) from
     `direction`, close enough that the box's enclosing sphere fills the (vertical) field of view."""
@@ -110,7 +136,7 @@ def frame_camera(
     return centre, distance
 
 
-def frame_points(robot, q: np.ndarray, obstacles=()) -> np.ndarray:
+def frame_points(robot: RobotModel, q: np.ndarray, obstacles: Sequence[Obstacle] = ()) -> np.ndarray:
     """What the camera frames: the base, the link origins and the grasp point at the
     configurations q (N x n), and the corners of the obstacles within REACH_M of the base."""
     q = np.atleast_2d(np.asarray(q, float))
@@ -119,13 +145,15 @@ def frame_points(robot, q: np.ndarray, obstacles=()) -> np.ndarray:
     return np.vstack(points)
 
 
-def _grasp_path(robot, q: np.ndarray) -> np.ndarray:
+def _grasp_path(robot: RobotModel, q: np.ndarray) -> np.ndarray:
     kin = robot.forward_kinematics(np.asarray(q, float))
     ee = robot.end_effector
     return kin.p[:, ee] + kin.R[:, ee] @ robot.extra["grasp_point"]
 
 
-def decorate(meshcat, visualizer, scene: ReplayScene, samples: int = 200) -> None:
+def decorate(
+    meshcat: Meshcat | None, visualizer: MeshcatVisualizer | None, scene: ReplayScene, samples: int = 200
+) -> None:
     """Camera on the arm's swept workspace, the task path (desired gripper centre over the task
     phase, shown from the task's start in the recording). No-op without a visualizer."""
     if visualizer is None:
@@ -169,14 +197,6 @@ def phase_banner(phases: list[tuple[str, float, float]]) -> str:
         '<span id="safesysid-time" style="border:none"></span></div>'
         f"<script>{script}</script>"
     )
-
-
-def save_replay(meshcat, visualizer, path):
-    """Publish the recorded animation and write Meshcat's self-contained HTML."""
-    visualizer.PublishRecording()
-    path = Path(path)
-    path.write_text(meshcat.StaticHtml())
-    return path
 
 
 def add_phase_banner(path: Path, phases: list[tuple[str, float, float]]) -> None:

@@ -110,7 +110,9 @@ def test_tiny_compare_writes_table_iii_cells_run_folders_and_resumes(tmp_path, c
     for name in ("table.png", "fig5_intervals.png", "fig6_mass.png", "fig8_task_ours.png", "fig8_task_wrong.png"):
         assert (out / name).stat().st_size > 5000, name
     capsys.readouterr()
-    assert main(args) == 0  # resumes: nothing left to run, same table
+    with (out / "runs.jsonl").open("a") as fh:
+        fh.write('{"method": "ours", "dumbbell": "4lb", "tri')  # a line cut by a kill
+    assert main(args) == 0  # resumes: the cut line dropped, nothing left to run, same table
     assert "4 runs already" in capsys.readouterr().err and len((out / "runs.jsonl").read_text().splitlines()) == 4
     assert main([*args[:-2], "--scenario-text", "seed: 3"]) == 2  # another setup in the same folder: refused
 
