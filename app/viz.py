@@ -15,12 +15,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:  # Drake's visualizer is imported when a run shows or records
-    from collections.abc import Sequence
-
     from pydrake.geometry import Meshcat, MeshcatVisualizer
     from pydrake.systems.framework import DiagramBuilder, OutputPort
-    from safesysid.systems.config import Obstacle
-    from safesysid.systems.robot_model import RobotModel
 
 PLAN_PATH = "planner/plan"
 SWEPT_PATH = "planner/swept"
@@ -91,6 +87,13 @@ def save_replay(meshcat: Meshcat, visualizer: MeshcatVisualizer, path: str | Pat
     path = Path(path)
     path.write_text(meshcat.StaticHtml())
     return path
+
+
+if TYPE_CHECKING:  # what a replay is framed on
+    from collections.abc import Sequence
+
+    from safesysid.systems.config import Obstacle
+    from safesysid.systems.robot_model import RobotModel
 
 
 @dataclass
