@@ -55,12 +55,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--method", help="ours | random | conservative | wrong")
     p.add_argument("--seed", type=int)
     p.add_argument("--meshcat", action="store_true", help="show live in Meshcat (prints the URL)")
+    p.add_argument(
+        "--wait-for-viewer", action="store_true", help="with Meshcat: wait until a browser is connected, then simulate"
+    )
+    p.add_argument("--realtime-rate", type=float, default=0.0, help="target sim/wall rate (1 = real time; 0 = fast)")
+    p.add_argument(
+        "--no-serve", action="store_true", help="with Meshcat: exit after the run (default: serve until Ctrl-C)"
+    )
     _add_scenario_text(p)
 
-    p = sub.add_parser("compare", help="run several methods and trials; write a table")
+    p = sub.add_parser("compare", help="methods x dumbbells x trials on a process pool; the paper's Table III row")
     p.add_argument("scenario")
-    p.add_argument("--methods", default="ours,random")
-    p.add_argument("--trials", type=int, default=1)
+    p.add_argument("--methods", default="ours,random", help="all, or comma-separated method names")
+    p.add_argument("--dumbbells", help="4lb,6lb or 4lb..8lb (default: the scenario's dumbbell)")
+    p.add_argument(
+        "--trials", type=int, default=1, help="trials per method and dumbbell (seed = scenario seed + trial)"
+    )
+    p.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     p.add_argument("--out", default="out/compare")
     _add_scenario_text(p)
 
@@ -121,7 +132,7 @@ def _dispatch(args):
     # Each verb lives in its own module of app/ (safesysid.<module>.<function>(args)).
     handlers = {
         "run": ("safesysid.run_cli", "cmd_run"),
-        "compare": ("safesysid.run_cli", "cmd_compare"),
+        "compare": ("safesysid.compare_cli", "cmd_compare"),
         "sweep": ("safesysid.sweep_cli", "cmd_sweep"),
         "sysid": ("safesysid.sysid_cli", "cmd_sysid"),
         "diagnose": ("safesysid.diagnose_cli", "cmd_diagnose"),

@@ -250,7 +250,7 @@ def merge_events(*sources):
 def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat=False, write=True):
     """Run Algorithm 2 on a scenario; write summary.json, log.csv, plots, replay.html."""
     from pydrake.systems.analysis import Simulator
-    from safesysid import report, viz
+    from safesysid import figures, progress, report, viz
     from safesysid.joint_log import JointLog, write_joint_log
     from safesysid.systems.inertial import NAMES
     from safesysid.task_run import judge, run_task_phase
@@ -265,6 +265,7 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
     built = build_online(scenario, method, meshcat=meshcat, seed=seed)
     arm, robot = built.arm, built.arm.robot
     sim = Simulator(built.diagram)
+    progress.watch(sim, scenario, live_meshcat, getattr(getattr(built, "source", None), "switch_time_s", None))
     ctx = sim.get_mutable_context()
     arm.seed_noise(ctx)
     arm.set_state(ctx, np.asarray(scenario.q0_rad, float))
@@ -407,6 +408,7 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
         np.max(np.abs(command) / robot.joint_params.torque_limit, 1),
     )
     report.plot_clearance(out / "clearance.png", np.array(rec.times), np.array(rec.clearance))
+    figures.write_run_figures(out, summary, history, robot.joint_params.torque_limit)  # joints, conditioning
     report.plot_intervals(out / "intervals.png", theta_e0, lo, hi, truth, title=f"{scenario.name} / {method}")
     if history:
         report.plot_estimate_history(
@@ -417,10 +419,13 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
             [h["upper"] for h in history],
             truth,
         )
+    replay = viz.ReplayScene(robot, t, q, desired[:, :n], figures.phases_of(summary), scenario.obstacles)
+    viz.decorate(meshcat, built.visualizer, replay)
     if built.visualizer is not None:
         if built.planner is not None:
             draw_plans(meshcat, robot, built.planner.results(built.planner.GetMyContextFromRoot(ctx)))
         viz.save_replay(meshcat, built.visualizer, out / "replay.html")
+    viz.add_phase_banner(out / "replay.html", replay.phases)
     return summary
 
 

@@ -13,7 +13,7 @@ import numpy as np  # noqa: E402
 from safesysid.systems.inertial import NAMES, UNITS  # noqa: E402
 
 
-def _save(fig, path):
+def save_figure(fig: plt.Figure, path: str | Path) -> Path:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -33,7 +33,7 @@ def plot_tracking(
     ax2.axhline(1.0, color="k", ls="--")
     ax2.set_ylabel("max |u| / limit")
     ax2.set_xlabel("t [s]")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_clearance(path: str | Path, t: np.ndarray, clearance: np.ndarray) -> Path:
@@ -42,7 +42,7 @@ def plot_clearance(path: str | Path, t: np.ndarray, clearance: np.ndarray) -> Pa
     ax.axhline(0.0, color="r", ls="--")
     ax.set_xlabel("t [s]")
     ax.set_ylabel("min signed distance [m]")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_intervals(
@@ -54,18 +54,31 @@ def plot_intervals(
     title: str = "",
 ) -> Path:
     """The 10 end-effector intervals with nominal (and truth), like the paper's Fig. 5."""
-    fig, axes = plt.subplots(2, 5, figsize=(13, 5))
+    return plot_intervals_side_by_side(path, {"estimate": (nominal, lower, upper)}, truth, title)
+
+
+def plot_intervals_side_by_side(
+    path: str | Path, estimates: dict[str, tuple], truth: np.ndarray | None = None, title: str = ""
+) -> Path:
+    """Fig. 5: per parameter, each estimate's interval and nominal side by side (estimates:
+    {label: (nominal, lower, upper)}), and the truth when known."""
+    fig, axes = plt.subplots(2, 5, figsize=(13 + len(estimates), 5.5))
+    labels = list(estimates)
     for k, ax in enumerate(axes.ravel()):
-        ax.errorbar([0], [0.5 * (lower[k] + upper[k])], yerr=[[0.5 * (upper[k] - lower[k])]], fmt="none", capsize=8)
-        ax.plot([0], [nominal[k]], "o", color="C0")
+        for i, label in enumerate(labels):
+            nominal, lo, hi = (np.asarray(x, float) for x in estimates[label])
+            mid, half = 0.5 * (lo[k] + hi[k]), 0.5 * (hi[k] - lo[k])
+            ax.errorbar([i], [mid], yerr=[[half]], fmt="none", capsize=8, color=f"C{i}")
+            ax.plot([i], [nominal[k]], "o", color=f"C{i}", ms=5)
         if truth is not None:
-            ax.plot([0], [truth[k]], "r*", ms=12, label="truth")
+            ax.plot(range(len(labels)), [truth[k]] * len(labels), "r*", ms=11, label="truth")
         ax.set_title(f"{NAMES[k]} [{UNITS[k]}]", fontsize=9)
-        ax.set_xticks([])
+        ax.set_xticks(range(len(labels)), labels if len(labels) > 1 else [""], fontsize=8)
+        ax.set_xlim(-0.6, len(labels) - 0.4)
     if truth is not None:
         axes[0, 0].legend(fontsize=8)
     fig.suptitle(title)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_estimate_history(
@@ -88,7 +101,7 @@ def plot_estimate_history(
     ax.set_xlabel("t [s]")
     ax.set_ylabel(f"{NAMES[index]} [{UNITS[index]}]")
     ax.legend()
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def markdown_table(rows: Sequence[dict], columns: Sequence[str]) -> str:

@@ -1,8 +1,8 @@
-"""`safesysid run` and `safesysid compare` (README.md, "Commands")."""
+"""`safesysid run` (README.md, "Commands"); `safesysid compare` is in compare_cli.py."""
 
 from __future__ import annotations
 
-import csv
+import argparse
 import json
 import sys
 from pathlib import Path
@@ -10,30 +10,13 @@ from pathlib import Path
 from safesysid.cli import BadInput
 from safesysid.scenario import METHODS, SCENARIOS_DIR, load_scenario
 
-SUMMARY_COLUMNS = [
-    "method",
-    "trial",
-    "seed",
-    "success",
-    "failure",
-    "collisions",
-    "min_clearance_m",
-    "max_torque_ratio",
-    "max_tracking_error_rad",
-    "tracking_bound_rad",
-    "contains_truth",
-    "cond_Y",
-    "mass_estimate_kg",
-    "mass_width_kg",
-    "brakes",
-    "median_solve_s",
-    "wall_time_s",
-]
+
+def scenario_path(args: argparse.Namespace) -> Path:
+    return Path(args.scenario) if args.scenario else SCENARIOS_DIR / "quickstart.yaml"
 
 
 def _scenario(args):
-    path = Path(args.scenario) if args.scenario else SCENARIOS_DIR / "quickstart.yaml"
-    return load_scenario(path, overrides=args.scenario_text)
+    return load_scenario(scenario_path(args), overrides=args.scenario_text)
 
 
 def _method(name, scenario):
@@ -57,67 +40,38 @@ def _headline(s):
     )
 
 
-def cmd_run(args):
+def _mark_interrupted(out: Path, summary: dict) -> dict:
+    """A run stopped by Ctrl-C did not succeed: say so in its summary.json."""
+    summary.update(interrupted=True, success=False, failure=summary["failure"] or "interrupted")
+    log = out / "log.csv"
+    if log.exists():  # the simulated time reached (sim_time_s is the time the run was meant to last)
+        summary["interrupted_at_s"] = float(log.read_text().rstrip().rsplit("\n", 1)[-1].split(",", 1)[0])
+    path = out / "summary.json"
+    if path.exists():
+        path.write_text(json.dumps(summary, indent=2, default=float))
+    return summary
+
+
+def cmd_run(args: argparse.Namespace) -> int:
     from safesysid.online import run_online
+    from safesysid.progress import RunDisplay, interruptible, serve_until_interrupt
 
     scenario = _scenario(args)
     method = _method(args.method, scenario)
-    summary = run_online(scenario, args.out, method=method, seed=args.seed, live_meshcat=args.meshcat)
-    print(_headline(summary))
-    print(f"wrote {Path(args.out) / 'summary.json'}, log.csv, plots, replay.html", file=sys.stderr)
-    return 0
-
-
-def row_of(summary, trial):
-    est = summary["estimate"]
-    times = sorted(summary["planner"]["solve_time_s"])
-    return {
-        "method": summary["method"],
-        "trial": trial,
-        "seed": summary["seed"],
-        "success": summary["success"],
-        "failure": summary["failure"] or "",
-        "collisions": summary["collisions"],
-        "min_clearance_m": summary["min_clearance_m"],
-        "max_torque_ratio": summary["max_torque_ratio"],
-        "max_tracking_error_rad": summary["max_tracking_error_rad"],
-        "tracking_bound_rad": summary["tracking_bound_rad"],
-        "contains_truth": summary["contains_truth"],
-        "cond_Y": summary["cond_Y"],
-        "mass_estimate_kg": est["nominal"][0],
-        "mass_width_kg": est["upper"][0] - est["lower"][0],
-        "brakes": summary["planner"]["brakes"],
-        "median_solve_s": times[len(times) // 2] if times else float("nan"),
-        "wall_time_s": summary["wall_time_s"],
-    }
-
-
-def cmd_compare(args):
-    from safesysid.online import run_online
-    from safesysid.report import markdown_table
-
-    scenario = _scenario(args)
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    for m in methods:
-        _method(m, scenario)
-    if args.trials < 1:
-        raise BadInput("--trials: must be >= 1")
-    out = Path(args.out)
-    rows = []
-    for trial in range(args.trials):
-        for method in methods:
-            seed = scenario.seed + trial
-            summary = run_online(scenario, out / f"{method}_{trial}", method=method, seed=seed)
-            rows.append(row_of(summary, trial))
-            print(_headline(summary), flush=True)
-    out.mkdir(parents=True, exist_ok=True)
-    with (out / "table.csv").open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=SUMMARY_COLUMNS)
-        writer.writeheader()
-        writer.writerows(rows)
-    (out / "table.md").write_text(
-        f"# {scenario.name}: {', '.join(methods)}, {args.trials} trial(s)\n\n" + markdown_table(rows, SUMMARY_COLUMNS)
+    if args.realtime_rate < 0:
+        raise BadInput("--realtime-rate: must be >= 0")
+    display = RunDisplay(
+        meshcat=args.meshcat or args.wait_for_viewer,
+        wait_for_viewer=args.wait_for_viewer,
+        realtime_rate=args.realtime_rate,
+        keep_serving=not args.no_serve,
     )
-    (out / "table.json").write_text(json.dumps(rows, indent=2, default=float))
-    print(markdown_table(rows, SUMMARY_COLUMNS))
-    return 0
+    with interruptible(display):
+        summary = run_online(scenario, args.out, method=method, seed=args.seed, live_meshcat=display)
+    out = Path(args.out)
+    if display.interrupted:
+        summary = _mark_interrupted(out, summary)
+    print(_headline(summary))
+    print(f"wrote {out / 'summary.json'}, log.csv, plots, replay.html", file=sys.stderr)
+    serve_until_interrupt(display)
+    return 130 if display.interrupted else 0
