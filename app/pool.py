@@ -1,9 +1,8 @@
 """Runs on a local process pool, streamed to a JSON-lines file so an interrupted batch resumes
 where it stopped, with a progress bar on stderr (`safesysid compare`).
 
-The pool follows `safesysid sweep`'s (app/sweep_cli.py on main: pool_results, _worker_signals,
-_sigterm_as_interrupt, read_trials) with the job function as a parameter, so both verbs can
-share it: Ctrl-C reaches the whole process group, the workers ignore it and the parent
+`safesysid sweep` uses the same pool, reader and signal handling (its Ray path aside): Ctrl-C
+reaches the whole process group, the workers ignore it and the parent
 terminates them; SIGTERM unwinds like Ctrl-C; a line cut by a kill is dropped on resume.
 """
 

@@ -15,16 +15,16 @@ from __future__ import annotations
 import json
 import os
 import shlex
-import signal
 import sys
 import time
 import traceback
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 import yaml
+from safesysid import pool
 from safesysid.cli import BadInput
+from safesysid.pool import read_jsonl
 
 LIMIT_KEYS = ("max_commanded_torque_ratio", "max_joint_limit_ratio", "max_velocity_ratio")
 PARAMETERS = ("m", "mcx", "mcy", "mcz", "Ixx", "Iyy", "Izz", "Ixy", "Iyz", "Ixz")
@@ -100,30 +100,9 @@ def replay_command(scenario_path, summary, scenario_text=()) -> str:
 
 
 def read_trials(path: Path) -> list:
-    """The finished trials of DIR/trials.jsonl. A line cut by a kill (no newline, not JSON) and a
-    repeated (method, seed) are dropped and the file rewritten without them, so appending after a
-    resume never glues a new line onto a broken one."""
-    if not path.exists():
-        return []
-    text = path.read_text()
-    done, seen, clean = [], set(), True
-    for line in text.splitlines():
-        try:
-            s = json.loads(line)
-            key = (s["method"], int(s["trial_seed"]))
-        except (json.JSONDecodeError, KeyError, TypeError, ValueError):
-            clean = False  # run that trial again
-            continue
-        if key in seen:
-            clean = False
-            continue
-        seen.add(key)
-        done.append(s)
-    if not clean or (text and not text.endswith("\n")):
-        tmp = path.with_suffix(".jsonl.tmp")
-        tmp.write_text("".join(json.dumps(s, default=float) + "\n" for s in done))
-        os.replace(tmp, path)
-    return done
+    """The finished trials of DIR/trials.jsonl, one per (method, seed); a line cut by a kill is
+    dropped (app/pool.py read_jsonl)."""
+    return read_jsonl(path, lambda s: (s["method"], int(s["trial_seed"])))
 
 
 def _limit_violated(s):
@@ -232,47 +211,14 @@ def report_markdown(agg, scenario, methods, replays=()):
     return "\n".join(lines) + "\n"
 
 
-@contextmanager
-def _sigterm_as_interrupt():
-    """SIGTERM (a scheduler's kill) unwinds like Ctrl-C, so the workers are stopped and every
-    finished trial is already on disk."""
-
-    def interrupt(signum, frame):
-        raise KeyboardInterrupt
-
-    try:
-        previous = signal.signal(signal.SIGTERM, interrupt)
-    except ValueError:  # not the main thread: leave signals alone
-        yield
-        return
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-
-
-def _worker_signals():
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole group: the parent handles it
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # the parent's terminate() ends a worker at once
-
-
-def _run_trial_job(job):
-    return run_trial(*job)
-
-
 def pool_results(jobs, workers):
     """Summaries of `jobs` (argument tuples of run_trial) as they finish, on a local process pool."""
-    import multiprocessing
-
-    import safesysid.online  # noqa: F401 -- imported once here, not in every forked worker
-
-    pool = multiprocessing.Pool(processes=max(1, workers), initializer=_worker_signals)
+    results = pool.pool_results(run_trial, jobs, workers)
     try:
-        yield from pool.imap_unordered(_run_trial_job, jobs)
-        pool.close()
+        for _, summary in results:
+            yield summary
     finally:
-        pool.terminate()  # on an interrupt: stop the running trials (their results were never written)
-        pool.join()
+        results.close()  # stops the workers
 
 
 def ray_results(jobs, address, workers):
@@ -341,7 +287,7 @@ def cmd_sweep(args):
     results = pool_results(todo, args.workers) if args.ray is None else ray_results(todo, args.ray, args.workers)
     wall0 = time.perf_counter()
     ran, interrupted = 0, False
-    with _sigterm_as_interrupt(), jsonl.open("a") as fh:
+    with pool.sigterm_as_interrupt(), jsonl.open("a") as fh:
         try:
             for summary in results:
                 fh.write(json.dumps(summary, default=float) + "\n")
