@@ -4,11 +4,9 @@ refereed by the SafetyMonitor.
 The controller takes its (theta0, [theta]) from the planner: those the executing plan was
 certified with (systems/planner_system.py), never the estimator's latest.
 
-Methods (paper Table III):
-  ours          exciting plans + identification
-  random        random feasible plans + identification (the ablation)
-  conservative  exciting plans, Table II interval throughout, no identification
-  wrong         no payload in the model, zero-width interval, no identification
+Methods: the paper's table of comparisons, as data in systems/methods.py (METHODS_SPEC): the
+identification phase is the method's excitation (the planner's exciting or random plans, the
+Fourier trajectory of grav-pid-excit, or none: the arm holds q0), tracked by its controller.
 """
 
 from __future__ import annotations
@@ -20,16 +18,13 @@ from pathlib import Path
 
 import numpy as np
 from safesysid.scenario import Scenario, robot_from_scenario
-
-IDENTIFYING = {"ours": True, "random": True, "conservative": False, "wrong": False}
+from safesysid.systems import methods
 
 
 def prior(robot, scenario: Scenario, method):
-    """(theta0, [theta]) the controller and planner start from ("wrong": the bare end effector,
-    no uncertainty anywhere)."""
-    from safesysid.systems.armour import prior_box
-
-    return prior_box(robot, scenario.initial_interval, scenario.noise, exact=method == "wrong")
+    """(theta0, [theta]) the controller and planner start from (methods.initial_parameters:
+    Table II before an identification phase; "wrong", "grav-pid": the bare end effector, zero width)."""
+    return methods.initial_parameters(methods.method_spec(method), robot, scenario)
 
 
 @dataclass
@@ -37,7 +32,7 @@ class OnlineDiagram:
     diagram: object
     arm: object
     controller: object
-    planner: object
+    planner: object | None  # None: the method has no planner (Fourier excitation, or none)
     estimator: object | None
     monitor: object
     loggers: dict
@@ -55,6 +50,19 @@ def _add_logger(builder, port, period, name):
     return sink
 
 
+def _excitation_without_planner(builder, spec, robot, scenario):
+    """The desired-trajectory port of a method without a planner: the Fourier trajectory, or
+    holding q0 (no identification phase)."""
+    if spec.excitation is not None and spec.excitation.trajectory == methods.FOURIER:
+        from safesysid.systems.fourier_source import FourierSource
+
+        source = builder.AddSystem(FourierSource(methods.fourier_excitation(robot, scenario).trajectory))
+        source.set_name("fourier_excitation")
+        return source.get_output_port()
+    q0 = np.asarray(scenario.q0_rad, float)
+    return _constant(builder, np.concatenate([q0, np.zeros(2 * robot.n)]), "hold_q0")
+
+
 def _constant(builder, value, name):
     from pydrake.systems.primitives import ConstantVectorSource
 
@@ -63,11 +71,12 @@ def _constant(builder, value, name):
     return src.get_output_port()
 
 
-def make_planner_system(robot, scenario, method, tracking, dumbbell, theta_prior, seed):
+def make_planner_system(robot, scenario, trajectory, tracking, dumbbell, theta_prior, seed):
+    """trajectory: methods.EXCITING (scenario.planner.cost) or methods.RANDOM."""
     from safesysid.systems.planner import SafePlanner
     from safesysid.systems.planner_system import ExcitingPlanner
 
-    mode = "random" if method == "random" else scenario.planner.cost
+    mode = "random" if trajectory == methods.RANDOM else scenario.planner.cost
     planner = SafePlanner(robot, scenario.planner, obstacles=scenario.obstacles, payload=dumbbell, tracking=tracking)
     theta0, box = theta_prior
     return ExcitingPlanner(planner, np.asarray(scenario.q0_rad, float), theta0, box.lo, box.hi, mode=mode, seed=seed)
@@ -105,42 +114,58 @@ def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> On
     from safesysid.systems.safety_monitor import SafetyMonitor
 
     method = method or scenario.method
+    spec = methods.method_spec(method)
     robot = robot_from_scenario(scenario)
     h = scenario.plant.time_step_s
     builder = DiagramBuilder()
     arm = add_real_arm(builder, scenario, robot=robot, seed=seed)
     theta0, box = prior(robot, scenario, method)
-    controller, gains = add_controller(builder, arm, scenario)
+    controller, gains = add_controller(builder, arm, scenario, kind=spec.first_controller)
     # The controller's certified bound (per-joint Kr; sigma_min from the armature lower bounds,
     # which identification never changes) is the tube the planner must respect.
     tracking = tracking_bounds_for(robot, gains.armour, box.lo)
-    planner = builder.AddSystem(
-        make_planner_system(
-            robot, scenario, method, tracking, arm.dumbbell, (theta0, box), scenario.seed if seed is None else seed
-        )
-    )
-    planner.set_name("planner")
-    desired = builder.AddSystem(Multiplexer([robot.n] * 3))
-    desired.set_name("desired_q_v_a")
-    for k, name in enumerate(("q_desired", "v_desired", "a_desired")):
-        builder.Connect(planner.GetOutputPort(name), desired.get_input_port(k))
     estimator = None
-    if IDENTIFYING[method]:
+    if spec.identifies == methods.ESTIMATOR:
         estimator = builder.AddSystem(make_estimator_system(robot, scenario))
         estimator.set_name("estimator")
         builder.Connect(arm.state_output, estimator.GetInputPort("state"))
         builder.Connect(arm.measured_torque_output, estimator.GetInputPort("measured_torque"))
-        theta_ports = [estimator.GetOutputPort(name) for name in ("theta0", "theta_lower", "theta_upper")]
+    prior_ports = [_constant(builder, v, f"prior_{k}") for k, v in enumerate((theta0, box.lo, box.hi))]
+    theta_names = ("theta0", "theta_lower", "theta_upper")
+    planner = None
+    if spec.uses_planner:
+        planner = builder.AddSystem(
+            make_planner_system(
+                robot,
+                scenario,
+                spec.excitation.trajectory,
+                tracking,
+                arm.dumbbell,
+                (theta0, box),
+                scenario.seed if seed is None else seed,
+            )
+        )
+        planner.set_name("planner")
+        desired = builder.AddSystem(Multiplexer([robot.n] * 3))
+        desired.set_name("desired_q_v_a")
+        for k, name in enumerate(("q_desired", "v_desired", "a_desired")):
+            builder.Connect(planner.GetOutputPort(name), desired.get_input_port(k))
+        desired_port = desired.get_output_port()
+        theta_ports = [estimator.GetOutputPort(n) for n in theta_names] if estimator is not None else prior_ports
+        for name, port in zip(theta_names, theta_ports):
+            builder.Connect(port, planner.GetInputPort(name))
+            builder.Connect(planner.GetOutputPort(f"plan_{name}"), controller.GetInputPort(name))
+        if estimator is not None and estimator.HasOutputPort("consistent"):
+            builder.Connect(estimator.GetOutputPort("consistent"), planner.GetInputPort("estimate_consistent"))
+        else:
+            always = _constant(builder, [1.0], "estimate_consistent")
+            builder.Connect(always, planner.GetInputPort("estimate_consistent"))
     else:
-        theta_ports = [_constant(builder, v, f"prior_{k}") for k, v in enumerate((theta0, box.lo, box.hi))]
-    for name, port in zip(("theta0", "theta_lower", "theta_upper"), theta_ports):
-        builder.Connect(port, planner.GetInputPort(name))
-        builder.Connect(planner.GetOutputPort(f"plan_{name}"), controller.GetInputPort(name))
-    if estimator is not None and estimator.HasOutputPort("consistent"):
-        builder.Connect(estimator.GetOutputPort("consistent"), planner.GetInputPort("estimate_consistent"))
-    else:
-        builder.Connect(_constant(builder, [1.0], "estimate_consistent"), planner.GetInputPort("estimate_consistent"))
-    builder.Connect(desired.get_output_port(), controller.GetInputPort("desired"))
+        # Fourier excitation (identification after it, on its data) or no identification phase.
+        desired_port = _excitation_without_planner(builder, spec, robot, scenario)
+        for name, port in zip(theta_names, prior_ports):
+            builder.Connect(port, controller.GetInputPort(name))
+    builder.Connect(desired_port, controller.GetInputPort("desired"))
 
     monitor = builder.AddSystem(SafetyMonitor(arm.plant, arm.scene_graph, robot, period_s=h))
     monitor.set_name("safety_monitor")
@@ -153,8 +178,10 @@ def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> On
         "state": _add_logger(builder, arm.state_output, h, "state"),
         "measured_torque": _add_logger(builder, arm.measured_torque_output, h, "measured_torque"),
         "command": _add_logger(builder, controller.GetOutputPort("torque"), h, "command"),
-        "desired": _add_logger(builder, desired.get_output_port(), h, "desired"),
+        "desired": _add_logger(builder, desired_port, h, "desired"),
     }
+    if controller.HasOutputPort("estimate"):  # what an adaptive controller identifies
+        loggers["adaptive_estimate"] = _add_logger(builder, controller.GetOutputPort("estimate"), h, "estimate")
     visualizer = None
     if meshcat is not None:
         from safesysid.viz import add_visualizer
@@ -219,7 +246,8 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
     if built.visualizer is not None:
         built.visualizer.StartRecording()
     sim.Initialize()
-    horizon = identification_horizon_s(scenario)
+    spec = methods.method_spec(method)
+    horizon = methods.excitation_duration_s(spec, scenario)
     # One step past the horizon so the estimator's update due at exactly t = horizon is applied.
     sim.AdvanceTo(horizon + scenario.plant.time_step_s)
     wall = time.perf_counter() - wall0
@@ -247,12 +275,15 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
     else:
         theta0, box = built.theta_prior
         theta_e0, lo, hi = theta0[robot.ee_slice], box.lo[robot.ee_slice], box.hi[robot.ee_slice]
+        if spec.identifies == methods.ADAPTATION:  # the adaptive law's estimate, inside its projection box
+            theta_e0 = built.controller.GetOutputPort("estimate").Eval(built.controller.GetMyContextFromRoot(ctx))
         history, cond_y, update_times = [], float("nan"), []
         consistent, estimator_events = True, []
     contains = bool(np.all((lo <= truth) & (truth <= hi)))
-    planner_context = built.planner.GetMyContextFromRoot(ctx)
-    plans = built.planner.records(planner_context)
-    events = merge_events(estimator_events, built.planner.events(planner_context))  # every system's, in time order
+    planner_context = built.planner.GetMyContextFromRoot(ctx) if built.planner is not None else None
+    plans = built.planner.records(planner_context) if planner_context is not None else []
+    planner_events = built.planner.events(planner_context) if planner_context is not None else []
+    events = merge_events(estimator_events, planner_events)  # every system's, in time order
     solve_times = [p["solve_time_s"] for p in plans]
     deadline = scenario.planner.replan_period_s
     bound = np.asarray(built.tracking.position, float)
@@ -282,6 +313,7 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
             "lower": np.asarray(lo).tolist(),
             "upper": np.asarray(hi).tolist(),
             "consistent": bool(consistent),
+            "source": spec.identifies,  # estimator (Algorithm 1) | adaptation | none (the prior)
         },
         "events": events,
         "contains_truth": contains,
@@ -337,7 +369,8 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
             truth,
         )
     if built.visualizer is not None:
-        draw_plans(meshcat, robot, built.planner.results(planner_context))
+        if planner_context is not None:
+            draw_plans(meshcat, robot, built.planner.results(planner_context))
         viz.save_replay(meshcat, built.visualizer, out / "replay.html")
     return summary
 

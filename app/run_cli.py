@@ -43,6 +43,12 @@ def _method(name, scenario):
     return method
 
 
+def method_list(text):
+    """--methods: comma-separated names, or "all" (every method of the paper's table, in its order)."""
+    names = [m.strip() for m in text.split(",") if m.strip()]
+    return list(METHODS) if names == ["all"] else names
+
+
 def _headline(s):
     est = s["estimate"]
     mass, lo, hi = est["nominal"][0], est["lower"][0], est["upper"][0]
@@ -97,7 +103,7 @@ def cmd_compare(args):
     from safesysid.report import markdown_table
 
     scenario = _scenario(args)
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    methods = method_list(args.methods)
     for m in methods:
         _method(m, scenario)
     if args.trials < 1:

@@ -15,13 +15,16 @@ from pathlib import Path
 
 import numpy as np
 
+from .methods import METHODS_SPEC
 from .robot_model import MODELS_DIR
 
 List = list
 Optional = typing.Optional
 
 MAX_CONTROL_STEP_S = 0.001
-METHODS = ("ours", "random", "conservative", "wrong")
+
+
+METHODS = tuple(METHODS_SPEC)  # the paper's table of comparisons, in its order
 
 
 class ScenarioError(ValueError):
@@ -162,6 +165,21 @@ class Planner:
 
 
 @dc.dataclass
+class FourierExcitation:
+    """The classical exciting trajectory of method grav-pid-excit (systems/fourier_excitation.py):
+    one period of a finite Fourier series from rest at q0 back to rest at q0, optimized for
+    cond(W_e) inside the joint velocity limits (robot params) and these acceleration limits only."""
+
+    period_s: float = 7.5  # as long as the planner's identification phase, (4 - 1) 1.5 s + 3 s
+    num_harmonics: int = 5
+    # Gen3 joint acceleration limits of the authors' RAPTOR (KinovaConstants.h): 297.94 deg/s^2
+    # on joints 1-4, 572.95 deg/s^2 on joints 5-7.
+    acceleration_limit_rad_s2: List[float] = dc.field(default_factory=lambda: [5.2] * 4 + [10.0] * 3)
+    num_cost_samples: int = 64
+    max_iterations: int = 60
+
+
+@dc.dataclass
 class Estimator:
     horizon_s: float = 0.1  # segment length h
     integration: str = "trapezoid"  # trapezoid | euler (paper)
@@ -224,10 +242,11 @@ class Scenario:
     plant: Plant = dc.field(default_factory=Plant)
     controller: Controller = dc.field(default_factory=Controller)
     planner: Planner = dc.field(default_factory=Planner)
+    fourier: FourierExcitation = dc.field(default_factory=FourierExcitation)
     estimator: Estimator = dc.field(default_factory=Estimator)
     initial_interval: InitialInterval = dc.field(default_factory=InitialInterval)
     task: Task = dc.field(default_factory=Task)
-    method: str = "ours"  # ours | random | conservative | wrong
+    method: str = "ours"  # a name of METHODS (systems/methods.py: the paper's table of comparisons)
     seed: int = 0
     # Where the loader found the file (not a YAML field).
     source: str = ""
