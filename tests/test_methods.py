@@ -290,3 +290,14 @@ def test_every_method_name_is_accepted(scenario):
         assert load_scenario(SCENARIOS_DIR / "quickstart.yaml", overrides=f"method: {name}").method == name
     with pytest.raises(BadInput, match="adap-3"):
         _method("adap-3", scenario)
+
+
+@pytest.mark.parametrize(
+    "override, field",
+    [("{period_s: 0.0}", "fourier.period_s"), ("{acceleration_limit_rad_s2: [5.0]}", "acceleration_limit_rad_s2")],
+)
+def test_bad_fourier_field_is_named(override, field):
+    from safesysid.scenario import ScenarioError
+
+    with pytest.raises(ScenarioError, match=field):
+        load_scenario(SCENARIOS_DIR / "quickstart.yaml", overrides=f"fourier: {override}")
