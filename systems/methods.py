@@ -93,36 +93,32 @@ class MethodSpec:
         return self.excitation is not None and self.excitation.trajectory in (EXCITING, RANDOM)
 
 
-def _spec(name, controller, model, uncertainty, excitation, identifies, row):
-    return MethodSpec(name, controller, model, uncertainty, excitation, identifies, row)
-
-
 _ARMOUR_EXCITING = Excitation(EXCITING, "armour")
 METHODS_SPEC: dict[str, MethodSpec] = {
     s.name: s
-    for s in (
-        _spec("ours", "armour", IDENTIFIED, IDENTIFIED, _ARMOUR_EXCITING, ESTIMATOR,
-              "ARMOUR robust | theta0 from Alg. 1 | [theta] from Alg. 1 | Alg. 2"),
-        _spec("wrong", "armour", NO_PAYLOAD, NO_PAYLOAD, None, NONE,
-              "ARMOUR robust | no payload | 0 % | N/A"),
-        _spec("conservative", "armour", PRIOR, PRIOR, None, NONE,
-              "ARMOUR robust | Table II nominal | Table II interval | N/A"),
-        _spec("random", "armour", IDENTIFIED, IDENTIFIED, Excitation(RANDOM, "armour"), ESTIMATOR,
-              "ARMOUR robust | theta0 from Alg. 1 | [theta] from Alg. 1 | random"),
-        _spec("adap-1", "adaptive", ADAPTED, None, None, ADAPTATION,
-              "adaptive (Slotine-Li) | identified by the adaptive controller | N/A | N/A"),
-        _spec("adap-1-excit", "adaptive", ADAPTED, None, Excitation(EXCITING, "adaptive"), ADAPTATION,
-              "adaptive (Slotine-Li) | identified by the adaptive controller | N/A | Alg. 2"),
-        _spec("adap-2", "adaptive_robust", ADAPTED, None, None, ADAPTATION,
-              "adaptive robust | identified by the adaptive controller | N/A | N/A"),
-        _spec("adap-2-excit", "adaptive_robust", ADAPTED, None, Excitation(EXCITING, "adaptive_robust"), ADAPTATION,
-              "adaptive robust | identified by the adaptive controller | N/A | Alg. 2"),
-        _spec("grav-pid", "pid", NO_PAYLOAD, None, None, NONE,
-              "gravity-compensated PID | no payload | N/A | N/A"),
-        _spec("grav-pid-ours", "pid", IDENTIFIED, None, _ARMOUR_EXCITING, ESTIMATOR,
-              "gravity-compensated PID | theta0 from Alg. 1 | N/A | Alg. 2"),
-        _spec("grav-pid-excit", "pid", IDENTIFIED, None, Excitation(FOURIER, "pid"), ESTIMATOR,
-              "gravity-compensated PID | theta0 from Alg. 1 | N/A | Fourier [7]"),
+    for s in (  # name, task controller, model, uncertainty, excitation, identifies, the paper's row
+        MethodSpec("ours", "armour", IDENTIFIED, IDENTIFIED, _ARMOUR_EXCITING, ESTIMATOR,
+                   "ARMOUR robust | theta0 from Alg. 1 | [theta] from Alg. 1 | Alg. 2"),
+        MethodSpec("wrong", "armour", NO_PAYLOAD, NO_PAYLOAD, None, NONE,
+                   "ARMOUR robust | no payload | 0 % | N/A"),
+        MethodSpec("conservative", "armour", PRIOR, PRIOR, None, NONE,
+                   "ARMOUR robust | Table II nominal | Table II interval | N/A"),
+        MethodSpec("random", "armour", IDENTIFIED, IDENTIFIED, Excitation(RANDOM, "armour"), ESTIMATOR,
+                   "ARMOUR robust | theta0 from Alg. 1 | [theta] from Alg. 1 | random"),
+        MethodSpec("adap-1", "adaptive", ADAPTED, None, None, ADAPTATION,
+                   "adaptive (Slotine-Li) | identified by the adaptive controller | N/A | N/A"),
+        MethodSpec("adap-1-excit", "adaptive", ADAPTED, None, Excitation(EXCITING, "adaptive"), ADAPTATION,
+                   "adaptive (Slotine-Li) | identified by the adaptive controller | N/A | Alg. 2"),
+        MethodSpec("adap-2", "adaptive_robust", ADAPTED, None, None, ADAPTATION,
+                   "adaptive robust | identified by the adaptive controller | N/A | N/A"),
+        MethodSpec("adap-2-excit", "adaptive_robust", ADAPTED, None, Excitation(EXCITING, "adaptive_robust"),
+                   ADAPTATION, "adaptive robust | identified by the adaptive controller | N/A | Alg. 2"),
+        MethodSpec("grav-pid", "pid", NO_PAYLOAD, None, None, NONE,
+                   "gravity-compensated PID | no payload | N/A | N/A"),
+        MethodSpec("grav-pid-ours", "pid", IDENTIFIED, None, _ARMOUR_EXCITING, ESTIMATOR,
+                   "gravity-compensated PID | theta0 from Alg. 1 | N/A | Alg. 2"),
+        MethodSpec("grav-pid-excit", "pid", IDENTIFIED, None, Excitation(FOURIER, "pid"), ESTIMATOR,
+                   "gravity-compensated PID | theta0 from Alg. 1 | N/A | Fourier [7]"),
     )
 }  # fmt: skip
 
