@@ -135,7 +135,9 @@ class Controller:
     # Table II prior, no certified torque margin on the 45 N m wrist joints at most poses (the
     # planner refuses to move); 0.005 halves eps (|e| <= 0.0072 rad at Kr = 5) and plans start.
     V_max: float = 0.005
-    kind: str = "armour"  # armour | pid | adaptive | adaptive_robust
+    # armour | pid | adaptive | adaptive_robust: closed_loop.build_closed_loop's controller; an
+    # online run's controllers are its method's (systems/methods.py).
+    kind: str = "armour"
     # Baselines (systems/controller_systems.py), per joint; Gen3 inertia with armature is ~9-14 kg m^2,
     # so Kp ~ M (10 rad/s)^2 and Kd ~ 2 M 10 rad/s.
     pid_kp_Nm_rad: List[float] = dc.field(default_factory=lambda: [1000.0] * 7)
