@@ -50,6 +50,30 @@ def _add_logger(builder, port, period, name):
     return sink
 
 
+def _add_planner(builder, robot, scenario, spec, tracking, arm, theta_prior, seed, estimator):
+    """Algorithm 2's planner as the method's excitation, fed by the estimator (or the prior when
+    the method does not identify with it). Returns (planner, desired-trajectory port)."""
+    from pydrake.systems.primitives import Multiplexer
+
+    planner = builder.AddSystem(
+        make_planner_system(robot, scenario, spec.excitation.trajectory, tracking, arm.dumbbell, theta_prior, seed)
+    )
+    planner.set_name("planner")
+    desired = builder.AddSystem(Multiplexer([robot.n] * 3))
+    desired.set_name("desired_q_v_a")
+    for k, name in enumerate(("q_desired", "v_desired", "a_desired")):
+        builder.Connect(planner.GetOutputPort(name), desired.get_input_port(k))
+    theta0, box = theta_prior
+    for k, (name, value) in enumerate(zip(("theta0", "theta_lower", "theta_upper"), (theta0, box.lo, box.hi))):
+        port = estimator.GetOutputPort(name) if estimator is not None else _constant(builder, value, f"prior_{k}")
+        builder.Connect(port, planner.GetInputPort(name))
+    if estimator is not None and estimator.HasOutputPort("consistent"):
+        builder.Connect(estimator.GetOutputPort("consistent"), planner.GetInputPort("estimate_consistent"))
+    else:
+        builder.Connect(_constant(builder, [1.0], "estimate_consistent"), planner.GetInputPort("estimate_consistent"))
+    return planner, desired.get_output_port()
+
+
 def _excitation_without_planner(builder, spec, robot, scenario):
     """The desired-trajectory port of a method without a planner: the Fourier trajectory, or
     holding q0 (no identification phase)."""
@@ -107,7 +131,6 @@ def make_estimator_system(robot, scenario, update_period_s=None):
 
 def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> OnlineDiagram:
     from pydrake.systems.framework import DiagramBuilder
-    from pydrake.systems.primitives import Multiplexer
     from safesysid.closed_loop import add_controller
     from safesysid.systems.armour import tracking_bounds_for
     from safesysid.systems.real_arm import add_real_arm
@@ -130,41 +153,19 @@ def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> On
         estimator.set_name("estimator")
         builder.Connect(arm.state_output, estimator.GetInputPort("state"))
         builder.Connect(arm.measured_torque_output, estimator.GetInputPort("measured_torque"))
-    prior_ports = [_constant(builder, v, f"prior_{k}") for k, v in enumerate((theta0, box.lo, box.hi))]
     theta_names = ("theta0", "theta_lower", "theta_upper")
     planner = None
     if spec.uses_planner:
-        planner = builder.AddSystem(
-            make_planner_system(
-                robot,
-                scenario,
-                spec.excitation.trajectory,
-                tracking,
-                arm.dumbbell,
-                (theta0, box),
-                scenario.seed if seed is None else seed,
-            )
+        plan_seed = scenario.seed if seed is None else seed
+        planner, desired_port = _add_planner(
+            builder, robot, scenario, spec, tracking, arm, (theta0, box), plan_seed, estimator
         )
-        planner.set_name("planner")
-        desired = builder.AddSystem(Multiplexer([robot.n] * 3))
-        desired.set_name("desired_q_v_a")
-        for k, name in enumerate(("q_desired", "v_desired", "a_desired")):
-            builder.Connect(planner.GetOutputPort(name), desired.get_input_port(k))
-        desired_port = desired.get_output_port()
-        theta_ports = [estimator.GetOutputPort(n) for n in theta_names] if estimator is not None else prior_ports
-        for name, port in zip(theta_names, theta_ports):
-            builder.Connect(port, planner.GetInputPort(name))
+        for name in theta_names:
             builder.Connect(planner.GetOutputPort(f"plan_{name}"), controller.GetInputPort(name))
-        if estimator is not None and estimator.HasOutputPort("consistent"):
-            builder.Connect(estimator.GetOutputPort("consistent"), planner.GetInputPort("estimate_consistent"))
-        else:
-            always = _constant(builder, [1.0], "estimate_consistent")
-            builder.Connect(always, planner.GetInputPort("estimate_consistent"))
-    else:
-        # Fourier excitation (identification after it, on its data) or no identification phase.
+    else:  # Fourier excitation (identification after it, on its data) or no identification phase
         desired_port = _excitation_without_planner(builder, spec, robot, scenario)
-        for name, port in zip(theta_names, prior_ports):
-            builder.Connect(port, controller.GetInputPort(name))
+        for k, (name, value) in enumerate(zip(theta_names, (theta0, box.lo, box.hi))):
+            builder.Connect(_constant(builder, value, f"prior_{k}"), controller.GetInputPort(name))
     builder.Connect(desired_port, controller.GetInputPort("desired"))
 
     monitor = builder.AddSystem(SafetyMonitor(arm.plant, arm.scene_graph, robot, period_s=h))
