@@ -9,7 +9,7 @@ start model "bare" = the robot model file's end effector (no payload), "table2" 
 
 import numpy as np
 import pytest
-from pydrake.systems.analysis import Simulator
+from helpers import simulate_online
 from pydrake.systems.framework import Diagram
 from safesysid.online import build_online, run_online
 from safesysid.scenario import METHODS, SCENARIOS_DIR, load_scenario, robot_from_scenario
@@ -124,12 +124,7 @@ def test_method_closed_loop_under_the_referee(name, scenario, robot):
     assert type(built.controller) is cls and (robust is None or built.controller.robust == robust)
     assert (built.estimator is not None) == (ident == "estimator")
     assert (built.planner is not None) == (name in PLANNED)
-    sim = Simulator(built.diagram)
-    ctx = sim.get_mutable_context()
-    built.arm.seed_noise(ctx)
-    built.arm.set_state(ctx, np.asarray(scenario.q0_rad, float))
-    sim.Initialize()
-    sim.AdvanceTo(SIM_S)
+    ctx = simulate_online(built, scenario, SIM_S)
 
     # The parameters it uses: the command at t = 0 (at rest on the desired) is g(q0; theta0).
     theta0 = model(robot, scenario, start_model)
@@ -190,12 +185,7 @@ def test_adaptive_estimate_moves_toward_the_truth(name, robot):
     plans the adaptive law's mass estimate closes a good part of that gap in 2 s."""
     scen = load_scenario(SCENARIOS_DIR / "quickstart.yaml", overrides="payload: {dumbbell: 8lb}")
     built = build_online(scen, name)
-    sim = Simulator(built.diagram)
-    ctx = sim.get_mutable_context()
-    built.arm.seed_noise(ctx)
-    built.arm.set_state(ctx, np.asarray(scen.q0_rad, float))
-    sim.Initialize()
-    sim.AdvanceTo(2.0)
+    ctx = simulate_online(built, scen, 2.0)
     truth = built.arm.true_theta()[robot.ee_slice][0]
     est = built.loggers["adaptive_estimate"].FindLog(ctx).data()[0]
     gap0, gap = abs(est[0] - truth), abs(est[-1] - truth)

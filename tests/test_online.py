@@ -8,7 +8,7 @@ import json
 
 import numpy as np
 import pytest
-from helpers import FULL, n_trials
+from helpers import FULL, n_trials, simulate_online
 from safesysid.online import run_online
 from safesysid.scenario import SCENARIOS_DIR, load_scenario
 from safesysid.sweeps import random_scene
@@ -134,18 +134,12 @@ def test_exciting_plans_beat_random_ones(quickstart):
 def test_wrong_model_leaves_the_tracking_bound(quickstart):
     """The certified bound is not vacuous: without the payload in the model it is exceeded (the
     paper's "wrong" has no identification phase: here it holds the 8 lb dumbbell at q0 for 2 s)."""
-    from pydrake.systems.analysis import Simulator
     from safesysid.online import build_online
 
     scene = load_scenario(SCENARIOS_DIR / "quickstart.yaml")
     scene.payload.dumbbell = "8lb"
     built = build_online(scene, "wrong")
-    sim = Simulator(built.diagram)
-    ctx = sim.get_mutable_context()
-    built.arm.seed_noise(ctx)
-    built.arm.set_state(ctx, np.asarray(scene.q0_rad, float))
-    sim.Initialize()
-    sim.AdvanceTo(2.0)
+    ctx = simulate_online(built, scene, 2.0)
     q = built.loggers["state"].FindLog(ctx).data()[: built.arm.n]
     q_d = built.loggers["desired"].FindLog(ctx).data()[: built.arm.n]
     ratio = np.max(np.abs(q_d - q) / np.asarray(built.tracking.position)[:, None])
