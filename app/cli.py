@@ -52,7 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("run", help="run Algorithm 2 (plan, track, identify) on a scenario")
     p.add_argument("scenario", nargs="?", help="scenario YAML (default: scenarios/quickstart.yaml)")
     p.add_argument("--out", default="out/run", help="output folder")
-    p.add_argument("--method", help="ours | random | conservative | wrong")
+    p.add_argument("--method", help="a method of the paper's table of comparisons (systems/methods.py)")
     p.add_argument("--seed", type=int)
     p.add_argument("--meshcat", action="store_true", help="show live in Meshcat (prints the URL)")
     p.add_argument(

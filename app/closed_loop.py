@@ -16,10 +16,11 @@ from safesysid.systems.real_arm import add_real_arm
 from safesysid.systems.trajectory_source import make_trajectory_source
 
 
-def add_controller(builder, arm, scenario, kind=None):
+def add_controller(builder, arm, scenario, kind=None, connect=True):
     """The scenario's controller (scenario.controller.kind unless `kind`) closing the loop on the
-    arm station: station state -> controller -> commanded torque. Its inputs desired, theta0,
-    theta_lower, theta_upper are the caller's to connect. Returns (controller, gains)."""
+    arm station: station state -> controller -> commanded torque (unless not `connect`: the
+    caller routes the torque). Its inputs desired, theta0, theta_lower, theta_upper are the
+    caller's to connect. Returns (controller, gains)."""
     robot = arm.robot
     gains = controller_systems.gains_from_scenario(scenario, robot.n)
     ctrl = builder.AddSystem(
@@ -27,8 +28,22 @@ def add_controller(builder, arm, scenario, kind=None):
     )
     ctrl.set_name("controller")
     builder.Connect(arm.state_output, ctrl.GetInputPort("state"))
-    builder.Connect(ctrl.GetOutputPort("torque"), arm.commanded_torque_input)
+    if connect:
+        builder.Connect(ctrl.GetOutputPort("torque"), arm.commanded_torque_input)
     return ctrl, gains
+
+
+def add_phase_switch(builder, arm, source, controllers):
+    """The commanded torque of a method whose task controller differs from its identification
+    controller: controllers[0] until the TaskPhaseSource `source` switches, controllers[1] after.
+    Returns the selected torque port (the one the referee judges), already driving the arm."""
+    switch = builder.AddSystem(controller_systems.PhaseSwitch(arm.robot.n))
+    switch.set_name("controller_by_phase")
+    builder.Connect(source.GetOutputPort("phase"), switch.GetInputPort("phase"))
+    for name, ctrl in zip(("identification", "task"), controllers):
+        builder.Connect(ctrl.GetOutputPort("torque"), switch.GetInputPort(name))
+    builder.Connect(switch.GetOutputPort("torque"), arm.commanded_torque_input)
+    return switch.GetOutputPort("torque")
 
 
 @dataclass

@@ -4,11 +4,9 @@ refereed by the SafetyMonitor.
 The controller takes its (theta0, [theta]) from the planner: those the executing plan was
 certified with (systems/planner_system.py), never the estimator's latest.
 
-Methods (paper Table III):
-  ours          exciting plans + identification
-  random        random feasible plans + identification (the ablation)
-  conservative  exciting plans, Table II interval throughout, no identification
-  wrong         no payload in the model, zero-width interval, no identification
+Methods: the paper's table of comparisons, as data in systems/methods.py (METHODS_SPEC): the
+identification phase is the method's excitation (the planner's exciting or random plans, the
+Fourier trajectory of grav-pid-excit, or none: the arm holds q0), tracked by its controller.
 
 Task phase (scenario `task` section; systems/task_phase.py): a TaskPhaseSource sits between the
 planner and the controller. One plant step after the identification horizon (at t = 0 for
@@ -28,17 +26,14 @@ from pathlib import Path
 
 import numpy as np
 from safesysid.scenario import Scenario, robot_from_scenario, task_enabled
+from safesysid.systems import methods
 from safesysid.systems.sysid_system import ESTIMATE_EXTRA
-
-IDENTIFYING = {"ours": True, "random": True, "conservative": False, "wrong": False}
 
 
 def prior(robot, scenario: Scenario, method):
-    """(theta0, [theta]) the controller and planner start from ("wrong": the bare end effector,
-    no uncertainty anywhere)."""
-    from safesysid.systems.armour import prior_box
-
-    return prior_box(robot, scenario.initial_interval, scenario.noise, exact=method == "wrong")
+    """(theta0, [theta]) the controller and planner start from (methods.initial_parameters:
+    Table II before an identification phase; "wrong", "grav-pid": the bare end effector, zero width)."""
+    return methods.initial_parameters(methods.method_spec(method), robot, scenario)
 
 
 @dataclass
@@ -46,7 +41,7 @@ class OnlineDiagram:
     diagram: object
     arm: object
     controller: object
-    planner: object
+    planner: object | None  # None: the method has no planner (Fourier excitation, or none)
     estimator: object | None
     monitor: object
     loggers: dict
@@ -66,6 +61,43 @@ def _add_logger(builder, port, period, name):
     return sink
 
 
+def _add_planner(builder, robot, scenario, spec, tracking, arm, theta_prior, seed, estimator):
+    """Algorithm 2's planner as the method's excitation, fed by the estimator (or the prior when
+    the method does not identify with it). Returns (planner, desired-trajectory port)."""
+    from pydrake.systems.primitives import Multiplexer
+
+    planner = builder.AddSystem(
+        make_planner_system(robot, scenario, spec.excitation.trajectory, tracking, arm.dumbbell, theta_prior, seed)
+    )
+    planner.set_name("planner")
+    desired = builder.AddSystem(Multiplexer([robot.n] * 3))
+    desired.set_name("desired_q_v_a")
+    for k, name in enumerate(("q_desired", "v_desired", "a_desired")):
+        builder.Connect(planner.GetOutputPort(name), desired.get_input_port(k))
+    theta0, box = theta_prior
+    for k, (name, value) in enumerate(zip(("theta0", "theta_lower", "theta_upper"), (theta0, box.lo, box.hi))):
+        port = estimator.GetOutputPort(name) if estimator is not None else _constant(builder, value, f"prior_{k}")
+        builder.Connect(port, planner.GetInputPort(name))
+    if estimator is not None and estimator.HasOutputPort("consistent"):
+        builder.Connect(estimator.GetOutputPort("consistent"), planner.GetInputPort("estimate_consistent"))
+    else:
+        builder.Connect(_constant(builder, [1.0], "estimate_consistent"), planner.GetInputPort("estimate_consistent"))
+    return planner, desired.get_output_port()
+
+
+def _excitation_without_planner(builder, spec, robot, scenario):
+    """The desired-trajectory port of a method without a planner: the Fourier trajectory, or
+    holding q0 (no identification phase)."""
+    if spec.excitation is not None and spec.excitation.trajectory == methods.FOURIER:
+        from safesysid.systems.fourier_source import FourierSource
+
+        source = builder.AddSystem(FourierSource(methods.fourier_excitation(robot, scenario).trajectory))
+        source.set_name("fourier_excitation")
+        return source.get_output_port()
+    q0 = np.asarray(scenario.q0_rad, float)
+    return _constant(builder, np.concatenate([q0, np.zeros(2 * robot.n)]), "hold_q0")
+
+
 def _constant(builder, value, name):
     from pydrake.systems.primitives import ConstantVectorSource
 
@@ -74,11 +106,12 @@ def _constant(builder, value, name):
     return src.get_output_port()
 
 
-def make_planner_system(robot, scenario, method, tracking, dumbbell, theta_prior, seed):
+def make_planner_system(robot, scenario, trajectory, tracking, dumbbell, theta_prior, seed):
+    """trajectory: methods.EXCITING (scenario.planner.cost) or methods.RANDOM."""
     from safesysid.systems.planner import SafePlanner
     from safesysid.systems.planner_system import ExcitingPlanner
 
-    mode = "random" if method == "random" else scenario.planner.cost
+    mode = "random" if trajectory == methods.RANDOM else scenario.planner.cost
     planner = SafePlanner(robot, scenario.planner, obstacles=scenario.obstacles, payload=dumbbell, tracking=tracking)
     theta0, box = theta_prior
     f = scenario.faults
@@ -95,16 +128,12 @@ def make_planner_system(robot, scenario, method, tracking, dumbbell, theta_prior
     )
 
 
-def identification_horizon_s(scenario):
-    """Plans start every t_p; the last one runs t_f to rest: (N - 1) t_p + t_f (7.5 s)."""
-    p = scenario.planner
-    return (p.num_plans - 1) * p.replan_period_s + p.duration_s
-
-
-def task_switch_time_s(scenario, method):
-    """Start of the task phase: one plant step after the identification horizon (so the
-    estimator's update due at the horizon is in the latched box), or 0 without identification."""
-    return identification_horizon_s(scenario) + scenario.plant.time_step_s if IDENTIFYING[method] else 0.0
+def task_switch_time_s(scenario, spec):
+    """Start of the task phase: one plant step after the identification phase (so the
+    estimator's update due at its end is in the latched box), or 0 without identification."""
+    if spec.excitation is None:
+        return 0.0
+    return methods.excitation_duration_s(spec, scenario) + scenario.plant.time_step_s
 
 
 def make_estimator_system(robot, scenario, update_period_s=None):
@@ -126,8 +155,7 @@ def make_estimator_system(robot, scenario, update_period_s=None):
 
 def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> OnlineDiagram:
     from pydrake.systems.framework import DiagramBuilder
-    from pydrake.systems.primitives import Multiplexer
-    from safesysid.closed_loop import add_controller
+    from safesysid.closed_loop import add_controller, add_phase_switch
     from safesysid.systems.armour import tracking_bounds_for
     from safesysid.systems.real_arm import add_real_arm
     from safesysid.systems.safety_monitor import SafetyMonitor
@@ -135,68 +163,70 @@ def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> On
     from safesysid.task_run import make_task_source
 
     method = method or scenario.method
+    spec = methods.method_spec(method)
     robot = robot_from_scenario(scenario)
     h = scenario.plant.time_step_s
     task = task_enabled(scenario)
     builder = DiagramBuilder()
     arm = add_real_arm(builder, scenario, robot=robot, seed=seed, releasable=task and not scenario.task.goal_q_rad)
     theta0, box = prior(robot, scenario, method)
-    controller, gains = add_controller(builder, arm, scenario)
+    controller, gains = add_controller(builder, arm, scenario, kind=spec.first_controller)
     # The controller's certified bound (per-joint Kr; sigma_min from the armature lower bounds,
     # which identification never changes) is the tube the planner must respect.
     tracking = tracking_bounds_for(robot, gains.armour, box.lo)
-    planner = desired = None
-    if IDENTIFYING[method] or not task:  # with a task, a method without identification goes straight to it
-        planner = builder.AddSystem(
-            make_planner_system(
-                robot, scenario, method, tracking, arm.dumbbell, (theta0, box), scenario.seed if seed is None else seed
-            )
-        )
-        planner.set_name("planner")
-        desired = builder.AddSystem(Multiplexer([robot.n] * 3))
-        desired.set_name("desired_q_v_a")
-        for k, name in enumerate(("q_desired", "v_desired", "a_desired")):
-            builder.Connect(planner.GetOutputPort(name), desired.get_input_port(k))
-    source, task_info = None, ()
-    if task:
-        task_info = task_plan(scenario)
-        source = builder.AddSystem(make_task_source(robot, scenario, task_switch_time_s(scenario, method), *task_info))
-        source.set_name("task_phase_source")
     estimator = None
-    if IDENTIFYING[method]:
+    if spec.identifies == methods.ESTIMATOR:
         estimator = builder.AddSystem(make_estimator_system(robot, scenario))
         estimator.set_name("estimator")
         builder.Connect(arm.state_output, estimator.GetInputPort("state"))
         builder.Connect(arm.measured_torque_output, estimator.GetInputPort("measured_torque"))
         if arm.estimator_samples_output is not None:  # injected sample faults (scenario `faults`)
             builder.Connect(arm.estimator_samples_output, estimator.GetInputPort("samples"))
-        theta_ports = [estimator.GetOutputPort(name) for name in ("theta0", "theta_lower", "theta_upper")]
-    else:
-        theta_ports = [_constant(builder, v, f"prior_{k}") for k, v in enumerate((theta0, box.lo, box.hi))]
-    for name, port in zip(("theta0", "theta_lower", "theta_upper"), theta_ports):
-        if planner is not None:
-            builder.Connect(port, planner.GetInputPort(name))
-        if source is None:
-            builder.Connect(planner.GetOutputPort(f"plan_{name}"), controller.GetInputPort(name))
-            continue
+    theta_names = ("theta0", "theta_lower", "theta_upper")
+    planner = desired_port = None
+    if spec.uses_planner:
+        plan_seed = scenario.seed if seed is None else seed
+        planner, desired_port = _add_planner(
+            builder, robot, scenario, spec, tracking, arm, (theta0, box), plan_seed, estimator
+        )
+        excitation_thetas = [planner.GetOutputPort(f"plan_{name}") for name in theta_names]
+    else:  # the Fourier excitation (identification after it, on its data), or no identification phase
+        if spec.excitation is not None or not task:  # with a task, no excitation goes straight to it
+            desired_port = _excitation_without_planner(builder, spec, robot, scenario)
+        excitation_thetas = [_constant(builder, v, f"prior_{k}") for k, v in enumerate((theta0, box.lo, box.hi))]
+    source, task_info = None, ()
+    if task:
+        task_info = task_plan(scenario)
+        source = builder.AddSystem(make_task_source(robot, scenario, task_switch_time_s(scenario, spec), *task_info))
+        source.set_name("task_phase_source")
         # Identification: the parameters the executing plan was certified with; task: the method's.
-        if planner is not None:
-            builder.Connect(planner.GetOutputPort(f"plan_{name}"), source.GetInputPort(f"plan_{name}"))
-        builder.Connect(port, source.GetInputPort(f"task_{name}"))
-        builder.Connect(source.GetOutputPort(name), controller.GetInputPort(name))
-    if planner is not None:
-        if estimator is not None and estimator.HasOutputPort("consistent"):
-            builder.Connect(estimator.GetOutputPort("consistent"), planner.GetInputPort("estimate_consistent"))
+        if spec.model == methods.IDENTIFIED:
+            task_thetas = [estimator.GetOutputPort(name) for name in theta_names]
         else:
-            consistent = _constant(builder, [1.0], "estimate_consistent")
-            builder.Connect(consistent, planner.GetInputPort("estimate_consistent"))
-    if source is not None:
-        if desired is not None:
-            builder.Connect(desired.get_output_port(), source.GetInputPort("plan_desired"))
+            t0, tbox = methods.task_parameters(spec, robot, scenario)
+            task_thetas = [_constant(builder, v, f"task_{k}") for k, v in enumerate((t0, tbox.lo, tbox.hi))]
+        for name, excitation_port, task_port in zip(theta_names, excitation_thetas, task_thetas):
+            if desired_port is not None:
+                builder.Connect(excitation_port, source.GetInputPort(f"plan_{name}"))
+            builder.Connect(task_port, source.GetInputPort(f"task_{name}"))
+        if desired_port is not None:
+            builder.Connect(desired_port, source.GetInputPort("plan_desired"))
         desired_port = source.GetOutputPort("desired")
+        theta_ports = [source.GetOutputPort(name) for name in theta_names]
     else:
-        desired_port = desired.get_output_port()
-    builder.Connect(desired_port, controller.GetInputPort("desired"))
+        theta_ports = excitation_thetas
+    controllers = [controller]
+    if task and spec.switches_controller:  # grav-pid-ours: ARMOUR identifies, the PID runs the task
+        task_controller, _ = add_controller(builder, arm, scenario, kind=spec.controller, connect=False)
+        task_controller.set_name("task_controller")
+        controllers.append(task_controller)
+    for ctrl in controllers:
+        for name, port in zip(theta_names, theta_ports):
+            builder.Connect(port, ctrl.GetInputPort(name))
+        builder.Connect(desired_port, ctrl.GetInputPort("desired"))
+    command = controller.GetOutputPort("torque")
+    if len(controllers) > 1:
+        command = add_phase_switch(builder, arm, source, controllers)
 
     ignore = [arm.released_body] if arm.released_body is not None else []
     monitor = builder.AddSystem(SafetyMonitor(arm.plant, arm.scene_graph, robot, period_s=h, ignore_bodies=ignore))
@@ -204,14 +234,16 @@ def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> On
     builder.Connect(arm.query_output, monitor.query_port)
     builder.Connect(arm.plant_state_output, monitor.state_port)
     builder.Connect(arm.motor_torque_output, monitor.torque_port)
-    builder.Connect(controller.GetOutputPort("torque"), monitor.command_port)
+    builder.Connect(command, monitor.command_port)
 
     loggers = {
         "state": _add_logger(builder, arm.state_output, h, "state"),
         "measured_torque": _add_logger(builder, arm.measured_torque_output, h, "measured_torque"),
-        "command": _add_logger(builder, controller.GetOutputPort("torque"), h, "command"),
+        "command": _add_logger(builder, command, h, "command"),
         "desired": _add_logger(builder, desired_port, h, "desired"),
     }
+    if controller.HasOutputPort("estimate"):  # what an adaptive controller identifies
+        loggers["adaptive_estimate"] = _add_logger(builder, controller.GetOutputPort("estimate"), h, "estimate")
     visualizer = None
     if meshcat is not None:
         from safesysid.viz import add_visualizer
@@ -272,7 +304,8 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
     if built.visualizer is not None:
         built.visualizer.StartRecording()
     sim.Initialize()
-    horizon = identification_horizon_s(scenario)
+    spec = methods.method_spec(method)
+    horizon = methods.excitation_duration_s(spec, scenario)
     if built.source is None:
         # One step past the horizon so the estimator's update due at exactly t = horizon is applied.
         sim.AdvanceTo(horizon + scenario.plant.time_step_s)
@@ -314,6 +347,8 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
     else:
         theta0, box = built.theta_prior
         theta_e0, lo, hi = theta0[robot.ee_slice], box.lo[robot.ee_slice], box.hi[robot.ee_slice]
+        if spec.identifies == methods.ADAPTATION:  # the adaptive law's estimate, inside its projection box
+            theta_e0 = built.controller.GetOutputPort("estimate").Eval(built.controller.GetMyContextFromRoot(ctx))
         history, cond_y, update_times = [], float("nan"), []
         consistent, estimator_events = True, []
         extra_estimate = {}
@@ -363,6 +398,7 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
             "upper": np.asarray(hi).tolist(),
             "consistent": bool(consistent),
             **extra_estimate,
+            "source": spec.identifies,  # estimator (Algorithm 1) | adaptation | none (the prior)
         },
         "events": events,
         "contains_truth": contains,

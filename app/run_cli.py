@@ -26,6 +26,12 @@ def _method(name, scenario):
     return method
 
 
+def method_list(text):
+    """--methods: comma-separated names, or "all" (every method of the paper's table, in its order)."""
+    names = [m.strip() for m in text.split(",") if m.strip()]
+    return list(METHODS) if names == ["all"] else names
+
+
 def _headline(s):
     est = s["estimate"]
     mass, lo, hi = est["nominal"][0], est["lower"][0], est["upper"][0]

@@ -166,6 +166,12 @@ def _validate(s: Scenario, where):
         need(value >= 0, f"noise.theta_r_floor.{key}", "must be >= 0")
     need(0 < s.planner.replan_period_s <= s.planner.duration_s, "planner.replan_period_s", "must be in (0, duration_s]")
     need(s.noise.torque_ratio >= 0 and s.noise.declared_torque_ratio >= 0, "noise", "ratios must be >= 0")
+    f = s.fourier
+    need(f.period_s > 0, "fourier.period_s", "must be > 0")
+    need(f.num_harmonics >= 2, "fourier.num_harmonics", "must be >= 2 (rest at both ends uses one harmonic)")
+    acc = f.acceleration_limit_rad_s2
+    need(len(acc) == len(s.q0_rad) and min(acc) > 0, "fourier.acceleration_limit_rad_s2", "one value > 0 per joint")
+    need(f.num_cost_samples >= 2 and f.max_iterations >= 0, "fourier", "num_cost_samples >= 2, max_iterations >= 0")
     for field, text in (("robot.params", s.robot.params), ("payload.dumbbells_file", s.payload.dumbbells_file)):
         need(resolve_path(text, scenario_dir(s)).is_file(), field, f"file {text!r} not found")
     if s.robot.model:

@@ -10,9 +10,10 @@ import numpy as np
 def released_parameters(robot, scenario, method):
     """(theta0, lower, upper) after the release: the bare end effector (the model's own) with
     the rest of the robot as in the method's prior box."""
+    from safesysid.systems import methods
     from safesysid.systems.armour import parameter_box
 
-    if method == "wrong":  # its model is exact: the bare end effector without any uncertainty
+    if methods.method_spec(method).theta0_source == methods.NO_PAYLOAD:  # exact: bare, no uncertainty
         theta0 = robot.theta.copy()
         return theta0, theta0, theta0
     ee = robot.theta[robot.ee_slice]

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .methods import METHODS_SPEC
 from .model_corrections import Correction, CorrectionError, corrected_robot, read_correction
 from .robot_model import MODELS_DIR, RobotModel, load_robot
 
@@ -22,7 +23,9 @@ List = list
 Optional = typing.Optional
 
 MAX_CONTROL_STEP_S = 0.001
-METHODS = ("ours", "random", "conservative", "wrong")
+
+
+METHODS = tuple(METHODS_SPEC)  # the paper's table of comparisons, in its order
 
 
 class ScenarioError(ValueError):
@@ -146,7 +149,9 @@ class Controller:
     # Table II prior, no certified torque margin on the 45 N m wrist joints at most poses (the
     # planner refuses to move); 0.005 halves eps (|e| <= 0.0072 rad at Kr = 5) and plans start.
     V_max: float = 0.005
-    kind: str = "armour"  # armour | pid | adaptive | adaptive_robust
+    # armour | pid | adaptive | adaptive_robust: closed_loop.build_closed_loop's controller; an
+    # online run's controllers are its method's (systems/methods.py).
+    kind: str = "armour"
     # Baselines (systems/controller_systems.py), per joint; Gen3 inertia with armature is ~9-14 kg m^2,
     # so Kp ~ M (10 rad/s)^2 and Kd ~ 2 M 10 rad/s.
     pid_kp_Nm_rad: List[float] = dc.field(default_factory=lambda: [1000.0] * 7)
@@ -178,6 +183,21 @@ class Planner:
     # (the deadline benchmark): which iterate is kept then depends on the machine's speed and load.
     budget: str = "iterations"  # iterations | wall_time
     floor_z_m: float = 0.0  # floor plane height (an obstacle)
+
+
+@dc.dataclass
+class FourierExcitation:
+    """The classical exciting trajectory of method grav-pid-excit (systems/fourier_excitation.py):
+    one period of a finite Fourier series from rest at q0 back to rest at q0, optimized for
+    cond(W_e) inside the joint velocity limits (robot params) and these acceleration limits only."""
+
+    period_s: float = 7.5  # as long as the planner's identification phase, (4 - 1) 1.5 s + 3 s
+    num_harmonics: int = 5
+    # Gen3 joint acceleration limits of the authors' RAPTOR (KinovaConstants.h): 297.94 deg/s^2
+    # on joints 1-4, 572.95 deg/s^2 on joints 5-7.
+    acceleration_limit_rad_s2: List[float] = dc.field(default_factory=lambda: [5.2] * 4 + [10.0] * 3)
+    num_cost_samples: int = 64
+    max_iterations: int = 60
 
 
 @dc.dataclass
@@ -311,11 +331,12 @@ class Scenario:
     plant: Plant = dc.field(default_factory=Plant)
     controller: Controller = dc.field(default_factory=Controller)
     planner: Planner = dc.field(default_factory=Planner)
+    fourier: FourierExcitation = dc.field(default_factory=FourierExcitation)
     estimator: Estimator = dc.field(default_factory=Estimator)
     initial_interval: InitialInterval = dc.field(default_factory=InitialInterval)
     task: Task = dc.field(default_factory=Task)
     faults: Faults = dc.field(default_factory=Faults)
-    method: str = "ours"  # ours | random | conservative | wrong
+    method: str = "ours"  # a name of METHODS (systems/methods.py: the paper's table of comparisons)
     seed: int = 0
     # Where the loader found the file (not a YAML field).
     source: str = ""

@@ -8,8 +8,9 @@ All laws evaluate at the step's inputs (direct feedthrough, cached once per step
   'diagnostics' = [V_bar, h, lambda, |r|, |w_bar|]).
 - GravityPidController ("grav-pid"): u = g(q; theta0) + beta + Kp e + Ki int e + Kd edot, the
   handbook PID with gravity compensation (Siciliano et al., Robotics, sec. 8.5.2 + integral).
-- AdaptiveController ("adap-1"): Slotine-Li, u = Wp(q, qd, qd_a, qdd_a) theta_hat + K_D r,
-  r = qd_a - qd; the 10 end-effector parameters adapt, d theta_hat_e/dt = Gamma Wp_e^T r,
+- AdaptiveController ("adap-1"; output 'estimate' = theta_hat_e): Slotine-Li,
+  u = Wp(q, qd, qd_a, qdd_a) theta_hat + K_D r, r = qd_a - qd; the 10 end-effector parameters
+  adapt, d theta_hat_e/dt = Gamma Wp_e^T r,
   integrated at the plant step and projected on [theta_e] (box projection with diagonal Gamma
   keeps the Lyapunov argument and bounds the estimate); theta_hat_e = theta0_e + delta, so an
   estimator's new theta0 moves the estimate with it.
@@ -26,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from pydrake.common.value import AbstractValue
-from pydrake.systems.framework import BasicVector, LeafSystem, ValueProducer
+from pydrake.systems.framework import BasicVector, Context, LeafSystem, ValueProducer
 
 from .armour import ArmourGains, ControllerDynamics, armour_control, tracking_errors, wrap_error
 from .config import ScenarioError
@@ -189,6 +190,14 @@ class AdaptiveController(ControllerBase):
         # Errors and regressor depend on the inputs only: shared by output and update.
         self._regressor = self._declare_step_cache("errors_and_regressor", self._calc_regressor)
         self.set_name("adaptive_robust_controller" if robust else "adaptive_controller")
+        # What the adaptive law identifies (paper Fig. 6 plots its mass): theta_hat_e (10).
+        self.DeclareVectorOutputPort(
+            "estimate", BasicVector(10), self._calc_estimate, {self.all_input_ports_ticket(), self.xd_ticket()}
+        )
+
+    def _calc_estimate(self, context, output):
+        *_, theta0, box = self._inputs(context)
+        output.SetFromVector(self.estimate(context, theta0, box)[self.ee])
 
     def _calc_regressor(self, context, value):
         q, v, q_d, qd_d, qdd_d, _, _ = self._inputs(context)
@@ -228,12 +237,34 @@ class AdaptiveController(ControllerBase):
         discrete_state.set_value(self._delta, new - theta0[ee])
 
 
-def make_controller(kind, robot, gains: ControllerGains, time_step):
-    """kind: armour | pid | adaptive | adaptive_robust (scenario.controller.kind)."""
-    if kind == "armour":
-        return ArmourController(robot, gains)
-    if kind == "pid":
-        return GravityPidController(robot, gains, time_step)
-    if kind in ("adaptive", "adaptive_robust"):
-        return AdaptiveController(robot, gains, time_step, robust=kind == "adaptive_robust")
-    raise ValueError(f"controller.kind: unknown controller {kind!r}")
+# kind -> factory (robot, gains, time_step); the kinds of systems/methods.py CONTROLLER_KINDS.
+CONTROLLERS = {
+    "armour": lambda robot, gains, time_step: ArmourController(robot, gains),
+    "pid": GravityPidController,
+    "adaptive": lambda robot, gains, time_step: AdaptiveController(robot, gains, time_step, robust=False),
+    "adaptive_robust": lambda robot, gains, time_step: AdaptiveController(robot, gains, time_step, robust=True),
+}
+
+
+def make_controller(kind: str, robot, gains: ControllerGains, time_step: float) -> ControllerBase:
+    """kind: a key of CONTROLLERS (a method's MethodSpec.controller, or scenario.controller.kind)."""
+    try:
+        factory = CONTROLLERS[kind]
+    except KeyError:
+        raise ValueError(f"controller.kind: unknown controller {kind!r}") from None
+    return factory(robot, gains, time_step)
+
+
+class PhaseSwitch(LeafSystem):
+    """Output torque = input "identification" while input phase is 0, input "task" once it is 1
+    (TaskPhaseSource's phase): one method, two controllers (grav-pid-ours)."""
+
+    def __init__(self, n: int) -> None:
+        super().__init__()
+        self.phase = self.DeclareVectorInputPort("phase", 1)
+        self.inputs = [self.DeclareVectorInputPort(name, n) for name in ("identification", "task")]
+        self.DeclareVectorOutputPort("torque", n, self._calc)
+
+    def _calc(self, context: Context, output: BasicVector) -> None:
+        selected = self.inputs[int(self.phase.Eval(context)[0] > 0.5)]
+        output.SetFromVector(selected.Eval(context))

@@ -42,3 +42,17 @@ def params_with_spheres(tmp_path, spheres_path):
         .replace("planner_spheres: kinova_gen3_spheres.yaml", f"planner_spheres: {spheres_path}")
     )
     return params
+
+
+def simulate_online(built, scenario, duration_s):
+    """Simulate an online diagram (app/online.py build_online) from rest at q0 for duration_s;
+    returns the root context."""
+    from pydrake.systems.analysis import Simulator
+
+    sim = Simulator(built.diagram)
+    ctx = sim.get_mutable_context()
+    built.arm.seed_noise(ctx)
+    built.arm.set_state(ctx, np.asarray(scenario.q0_rad, float))
+    sim.Initialize()
+    sim.AdvanceTo(duration_s)
+    return ctx
