@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import affine_forms as aff
 from . import regressors
+from .affine_forms import Affine
 from .armour import (
     TrackingBounds,  # the controller's certified bounds (position, velocity, qd_a, qdd_a)
     robust_gain_bound,
@@ -58,6 +60,8 @@ class _Box(Interval):
         return _Box(-self.hi, -self.lo)
 
     def __add__(self, o):
+        if isinstance(o, Affine):
+            return NotImplemented
         if isinstance(o, _Box):
             return _Box(_dn(self.lo + o.lo), _upr(self.hi + o.hi))
         return _Box(_dn(self.lo + o), _upr(self.hi + o))
@@ -65,11 +69,15 @@ class _Box(Interval):
     __radd__ = __add__
 
     def __sub__(self, o):
+        if isinstance(o, Affine):
+            return NotImplemented
         if isinstance(o, _Box):
             return _Box(_dn(self.lo - o.hi), _upr(self.hi - o.lo))
         return _Box(_dn(self.lo - o), _upr(self.hi - o))
 
     def __mul__(self, o):
+        if isinstance(o, Affine):
+            return NotImplemented
         if isinstance(o, _Box):
             p1, p2, p3, p4 = self.lo * o.lo, self.lo * o.hi, self.hi * o.lo, self.hi * o.hi
             return _Box(
@@ -88,6 +96,8 @@ class _Box(Interval):
 
 
 def _stack(items, axis=-1):
+    if isinstance(items[0], Affine):
+        return aff.stack(items, axis)
     return _Box(np.stack([x.lo for x in items], axis), np.stack([x.hi for x in items], axis))
 
 
@@ -120,6 +130,8 @@ def _force_cross(v, f):
 
 
 def _cat(items):
+    if isinstance(items[0], Affine):
+        return aff.cat(items)
     return _Box(np.concatenate([x.lo for x in items], -1), np.concatenate([x.hi for x in items], -1))
 
 
@@ -139,6 +151,8 @@ _K_COMP, _K_SIGN = signed_selection(np.swapaxes(regressors.inertia_times(np.eye(
 
 def _inertia_times(x):
     """Interval K(x) stored as (..., 10, 6) (exact: every entry is +-one component of x)."""
+    if isinstance(x, Affine):
+        return aff.gather(x, _K_COMP, _K_SIGN, (10, 6))
     lo, hi = x.lo[..., _K_COMP], x.hi[..., _K_COMP]
     shape = x.shape[:-1] + (10, 6)
     return _Box(
@@ -181,13 +195,19 @@ def _joint_transforms(tree, q):
             b2 = -rp @ k @ k @ tc
             pos = _affine3(b0, b1, b2, s[:, i, None], c[:, i, None])
         # E = R_parent_child^T: child coords of a parent-coords vector.
-        es.append(_Box(np.swapaxes(rot.lo, -1, -2), np.swapaxes(rot.hi, -1, -2)))
+        es.append(
+            aff.swap_last(rot)
+            if isinstance(rot, Affine)
+            else _Box(np.swapaxes(rot.lo, -1, -2), np.swapaxes(rot.hi, -1, -2))
+        )
         rs.append(pos)
     return _stack(es, 1), _stack(rs, 1)
 
 
 def _affine3(a0, a1, a2, s, c):
     """a0 + s a1 + c a2 with interval s, c (exact per entry: s, c independent), outward."""
+    if isinstance(s, Affine):  # s, c share the joint's symbol: keep it
+        return s * a1 + c * a2 + a0
     mid = a0 + s.mid * a1 + c.mid * a2
     rad = np.abs(a1) * s.rad + np.abs(a2) * c.rad
     err = 4 * np.finfo(float).eps * (np.abs(a0) + np.abs(a1) * s.mag + np.abs(a2) * c.mag)
@@ -196,6 +216,9 @@ def _affine3(a0, a1, a2, s, c):
 
 def _sin_cos(q):
     from . import intervals
+
+    if isinstance(q, Affine):
+        return aff.sin_cos(q)
 
     s, c = intervals.sin(Interval(q.lo, q.hi)), intervals.cos(Interval(q.lo, q.hi))
     return _Box(s.lo, s.hi), _Box(c.lo, c.hi)
@@ -253,14 +276,14 @@ _INERTIA_FORMS = np.einsum("bak->kab", regressors.inertia_times(np.eye(6)))  # [
 _INERTIA_FORMS = 0.5 * (_INERTIA_FORMS + np.swapaxes(_INERTIA_FORMS, 1, 2))
 
 
-def interval_mass_spread(robot, q, theta_lo, theta_hi):
+def interval_mass_spread(robot, q, theta_lo, theta_hi, per_joint=False):
     """mu (N,) >= controller.mass_spread(q') for every q' in each configuration box q (Interval (N, n)).
 
     r^T M r = sum_i (J_i r)^T I_i (J_i r) + sum_j Ia_j r_j^2 (J_i: body Jacobians), so
     dM/dtheta_k = J_i^T Q_k J_i for body i's parameters and e_j e_j^T for Ia_j. With J = Jc + D,
     |D| <= rad(J) over the box: |J^T Q J| <= |Jc^T Q Jc| + |Jc|^T |Q| rad + rad^T |Q| (|Jc| + rad)
     (centred form: the box's width enters to first order). Then as controller.mass_spread:
-    mu <= lambda_max(sum_k width_k |dM/dtheta_k|)."""
+    mu <= lambda_max(sum_k width_k |dM/dtheta_k|); per_joint: mu_j (N, n) of `joint_spread_bound`."""
     n = robot.n
     width = np.asarray(theta_hi, float) - np.asarray(theta_lo, float)
     jac = interval_body_jacobians(robot.tree, q)
@@ -281,16 +304,63 @@ def interval_mass_spread(robot, q, theta_lo, theta_hi):
         spread += np.einsum("xkab,k->xab", bound, w)
     ia = width[10 * n + 2 :: 4]
     spread[:, np.arange(n), np.arange(n)] += ia
-    return spectral_bound(spread)
+    return joint_spread_bound(spread) if per_joint else spectral_bound(spread)
+
+
+def joint_spread_bound(spread, grid=512):
+    """mu_j (N, n) >= max over unit u of |u_j| |u|^T S |u| for entrywise nonnegative S (N, n, n):
+    the controller's |v_j| = lambda |u_j| (u = r/|r|), so joint j only sees the barrier excess
+    along directions that have a component on j. With |u| = c e_j + s w (w >= 0, unit, _|_ e_j):
+    |u|^T S |u| <= c^2 S_jj + 2 c s |S_-j,j| + s^2 lambda_max(S_-j,-j); the max over c = cos(phi)
+    is taken on a grid in phi plus the Lipschitz bound of the function (|f'| <= 3a + 6b + 3m).
+    Never above lambda_max(S)."""
+    spread = 0.5 * (spread + np.swapaxes(spread, -1, -2))
+    nb, n, _ = spread.shape
+    idx = np.arange(n)
+    a = spread[:, idx, idx]
+    off = spread.copy()
+    off[:, idx, idx] = 0.0
+    b = np.nextafter(np.linalg.norm(off, axis=1) * (1 + 1e-12), np.inf)
+    m = np.stack([spectral_bound(np.delete(np.delete(spread, j, 1), j, 2)) for j in range(n)], 1)
+    phi = np.linspace(0.0, 0.5 * np.pi, grid + 1)
+    c, sn = np.cos(phi), np.sin(phi)
+    f = c * (c * c * a[..., None] + 2 * c * sn * b[..., None] + sn * sn * m[..., None])
+    lip = 3 * a + 6 * b + 3 * m
+    top = (f.max(-1) + lip * 0.25 * np.pi / grid) * (1 + 1e-12) + 1e-15
+    return np.minimum(top, spectral_bound(spread)[:, None])
 
 
 def interval_passivity_regressor(robot, q, v, va, aa, gravity=True):
     """Interval Wp (N, n, 14n) enclosing RobotModel.passivity_regressor over boxes q, v, va, aa
     (Intervals (N, n)). Local-frame RNEA: each body's velocity/acceleration from its parent's
     through one interval joint transform; the body wrench regressors carried back up the tree."""
+    q, v, va, aa = (_Box(x.lo, x.hi) for x in (q, v, va, aa))
+    nsamp, n = q.shape
+    lo = np.zeros((nsamp, n, 14 * n))
+    hi = np.zeros((nsamp, n, 14 * n))
+    for j, cols, x in _regressor_columns(robot, q, v, va, aa, gravity):
+        lo[:, j, cols], hi[:, j, cols] = x.lo, x.hi
+    return Interval(lo, hi)
+
+
+def affine_passivity_regressor(robot, q, v, va, aa, gravity=True):
+    """Affine Wp (N, n, 14n) (affine_forms.Affine) enclosing RobotModel.passivity_regressor for every
+    state of the affine forms q, v, va, aa (N, n) (e.g. affine_forms.tube_states): the same RNEA on
+    first-order forms, so each entry keeps its dependence on the shared symbols."""
+    nsamp, n = q.shape
+    nsym = q.g.shape[-1]
+    c, r = np.zeros((nsamp, n, 14 * n)), np.zeros((nsamp, n, 14 * n))
+    g = np.zeros((nsamp, n, 14 * n, nsym))
+    for j, cols, x in _regressor_columns(robot, q, v, va, aa, gravity):
+        x = Affine._lift(x, q)
+        c[:, j, cols], g[:, j, cols], r[:, j, cols] = x.c, x.g, x.r
+    return Affine(c, g, r, q.layout)
+
+
+def _regressor_columns(robot, q, v, va, aa, gravity):
+    """(joint, columns, values (N, len(columns))) of the passivity regressor, on _Box or Affine states."""
     tree = robot.tree
     n = tree.n
-    q, v, va, aa = (_Box(x.lo, x.hi) for x in (q, v, va, aa))
     nsamp = q.shape[0]
     e, r = _joint_transforms(tree, q)
     s_local = _joint_screws(tree)
@@ -313,14 +383,11 @@ def interval_passivity_regressor(robot, q, v, va, aa, gravity=True):
         # a_i = X a_par + s aa_i + v_i x s va_i
         acc[i] = _to_child(ei, ri, a_par) + si * aa[:, i, None] + _motion_cross(vel[i], si * va[:, i, None])
         ys[i] = _body_wrench_regressor(vel[i], vela[i], acc[i])  # (N, 10, 6)
-    lo = np.zeros((nsamp, n, 14 * n))
-    hi = np.zeros((nsamp, n, 14 * n))
     for i in range(n):  # body i's wrench columns carried up to every joint above it
         f = ys[i]
         j = i
         while j >= 0:
-            col = (f * s_local[j][None, None]).sum(-1)  # (N, 10)
-            lo[:, j, 10 * i : 10 * i + 10], hi[:, j, 10 * i : 10 * i + 10] = col.lo, col.hi
+            yield j, slice(10 * i, 10 * i + 10), (f * s_local[j][None, None]).sum(-1)  # (N, 10)
             par = tree.parent[j]
             if par < 0:
                 break
@@ -334,11 +401,10 @@ def interval_passivity_regressor(robot, q, v, va, aa, gravity=True):
         )
     else:
         sgn = _Box(np.sign(va.lo), np.sign(va.hi))
-    idx = np.arange(n)
-    base = 10 * n + 4 * idx
-    for off, x in ((0, sgn), (1, va), (2, aa), (3, _Box(np.ones((nsamp, n))))):
-        lo[:, idx, base + off], hi[:, idx, base + off] = x.lo, x.hi
-    return Interval(lo, hi)
+    for j in range(n):
+        base = 10 * n + 4 * j
+        for off, x in ((0, sgn), (1, va), (2, aa), (3, _Box(np.ones((nsamp, n))))):
+            yield j, slice(base + off, base + off + 1), x[:, j, None]
 
 
 def robust_bound_vertex(robot, q, v, va, aa, theta0, theta_lo, theta_hi, block, full=None, b_rows=1):
@@ -402,21 +468,23 @@ def robust_bound_vertex(robot, q, v, va, aa, theta0, theta_lo, theta_hi, block, 
 
 
 def barrier_excess(robot, q, theta_lo, theta_hi, bounds: TrackingBounds, rows=1):
-    """(N,): alpha eps mu / 2 over each configuration box, the amount by which the controller's
-    lambda may exceed |w_bar| on the tube (controller.robust_gain_bound); mu on hulls of `rows`
-    consecutive boxes (it varies slowly; fewer, slightly larger boxes)."""
+    """(N, n): alpha eps mu_j / 2 over each configuration box, the amount by which the controller's
+    |v_j| = lambda |r_j|/|r| may exceed |w_bar| on the tube (controller.robust_gain_bound with the
+    per-joint mu_j of `joint_spread_bound`); mu on hulls of `rows` consecutive boxes (it varies
+    slowly; fewer, slightly larger boxes)."""
     if bounds.eps == 0 or bounds.alpha == 0:
-        return np.zeros(q.shape[0])
-    mu = interval_mass_spread(robot, merge_rows(q, rows), theta_lo, theta_hi)[np.arange(q.shape[0]) // rows]
+        return np.zeros(q.shape)
+    mu = interval_mass_spread(robot, merge_rows(q, rows), theta_lo, theta_hi, per_joint=True)
+    mu = mu[np.arange(q.shape[0]) // rows]
     return robust_gain_bound(np.zeros_like(mu), bounds.alpha, bounds.eps, mu)
 
 
 def torque_bound(wp, theta0, theta_lo, theta_hi, excess):
     """sup |u| per (interval, joint) over the boxes of wp (Interval (N, n, p)).
 
-    u = W_p theta0 + v, |v_j| <= lambda <= ||w_bar||_2 + excess (excess (N,) from barrier_excess
-    on the same boxes), w_bar_i <= sum_k |W_p,ik| d_k with d = max(theta_hi - theta0, theta0 - theta_lo).
-    Returns (sup|u| (N, n), nominal part, robust part (N,)).
+    u = W_p theta0 + v, |v_j| <= ||w_bar||_2 + excess_j (excess (N, n) from barrier_excess on the
+    same boxes), w_bar_i <= sum_k |W_p,ik| d_k with d = max(theta_hi - theta0, theta0 - theta_lo).
+    Returns (sup|u| (N, n), nominal part (N, n), robust part (N, n)).
     """
     theta0 = np.asarray(theta0, float)
     d = np.maximum(np.asarray(theta_hi, float) - theta0, theta0 - np.asarray(theta_lo, float))
@@ -427,12 +495,35 @@ def torque_bound(wp, theta0, theta_lo, theta_hi, excess):
     nominal = _up(np.abs(mid) + rad + err)
     wbar = _up((wp.mag @ d) * (1 + 1e-12))
     robust = robust_term(wbar, excess)
-    return _up(nominal + robust[:, None]), nominal, robust
+    return _up(nominal + robust), nominal, robust
+
+
+def affine_torque_bound(wp: Affine, theta0, theta_lo, theta_hi, excess):
+    """torque_bound for an affine regressor (affine_passivity_regressor): the nominal torque keeps the
+    dependence across columns, |c theta0 + (g theta0) . s| <= |c theta0| + B(g theta0) + r |theta0|,
+    and w_bar_i <= sum_k d_k (|c_ik| + B(g_ik) + r_ik) (each entry's own range, B of affine_forms)."""
+    theta0 = np.asarray(theta0, float)
+    d = np.maximum(np.maximum(np.asarray(theta_hi, float) - theta0, theta0 - np.asarray(theta_lo, float)), 0.0)
+    k = len(theta0)
+    centre = wp.c @ theta0
+    gen = np.einsum("...ks,k->...s", wp.g, theta0)
+    err = (k + 2) * np.finfo(float).eps * (wp.mag @ np.abs(theta0))  # the sums over k above
+    nominal = _up(np.abs(centre) + wp.spread(gen) + wp.r @ np.abs(theta0) + err)
+    # Entries whose sign is fixed on the whole set (|c| >= spread + r) add linearly:
+    # sum_k d_k |x_k| = sum_k d_k sgn(c_k) x_k there, so their generators may cancel across k.
+    spread = wp.spread()
+    fixed = np.abs(wp.c) >= (spread + wp.r) * (1 + 1e-12)
+    sd = np.where(fixed, np.sign(wp.c), 0.0) * d
+    linear = np.where(fixed, np.abs(wp.c) + wp.r, 0.0) @ d + wp.spread(np.einsum("...ks,...k->...s", wp.g, sd))
+    free = np.where(fixed, 0.0, np.abs(wp.c) + spread + wp.r) @ d
+    wbar = _up((linear + free + err) * (1 + 1e-12))
+    robust = robust_term(wbar, excess)
+    return _up(nominal + robust), nominal, robust
 
 
 def robust_term(w_bar, excess):
-    """Rounded-up ||w_bar||_2 (last axis) + excess: the bound of the controller's |v_j| <= lambda."""
-    return _up(_up(np.linalg.norm(w_bar, axis=-1) * (1 + 1e-12)) + excess)
+    """(N, n): rounded-up ||w_bar||_2 (last axis) + excess (N, n): the bound of the controller's |v_j|."""
+    return _up(_up(np.linalg.norm(w_bar, axis=-1) * (1 + 1e-12))[:, None] + excess)
 
 
 def merge_rows(box, group):

@@ -27,9 +27,10 @@ import numpy as np
 
 from . import reachability as reach
 from . import regressors
+from .affine_forms import concat_rows
 from .armour import TrackingBounds
 from .bezier import QuinticBezier, restriction_matrix
-from .intervals import Interval, _up
+from .intervals import Interval
 from .spatial import cross, to_body
 
 COLLISION_SOLVER_MARGIN_M = 1e-4  # the solver aims this far inside; verification asks >= 0
@@ -227,14 +228,15 @@ class PlanningProblem:
     def _torque_box(self, theta0, theta_lo, theta_hi):
         """Largest k box (the allowed one, or shrunk toward k = 0 by halves) whose rigorous torque
         bound fits the limits: plain interval bound on the whole box; if that fails, on all shrink
-        levels at once (one batched call); if all fail, again with the aa-vertex refinement of the
-        robust term (tighter, costlier)."""
+        levels at once (one batched call); if all fail, again with the affine (zonotope) enclosure of
+        the regressor on hulls of `coarse` boxes, whose tracking error keeps its (e, r) coupling
+        (interval_dynamics.affine_torque_bound: tighter, costlier)."""
         limit = self.planner.robot.joint_params.torque_limit
         robot = self.planner.robot
         tracking = self.planner.tracking
         centre = np.clip(np.zeros(self.n), self.k_lo, self.k_hi)
         group = max(1, int(self.planner.torque_group))
-        coarse = 4  # the vertex refinement runs on hulls of `coarse` boxes (it costs more per box)
+        coarse = 4  # the affine bound runs on hulls of `coarse` boxes (it costs more per box)
 
         def shrunk(f):
             return centre + f * (self.k_lo - centre), centre + f * (self.k_hi - centre)
@@ -269,14 +271,12 @@ class PlanningProblem:
             self.torque_ratio = float((sup / limit).max())
             return True
         scales = [0.5**s for s in range(1, self.planner.torque_shrink_steps + 1)]
-        sup, nominal, robust, excess, nb = plain_bound(scales)
+        sup, *_, nb = plain_bound(scales)
         if take_largest_fit(scales, sup, nb):  # the plain bound admits a shrunk box
             return True
-        big, nbig = boxes_for(scales, group * coarse)
-        wv, _ = reach.robust_bound_vertex(robot, *big, theta0, theta_lo, theta_hi, robot.ee_slice, b_rows=nbig)
-        fine = np.arange(len(robust))
-        owner = (fine // nb) * nbig + (fine % nb) // coarse  # coarse box containing each fine box
-        sup = _up(nominal + np.minimum(robust, reach.robust_term(wv[owner], excess))[:, None])
+        sup = np.minimum(
+            sup, self._affine_bound(scales, shrunk, group * coarse, nb, coarse, theta0, theta_lo, theta_hi)
+        )
         if take_largest_fit(scales, sup, nb):
             return True
         last = sup.reshape(len(scales), nb, -1)[-1]
@@ -287,6 +287,21 @@ class PlanningProblem:
             f"{limit[j]:.1f} N m from t = {t_box:.2f} s, robust term included)"
         )
         return False
+
+    def _affine_bound(self, scales, shrunk, merge, nb, coarse, theta0, theta_lo, theta_hi):
+        """sup |u| (levels * nb, n) of the affine enclosure on hulls of `merge` intervals, given for each
+        of the nb finer boxes per level (each lies inside its hull)."""
+        pl = self.planner
+        per = [self.reach.tube_states(*shrunk(f), group=merge) for f in scales]
+        states = [concat_rows([p[c] for p in per]) for c in range(4)]
+        wp = reach.affine_passivity_regressor(pl.robot, *states)
+        q_box = Interval(states[0].lo, states[0].hi)
+        rows = max(1, pl.spread_rows // coarse)
+        excess = reach.barrier_excess(pl.robot, q_box, theta_lo, theta_hi, pl.tracking, rows=rows)
+        sup, _, _ = reach.affine_torque_bound(wp, theta0, theta_lo, theta_hi, excess)
+        nbig = len(per[0][0].c)
+        fine = np.arange(len(scales) * nb)
+        return sup[(fine // nb) * nbig + (fine % nb) // coarse]  # the hull containing each fine box
 
     # -- collision pairs -------------------------------------------------------------------------
     def _collision_pairs(self):

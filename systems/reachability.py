@@ -24,7 +24,8 @@ tracking error inside the bound and every theta in [theta]:
    I_i (sd is 1-Lipschitz); it is C1 in k outside the obstacle. The planner hands the solver a
    soft-min per (sphere, obstacle) over the intervals, which is <= the true min, and verifies
    every pair exactly.
-4. Torque (systems/interval_dynamics.py). The commanded input is u = W_p(q, qd, qd_a, qdd_a) theta0 + v with |v_j| <= lambda <=
+4. Torque (systems/interval_dynamics.py). The commanded input is u = W_p(q, qd, qd_a, qdd_a) theta0 + v
+   with |v_j| <= lambda <=
    ||w_bar||_2 + (alpha/2) eps mu(q) on the tube (controller.robust_gain_bound: lambda exceeds
    ||w_bar|| where h < 0, which happens inside the tube; mu bounds the spread of M over [theta],
    `interval_mass_spread` over the interval's configuration box) and
@@ -376,16 +377,20 @@ class PlanReach:
         return k_lo, k_hi, ""
 
     # -- state boxes for every k in a box -------------------------------------------------------
-    def state_boxes(self, k_lo, k_hi):
-        """Intervals (nint, n) of q, qd, qd_a, qdd_a covering every t in I_i, k in [k_lo, k_hi] and
-        tracking error in the bound (hull of the restricted control points at both k ends: the
-        control points are affine in each q_end_j)."""
+    def desired_hulls(self, k_lo, k_hi):
+        """Intervals (nint, n) of the DESIRED q, qd, qdd over every t in I_i and k in [k_lo, k_hi] (hull of
+        the restricted control points at both k ends: the control points are affine in each q_end_j)."""
         hulls = []
         for order in range(3):
             fixed, weight = self._affine_control_points(order)
             pts = [fixed + weight[..., None] * self.q_end(k)[None, None, :] for k in (k_lo, k_hi)]
             hulls.append(Interval(np.minimum(pts[0].min(1), pts[1].min(1)), np.maximum(pts[0].max(1), pts[1].max(1))))
-        qd, vd, ad = hulls
+        return hulls
+
+    def state_boxes(self, k_lo, k_hi):
+        """Intervals (nint, n) of q, qd, qd_a, qdd_a covering every t in I_i, k in [k_lo, k_hi] and
+        tracking error in the bound (the desired hulls padded by the tube)."""
+        qd, vd, ad = self.desired_hulls(k_lo, k_hi)
         b = self.bounds
 
         def pad(x, r):
@@ -393,10 +398,21 @@ class PlanReach:
 
         return pad(qd, b.position), pad(vd, b.velocity), pad(vd, b.qd_a), pad(ad, b.qdd_a)
 
+    def tube_states(self, k_lo, k_hi, group=1):
+        """Affine forms (affine_forms.tube_states) of q, qd, qd_a, qdd_a on hulls of `group` consecutive
+        intervals: the tracking error kept as the shared symbols (e, r) instead of four independent boxes."""
+        from .affine_forms import tube_states
+
+        q_box = merge_rows(self.state_boxes(k_lo, k_hi)[0], group)
+        _, vd, ad = (merge_rows(x, group) for x in self.desired_hulls(k_lo, k_hi))
+        return tube_states(q_box, vd, ad, self.bounds)
+
 
 # The torque certificate lives in interval_dynamics.py; re-exported here (one import for the planner).
 from .interval_dynamics import (  # noqa: E402, F401
     _INERTIA_FORMS,
+    affine_passivity_regressor,
+    affine_torque_bound,
     barrier_excess,
     interval_body_jacobians,
     interval_mass_spread,
