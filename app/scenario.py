@@ -62,6 +62,7 @@ List = list
 _CHOICES = {
     "method": METHODS,
     "planner.cost": ("exciting", "goal", "random"),
+    "planner.exciting_columns": ("all", "inertia"),
     "planner.solver": ("ipopt", "snopt"),
     "estimator.solver": ("ipopt", "snopt"),
     "estimator.integration": ("trapezoid", "euler"),

@@ -44,6 +44,9 @@ class _WallTimeExceeded(Exception):
     unwind cleanly; the best verified-feasible evaluated point is then used)."""
 
 
+# Columns of W_e (m, m c, I) the exciting cost conditions (scenario planner.exciting_columns).
+_EXCITING_COLUMNS = {"all": slice(0, 10), "inertia": slice(4, 10)}
+
 SOFTMIN_SHARPNESS_PER_M = 2000.0  # soft-min of a group <= its true min (gap <= log(count)/beta)
 
 
@@ -446,8 +449,9 @@ class PlanningProblem:
         w = ee_standard_regressor(
             pl.robot.tree, pl.robot.end_effector, qc.reshape(-1, n), vc.reshape(-1, n), ac.reshape(-1, n)
         ).reshape(n, ns * n, 10)
-        W = w[0].real
-        dW = w.imag / h  # (n_k, rows, 10)
+        cols = _EXCITING_COLUMNS[getattr(pl.config, "exciting_columns", "all")]
+        W = w[0].real[:, cols]
+        dW = w.imag[..., cols] / h  # (n_k, rows, columns)
         u, s, vt = np.linalg.svd(W, full_matrices=False)
         if s[-1] <= 0:
             return np.inf, np.zeros(n), W
