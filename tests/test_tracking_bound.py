@@ -168,8 +168,7 @@ def test_coarse_control_step_breaks_the_tube():
     step (systems/armour.py, 'Sampling'). The same adversarial starts at a 40 ms step leave
     the tube: the check above can fail, and it is the step that it guards."""
     runs = [
-        run_from_boundary("8lb", TIGHT_V_MAX, seed=trial, time_step=COARSE_STEP_S, duration=1.5)
-        for trial in range(4)
+        run_from_boundary("8lb", TIGHT_V_MAX, seed=trial, time_step=COARSE_STEP_S, duration=1.5) for trial in range(4)
     ]
     worst = max(float(out["lyapunov"].max()) for out in runs)
     estimate = min(out["step_estimate"] for out in runs)
