@@ -3,14 +3,15 @@
 The starts of bench_torque_feasibility.py (10 random starts near the default pose, 3 boxes near
 the arm, 4 lb payload, Table II prior, first plan from rest). For each start, on the k box the
 planner tries last (the allowed box shrunk by 2^-torque_shrink_steps toward k = 0) and at the
-(time interval, joint) where the certified torque bound is worst, the bound's terms:
+(time interval, joint) where the certified torque bound (the affine enclosure the planner uses) is
+worst, the bound's terms, and the total of the interval-box bound used before (plain / aa-vertex):
     nominal   sup |W_p theta0| over the interval's state box (desired states + tracking tube)
     w_bar     ||w_bar||_2, the parameter interval's disturbance bound (best of plain / aa-vertex)
-    excess    (alpha/2) eps mu, lambda's excess over ||w_bar|| where h < 0 inside the tube
+    excess    (alpha/2) eps mu_j, lambda's excess over ||w_bar|| as joint j sees it (|v_j| = lambda |r_j|/|r|)
 and, next to each, the largest value the actual ARMOUR law (systems/armour.py) produces on
-states ON the tube boundary inside that interval (t and k in the box, e at the corners of its
-bound, r along the joint (where |v_j| = lambda) or random, theta_true at the box vertex that
-makes h most negative). Also the collision spread (certified vs sampled centre motion) and the
+states ON the tube boundary inside that interval (t and k in the box, e reachable: the output of
+the error filter under |r| = eps, r along the joint (where |v_j| = lambda) or random, theta_true
+at the box vertex that makes h most negative). Also the collision spread (certified vs sampled centre motion) and the
 joint-limit box. `python benchmarks/bench_reach_margins.py [V_max ...]` prints a JSON table.
 """
 
@@ -31,22 +32,38 @@ def sampled_command(robot, dyn, gains, desired, bounds, theta0, box, joint, rng,
     worst = np.zeros(5)
     for qd, vd, ad in zip(*desired):
         for c in range(count):
-            e = rng.choice([-1.0, 1.0], n) * bounds.position / (1 + 1e-9)
+            e = filtered_error(rng, gains.Kr, bounds.eps, np.eye(n)[joint] if c % 3 == 0 else None) / (1 + 1e-9)
             q = qd - e
             u = np.eye(n)[joint] if c % 2 == 0 else rng.normal(size=n)
             u = u / np.linalg.norm(u)
             row = u @ robot.momentum_regressor(q[None], u[None])[0]  # u^T dM/dtheta_k u
             theta_true = np.where(row >= 0, box.lo, box.hi)  # smallest true V for this r: h most negative
             m_true = robot.mass_matrix(q[None], theta_true)[0]
-            r = u * np.sqrt(2 * gains.V_max / (u @ m_true @ u))
+            r = u * min(np.sqrt(2 * gains.V_max / (u @ m_true @ u)), bounds.eps)  # |r| <= eps (physical truth)
             tau0 = dyn.regressors(q, vd - (r - gains.Kr * e), vd + gains.Kr * e, ad, np.zeros(n))[0] @ theta0
             sign = np.sign(tau0[joint]) or 1.0
             r = r * sign * np.sign(r[joint] or 1.0)  # |u_j| largest when v_j adds to tau_nom_j
             out = ctl.armour_control(dyn, gains, q, vd - (r - gains.Kr * e), qd, vd, ad, theta0, box)
             wn = np.linalg.norm(out.w_bar)
-            vals = (abs(out.tau_nom[joint]), wn, out.lam - wn, abs(out.v[joint]), abs(out.u[joint]))
+            excess_j = (out.lam - wn) * abs(out.err.r[joint]) / np.linalg.norm(out.err.r)  # what joint j sees of it
+            vals = (abs(out.tau_nom[joint]), wn, excess_j, abs(out.v[joint]), abs(out.u[joint]))
             worst = np.maximum(worst, vals)
     return worst
+
+
+def filtered_error(rng, kr, eps, steady=None):
+    """A REACHABLE tracking error: e(t) of de/dt = r - Kr e, e(0) = 0, under piecewise-constant
+    |r| = eps (random directions, or one held long)."""
+    e = np.zeros(len(kr))
+    pieces = (
+        [(steady, 5.0)]
+        if steady is not None
+        else [(rng.normal(size=len(kr)), rng.uniform(0.02, 0.6)) for _ in range(6)]
+    )
+    for direction, h in pieces:
+        decay = np.exp(-kr * h)
+        e = decay * e + (1 - decay) * eps * direction / np.linalg.norm(direction) / kr
+    return e
 
 
 def margins(V_max: float, starts: int = 10, samples: int = 40) -> dict:
@@ -81,10 +98,14 @@ def margins(V_max: float, starts: int = 10, samples: int = 40) -> dict:
         boxes = pr.state_boxes(*ks)
         wp = reach.interval_passivity_regressor(robot, *boxes)
         excess = reach.barrier_excess(robot, boxes[0], lo, hi, bounds)
-        sup, nominal, robust = reach.torque_bound(wp, theta0, lo, hi, excess)
+        # before (interval boxes, the best of plain and aa-vertex w_bar) and now (the affine enclosure)
+        sup_i, nom_i, robust_i = reach.torque_bound(wp, theta0, lo, hi, excess)
         wv, _ = reach.robust_bound_vertex(robot, *boxes, theta0, lo, hi, robot.ee_slice, full=wp)
-        wbar = np.minimum(robust - excess, reach.robust_term(wv, 0.0))
-        sup = np.minimum(sup, nominal + (wbar + excess)[:, None])
+        sup_i = np.minimum(sup_i, nom_i + reach.robust_term(wv, excess))
+        states = pr.tube_states(*ks)
+        wa = reach.affine_passivity_regressor(robot, *states)
+        sup, nominal, robust = reach.affine_torque_bound(wa, theta0, lo, hi, excess)
+        wbar = robust - excess  # ||w_bar|| (+ rounding), the same for every joint
         i, j = np.unravel_index(np.argmax(sup / limit), sup.shape)
         t = rng.uniform(pr.edges[i], pr.edges[i + 1], samples // 8)
         desired = [
@@ -116,8 +137,13 @@ def margins(V_max: float, starts: int = 10, samples: int = 40) -> dict:
                 "certified": {
                     "total": float(sup[i, j]),
                     "nominal": float(nominal[i, j]),
-                    "w_bar_norm": float(wbar[i]),
-                    "excess": float(excess[i]),
+                    "w_bar_norm": float(wbar[i, j]),
+                    "excess": float(excess[i, j]),
+                },
+                "certified_interval_boxes": {
+                    "total": float(sup_i[i, j]),
+                    "nominal": float(nom_i[i, j]),
+                    "w_bar_norm": float(np.minimum(robust_i, reach.robust_term(wv, excess))[i, j] - excess[i, j]),
                 },
                 "sampled": {
                     "total": float(s[4]),
@@ -143,6 +169,10 @@ def margins(V_max: float, starts: int = 10, samples: int = 40) -> dict:
     }
     summary["sampled_total_over_limit"] = int(sum(r["sampled"]["total"] > r["limit_Nm"] for r in rows))
     summary["certified_total_over_limit"] = int(sum(r["certified"]["total"] > r["limit_Nm"] for r in rows))
+    summary["interval_boxes_total_median"] = float(np.median([r["certified_interval_boxes"]["total"] for r in rows]))
+    summary["interval_boxes_over_limit"] = int(
+        sum(r["certified_interval_boxes"]["total"] > r["limit_Nm"] for r in rows)
+    )
     return {"V_max": V_max, "eps": bounds.eps, "summary": summary, "starts": rows}
 
 
