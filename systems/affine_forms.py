@@ -68,6 +68,13 @@ class Affine:
 
     def __init__(self, c, g, r, layout, m=None):
         self.c, self.g, self.r, self.layout, self.m = c, g, r, layout, m
+        self._dev = None
+
+    def deviation(self):
+        """B(g) + r: the largest |x - c| (cached: a form is often multiplied several times)."""
+        if self._dev is None:
+            self._dev = self.spread() + self.r
+        return self._dev
 
     @classmethod
     def constant(cls, lo, hi, like):
@@ -151,7 +158,7 @@ class Affine:
             m = np.abs(o) * _mag(self)
             return self._new(self.c * o, self.g * o[..., None], (np.abs(o) * self.r + 2 * _U * m) * _UP, m * _UP)
         c1, c2 = self.c, a.c
-        b1, b2 = self.spread() + self.r, a.spread() + a.r
+        b1, b2 = self.deviation(), a.deviation()
         c = c1 * c2
         g = c1[..., None] * a.g + c2[..., None] * self.g
         m = _mag(self) * _mag(a)

@@ -33,7 +33,10 @@ from .bezier import QuinticBezier, restriction_matrix
 from .intervals import Interval
 from .spatial import cross, to_body
 
-COLLISION_SOLVER_MARGIN_M = 1e-4  # the solver aims this far inside; verification asks >= 0
+COLLISION_SOLVER_MARGIN_M = 1e-4
+# The plain interval bound is tried on the shrunk k boxes only when the whole box is at most this far
+# over the limit (speed only: the affine bound is tried in any case, and every bound is rigorous).
+PLAIN_SHRINK_RATIO = 1.6  # the solver aims this far inside; verification asks >= 0
 
 
 _CAP_MESSAGE = "planner wall-time cap reached"
@@ -269,20 +272,35 @@ class PlanningProblem:
                     return True
             return False
 
-        sup, *_ = plain_bound([1.0])
-        if (sup / limit).max() <= 1.0:
-            self.torque_ratio = float((sup / limit).max())
+        whole, *_ = plain_bound([1.0])
+        if (whole / limit).max() <= 1.0:
+            self.torque_ratio = float((whole / limit).max())
             return True
         scales = [0.5**s for s in range(1, self.planner.torque_shrink_steps + 1)]
-        sup, *_, nb = plain_bound(scales)
-        if take_largest_fit(scales, sup, nb):  # the plain bound admits a shrunk box
+        nb = len(whole)
+        if (whole / limit).max() <= PLAIN_SHRINK_RATIO:
+            sup, *_, nb = plain_bound(scales)
+            if take_largest_fit(scales, sup, nb):  # the plain bound admits a shrunk box
+                return True
+        else:  # far over: shrinking does not rescue the plain bound (its tube terms stay); save the time
+            sup = np.full((len(scales) * nb, self.n), np.inf)
+        # Affine bound level by level, smallest box first (the likeliest to fit): stop at the first
+        # level that does not fit (a larger box contains it), adopt the largest one that did.
+        scales = [1.0] + scales
+        sup = np.concatenate([whole, sup]).reshape(len(scales), nb, -1)
+        fitted = None
+        for level in reversed(range(len(scales))):
+            last = np.minimum(
+                sup[level],
+                self._affine_bound([scales[level]], shrunk, group * coarse, nb, coarse, theta0, theta_lo, theta_hi),
+            )
+            if (last / limit).max() > 1.0:
+                break
+            fitted = (level, float((last / limit).max()))
+        if fitted is not None:
+            self.k_lo, self.k_hi = shrunk(scales[fitted[0]])
+            self.torque_ratio = fitted[1]
             return True
-        sup = np.minimum(
-            sup, self._affine_bound(scales, shrunk, group * coarse, nb, coarse, theta0, theta_lo, theta_hi)
-        )
-        if take_largest_fit(scales, sup, nb):
-            return True
-        last = sup.reshape(len(scales), nb, -1)[-1]
         i, j = np.unravel_index(np.argmax(last / limit), last.shape)
         t_box = self.reach.edges[min(i * group, len(self.reach.t_mid) - 1)]
         self._fail(
