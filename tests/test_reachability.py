@@ -232,6 +232,27 @@ def planner_torque_bound(robot, boxes, theta0, box, bounds):
     return sup, robust, excess
 
 
+def table_ii_setup(robot, V_max):
+    """(scenario, theta0, [theta], gains, tracking bounds): the default scenario's controller at
+    V_max with the Table II prior (rest of the robot +-5 %)."""
+    from safesysid.scenario import load_scenario
+    from safesysid.systems import armour as ctl
+
+    s = load_scenario()
+    ii = s.initial_interval
+    theta0, box = ctl.parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper))
+    gains = ctl.ArmourGains(Kr=np.array(s.controller.Kr, float), alpha=s.controller.alpha, V_max=V_max)
+    return s, theta0, box, gains, ctl.tracking_bounds_for(robot, gains, box.lo)
+
+
+def random_plan(s, rng, bounds, intervals=8):
+    """A plan family from a random moving state near the scenario's start (its k ranges)."""
+    n = len(s.q0_rad)
+    q0 = np.array(s.q0_rad) + rng.uniform(-0.5, 0.5, n)
+    v0, a0 = rng.uniform(-0.3, 0.3, n), rng.uniform(-0.5, 0.5, n)
+    return reach.PlanReach(q0, v0, a0, 3.0, np.zeros(n), np.array(s.planner.k_range_rad), intervals, bounds)
+
+
 @pytest.mark.parametrize("V_max", [0.005, 0.02])
 def test_torque_bound_covers_the_controller_command_on_the_whole_tube(robot, V_max):
     """The planner's robust term and sup|u| >= |v_j|, |u_j| of the actual ARMOUR law
@@ -239,30 +260,13 @@ def test_torque_bound_covers_the_controller_command_on_the_whole_tube(robot, V_m
     V_bar exceeds V_max (h < 0) and lambda exceeds |w_bar|. Quickstart Table II prior, desired
     states of random plans; the planner's bound evaluated on two boxes that contain each state:
     the tube alone around its desired state, and the state itself (a degenerate box: no slack)."""
-    from safesysid.scenario import load_scenario
     from safesysid.systems import armour as ctl
 
-    s = load_scenario()
     rng = np.random.default_rng(7)
     n = robot.n
-    ii = s.initial_interval
-    theta0, box = ctl.parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper))
-    gains = ctl.ArmourGains(Kr=np.array(s.controller.Kr, float), alpha=s.controller.alpha, V_max=V_max)
-    bounds = ctl.tracking_bounds_for(robot, gains, box.lo)
+    s, theta0, box, gains, bounds = table_ii_setup(robot, V_max)
     dyn = ctl.ControllerDynamics(robot)
-    plans = [
-        reach.PlanReach(
-            np.array(s.q0_rad) + rng.uniform(-0.5, 0.5, n),
-            rng.uniform(-0.3, 0.3, n),
-            rng.uniform(-0.5, 0.5, n),
-            3.0,
-            np.zeros(n),
-            np.array(s.planner.k_range_rad),
-            8,
-            bounds,
-        )
-        for _ in range(8)
-    ]
+    plans = [random_plan(s, rng, bounds) for _ in range(8)]
     desired = [
         np.concatenate(x)
         for x in zip(*(p.bezier.evaluate(rng.uniform(0, 3.0, 5), p.q_end(rng.uniform(-1, 1, n))) for p in plans))

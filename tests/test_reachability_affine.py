@@ -73,29 +73,16 @@ def tube_samples(robot, rng, plan, k_lo, k_hi, gains, bounds, box, count):
 
 @pytest.mark.parametrize("V_max", [0.005, 0.02])
 def test_affine_torque_bound_covers_the_controller_on_reachable_tube_states(robot, V_max):
-    from safesysid.scenario import load_scenario
     from safesysid.systems import armour as ctl
+    from test_reachability import random_plan, table_ii_setup
 
-    s = load_scenario()
     rng = np.random.default_rng(31)
     n = robot.n
-    ii = s.initial_interval
-    theta0, box = ctl.parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper))
-    gains = ctl.ArmourGains(Kr=np.array(s.controller.Kr, float), alpha=s.controller.alpha, V_max=V_max)
-    bounds = ctl.tracking_bounds_for(robot, gains, box.lo)
+    s, theta0, box, gains, bounds = table_ii_setup(robot, V_max)
     dyn = ctl.ControllerDynamics(robot)
     worst_u, worst_w, worst_x, negative, total, entries_out = 0.0, 0.0, 0.0, 0, 0, 0
     for _ in range(4):
-        plan = reach.PlanReach(
-            np.array(s.q0_rad) + rng.uniform(-0.5, 0.5, n),
-            rng.uniform(-0.3, 0.3, n),
-            rng.uniform(-0.5, 0.5, n),
-            3.0,
-            np.zeros(n),
-            np.array(s.planner.k_range_rad),
-            8,
-            bounds,
-        )
+        plan = random_plan(s, rng, bounds)
         k_lo, k_hi = -0.25 * np.ones(n), 0.25 * np.ones(n)
         states = plan.tube_states(k_lo, k_hi)
         wp = reach.affine_passivity_regressor(robot, *states)
