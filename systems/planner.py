@@ -284,19 +284,30 @@ class PlanningProblem:
                 return True
         else:  # far over: shrinking does not rescue the plain bound (its tube terms stay); save the time
             sup = np.full((len(scales) * nb, self.n), np.inf)
-        # Affine bound level by level, smallest box first (the likeliest to fit): stop at the first
-        # level that does not fit (a larger box contains it), adopt the largest one that did.
+        # Affine bound level by level from the second smallest box: up while it fits (stop at the
+        # first misfit: a larger box contains it), down to the smallest if it does not; adopt the
+        # largest level that fits.
         scales = [1.0] + scales
         sup = np.concatenate([whole, sup]).reshape(len(scales), nb, -1)
+
+        def affine_ratio(level):
+            bound = self._affine_bound([scales[level]], shrunk, group * coarse, nb, coarse, theta0, theta_lo, theta_hi)
+            bound = np.minimum(sup[level], bound)
+            return bound, float((bound / limit).max())
+
         fitted = None
-        for level in reversed(range(len(scales))):
-            last = np.minimum(
-                sup[level],
-                self._affine_bound([scales[level]], shrunk, group * coarse, nb, coarse, theta0, theta_lo, theta_hi),
-            )
-            if (last / limit).max() > 1.0:
+        start = max(0, len(scales) - 2)
+        for level in [start, *range(start + 1, len(scales))]:  # the start, then smaller ones if it fails
+            last, ratio = affine_ratio(level)
+            if ratio <= 1.0:
+                fitted = (level, ratio)
                 break
-            fitted = (level, float((last / limit).max()))
+        if fitted is not None:
+            for level in reversed(range(fitted[0])):  # larger boxes while they fit
+                bound, ratio = affine_ratio(level)
+                if ratio > 1.0:
+                    break
+                fitted = (level, ratio)
         if fitted is not None:
             self.k_lo, self.k_hi = shrunk(scales[fitted[0]])
             self.torque_ratio = fitted[1]
@@ -517,7 +528,7 @@ class SafePlanner:
         payload=None,
         tracking=None,
         floor=True,
-        torque_shrink_steps=3,
+        torque_shrink_steps=4,
         torque_group=2,
         spread_rows=4,
     ):
