@@ -1,4 +1,6 @@
-"""Interval dynamics for the planner's torque certificate (split from reachability.py: this is the
+"""(Slightly over 500 lines: the one RNEA shared by the interval and affine torque bounds, kept whole.)
+
+Interval dynamics for the planner's torque certificate (split from reachability.py: this is the
 torque concern, reachability.py the kinematics, joint limits and collision concern).
 
 Item 4 of reachability.py's docstring: the commanded input of the ARMOUR law is

@@ -1,5 +1,8 @@
 """Provably-safe exciting-trajectory planner (ARMOUR receding horizon, paper §VI). Pure math.
 
+(Over 500 lines: one planning problem, its constraints, costs and solve loop read as one unit; the
+reachability math itself lives in reachability.py, interval_dynamics.py and affine_forms.py.)
+
 One call plans one quintic Bézier (systems/bezier.py) from the current (q0, qd0, qdd0) to
 q_end = q0 + k_c + k_r * k. Safety (continuous time, every theta in [theta], every tracking error
 inside the controller's ultimate bound) comes from systems/reachability.py:
