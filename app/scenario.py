@@ -65,6 +65,7 @@ List = list
 _CHOICES = {
     "method": METHODS,
     "planner.cost": ("exciting", "goal", "random"),
+    "planner.exciting_columns": ("all", "inertia"),
     "planner.solver": ("ipopt", "snopt"),
     "planner.budget": ("iterations", "wall_time"),
     "estimator.solver": ("ipopt", "snopt"),

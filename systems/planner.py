@@ -1,5 +1,8 @@
 """Provably-safe exciting-trajectory planner (ARMOUR receding horizon, paper §VI). Pure math.
 
+(Over 500 lines: one planning problem, its constraints, costs and solve loop read as one unit; the
+reachability math itself lives in reachability.py, interval_dynamics.py and affine_forms.py.)
+
 One call plans one quintic Bézier (systems/bezier.py) from the current (q0, qd0, qdd0) to
 q_end = q0 + k_c + k_r * k. Safety (continuous time, every theta in [theta], every tracking error
 inside the controller's ultimate bound) comes from systems/reachability.py:
@@ -29,12 +32,16 @@ import numpy as np
 
 from . import reachability as reach
 from . import regressors
+from .affine_forms import concat_rows
 from .armour import TrackingBounds
 from .bezier import QuinticBezier, restriction_matrix
-from .intervals import Interval, _up
+from .intervals import Interval
 from .spatial import cross, to_body
 
-COLLISION_SOLVER_MARGIN_M = 1e-4  # the solver aims this far inside; verification asks >= 0
+COLLISION_SOLVER_MARGIN_M = 1e-4
+# The plain interval bound is tried on the shrunk k boxes only when the whole box is at most this far
+# over the limit (speed only: the affine bound is tried in any case, and every bound is rigorous).
+PLAIN_SHRINK_RATIO = 1.6  # the solver aims this far inside; verification asks >= 0
 
 
 _CAP_MESSAGE = "planner wall-time cap reached"
@@ -44,6 +51,9 @@ class _WallTimeExceeded(Exception):
     """Raised from our callbacks to stop the solver at the wall-time cap (both Ipopt and SNOPT
     unwind cleanly; the best verified-feasible evaluated point is then used)."""
 
+
+# Columns of W_e (m, m c, I) the exciting cost conditions (scenario planner.exciting_columns).
+_EXCITING_COLUMNS = {"all": slice(0, 10), "inertia": slice(4, 10)}
 
 SOFTMIN_SHARPNESS_PER_M = 2000.0  # soft-min of a group <= its true min (gap <= log(count)/beta)
 
@@ -229,14 +239,15 @@ class PlanningProblem:
     def _torque_box(self, theta0, theta_lo, theta_hi):
         """Largest k box (the allowed one, or shrunk toward k = 0 by halves) whose rigorous torque
         bound fits the limits: plain interval bound on the whole box; if that fails, on all shrink
-        levels at once (one batched call); if all fail, again with the aa-vertex refinement of the
-        robust term (tighter, costlier)."""
+        levels at once (one batched call); if all fail, again with the affine (zonotope) enclosure of
+        the regressor on hulls of `coarse` boxes, whose tracking error keeps its (e, r) coupling
+        (interval_dynamics.affine_torque_bound: tighter, costlier)."""
         limit = self.planner.robot.joint_params.torque_limit
         robot = self.planner.robot
         tracking = self.planner.tracking
         centre = np.clip(np.zeros(self.n), self.k_lo, self.k_hi)
         group = max(1, int(self.planner.torque_group))
-        coarse = 4  # the vertex refinement runs on hulls of `coarse` boxes (it costs more per box)
+        coarse = 4  # the affine bound runs on hulls of `coarse` boxes (it costs more per box)
 
         def shrunk(f):
             return centre + f * (self.k_lo - centre), centre + f * (self.k_hi - centre)
@@ -266,22 +277,46 @@ class PlanningProblem:
                     return True
             return False
 
-        sup, *_ = plain_bound([1.0])
-        if (sup / limit).max() <= 1.0:
-            self.torque_ratio = float((sup / limit).max())
+        whole, *_ = plain_bound([1.0])
+        if (whole / limit).max() <= 1.0:
+            self.torque_ratio = float((whole / limit).max())
             return True
         scales = [0.5**s for s in range(1, self.planner.torque_shrink_steps + 1)]
-        sup, nominal, robust, excess, nb = plain_bound(scales)
-        if take_largest_fit(scales, sup, nb):  # the plain bound admits a shrunk box
+        nb = len(whole)
+        if (whole / limit).max() <= PLAIN_SHRINK_RATIO:
+            sup, *_, nb = plain_bound(scales)
+            if take_largest_fit(scales, sup, nb):  # the plain bound admits a shrunk box
+                return True
+        else:  # far over: shrinking does not rescue the plain bound (its tube terms stay); save the time
+            sup = np.full((len(scales) * nb, self.n), np.inf)
+        # Affine bound level by level from the second smallest box: up while it fits (stop at the
+        # first misfit: a larger box contains it), down to the smallest if it does not; adopt the
+        # largest level that fits.
+        scales = [1.0] + scales
+        sup = np.concatenate([whole, sup]).reshape(len(scales), nb, -1)
+
+        def affine_ratio(level):
+            bound = self._affine_bound([scales[level]], shrunk, group * coarse, nb, coarse, theta0, theta_lo, theta_hi)
+            bound = np.minimum(sup[level], bound)
+            return bound, float((bound / limit).max())
+
+        fitted = None
+        start = max(0, len(scales) - 2)
+        for level in [start, *range(start + 1, len(scales))]:  # the start, then smaller ones if it fails
+            last, ratio = affine_ratio(level)
+            if ratio <= 1.0:
+                fitted = (level, ratio)
+                break
+        if fitted is not None:
+            for level in reversed(range(fitted[0])):  # larger boxes while they fit
+                bound, ratio = affine_ratio(level)
+                if ratio > 1.0:
+                    break
+                fitted = (level, ratio)
+        if fitted is not None:
+            self.k_lo, self.k_hi = shrunk(scales[fitted[0]])
+            self.torque_ratio = fitted[1]
             return True
-        big, nbig = boxes_for(scales, group * coarse)
-        wv, _ = reach.robust_bound_vertex(robot, *big, theta0, theta_lo, theta_hi, robot.ee_slice, b_rows=nbig)
-        fine = np.arange(len(robust))
-        owner = (fine // nb) * nbig + (fine % nb) // coarse  # coarse box containing each fine box
-        sup = _up(nominal + np.minimum(robust, reach.robust_term(wv[owner], excess))[:, None])
-        if take_largest_fit(scales, sup, nb):
-            return True
-        last = sup.reshape(len(scales), nb, -1)[-1]
         i, j = np.unravel_index(np.argmax(last / limit), last.shape)
         t_box = self.reach.edges[min(i * group, len(self.reach.t_mid) - 1)]
         self._fail(
@@ -289,6 +324,21 @@ class PlanningProblem:
             f"{limit[j]:.1f} N m from t = {t_box:.2f} s, robust term included)"
         )
         return False
+
+    def _affine_bound(self, scales, shrunk, merge, nb, coarse, theta0, theta_lo, theta_hi):
+        """sup |u| (levels * nb, n) of the affine enclosure on hulls of `merge` intervals, given for each
+        of the nb finer boxes per level (each lies inside its hull)."""
+        pl = self.planner
+        per = [self.reach.tube_states(*shrunk(f), group=merge) for f in scales]
+        states = [concat_rows([p[c] for p in per]) for c in range(4)]
+        wp = reach.affine_passivity_regressor(pl.robot, *states)
+        q_box = Interval(states[0].lo, states[0].hi)
+        rows = max(1, pl.spread_rows // coarse)
+        excess = reach.barrier_excess(pl.robot, q_box, theta_lo, theta_hi, pl.tracking, rows=rows)
+        sup, _, _ = reach.affine_torque_bound(wp, theta0, theta_lo, theta_hi, excess)
+        nbig = len(per[0][0].c)
+        fine = np.arange(len(scales) * nb)
+        return sup[(fine // nb) * nbig + (fine % nb) // coarse]  # the hull containing each fine box
 
     # -- collision pairs -------------------------------------------------------------------------
     def _collision_pairs(self):
@@ -433,8 +483,9 @@ class PlanningProblem:
         w = ee_standard_regressor(
             pl.robot.tree, pl.robot.end_effector, qc.reshape(-1, n), vc.reshape(-1, n), ac.reshape(-1, n)
         ).reshape(n, ns * n, 10)
-        W = w[0].real
-        dW = w.imag / h  # (n_k, rows, 10)
+        cols = _EXCITING_COLUMNS[getattr(pl.config, "exciting_columns", "all")]
+        W = w[0].real[:, cols]
+        dW = w.imag[..., cols] / h  # (n_k, rows, columns)
         u, s, vt = np.linalg.svd(W, full_matrices=False)
         if s[-1] <= 0:
             return np.inf, np.zeros(n), W
@@ -482,7 +533,7 @@ class SafePlanner:
         payload=None,
         tracking=None,
         floor=True,
-        torque_shrink_steps=3,
+        torque_shrink_steps=4,
         torque_group=2,
         spread_rows=4,
     ):

@@ -182,6 +182,24 @@ def test_exciting_cost_gradient_matches_finite_differences(robot, payload, plann
         assert np.allclose(grad, fd, rtol=1e-5, atol=1e-6)
 
 
+def test_inertia_columns_cost_is_the_log_cond_of_the_six_inertia_columns(robot, payload):
+    """planner.exciting_columns: inertia conditions W_e[:, 4:10] (the rotational inertias): value and
+    its exact gradient (what the solver follows)."""
+    planner, thetas = make_planner(robot, payload, [], exciting_columns="inertia")
+    rng = np.random.default_rng(11)
+    prob = planner.problem(Q0 + 0.1, rng.uniform(-0.2, 0.2, 7), rng.uniform(-0.2, 0.2, 7), *thetas)
+    k = rng.uniform(-1, 1, 7)
+    val, grad, W = prob.exciting_cost(k)
+    assert W.shape[1] == 6
+    q, v, a = prob.desired_at(prob.t_cost, k)
+    full = P.ee_standard_regressor(robot.tree, robot.end_effector, q, v, a).reshape(-1, 10)
+    assert np.isclose(val, np.log(np.linalg.cond(full[:, 4:10])))
+    fd = np.array(
+        [(prob.exciting_cost(k + 1e-6 * e)[0] - prob.exciting_cost(k - 1e-6 * e)[0]) / 2e-6 for e in np.eye(7)]
+    )
+    assert np.allclose(grad, fd, rtol=1e-5, atol=1e-6)
+
+
 def test_planned_and_random_plans_are_safe_in_continuous_time(robot, planned):
     """Monte Carlo: feasible k (optimized, then random feasible ones) checked densely."""
     planner, thetas, scene = planned
@@ -363,9 +381,9 @@ def test_wall_time_cap_stops_the_solver_and_keeps_a_verified_point(robot, payloa
 
 
 def test_table_ii_prior_plans_with_a_shrunk_torque_box_and_stays_within_limits(robot, payload):
-    """With the paper's wide Table II end-effector interval and the scenario's V_max (the hardware
-    0.02 leaves no certified wrist torque margin: app/scenario.py) the torque bound rejects the full
-    k box; a shrunk box is admitted, and the ARMOUR command stays within limits on the tube boundary."""
+    """With the paper's wide Table II end-effector interval and the scenario's V_max (the hardware 0.02,
+    certified through the affine tube enclosure) the torque bound rejects the full k box; a shrunk box
+    is admitted, and the ARMOUR command stays within limits on the tube boundary."""
     from safesysid.scenario import InitialInterval, load_scenario
 
     ii = InitialInterval()
