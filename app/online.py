@@ -306,7 +306,8 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
         built.visualizer.StartRecording()
     sim.Initialize()
     spec = methods.method_spec(method)
-    horizon = methods.excitation_duration_s(spec, scenario)
+    # Without a task, a method without identification holds q0 as long as ours identifies.
+    horizon = methods.excitation_duration_s(spec, scenario) or methods.planner_horizon_s(scenario)
     if built.source is None:
         # One step past the horizon so the estimator's update due at exactly t = horizon is applied.
         sim.AdvanceTo(horizon + scenario.plant.time_step_s)

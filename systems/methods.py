@@ -167,6 +167,11 @@ def excitation_duration_s(spec: MethodSpec, scenario) -> float:
         return 0.0
     if spec.excitation.trajectory == FOURIER:
         return float(scenario.fourier.period_s)
+    return planner_horizon_s(scenario)
+
+
+def planner_horizon_s(scenario) -> float:
+    """Algorithm 2's identification phase: plans start every t_p, the last runs t_f to rest."""
     p = scenario.planner
     return (p.num_plans - 1) * p.replan_period_s + p.duration_s
 

@@ -101,7 +101,7 @@ def test_tiny_compare_writes_table_iii_cells_run_folders_and_resumes(tmp_path, c
         else:
             expected = next((f"fail at {d}" for d in ("4lb", "8lb") if not mine[d]["success"]), "success")
         assert text == expected
-    # wrong (no payload in the model, zero-width interval) cannot track the 4 lb payload: the cell must say so
+    # wrong (no payload in the model, zero-width interval) cannot hold the 8 lb payload: the cell must say so
     assert cells["wrong"] != "success"
     md = (out / "table.md").read_text()
     assert f"| ours | {cells['ours']} |" in md and f"| wrong | {cells['wrong']} |" in md
