@@ -15,6 +15,8 @@ Stages:
 - SampleFaults: what reaches the estimator, as a packet of 0-2 timestamped samples per step:
   lost (0), duplicated (the same sample twice), reordered (held back one step, then delivered
   after the next sample), or with a NaN in one field.
+
+add_fault_stages wires the scenario's stages into the real arm's station (systems/real_arm.py).
 """
 
 from __future__ import annotations
@@ -24,8 +26,10 @@ from collections.abc import Iterable
 from typing import TYPE_CHECKING
 
 import numpy as np
+from pydrake.common import RandomDistribution
 from pydrake.common.value import AbstractValue
-from pydrake.systems.framework import BasicVector, Context, EventStatus, LeafSystem
+from pydrake.systems.framework import BasicVector, Context, DiagramBuilder, EventStatus, LeafSystem, OutputPort
+from pydrake.systems.primitives import RandomSource
 
 if TYPE_CHECKING:
     from .config import Faults, Obstacle, Scenario
@@ -309,3 +313,57 @@ def remaining_plan_clearance(
         if len(bad):
             first_t = min(first_t, float(edges[:-1][keep][bad[0]]))
     return margin, first_t
+
+
+@dataclasses.dataclass
+class InjectedFaults:
+    """What add_fault_stages added to a station."""
+
+    stages: tuple[_EventStage, ...] = ()
+    sources: tuple[RandomSource, ...] = ()  # their draws (seeded with the sensor noise)
+    samples: OutputPort | None = None  # the estimator's packet port (SampleFaults), or None
+
+
+def add_fault_stages(
+    station: DiagramBuilder, scenario: Scenario, n: int, h: float, measured: OutputPort, state_out: OutputPort
+) -> tuple[OutputPort, OutputPort, InjectedFaults]:
+    """The scenario's fault stages (above) on the measured torque and the encoders,
+    and the faulty link to the estimator: (measured torque, state, InjectedFaults)."""
+
+    f, injected = scenario.faults, InjectedFaults()
+
+    def add(system, name, draws=0):
+        system.set_name(name)
+        injected.stages += (station.AddSystem(system),)
+        if draws:
+            source = station.AddSystem(RandomSource(RandomDistribution.kUniform, draws, h))
+            source.set_name(f"{name}_draws")
+            station.Connect(source.get_output_port(), system.unit_noise)
+            injected.sources += (source,)
+        return system
+
+    if f.torque_spike_magnitude_Nm * f.torque_spike_rate_per_s > 0 or f.torque_dropout_duration_s > 0:
+        joints = [j - 1 for j in f.torque_spike_joints]
+        spikes = f.torque_spike_magnitude_Nm * f.torque_spike_rate_per_s > 0
+        stage = TorqueSensorFaults(
+            n,
+            h,
+            f.torque_spike_magnitude_Nm,
+            f.torque_spike_rate_per_s,
+            joints,
+            f.torque_dropout_start_s,
+            f.torque_dropout_duration_s,
+        )
+        add(stage, "fault_torque_sensor", 2 if spikes else 0)
+        station.Connect(measured, stage.torque)
+        measured = stage.get_output_port()
+    if f.velocity_clip_rad_s > 0:
+        stage = add(VelocityClip(n, h, f.velocity_clip_rad_s), "fault_velocity_clip")
+        station.Connect(state_out, stage.state)
+        state_out = stage.get_output_port()
+    if f.samples_faulty():
+        stage = add(SampleFaults(n, h, SampleRates.from_faults(f, h)), "fault_samples", 5)
+        station.Connect(state_out, stage.state)
+        station.Connect(measured, stage.torque)
+        injected.samples = stage.get_output_port()
+    return measured, state_out, injected

@@ -75,7 +75,6 @@ NOT_YET_TYPED = {
     "systems/planner.py",
     "systems/planner_system.py",
     "systems/reachability.py",
-    "systems/real_arm.py",
     "systems/task_trajectory.py",
 }
 
