@@ -71,11 +71,9 @@ NOT_YET_TYPED = {
     "app/sweeps.py",
     "systems/armour.py",
     "systems/controller_systems.py",
-    "systems/estimation/",  # every module of the package
     "systems/planner.py",
     "systems/planner_system.py",
     "systems/reachability.py",
-    "systems/task_trajectory.py",
 }
 
 
