@@ -5,18 +5,29 @@ diagram, with planner and estimator, is app/online.py)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 from pydrake.systems.analysis import Simulator
-from pydrake.systems.framework import DiagramBuilder
-from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput
+from pydrake.systems.framework import Diagram, DiagramBuilder
+from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput, VectorLogSink
 from safesysid.systems import controller_systems
 from safesysid.systems.intervals import Interval
-from safesysid.systems.real_arm import add_real_arm
-from safesysid.systems.trajectory_source import make_trajectory_source
+from safesysid.systems.real_arm import RealArm, add_real_arm
+from safesysid.systems.trajectory_source import Piece, TrajectorySource, make_trajectory_source
+
+if TYPE_CHECKING:
+    from safesysid.systems.bezier import QuinticBezier
+    from safesysid.systems.config import Scenario
+    from safesysid.systems.controller_systems import ControllerBase, ControllerGains
+    from safesysid.systems.payload import Dumbbell
+    from safesysid.systems.robot_model import RobotModel
 
 
-def add_controller(builder, arm, scenario, kind=None):
+def add_controller(
+    builder: DiagramBuilder, arm: RealArm, scenario: Scenario, kind: str | None = None
+) -> tuple[ControllerBase, ControllerGains]:
     """The scenario's controller (scenario.controller.kind unless `kind`) closing the loop on the
     arm station: station state -> controller -> commanded torque. Its inputs desired, theta0,
     theta_lower, theta_upper are the caller's to connect. Returns (controller, gains)."""
@@ -33,16 +44,24 @@ def add_controller(builder, arm, scenario, kind=None):
 
 @dataclass
 class ClosedLoop:
-    diagram: object
-    arm: object  # RealArm
-    controller: object
-    source: object
-    loggers: dict  # name -> VectorLogSink (state, desired, torque, measured_torque, diagnostics)
+    diagram: Diagram
+    arm: RealArm
+    controller: ControllerBase
+    source: TrajectorySource
+    loggers: dict[str, VectorLogSink]  # state, desired, torque, measured_torque, diagnostics
 
 
 def build_closed_loop(
-    scenario, trajectory, theta0, theta_box: Interval, kind=None, robot=None, dumbbell="scenario", log=True, seed=None
-):
+    scenario: Scenario,
+    trajectory: tuple[QuinticBezier, np.ndarray] | list[Piece],
+    theta0: ArrayLike,
+    theta_box: Interval,
+    kind: str | None = None,
+    robot: RobotModel | None = None,
+    dumbbell: Dumbbell | str | None = "scenario",
+    log: bool = True,
+    seed: int | None = None,
+) -> ClosedLoop:
     """Real arm + controller (scenario.controller.kind unless `kind`) + trajectory source, with
     fixed theta0 / [theta] (an estimator can be connected instead by building by hand)."""
     builder = DiagramBuilder()
@@ -72,7 +91,9 @@ def build_closed_loop(
     return ClosedLoop(builder.Build(), arm, ctrl, src, loggers)
 
 
-def simulate_closed_loop(loop: ClosedLoop, q0, duration_s, v0=None):
+def simulate_closed_loop(
+    loop: ClosedLoop, q0: ArrayLike, duration_s: float, v0: ArrayLike | None = None
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Run from (q0, v0); returns {name: (t, data (N, size))} from the loggers."""
     sim = Simulator(loop.diagram)
     ctx = sim.get_mutable_context()

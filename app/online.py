@@ -23,17 +23,35 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from safesysid.scenario import Scenario, robot_from_scenario, task_enabled
 from safesysid.systems.sysid_system import ESTIMATE_EXTRA
 
+if TYPE_CHECKING:
+    from pydrake.geometry import Meshcat, MeshcatVisualizer
+    from pydrake.systems.framework import Diagram
+    from pydrake.systems.primitives import VectorLogSink
+    from safesysid.systems.armour import TrackingBounds
+    from safesysid.systems.controller_systems import ControllerBase
+    from safesysid.systems.intervals import Interval
+    from safesysid.systems.payload import Dumbbell
+    from safesysid.systems.planner import PlanResult
+    from safesysid.systems.planner_system import ExcitingPlanner
+    from safesysid.systems.real_arm import RealArm
+    from safesysid.systems.robot_model import RobotModel
+    from safesysid.systems.safety_monitor import SafetyMonitor
+    from safesysid.systems.sysid_system import SysIdEstimator
+    from safesysid.systems.trajectory_source import TaskPhaseSource
+
 IDENTIFYING = {"ours": True, "random": True, "conservative": False, "wrong": False}
 
 
-def prior(robot, scenario: Scenario, method):
+def prior(robot: RobotModel, scenario: Scenario, method: str) -> tuple[np.ndarray, Interval]:
     """(theta0, [theta]) the controller and planner start from ("wrong": the bare end effector,
     no uncertainty anywhere)."""
     from safesysid.systems.armour import prior_box
@@ -43,18 +61,18 @@ def prior(robot, scenario: Scenario, method):
 
 @dataclass
 class OnlineDiagram:
-    diagram: object
-    arm: object
-    controller: object
-    planner: object
-    estimator: object | None
-    monitor: object
-    loggers: dict
-    visualizer: object | None
-    meshcat: object | None
-    theta_prior: tuple
-    tracking: object
-    source: object = None  # TaskPhaseSource (None: no task phase)
+    diagram: Diagram
+    arm: RealArm
+    controller: ControllerBase
+    planner: ExcitingPlanner | None  # None: a method without identification in a task run
+    estimator: SysIdEstimator | None
+    monitor: SafetyMonitor
+    loggers: dict[str, VectorLogSink]
+    visualizer: MeshcatVisualizer | None
+    meshcat: Meshcat | None
+    theta_prior: tuple[np.ndarray, Interval]
+    tracking: TrackingBounds
+    source: TaskPhaseSource | None = None  # None: no task phase
     task: tuple = ()  # (TaskProblem, TaskResult) of the scenario's task
 
 
@@ -74,7 +92,15 @@ def _constant(builder, value, name):
     return src.get_output_port()
 
 
-def make_planner_system(robot, scenario, method, tracking, dumbbell, theta_prior, seed):
+def make_planner_system(
+    robot: RobotModel,
+    scenario: Scenario,
+    method: str,
+    tracking: TrackingBounds,
+    dumbbell: Dumbbell | None,
+    theta_prior: tuple[np.ndarray, Interval],
+    seed: int,
+) -> ExcitingPlanner:
     from safesysid.systems.planner import SafePlanner
     from safesysid.systems.planner_system import ExcitingPlanner
 
@@ -95,19 +121,21 @@ def make_planner_system(robot, scenario, method, tracking, dumbbell, theta_prior
     )
 
 
-def identification_horizon_s(scenario):
+def identification_horizon_s(scenario: Scenario) -> float:
     """Plans start every t_p; the last one runs t_f to rest: (N - 1) t_p + t_f (7.5 s)."""
     p = scenario.planner
     return (p.num_plans - 1) * p.replan_period_s + p.duration_s
 
 
-def task_switch_time_s(scenario, method):
+def task_switch_time_s(scenario: Scenario, method: str) -> float:
     """Start of the task phase: one plant step after the identification horizon (so the
     estimator's update due at the horizon is in the latched box), or 0 without identification."""
     return identification_horizon_s(scenario) + scenario.plant.time_step_s if IDENTIFYING[method] else 0.0
 
 
-def make_estimator_system(robot, scenario, update_period_s=None):
+def make_estimator_system(
+    robot: RobotModel, scenario: Scenario, update_period_s: float | None = None
+) -> SysIdEstimator:
     """The SysIdEstimator of a scenario: its estimator settings and initial interval, sampling at
     the plant step, updating every t_p (planner.replan_period_s unless given)."""
     from safesysid.systems.estimation import EstimatorSettings
@@ -124,7 +152,9 @@ def make_estimator_system(robot, scenario, update_period_s=None):
     )
 
 
-def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> OnlineDiagram:
+def build_online(
+    scenario: Scenario, method: str | None = None, meshcat: Meshcat | None = None, seed: int | None = None
+) -> OnlineDiagram:
     from pydrake.systems.framework import DiagramBuilder
     from pydrake.systems.primitives import Multiplexer
     from safesysid.closed_loop import add_controller
@@ -241,13 +271,20 @@ def _log(sink, context):
     return data.sample_times().copy(), data.data().T.copy()
 
 
-def merge_events(*sources):
+def merge_events(*sources: Iterable[dict]) -> list[dict]:
     """One list of {t, kind, detail} from several systems' event lists, in time order (stable:
     events at the same instant keep their order within a source)."""
     return sorted((dict(e) for source in sources for e in source), key=lambda e: e["t"])
 
 
-def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat=False, write=True):
+def run_online(
+    scenario: Scenario,
+    out_dir: str | Path,
+    method: str | None = None,
+    seed: int | None = None,
+    live_meshcat: bool = False,
+    write: bool = True,
+) -> dict:
     """Run Algorithm 2 on a scenario; write summary.json, log.csv, plots, replay.html."""
     from pydrake.systems.analysis import Simulator
     from safesysid import figures, progress, report, viz
@@ -429,7 +466,7 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
     return summary
 
 
-def draw_plans(meshcat, robot, results):
+def draw_plans(meshcat: Meshcat, robot: RobotModel, results: Iterable[PlanResult]) -> None:
     """Each accepted plan's gripper-centre path, and its certified swept spheres (toggle)."""
     from safesysid import viz
 
