@@ -5,18 +5,30 @@ diagram, with planner and estimator, is app/online.py)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 from pydrake.systems.analysis import Simulator
-from pydrake.systems.framework import DiagramBuilder
-from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput
+from pydrake.systems.framework import Diagram, DiagramBuilder, OutputPort
+from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput, VectorLogSink
 from safesysid.systems import controller_systems
 from safesysid.systems.intervals import Interval
-from safesysid.systems.real_arm import add_real_arm
-from safesysid.systems.trajectory_source import make_trajectory_source
+from safesysid.systems.real_arm import RealArm, add_real_arm
+from safesysid.systems.trajectory_source import Piece, TrajectorySource, make_trajectory_source
+
+if TYPE_CHECKING:
+    from safesysid.systems.bezier import QuinticBezier
+    from safesysid.systems.config import Scenario
+    from safesysid.systems.controller_systems import ControllerBase, ControllerGains
+    from safesysid.systems.payload import Dumbbell
+    from safesysid.systems.robot_model import RobotModel
+    from safesysid.systems.trajectory_source import TaskPhaseSource
 
 
-def add_controller(builder, arm, scenario, kind=None, connect=True):
+def add_controller(
+    builder: DiagramBuilder, arm: RealArm, scenario: Scenario, kind: str | None = None, connect: bool = True
+) -> tuple[ControllerBase, ControllerGains]:
     """The scenario's controller (scenario.controller.kind unless `kind`) closing the loop on the
     arm station: station state -> controller -> commanded torque (unless not `connect`: the
     caller routes the torque). Its inputs desired, theta0, theta_lower, theta_upper are the
@@ -33,7 +45,9 @@ def add_controller(builder, arm, scenario, kind=None, connect=True):
     return ctrl, gains
 
 
-def add_phase_switch(builder, arm, source, controllers):
+def add_phase_switch(
+    builder: DiagramBuilder, arm: RealArm, source: TaskPhaseSource, controllers: list[ControllerBase]
+) -> OutputPort:
     """The commanded torque of a method whose task controller differs from its identification
     controller: controllers[0] until the TaskPhaseSource `source` switches, controllers[1] after.
     Returns the selected torque port (the one the referee judges), already driving the arm."""
@@ -48,16 +62,24 @@ def add_phase_switch(builder, arm, source, controllers):
 
 @dataclass
 class ClosedLoop:
-    diagram: object
-    arm: object  # RealArm
-    controller: object
-    source: object
-    loggers: dict  # name -> VectorLogSink (state, desired, torque, measured_torque, diagnostics)
+    diagram: Diagram
+    arm: RealArm
+    controller: ControllerBase
+    source: TrajectorySource
+    loggers: dict[str, VectorLogSink]  # state, desired, torque, measured_torque, diagnostics
 
 
 def build_closed_loop(
-    scenario, trajectory, theta0, theta_box: Interval, kind=None, robot=None, dumbbell="scenario", log=True, seed=None
-):
+    scenario: Scenario,
+    trajectory: tuple[QuinticBezier, np.ndarray] | list[Piece],
+    theta0: ArrayLike,
+    theta_box: Interval,
+    kind: str | None = None,
+    robot: RobotModel | None = None,
+    dumbbell: Dumbbell | str | None = "scenario",
+    log: bool = True,
+    seed: int | None = None,
+) -> ClosedLoop:
     """Real arm + controller (scenario.controller.kind unless `kind`) + trajectory source, with
     fixed theta0 / [theta] (an estimator can be connected instead by building by hand)."""
     builder = DiagramBuilder()
@@ -87,7 +109,9 @@ def build_closed_loop(
     return ClosedLoop(builder.Build(), arm, ctrl, src, loggers)
 
 
-def simulate_closed_loop(loop: ClosedLoop, q0, duration_s, v0=None):
+def simulate_closed_loop(
+    loop: ClosedLoop, q0: ArrayLike, duration_s: float, v0: ArrayLike | None = None
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Run from (q0, v0); returns {name: (t, data (N, size))} from the loggers."""
     sim = Simulator(loop.diagram)
     ctx = sim.get_mutable_context()

@@ -21,16 +21,34 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from safesysid.scenario import Scenario, robot_from_scenario, task_enabled
 from safesysid.systems import methods
 from safesysid.systems.sysid_system import ESTIMATE_EXTRA
 
+if TYPE_CHECKING:
+    from pydrake.geometry import Meshcat, MeshcatVisualizer
+    from pydrake.systems.framework import Diagram
+    from pydrake.systems.primitives import VectorLogSink
+    from safesysid.systems.armour import TrackingBounds
+    from safesysid.systems.controller_systems import ControllerBase
+    from safesysid.systems.intervals import Interval
+    from safesysid.systems.payload import Dumbbell
+    from safesysid.systems.planner import PlanResult
+    from safesysid.systems.planner_system import ExcitingPlanner
+    from safesysid.systems.real_arm import RealArm
+    from safesysid.systems.robot_model import RobotModel
+    from safesysid.systems.safety_monitor import SafetyMonitor
+    from safesysid.systems.sysid_system import SysIdEstimator
+    from safesysid.systems.trajectory_source import TaskPhaseSource
 
-def prior(robot, scenario: Scenario, method):
+
+def prior(robot: RobotModel, scenario: Scenario, method: str) -> tuple[np.ndarray, Interval]:
     """(theta0, [theta]) the controller and planner start from (methods.initial_parameters:
     Table II before an identification phase; "wrong", "grav-pid": the bare end effector, zero width)."""
     return methods.initial_parameters(methods.method_spec(method), robot, scenario)
@@ -38,18 +56,18 @@ def prior(robot, scenario: Scenario, method):
 
 @dataclass
 class OnlineDiagram:
-    diagram: object
-    arm: object
-    controller: object
-    planner: object | None  # None: the method has no planner (Fourier excitation, or none)
-    estimator: object | None
-    monitor: object
-    loggers: dict
-    visualizer: object | None
-    meshcat: object | None
-    theta_prior: tuple
-    tracking: object
-    source: object = None  # TaskPhaseSource (None: no task phase)
+    diagram: Diagram
+    arm: RealArm
+    controller: ControllerBase
+    planner: ExcitingPlanner | None  # None: no planner (Fourier excitation, or none)
+    estimator: SysIdEstimator | None
+    monitor: SafetyMonitor
+    loggers: dict[str, VectorLogSink]
+    visualizer: MeshcatVisualizer | None
+    meshcat: Meshcat | None
+    theta_prior: tuple[np.ndarray, Interval]
+    tracking: TrackingBounds
+    source: TaskPhaseSource | None = None  # None: no task phase
     task: tuple = ()  # (TaskProblem, TaskResult) of the scenario's task
 
 
@@ -106,7 +124,15 @@ def _constant(builder, value, name):
     return src.get_output_port()
 
 
-def make_planner_system(robot, scenario, trajectory, tracking, dumbbell, theta_prior, seed):
+def make_planner_system(
+    robot: RobotModel,
+    scenario: Scenario,
+    trajectory: str,
+    tracking: TrackingBounds,
+    dumbbell: Dumbbell | None,
+    theta_prior: tuple[np.ndarray, Interval],
+    seed: int,
+) -> ExcitingPlanner:
     """trajectory: methods.EXCITING (scenario.planner.cost) or methods.RANDOM."""
     from safesysid.systems.planner import SafePlanner
     from safesysid.systems.planner_system import ExcitingPlanner
@@ -128,7 +154,7 @@ def make_planner_system(robot, scenario, trajectory, tracking, dumbbell, theta_p
     )
 
 
-def task_switch_time_s(scenario, spec):
+def task_switch_time_s(scenario: Scenario, spec: methods.MethodSpec) -> float:
     """Start of the task phase: one plant step after the identification phase (so the
     estimator's update due at its end is in the latched box), or 0 without identification."""
     if spec.excitation is None:
@@ -136,7 +162,9 @@ def task_switch_time_s(scenario, spec):
     return methods.excitation_duration_s(spec, scenario) + scenario.plant.time_step_s
 
 
-def make_estimator_system(robot, scenario, update_period_s=None):
+def make_estimator_system(
+    robot: RobotModel, scenario: Scenario, update_period_s: float | None = None
+) -> SysIdEstimator:
     """The SysIdEstimator of a scenario: its estimator settings and initial interval, sampling at
     the plant step, updating every t_p (planner.replan_period_s unless given)."""
     from safesysid.systems.estimation import EstimatorSettings
@@ -153,7 +181,9 @@ def make_estimator_system(robot, scenario, update_period_s=None):
     )
 
 
-def build_online(scenario: Scenario, method=None, meshcat=None, seed=None) -> OnlineDiagram:
+def build_online(
+    scenario: Scenario, method: str | None = None, meshcat: Meshcat | None = None, seed: int | None = None
+) -> OnlineDiagram:
     from pydrake.systems.framework import DiagramBuilder
     from safesysid.closed_loop import add_controller, add_phase_switch
     from safesysid.systems.armour import tracking_bounds_for
@@ -274,13 +304,20 @@ def _log(sink, context):
     return data.sample_times().copy(), data.data().T.copy()
 
 
-def merge_events(*sources):
+def merge_events(*sources: Iterable[dict]) -> list[dict]:
     """One list of {t, kind, detail} from several systems' event lists, in time order (stable:
     events at the same instant keep their order within a source)."""
     return sorted((dict(e) for source in sources for e in source), key=lambda e: e["t"])
 
 
-def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat=False, write=True):
+def run_online(
+    scenario: Scenario,
+    out_dir: str | Path,
+    method: str | None = None,
+    seed: int | None = None,
+    live_meshcat: bool = False,
+    write: bool = True,
+) -> dict:
     """Run Algorithm 2 on a scenario; write summary.json, log.csv, plots, replay.html."""
     from pydrake.systems.analysis import Simulator
     from safesysid import figures, progress, report, viz
@@ -469,7 +506,7 @@ def run_online(scenario: Scenario, out_dir, method=None, seed=None, live_meshcat
     return summary
 
 
-def draw_plans(meshcat, robot, results):
+def draw_plans(meshcat: Meshcat, robot: RobotModel, results: Iterable[PlanResult]) -> None:
     """Each accepted plan's gripper-centre path, and its certified swept spheres (toggle)."""
     from safesysid import viz
 

@@ -12,13 +12,16 @@ result does not depend on the machine's load, the executor or the number of work
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import shlex
 import sys
 import time
 import traceback
+from collections.abc import Generator, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import yaml
@@ -26,11 +29,14 @@ from safesysid import pool
 from safesysid.cli import BadInput
 from safesysid.pool import read_jsonl
 
+if TYPE_CHECKING:
+    from safesysid.scenario import Scenario
+
 LIMIT_KEYS = ("max_commanded_torque_ratio", "max_joint_limit_ratio", "max_velocity_ratio")
 PARAMETERS = ("m", "mcx", "mcy", "mcz", "Ixx", "Iyy", "Izz", "Ixy", "Iyz", "Ixz")
 
 
-def make_adversarial(scene):
+def make_adversarial(scene: Scenario) -> Scenario:
     """Noise at the declared bound, robot parameters drawn inside their box."""
     scene.noise.torque_ratio = scene.noise.declared_torque_ratio
     scene.noise.torque_floor_Nm = scene.noise.declared_torque_floor_Nm
@@ -42,7 +48,7 @@ def make_adversarial(scene):
 NEAR_CLEARANCE_M = (0.01, 0.05)  # adversarial: the first box starts 1-5 cm outside the planner's spheres
 
 
-def trial_scene(base, seed, adversarial=True):
+def trial_scene(base: Scenario, seed: int, adversarial: bool = True) -> Scenario:
     """The scene of one trial: a pure function of the base scenario and the seed."""
     from safesysid.sweeps import random_scene
 
@@ -51,7 +57,7 @@ def trial_scene(base, seed, adversarial=True):
     return make_adversarial(scene) if adversarial else scene
 
 
-def replay_text(scene) -> str:
+def replay_text(scene: Scenario) -> str:
     """--scenario-text that turns the base scenario into this trial's scene (`safesysid run` replays
     it): every field trial_scene draws or sets, floats written exactly (repr)."""
     layer = {
@@ -69,7 +75,9 @@ def replay_text(scene) -> str:
     return yaml.safe_dump(layer, default_flow_style=True, width=1 << 30, sort_keys=False).strip()
 
 
-def run_trial(scenario_path: str, seed: int, method: str, adversarial: bool = True, scenario_text=()) -> dict:
+def run_trial(
+    scenario_path: str, seed: int, method: str, adversarial: bool = True, scenario_text: Sequence[str] = ()
+) -> dict:
     """One closed-loop trial (a pool worker or a Ray task): its summary, with the seed and the
     --scenario-text that replay it. A trial that raises is recorded (failure "error"), not lost."""
     from safesysid.online import run_online
@@ -91,7 +99,7 @@ def run_trial(scenario_path: str, seed: int, method: str, adversarial: bool = Tr
     return summary
 
 
-def replay_command(scenario_path, summary, scenario_text=()) -> str:
+def replay_command(scenario_path: str | Path, summary: dict, scenario_text: Sequence[str] = ()) -> str:
     """The `safesysid run` command line that reruns one trial."""
     texts = [*scenario_text, summary["replay_scenario_text"]]
     args = ["safesysid", "run", str(scenario_path), "--method", summary["method"], "--seed", str(summary["trial_seed"])]
@@ -109,7 +117,7 @@ def _limit_violated(s):
     return max(s[k] for k in LIMIT_KEYS) > 1.0 + 1e-9
 
 
-def aggregate(trials):
+def aggregate(trials: list[dict]) -> dict:
     """aggregate.json from the trial summaries (its keys are a stable interface: add, never rename).
     Trials that raised count in `trials` and under failures_by_reason["error"] only."""
     failures = {}
@@ -164,7 +172,7 @@ def _flagged(agg):
     )
 
 
-def report_markdown(agg, scenario, methods, replays=()):
+def report_markdown(agg: dict, scenario: str, methods: Sequence[str], replays: Sequence[str] = ()) -> str:
     """report.md: the counts, the widths and a `safesysid run` line per flagged trial."""
     timing = (
         f"{agg['trials_run']} run now in {agg['wall_time_s']:.0f} s on {agg['workers']} {agg['executor']} worker(s): "
@@ -211,7 +219,7 @@ def report_markdown(agg, scenario, methods, replays=()):
     return "\n".join(lines) + "\n"
 
 
-def pool_results(jobs, workers):
+def pool_results(jobs: list[tuple], workers: int) -> Generator[dict, None, None]:
     """Summaries of `jobs` (argument tuples of run_trial) as they finish, on a local process pool."""
     results = pool.pool_results(run_trial, jobs, workers)
     try:
@@ -221,7 +229,7 @@ def pool_results(jobs, workers):
         results.close()  # stops the workers
 
 
-def ray_results(jobs, address, workers):
+def ray_results(jobs: list[tuple], address: str, workers: int) -> Generator[dict, None, None]:
     """Summaries of `jobs` as they finish, each trial a Ray task. Uses the Ray instance already
     initialized in this process; otherwise starts a local one (`address` "local", `workers` CPUs)
     or connects to the cluster at `address` ("auto": the one `ray start` made)."""
@@ -261,7 +269,7 @@ def _methods(text, default):
     return methods
 
 
-def cmd_sweep(args):
+def cmd_sweep(args: argparse.Namespace) -> int:
     from safesysid.scenario import load_scenario
 
     path = Path(args.scenario)

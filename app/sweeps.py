@@ -49,7 +49,9 @@ def _random_direction(rng):
     return direction / np.linalg.norm(direction)
 
 
-def near_box(points, radii, rng, clearance_m, attempts=50):
+def near_box(
+    points: np.ndarray, radii: np.ndarray, rng: np.random.Generator, clearance_m: float, attempts: int = 50
+) -> Obstacle | None:
     """A random box whose clearance from the spheres (points, radii) is clearance_m (to 0.1 mm):
     pushed out from a random sphere along a random direction, the distance found by bisection."""
     for _ in range(attempts):
@@ -75,7 +77,12 @@ def near_box(points, radii, rng, clearance_m, attempts=50):
 
 
 def random_scene(
-    base: Scenario, rng, start_spread_rad=0.15, min_start_clearance_m=0.08, seed=None, near_clearance_m=None
+    base: Scenario,
+    rng: np.random.Generator,
+    start_spread_rad: float = 0.15,
+    min_start_clearance_m: float = 0.08,
+    seed: int | None = None,
+    near_clearance_m: tuple[float, float] | None = None,
 ) -> Scenario:
     """A copy of `base` with a random start, random boxes near the arm and a random payload
     (near_clearance_m: (lo, hi) of the first box's clearance from the planner's spheres)."""

@@ -4,10 +4,23 @@ advances a built run through the task, the release and the settling, and the jud
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
+if TYPE_CHECKING:
+    from pydrake.systems.analysis import Simulator
+    from safesysid.online import OnlineDiagram
+    from safesysid.systems.config import Scenario
+    from safesysid.systems.robot_model import RobotModel
+    from safesysid.systems.safety_monitor import SafetyRecord
+    from safesysid.systems.task_trajectory import TaskProblem, TaskResult
+    from safesysid.systems.trajectory_source import TaskPhaseSource
 
-def released_parameters(robot, scenario, method):
+
+def released_parameters(
+    robot: RobotModel, scenario: Scenario, method: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(theta0, lower, upper) after the release: the bare end effector (the model's own) with
     the rest of the robot as in the method's prior box."""
     from safesysid.systems import methods
@@ -23,7 +36,9 @@ def released_parameters(robot, scenario, method):
     return theta0, box.lo, box.hi
 
 
-def make_task_source(robot, scenario, switch_time_s, problem, plan):
+def make_task_source(
+    robot: RobotModel, scenario: Scenario, switch_time_s: float, problem: TaskProblem, plan: TaskResult
+) -> TaskPhaseSource:
     """The TaskPhaseSource of a scenario whose task trajectory `plan` (TaskResult) solves `problem`."""
     from safesysid.systems.task_phase import return_move
     from safesysid.systems.trajectory_source import TaskPhaseSource
@@ -48,7 +63,14 @@ def make_task_source(robot, scenario, switch_time_s, problem, plan):
     return TaskPhaseSource(robot.n, 14 * robot.n, scenario.q0_rad, switch_time_s, make_task)
 
 
-def judge(record, plans, t, tracking_ratio, task, t_switch):
+def judge(
+    record: SafetyRecord,
+    plans: list[dict],
+    t: np.ndarray,
+    tracking_ratio: np.ndarray,
+    task: dict | None,
+    t_switch: float,
+) -> tuple[str | None, str | None, float | None]:
     """(failure, phase, time) of the first failure of a run in contracts.md's order, or
     (None, None, None). Torque is judged on the controller's command before saturation (the
     saturated torque can never exceed the limit). record: the SafetyMonitor's; tracking_ratio:
@@ -80,7 +102,7 @@ def judge(record, plans, t, tracking_ratio, task, t_switch):
     return first_failure(checks, t_switch)
 
 
-def run_task_phase(built, sim, scenario, method):
+def run_task_phase(built: OnlineDiagram, sim: Simulator, scenario: Scenario, method: str) -> dict:
     """Advance a built run through identification, the task phase, the release and the settling;
     returns the task's summary (placement measured on the simulated payload pose)."""
     from safesysid.systems.task_phase import placement_target

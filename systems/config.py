@@ -311,7 +311,7 @@ class Faults:
     # Joint-velocity sensor reading clipped to +-limit (encoders' v, seen by controller and estimator).
     velocity_clip_rad_s: float = 0.0  # 0: off
 
-    def samples_faulty(self):
+    def samples_faulty(self) -> bool:
         return any(
             r > 0
             for r in (

@@ -15,15 +15,26 @@ Stages:
 - SampleFaults: what reaches the estimator, as a packet of 0-2 timestamped samples per step:
   lost (0), duplicated (the same sample twice), reordered (held back one step, then delivered
   after the next sample), or with a NaN in one field.
+
+add_fault_stages wires the scenario's stages into the real arm's station (systems/real_arm.py).
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Iterable
+from typing import TYPE_CHECKING
 
 import numpy as np
+from pydrake.common import RandomDistribution
 from pydrake.common.value import AbstractValue
-from pydrake.systems.framework import BasicVector, EventStatus, LeafSystem
+from pydrake.systems.framework import BasicVector, Context, DiagramBuilder, EventStatus, LeafSystem, OutputPort
+from pydrake.systems.primitives import RandomSource
+
+if TYPE_CHECKING:
+    from .config import Faults, Obstacle, Scenario
+    from .payload import Dumbbell
+    from .planner import PlanResult, SafePlanner
 
 PACKET_ROWS = 2  # at most two samples reach the estimator per step (a late one and the current one)
 
@@ -61,10 +72,10 @@ class _EventStage(LeafSystem):
     def _memo(self, context):
         return context.get_abstract_state(int(self._log)).get_value()[0]
 
-    def events(self, context) -> list:
+    def events(self, context: Context) -> list[dict]:
         return list(context.get_abstract_state(int(self._log)).get_value()[1]) + self.scheduled_events()
 
-    def scheduled_events(self) -> list:
+    def scheduled_events(self) -> list[dict]:
         """Events known from the scenario alone (not drawn)."""
         return []
 
@@ -125,7 +136,7 @@ class TorqueSensorFaults(_EventStage):
         detail = f"torque sensor spike {spike[1]:+.3g} N m on joint {spike[0] + 1}"
         return memo, [dict(t=context.get_time(), kind="fault_torque_spike", detail=detail)]
 
-    def scheduled_events(self):
+    def scheduled_events(self) -> list[dict]:
         start, end = self.dropout
         if end <= start:
             return []
@@ -172,7 +183,7 @@ class SampleRates:
     nan: float = 0.0
 
     @classmethod
-    def from_faults(cls, faults, time_step_s):
+    def from_faults(cls, faults: Faults, time_step_s: float) -> SampleRates:
         f = faults
         return cls(
             *(
@@ -187,7 +198,9 @@ class SampleRates:
         )
 
 
-def deliver(row: np.ndarray, held, u: np.ndarray, rates: SampleRates, n: int):
+def deliver(
+    row: np.ndarray, held: np.ndarray | None, u: np.ndarray, rates: SampleRates, n: int
+) -> tuple[list[np.ndarray], np.ndarray | None, list[dict]]:
     """What reaches the estimator at one step: (rows delivered, the row held back for the next
     step or None, events). row: this step's true sample [t, q, v, τ]; held: a row held back at
     the previous step; u: 5 draws U(0, 1) (drop, duplicate, reorder, nan, which field)."""
@@ -234,7 +247,7 @@ class SampleFaults(_EventStage):
         return held, events
 
 
-def scenario_events(scenario) -> list:
+def scenario_events(scenario: Scenario) -> list[dict]:
     """Events of faults fixed by the scenario alone (the others are logged where they happen)."""
     extra = scenario.faults.payload_extra_mass_kg
     if extra > 0 and scenario.payload.dumbbell.lower() != "none":
@@ -243,14 +256,14 @@ def scenario_events(scenario) -> list:
     return []
 
 
-def heavier_payload(dumbbell, extra_mass_kg: float):
+def heavier_payload(dumbbell: Dumbbell | None, extra_mass_kg: float) -> Dumbbell | None:
     """The same dumbbell shape, extra_mass_kg heavier (denser): a payload outside the prior."""
     if dumbbell is None or extra_mass_kg <= 0:
         return dumbbell
     return dataclasses.replace(dumbbell, mass_kg=dumbbell.mass_kg + float(extra_mass_kg))
 
 
-def with_obstacle(planner, obstacle):
+def with_obstacle(planner: SafePlanner, obstacle: Obstacle) -> SafePlanner:
     """A copy of a SafePlanner whose world also holds `obstacle` (a scenario Obstacle record)."""
     import copy
 
@@ -269,7 +282,9 @@ def with_obstacle(planner, obstacle):
     return out
 
 
-def remaining_plan_clearance(result, elapsed_s: float, obstacles) -> tuple[float, float]:
+def remaining_plan_clearance(
+    result: PlanResult, elapsed_s: float, obstacles: Iterable[Obstacle]
+) -> tuple[float, float]:
     """(smallest margin, first time since the plan's start where it is < 0) of a plan's certified
     swept spheres (PlanResult.details: every point of sphere s during interval i lies in the ball
     (centres[i, s], radii[i, s])) against `obstacles` (scenario Obstacle records), over the
@@ -298,3 +313,57 @@ def remaining_plan_clearance(result, elapsed_s: float, obstacles) -> tuple[float
         if len(bad):
             first_t = min(first_t, float(edges[:-1][keep][bad[0]]))
     return margin, first_t
+
+
+@dataclasses.dataclass
+class InjectedFaults:
+    """What add_fault_stages added to a station."""
+
+    stages: tuple[_EventStage, ...] = ()
+    sources: tuple[RandomSource, ...] = ()  # their draws (seeded with the sensor noise)
+    samples: OutputPort | None = None  # the estimator's packet port (SampleFaults), or None
+
+
+def add_fault_stages(
+    station: DiagramBuilder, scenario: Scenario, n: int, h: float, measured: OutputPort, state_out: OutputPort
+) -> tuple[OutputPort, OutputPort, InjectedFaults]:
+    """The scenario's fault stages (above) on the measured torque and the encoders,
+    and the faulty link to the estimator: (measured torque, state, InjectedFaults)."""
+
+    f, injected = scenario.faults, InjectedFaults()
+
+    def add(system, name, draws=0):
+        system.set_name(name)
+        injected.stages += (station.AddSystem(system),)
+        if draws:
+            source = station.AddSystem(RandomSource(RandomDistribution.kUniform, draws, h))
+            source.set_name(f"{name}_draws")
+            station.Connect(source.get_output_port(), system.unit_noise)
+            injected.sources += (source,)
+        return system
+
+    if f.torque_spike_magnitude_Nm * f.torque_spike_rate_per_s > 0 or f.torque_dropout_duration_s > 0:
+        joints = [j - 1 for j in f.torque_spike_joints]
+        spikes = f.torque_spike_magnitude_Nm * f.torque_spike_rate_per_s > 0
+        stage = TorqueSensorFaults(
+            n,
+            h,
+            f.torque_spike_magnitude_Nm,
+            f.torque_spike_rate_per_s,
+            joints,
+            f.torque_dropout_start_s,
+            f.torque_dropout_duration_s,
+        )
+        add(stage, "fault_torque_sensor", 2 if spikes else 0)
+        station.Connect(measured, stage.torque)
+        measured = stage.get_output_port()
+    if f.velocity_clip_rad_s > 0:
+        stage = add(VelocityClip(n, h, f.velocity_clip_rad_s), "fault_velocity_clip")
+        station.Connect(state_out, stage.state)
+        state_out = stage.get_output_port()
+    if f.samples_faulty():
+        stage = add(SampleFaults(n, h, SampleRates.from_faults(f, h)), "fault_samples", 5)
+        station.Connect(state_out, stage.state)
+        station.Connect(measured, stage.torque)
+        injected.samples = stage.get_output_port()
+    return measured, state_out, injected

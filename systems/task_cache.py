@@ -6,12 +6,16 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from . import task_trajectory as tt
 from .task_trajectory import VERSION, TaskProblem, TaskResult, _jsonable, task_problem_from_scenario
 
+if TYPE_CHECKING:
+    from .config import Scenario
 
-def cache_key(problem: TaskProblem, solver=None, fallback=True):
+
+def cache_key(problem: TaskProblem, solver: str | None = None, fallback: bool = True) -> str:
     """sha256 of every input: model files' contents (URDF, parameter file, sphere file), the
     model arrays, payload, obstacles, floor, start, goal, tube, settings, solver, VERSION."""
     robot = problem.robot
@@ -58,7 +62,9 @@ def cache_key(problem: TaskProblem, solver=None, fallback=True):
     return hashlib.sha256(text.encode()).hexdigest()
 
 
-def task_trajectory_cached(problem, cache_dir, solver=None, fallback=True) -> TaskResult:
+def task_trajectory_cached(
+    problem: TaskProblem | Scenario, cache_dir: str | Path, solver: str | None = None, fallback: bool = True
+) -> TaskResult:
     """solve_task_trajectory through a cache: `cache_dir`/task_<key>.json holds the result for
     the inputs hashed by cache_key; a hit loads it without solving (details['cache'] = 'hit'),
     a miss solves and stores (solver errors are not stored). `problem`: a TaskProblem or a

@@ -16,8 +16,13 @@ from .task_trajectory import TaskProblem, _jsonable
 
 
 def certified_torque_ratio(
-    problem: TaskProblem, trajectory: PiecewiseBezier, theta0, theta_lo, theta_hi, windows_per_piece=100
-):
+    problem: TaskProblem,
+    trajectory: PiecewiseBezier,
+    theta0: np.ndarray,
+    theta_lo: np.ndarray,
+    theta_hi: np.ndarray,
+    windows_per_piece: int = 100,
+) -> tuple[float, np.ndarray]:
     """max_j sup |u_j| / limit_j of the ARMOUR command while tracking `trajectory`: over every
     instant (windows tiling each piece, Bézier hulls of q, dq, ddq), every tracking error in the
     tube and every theta in [theta_lo, theta_hi] (reachability's interval passivity regressor and
@@ -68,11 +73,13 @@ class TaskVerification:
     num_samples: int
     failures: list = field(default_factory=list)
 
-    def to_dict(self):
+    def to_dict(self) -> dict:
         return _jsonable(self.__dict__)
 
 
-def verify_task_trajectory(problem: TaskProblem, trajectory: PiecewiseBezier, rate_hz=1000.0) -> TaskVerification:
+def verify_task_trajectory(
+    problem: TaskProblem, trajectory: PiecewiseBezier, rate_hz: float = 1000.0
+) -> TaskVerification:
     """Re-check a trajectory at `rate_hz` with what the closed-loop referee uses: the real arm's
     scene (systems/real_arm.py: link shapes, the payload's cylinders, obstacles, floor) queried
     by SafetyMonitor.min_clearance, and Drake's CalcInverseDynamics on that plant (rotor inertia

@@ -7,6 +7,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from . import reachability as reach
 from .bezier import _difference, restriction_matrix
@@ -67,18 +68,18 @@ class TaskConstraints:
         return b @ self.param.null, b @ self.param.g_start, b @ self.param.g_goal
 
     @property
-    def num_vars(self):
+    def num_vars(self) -> int:
         return self.param.r * self.n + self.n
 
-    def split(self, y):
+    def split(self, y: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         y = np.asarray(y, float)
         return y[: -self.n].reshape(self.param.r, self.n), y[-self.n :]
 
-    def control_points(self, y):
+    def control_points(self, y: ArrayLike) -> np.ndarray:
         z, q_goal = self.split(y)
         return self.param.control_points(z, self.p.q_start, q_goal)
 
-    def trajectory(self, y):
+    def trajectory(self, y: ArrayLike) -> PiecewiseBezier:
         return PiecewiseBezier(self.control_points(y).reshape(-1, 6, self.n), self.piece)
 
     def _samples(self, pair, y):
@@ -93,7 +94,7 @@ class TaskConstraints:
         return np.concatenate([dz, np.einsum("gij,i->gj", d, bg)], 1)
 
     # -- linear: hull constraints on control points (per joint) ------------------------------
-    def hull_rows(self):
+    def hull_rows(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]]:
         """[(A (rows, r + 1), const (rows,), lo, hi, joint)] with A [Z[:, j]; q_goal_j] + const in [lo, hi]."""
         par = self.param
         a = np.concatenate([par.null, par.g_goal[:, None]], 1)
@@ -115,7 +116,7 @@ class TaskConstraints:
             )
         return out
 
-    def hull_violation(self, y):
+    def hull_violation(self, y: ArrayLike) -> float:
         z, q_goal = self.split(y)
         worst = 0.0
         for a, const, lo, hi, j in self.hull_rows():
@@ -123,7 +124,7 @@ class TaskConstraints:
             worst = max(worst, float(np.max(lo - val)), float(np.max(val - hi)))
         return worst
 
-    def cost_matrices(self):
+    def cost_matrices(self) -> list[tuple[np.ndarray, np.ndarray, float]]:
         """Per joint: (Q, b, c) with cost_j = 0.5 w^T Q w + b^T w + c, w = [Z[:, j], q_goal_j]."""
         par = self.param
         gram = jerk_gram(self.p.settings.num_pieces, self.piece)
@@ -134,19 +135,21 @@ class TaskConstraints:
             out.append((2 * a.T @ gram @ a, 2 * a.T @ gram @ const, float(const @ gram @ const)))
         return out
 
-    def cost(self, y):
+    def cost(self, y: ArrayLike) -> float:
         x = self.control_points(y)
         return float(np.einsum("ij,ik,kj->", x, jerk_gram(self.p.settings.num_pieces, self.piece), x))
 
     # -- collision ---------------------------------------------------------------------------
-    def spread(self, y):
+    def spread(self, y: ArrayLike) -> np.ndarray:
         """(N, m): bound of how far each sphere moves on its window, the tube included."""
         q = self._samples(self.col_basis, y)
         _, dc = reach.sphere_centres(self.p.robot.tree, self.p.spheres, q)
         rho = self.window_radius(y, q)
         return reach.local_spread(self.p.robot.tree, self.lipschitz, np.linalg.norm(dc, axis=-1), rho, rho)
 
-    def collision_pairs(self, y, with_jacobian=True, spread=None):
+    def collision_pairs(
+        self, y: ArrayLike, with_jacobian: bool = True, spread: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray | None]:
         """vals (O, N, m) = sd - radius - spread per (obstacle incl. floor last, sample, sphere),
         and d vals / d q_samples (O, N, m, n). spread: fixed margins (N, m) (a solver round) or
         None: the exact ones of y (the check)."""
@@ -179,7 +182,7 @@ class TaskConstraints:
         jac = np.einsum("osmk,smjk->osmj", np.stack(grads), dc) if (with_jacobian and len(vals)) else None
         return vals, jac
 
-    def rest_clearance(self, q):
+    def rest_clearance(self, q: ArrayLike) -> tuple[float, str]:
         """(min of sd - radius - spread, what) holding still at q inside the tube: a start or goal
         that fails this cannot be the end of any feasible trajectory."""
         q = np.atleast_2d(q)
@@ -193,14 +196,14 @@ class TaskConstraints:
         what = "the floor" if o == len(self.p.boxes) else f"obstacle {self.p.boxes.names[o]!r}"
         return float(vals.min()), f"sphere {self.p.spheres.names[s]!r} vs {what}"
 
-    def window_radius(self, y, q_mid):
+    def window_radius(self, y: ArrayLike, q_mid: np.ndarray) -> np.ndarray:
         """(N, n) bound of |q(t) - q(t_i)| on window i (hull of the restricted control points,
         exact for this y) plus the tube's position bound: where the real arm can be."""
         pts = self.window_matrix @ self.control_points(y)  # (N, 6, n)
         dev = np.abs(pts - q_mid[:, None, :]).max(1)
         return (dev + self.p.tracking.position[None, :]) * (1 + 1e-12)
 
-    def collision_grouped(self, y, spread):
+    def collision_grouped(self, y: ArrayLike, spread: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Soft-min over samples per (obstacle, sphere) (<= the true min) and its Jacobian in y,
         with fixed margins `spread` (exact derivatives of a smooth function)."""
         vals, jac = self.collision_pairs(y, spread=spread)
@@ -217,7 +220,9 @@ class TaskConstraints:
         return soft, self._chain(w[..., None] * d, self.col_basis)
 
     # -- torque ------------------------------------------------------------------------------
-    def torque(self, y, with_jacobian=True, step=1e-6):
+    def torque(
+        self, y: ArrayLike, with_jacobian: bool = True, step: float = 1e-6
+    ) -> tuple[np.ndarray, np.ndarray | None]:
         """tau / limit (N, n) at the torque samples and d/dy ((N n), num_vars) (forward
         differences of the regressor inverse dynamics in (q, v, a), exact in a: tau is affine in a)."""
         key = ("tau", np.asarray(y, float).tobytes(), with_jacobian)
@@ -246,7 +251,7 @@ class TaskConstraints:
         return self._remember(key, (base * scale[None, :], jac))
 
     # -- placement ---------------------------------------------------------------------------
-    def placement(self, q_goal, with_jacobian=True):
+    def placement(self, q_goal: ArrayLike, with_jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """[grasp point - target (3), 1 - (gripper axis)_z] and d/d q_goal (4, n)."""
         c, dc = reach.sphere_centres(self.p.robot.tree, self._grasp_points(), np.atleast_2d(q_goal))
         vals = np.concatenate([c[0, 0] - self.p.place_xyz, [1.0 - (c[0, 1, 2] - c[0, 0, 2])]])
@@ -263,7 +268,7 @@ class TaskConstraints:
         )
 
     # -- everything at once ------------------------------------------------------------------
-    def check(self, y):
+    def check(self, y: ArrayLike) -> tuple[float, float, float]:
         """Our own verdict at y: max violation over every constraint (>= 0), min sphere clearance
         and max torque ratio (w.r.t. the real limit)."""
         vals, _ = self.collision_pairs(y, with_jacobian=False)
@@ -278,7 +283,7 @@ class TaskConstraints:
             viol.append(float(np.max(np.abs(self.split(y)[1] - self.p.goal_q))))
         return max(0.0, max(viol)), clearance, torque_ratio
 
-    def initial_guess(self, q_goal):
+    def initial_guess(self, q_goal: np.ndarray) -> np.ndarray:
         """Unconstrained minimum-jerk Z for the given goal (a straight line in joint space)."""
         y = np.zeros(self.num_vars)
         y[-self.n :] = q_goal

@@ -25,14 +25,14 @@ class PiecewiseBezier:
     piece_duration: float
 
     @property
-    def num_pieces(self):
+    def num_pieces(self) -> int:
         return self.control_points.shape[0]
 
     @property
-    def duration(self):
+    def duration(self) -> float:
         return self.num_pieces * self.piece_duration
 
-    def evaluate(self, t, orders=3):
+    def evaluate(self, t: float | np.ndarray, orders: int = 3) -> list[np.ndarray]:
         """[q, dq/dt, d2q/dt2, ...] (orders + 1 arrays (len(t), n)); at rest outside [0, T]."""
         t = np.atleast_1d(np.asarray(t, float))
         x = self.control_points.reshape(-1, self.control_points.shape[-1])
@@ -40,15 +40,15 @@ class PiecewiseBezier:
         outside = ((t < 0) | (t > self.duration))[:, None]
         return [out[0]] + [np.where(outside, 0.0, d) for d in out[1:]]
 
-    def to_dict(self):
+    def to_dict(self) -> dict:
         return {"piece_duration_s": self.piece_duration, "control_points_rad": self.control_points.tolist()}
 
     @classmethod
-    def from_dict(cls, doc):
+    def from_dict(cls, doc: dict) -> PiecewiseBezier:
         return cls(np.asarray(doc["control_points_rad"], float), float(doc["piece_duration_s"]))
 
 
-def basis(t, num_pieces, piece_duration, order=0):
+def basis(t: float | np.ndarray, num_pieces: int, piece_duration: float, order: int = 0) -> np.ndarray:
     """B (len(t), 6K): the order-th time derivative of the curve at t is B @ X (X: (6K, n))."""
     t = np.clip(np.atleast_1d(np.asarray(t, float)), 0.0, num_pieces * piece_duration)
     piece = np.minimum((t // piece_duration).astype(int), num_pieces - 1)
@@ -60,7 +60,7 @@ def basis(t, num_pieces, piece_duration, order=0):
     return out
 
 
-def jerk_gram(num_pieces, piece_duration):
+def jerk_gram(num_pieces: int, piece_duration: float) -> np.ndarray:
     """Q (6K, 6K): sum_j int |jerk_j|^2 dt = sum_j x_j^T Q x_j (exact)."""
     d3 = _difference(np.eye(DEGREE + 1), 3) / piece_duration**3  # (3, 6): jerk control points
     g = np.array([[comb(2, i) * comb(2, j) / (5.0 * comb(4, i + j)) for j in range(3)] for i in range(3)])
@@ -78,7 +78,7 @@ class Parametrization:
     g_goal: np.ndarray  # (6K,)
 
     @classmethod
-    def make(cls, num_pieces):
+    def make(cls, num_pieces: int) -> Parametrization:
         from scipy.linalg import null_space
 
         m = 6 * num_pieces
@@ -105,8 +105,8 @@ class Parametrization:
         return cls(null_space(e), pinv @ (f == 1).astype(float), pinv @ (f == 2).astype(float))
 
     @property
-    def r(self):
+    def r(self) -> int:
         return self.null.shape[1]
 
-    def control_points(self, z, q_start, q_goal):
+    def control_points(self, z: np.ndarray, q_start: np.ndarray, q_goal: np.ndarray) -> np.ndarray:
         return self.null @ z + np.outer(self.g_start, q_start) + np.outer(self.g_goal, q_goal)

@@ -14,12 +14,17 @@ from __future__ import annotations
 
 import dataclasses
 import os
+from collections.abc import Iterable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from . import task_trajectory as tt
 from .config import Scenario, resolve_path, scenario_dir
+
+if TYPE_CHECKING:
+    from .payload import Dumbbell
 
 PHASES = ("identification", "task")
 AT_START_TOL_RAD = 1e-9  # closer than this to the task start: no return move
@@ -33,13 +38,13 @@ def cache_dir(scenario: Scenario) -> Path:
     return Path(base) / "safesysid" / "task"
 
 
-def task_plan(scenario: Scenario, problem: tt.TaskProblem | None = None):
+def task_plan(scenario: Scenario, problem: tt.TaskProblem | None = None) -> tuple[tt.TaskProblem, tt.TaskResult]:
     """(TaskProblem, TaskResult) of the scenario's task, through the cache."""
     problem = problem or tt.task_problem_from_scenario(scenario)
     return problem, tt.task_trajectory_cached(problem, cache_dir(scenario))
 
 
-def return_move(problem: tt.TaskProblem, q_from, duration_s) -> tt.TaskResult | None:
+def return_move(problem: tt.TaskProblem, q_from: np.ndarray, duration_s: float) -> tt.TaskResult | None:
     """Rest-to-rest move from q_from to the task start (one degree-5 piece of duration_s) under
     the task's constraints; None when q_from already is the start."""
     q_from = np.asarray(q_from, float)
@@ -50,7 +55,7 @@ def return_move(problem: tt.TaskProblem, q_from, duration_s) -> tt.TaskResult | 
     return tt.solve_task_trajectory(move)
 
 
-def placement_target(scenario: Scenario, dumbbell):
+def placement_target(scenario: Scenario, dumbbell: Dumbbell | None) -> tuple[np.ndarray | None, str]:
     """(target xyz, "settled" | "release") of the payload centre, or (None, "") without a
     placement. With a platform: resting on its top, under its centre (top + the payload's resting
     radius); with place_xyz_m only: the centre at release."""
@@ -65,11 +70,13 @@ def placement_target(scenario: Scenario, dumbbell):
     return None, ""
 
 
-def phase_at(t, t_switch):
+def phase_at(t: float, t_switch: float) -> str:
     return PHASES[int(t >= t_switch - 1e-12)]
 
 
-def first_failure(checks, t_switch):
+def first_failure(
+    checks: Iterable[tuple[str, Sequence[float] | np.ndarray]], t_switch: float
+) -> tuple[str | None, str | None, float | None]:
     """checks: [(failure name, times at which it is violated)] in priority order (contracts.md).
     Returns (failure, phase, t) of the first check with a violation, or (None, None, None)."""
     for name, times in checks:

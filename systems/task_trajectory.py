@@ -43,13 +43,20 @@ from __future__ import annotations
 import os
 import time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from . import reachability as reach
 from .armour import TrackingBounds
 from .task_constraints import GRIPPER_TILT_TOL_RAD, PLACEMENT_TOL_M, SOFTMIN_SHARPNESS_PER_M, TaskConstraints
 from .task_curve import DEGREE, Parametrization, PiecewiseBezier, basis, jerk_gram
+
+if TYPE_CHECKING:
+    from .config import Obstacle, Scenario, Task
+    from .payload import Dumbbell
+    from .robot_model import RobotModel
 
 __all__ = [
     "DEGREE",
@@ -102,7 +109,7 @@ class TaskSettings:
     max_solve_time_s: float = 120.0  # per solver (all its rounds)
 
     @classmethod
-    def from_task(cls, task):
+    def from_task(cls, task: Task) -> TaskSettings:
         return cls(**{f: getattr(task, f) for f in cls.__dataclass_fields__})
 
 
@@ -110,9 +117,9 @@ class TaskSettings:
 class TaskProblem:
     """Everything the task trajectory depends on (and the cache key hashes)."""
 
-    robot: object  # RobotModel (limits, friction, kinematics)
+    robot: RobotModel  # limits, friction, kinematics
     theta: np.ndarray  # 14 n parameters the torque is computed with (robot + payload model)
-    dumbbell: object  # payload model (payload.Dumbbell) or None
+    dumbbell: Dumbbell | None  # payload model
     obstacles: list  # scenario Obstacle records (platform included)
     floor_z: float | None
     q_start: np.ndarray
@@ -151,7 +158,7 @@ class TaskResult:
     solver_status: str = ""
     details: dict = field(default_factory=dict)
 
-    def to_dict(self):
+    def to_dict(self) -> dict:
         out = {
             k: getattr(self, k)
             for k in (
@@ -173,7 +180,7 @@ class TaskResult:
         return out
 
     @classmethod
-    def from_dict(cls, doc):
+    def from_dict(cls, doc: dict) -> TaskResult:
         doc = dict(doc)
         q_goal, traj = doc.pop("q_goal_rad"), doc.pop("trajectory")
         return cls(
@@ -195,7 +202,7 @@ def _jsonable(x):
     return x
 
 
-def task_problem_from_scenario(scenario, q_start=None):
+def task_problem_from_scenario(scenario: Scenario, q_start: ArrayLike | None = None) -> TaskProblem:
     """TaskProblem of a scenario's `task` section (start: q0_rad, the identification start).
 
     Torque model: the robot plus the `task.payload_model` dumbbell (exact, nominal); collision:
@@ -239,7 +246,7 @@ def task_problem_from_scenario(scenario, q_start=None):
     )
 
 
-def placement_above(platform, dumbbell, release_height):
+def placement_above(platform: Obstacle, dumbbell: Dumbbell | None, release_height: float) -> np.ndarray:
     """Payload centre above the platform's top centre with its lowest point release_height above
     the top (handle horizontal: the heads' radius below the centre). Platform: an axis-aligned
     box (scenario Obstacle); a rotated one uses its top face's highest corner."""
@@ -254,7 +261,7 @@ def placement_above(platform, dumbbell, release_height):
 # ---------------------------------------------------------------------------------------------
 # Inverse kinematics of a placement (Drake)
 # ---------------------------------------------------------------------------------------------
-def solve_placement_ik(problem: TaskProblem, q_guess=None):
+def solve_placement_ik(problem: TaskProblem, q_guess: ArrayLike | None = None) -> tuple[np.ndarray | None, str]:
     """Goal configuration for problem.place_xyz nearest to q_start, gripper vertical (Drake
     InverseKinematics). Returns (q or None, message)."""
     from pydrake.multibody.inverse_kinematics import InverseKinematics
@@ -305,7 +312,7 @@ def solve_placement_ik(problem: TaskProblem, q_guess=None):
 # ---------------------------------------------------------------------------------------------
 # Optimization
 # ---------------------------------------------------------------------------------------------
-def solve_task_trajectory(problem: TaskProblem, solver=None, fallback=True) -> TaskResult:
+def solve_task_trajectory(problem: TaskProblem, solver: str | None = None, fallback: bool = True) -> TaskResult:
     """Minimum-jerk task trajectory (see the module docstring). solver: snopt | ipopt (default:
     problem.settings.solver); with fallback, the other solver is tried when the first fails our
     own check. Never raises for an infeasible or unreachable goal: the status says why."""

@@ -9,7 +9,9 @@ live in the context (abstract state), so a planner can append pieces while the d
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -17,6 +19,9 @@ from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import BasicVector, Context, EventStatus, LeafSystem
 
 from .bezier import DEGREE, QuinticBezier, _monomial_of_bernstein
+
+if TYPE_CHECKING:
+    from .task_curve import PiecewiseBezier
 
 _POWERS = np.arange(DEGREE + 1)
 
@@ -118,14 +123,16 @@ class TimedCurve:
     started at t_start (absolute)."""
 
     t_start: float
-    curve: object
+    curve: PiecewiseBezier
 
     @property
-    def t_end(self):
+    def t_end(self) -> float:
         return self.t_start + self.curve.duration
 
 
-def evaluate_timed(curves, t, q_rest):
+def evaluate_timed(
+    curves: Iterable[TimedCurve], t: float, q_rest: ArrayLike
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(q, qd, qdd) at time t: the latest curve started by t (at rest at its end afterwards);
     before the first, at rest at q_rest."""
     active = None
@@ -154,7 +161,7 @@ class PhaseState:
         return self  # immutable: Drake's state copies (every step, for the monitor's update) share it
 
     @property
-    def t_end(self):
+    def t_end(self) -> float:
         """End of the last curve (the release instant), or the switch when there is none."""
         return self.curves[-1].t_end if self.curves else self.t_switch
 
@@ -206,13 +213,13 @@ class TaskPhaseSource(LeafSystem):
             # Fires at the switch (and at its multiples, ignored once in the task phase).
             self.DeclarePeriodicUnrestrictedUpdateEvent(self.switch_time_s, self.switch_time_s, self._on_switch)
 
-    def phase_state(self, context) -> PhaseState:
+    def phase_state(self, context: Context) -> PhaseState:
         return context.get_abstract_state(int(self._state)).get_value()
 
-    def events(self, context):
+    def events(self, context: Context) -> list[dict]:
         return list(self.phase_state(context).events)
 
-    def set_thetas(self, context, thetas, event=None):
+    def set_thetas(self, context: Context, thetas: Iterable[ArrayLike], event: dict | None = None) -> None:
         """Replace the task parameters (this system's context), logging `event` ({t, kind, detail})."""
         st = self.phase_state(context)
         events = st.events + ((event,) if event else ())

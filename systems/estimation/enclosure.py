@@ -4,13 +4,15 @@ terms of the box, the certified set-membership LP and the LMI test of a box.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import numpy as np
 from scipy.optimize import linprog  # imported here: its first import costs ~0.3 s
 
 from .. import inertial
 from .log_cholesky import ls_cost_terms
 from .segments import SegmentRows
-from .settings import EPS
+from .settings import EPS, EstimatorSettings
 
 
 def _pinv(Y2):
@@ -23,12 +25,12 @@ def _pinv(Y2):
     return np.linalg.solve(R, Q.T), cond
 
 
-def torque_row_radius(rows: SegmentRows):
+def torque_row_radius(rows: SegmentRows) -> np.ndarray:
     """(S, n) declared bound of the torque part of each row, Σ_k w_k r_k."""
     return rows.w_first[:, None] * rows.r_first + rows.w_last[:, None] * rows.r_last + rows.r_inner
 
 
-def row_bounds(rows: SegmentRows, rad_r):
+def row_bounds(rows: SegmentRows, rad_r: np.ndarray) -> np.ndarray:
     """Declared error bound of each row of U (torque + θ_r + quadrature), (S n,); rad_r the
     half-widths of [θ_r]."""
     r_thr = np.abs(rows.D_r) @ rad_r
@@ -91,7 +93,9 @@ def _left_inverse(rows: SegmentRows, theta_r, rad_r, settings):
     return pinv_w * wrow, A, b, c, U
 
 
-def interval_hull(rows: SegmentRows, theta_r, rad_r, settings):
+def interval_hull(
+    rows: SegmentRows, theta_r: np.ndarray, rad_r: np.ndarray, settings: EstimatorSettings
+) -> tuple[dict | None, float]:
     """Centre L U(m) and radii of the exact hull {L(U(m') − e) : m' ∈ [m], |e| ≤ quad}.
 
     L is a left inverse of Y (`_left_inverse`): θ_e = L(U(m_true) − e) exactly, so the box
@@ -145,7 +149,15 @@ def interval_hull(rows: SegmentRows, theta_r, rad_r, settings):
     ), cond
 
 
-def set_membership_bounds(rows: SegmentRows, theta_r, rad_r, settings, box_lo, box_hi, params):
+def set_membership_bounds(
+    rows: SegmentRows,
+    theta_r: np.ndarray,
+    rad_r: np.ndarray,
+    settings: EstimatorSettings,
+    box_lo: np.ndarray,
+    box_hi: np.ndarray,
+    params: Iterable[int],
+) -> tuple[np.ndarray, np.ndarray, bool]:
     """Certified [min, max] of θ_e[i] (i in params) over the feasible polytope, by LP.
 
     Variables x = (θ_e, θ_r); rows |Y θ_e + D_r θ_r − ∫τ| ≤ Σ_k w_k r_k + quadrature term (a
@@ -190,7 +202,14 @@ def set_membership_bounds(rows: SegmentRows, theta_r, rad_r, settings, box_lo, b
     return out_lo, out_hi, True
 
 
-def certified_lp_min(c, A_ub, b_ub, lo_x, hi_x, solution=None):
+def certified_lp_min(
+    c: np.ndarray,
+    A_ub: np.ndarray,
+    b_ub: np.ndarray,
+    lo_x: np.ndarray,
+    hi_x: np.ndarray,
+    solution: list | None = None,
+) -> tuple[str, float]:
     """A certified lower bound on min c·x s.t. A_ub x ≤ b_ub, lo_x ≤ x ≤ hi_x (HiGHS dual simplex).
 
     The solver's answer is not trusted: the bound is recomputed from its dual multipliers y ≥ 0
@@ -220,7 +239,7 @@ def certified_lp_min(c, A_ub, b_ub, lo_x, hi_x, solution=None):
     return "ok", float(np.nextafter(bound, -np.inf))
 
 
-def box_is_consistent(centre, radius):
+def box_is_consistent(centre: np.ndarray, radius: np.ndarray) -> tuple[bool, float]:
     """Sufficient test that every θ in centre ± radius satisfies the LMI (pseudo-inertia ≻ 0):
     λ_min(J(centre)) > Σ_c radius_c ‖J(e_c)‖_2 (J is linear in θ)."""
     lam = np.linalg.eigvalsh(inertial.pseudo_inertia(centre)).min()

@@ -5,9 +5,12 @@ per-segment rows, latches consistency and intersects each update with the publis
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .. import inertial
 from ..uncertainty import parameter_radius
@@ -16,6 +19,9 @@ from .log_cholesky import cost_grad_hess, nearest_consistent, solve_log_cholesky
 from .physical import prune_box
 from .segments import SegmentRows, build_segment_rows, segment_bounds
 from .settings import EstimatorError, EstimatorSettings
+
+if TYPE_CHECKING:
+    from ..robot_model import RobotModel
 
 
 @dataclass
@@ -54,13 +60,13 @@ class Estimate:
     first_order_upper: np.ndarray | None = None
 
     @property
-    def widths(self):
+    def widths(self) -> np.ndarray:
         return self.upper - self.lower
 
-    def contains(self, theta_e, tol=0.0):
+    def contains(self, theta_e: ArrayLike, tol: float = 0.0) -> bool:
         return bool(np.all((self.lower - tol <= theta_e) & (theta_e <= self.upper + tol)))
 
-    def to_json(self, names=inertial.NAMES):
+    def to_json(self, names: Sequence[str] = inertial.NAMES) -> dict:
         f = lambda x: [float(v) for v in np.asarray(x).ravel()]  # noqa: E731
         return {
             "nominal": f(self.theta_e),
@@ -146,7 +152,7 @@ class IncrementalEstimator:
         self.messages = []
 
     # -- data -------------------------------------------------------------------------------
-    def add(self, t, q, v, tau):
+    def add(self, t: ArrayLike, q: ArrayLike, v: ArrayLike, tau: ArrayLike) -> int:
         """Append samples (any chunk size); builds the segments that became complete."""
         t = np.atleast_1d(np.asarray(t, float))
         q, v, tau = (np.atleast_2d(np.asarray(x, float)) for x in (q, v, tau))
@@ -173,7 +179,7 @@ class IncrementalEstimator:
         self._pending = tuple(x[next_start:] for x in (t, q, v, tau))
         return len(bounds)
 
-    def predicted_radius(self, t, q, v, tau):
+    def predicted_radius(self, t: ArrayLike, q: ArrayLike, v: ArrayLike, tau: ArrayLike) -> np.ndarray | None:
         """Half-widths of the Theorem-2 box (torque + θ_r + quadrature terms, the `map` left
         inverse) if the candidate log (t, q, v, τ: e.g. a plan's samples with its predicted
         torque) were added to the data so far; the estimator is not changed. A planner can rank
@@ -187,7 +193,7 @@ class IncrementalEstimator:
             return None
         return hull["rad_torque"] + hull["rad_theta_r"] + hull["rad_quad"]
 
-    def theta_box(self):
+    def theta_box(self) -> tuple[np.ndarray, np.ndarray]:
         """(centre, radius) of the box the whole-robot θ lies in: [θ_r] and the published [θ_e]
         (or the prior), for the quadrature bound."""
         centre, radius = self.robot.theta.copy(), np.zeros(14 * self.n)
@@ -201,7 +207,7 @@ class IncrementalEstimator:
         return centre, radius
 
     # -- estimate ---------------------------------------------------------------------------
-    def update(self):
+    def update(self) -> Estimate:
         """Algorithm 1 on all segments so far; returns the Estimate (also kept in .estimate)."""
         start = time.perf_counter()
         robot, st = self.robot, self.settings
@@ -430,12 +436,21 @@ class IncrementalEstimator:
         est.data_lower, est.data_upper = lo.copy(), hi.copy()
         return est
 
-    def prior_estimate(self):
+    def prior_estimate(self) -> Estimate:
         """What to publish before the first identification (nominal θ_e, prior box)."""
         return self._prior_estimate(np.inf, 0, "no data yet")
 
 
-def identify(robot, t, q, v, tau, settings: EstimatorSettings | None = None, prior=None, prior_nominal=None):
+def identify(
+    robot: RobotModel,
+    t: ArrayLike,
+    q: ArrayLike,
+    v: ArrayLike,
+    tau: ArrayLike,
+    settings: EstimatorSettings | None = None,
+    prior: tuple[ArrayLike, ArrayLike] | None = None,
+    prior_nominal: ArrayLike | None = None,
+) -> Estimate:
     """Algorithm 1 on a whole log (pure function): returns an Estimate."""
     est = IncrementalEstimator(robot, settings, prior, prior_nominal)
     est.add(t, q, v, tau)

@@ -11,7 +11,7 @@ import numpy as np
 from .. import inertial
 
 
-def ls_cost_terms(Y, U):
+def ls_cost_terms(Y: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """A = YᵀY, b = YᵀU, c = UᵀU so that ‖Yθ − U‖² = θᵀAθ − 2bᵀθ + c."""
     return Y.T @ Y, Y.T @ U, float(U @ U)
 
@@ -23,7 +23,13 @@ def _centred(A, b, c):
     return theta_c, 0.5 * max(c - b @ theta_c, 0.0)
 
 
-def cost_grad_hess(eta, A, b, c, centred=None):
+def cost_grad_hess(
+    eta: np.ndarray,
+    A: np.ndarray,
+    b: np.ndarray,
+    c: float,
+    centred: tuple[np.ndarray, float] | None = None,
+) -> tuple[float, np.ndarray, np.ndarray]:
     """J(η) = ½‖Y P(η) − U‖² and its exact gradient and Hessian (paper appendix, eq. D_ee)."""
     theta_c, jmin = centred or _centred(A, b, c)
     theta = inertial.log_cholesky_to_theta(eta)
@@ -54,7 +60,13 @@ _OFF_R = np.array([rc[0] for rc in _OFFDIAG])
 _OFF_C = np.array([rc[1] for rc in _OFFDIAG])
 
 
-def cost_and_gradient(eta, A, b, c, centred=None):
+def cost_and_gradient(
+    eta: np.ndarray,
+    A: np.ndarray,
+    b: np.ndarray,
+    c: float,
+    centred: tuple[np.ndarray, float] | None = None,
+) -> tuple[float, np.ndarray]:
     """J(η) and its exact gradient, the fast path used inside the NLP (≈ 20 µs)."""
     theta_c, jmin = centred or _centred(A, b, c)
     a = np.exp(eta[0])
@@ -91,7 +103,17 @@ def _solver(name):
     return IpoptSolver(), "ipopt"
 
 
-def solve_log_cholesky(A, b, c, eta0, solver="ipopt", newton_steps=50, scale=None, max_iterations=20, max_time_s=None):
+def solve_log_cholesky(
+    A: np.ndarray,
+    b: np.ndarray,
+    c: float,
+    eta0: np.ndarray,
+    solver: str = "ipopt",
+    newton_steps: int = 50,
+    scale: float | None = None,
+    max_iterations: int = 20,
+    max_time_s: float | None = None,
+) -> SolveResult:
     """min_η ½‖Y P(η) − U‖² with Drake MathematicalProgram.
 
     The cost is a Python function evaluated on AutoDiffXd that returns the EXACT gradient
@@ -196,7 +218,7 @@ def solve_log_cholesky(A, b, c, eta0, solver="ipopt", newton_steps=50, scale=Non
     )
 
 
-def ift_sensitivity(eta, A, b, dU_dm_Y):
+def ift_sensitivity(eta: np.ndarray, A: np.ndarray, b: np.ndarray, dU_dm_Y: np.ndarray) -> np.ndarray:
     """Paper appendix: ∂θ*/∂m = −P_η (∂²J/∂η²)⁻¹ ∂²J/∂m∂η at η, with dU_dm_Y = Yᵀ ∂U/∂m.
 
     At an interior least-squares optimum this equals Y⁺ ∂U/∂m (the residual-curvature term of
@@ -208,7 +230,7 @@ def ift_sensitivity(eta, A, b, dU_dm_Y):
     return -jac @ np.linalg.solve(H, mixed)
 
 
-def nearest_consistent(theta, rel_floor=1e-6):
+def nearest_consistent(theta: np.ndarray, rel_floor: float = 1e-6) -> np.ndarray:
     """θ whose pseudo-inertia is J(θ) with eigenvalues floored at rel_floor·λ_max (Frobenius
     projection onto the consistent set; equals θ when θ is already safely consistent)."""
     lam, vec = np.linalg.eigh(inertial.pseudo_inertia(theta))

@@ -22,6 +22,7 @@ be trusted.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -52,7 +53,7 @@ class BoundingVolume:
         if not np.all(np.asarray(self.half_extent_m) > 0):
             raise EstimatorError("payload.bounding_volume.half_extent_m: every entry must be > 0")
 
-    def forms(self):
+    def forms(self) -> list[np.ndarray]:
         """The 4×4 Q with [x; 1]ᵀ Q [x; 1] ≥ 0 for every x of the volume (one per ellipsoid, three per box)."""
         c, a = np.asarray(self.centre_m, float), np.asarray(self.half_extent_m, float)
         if self.shape == "ellipsoid":
@@ -68,7 +69,7 @@ class BoundingVolume:
             out.append(Q)
         return out
 
-    def contains(self, points):
+    def contains(self, points: np.ndarray) -> np.ndarray:
         """Which of the points (N, 3) lie in the volume (tests draw payloads inside it)."""
         local = (np.atleast_2d(points) - self.centre_m) @ self.R / self.half_extent_m
         if self.shape == "ellipsoid":
@@ -76,7 +77,7 @@ class BoundingVolume:
         return np.all(np.abs(local) <= 1.0, 1)
 
 
-def rpy_matrix(rpy):
+def rpy_matrix(rpy: Sequence[float]) -> np.ndarray:
     """R = Rz(yaw) Ry(pitch) Rx(roll)."""
     r, p, y = rpy
     cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
@@ -94,7 +95,15 @@ def _linear_form(M):
     return np.einsum("jkl,kl->j", _J_BASIS, M)
 
 
-def prune_box(lo, hi, volume: BoundingVolume | None = None, gripper=None, max_cuts=5, tol=1e-10, cuts=None):
+def prune_box(
+    lo: np.ndarray,
+    hi: np.ndarray,
+    volume: BoundingVolume | None = None,
+    gripper: tuple[np.ndarray, np.ndarray] | None = None,
+    max_cuts: int = 5,
+    tol: float = 1e-10,
+    cuts: list | None = None,
+) -> tuple[np.ndarray, np.ndarray, bool]:
     """Outer bound of {θ_e ∈ [lo, hi] : J(θ_e) ⪰ 0, and with a volume J(θ_p) ⪰ 0, tr(J(θ_p) Q) ≥ 0}.
 
     θ_p = θ_e − θ_g, θ_g ∈ gripper = (lower, upper) (None: the volume contains the whole θ_e).

@@ -6,15 +6,21 @@ declared error bound of each row.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .. import regressors
 from ..spatial import cross
-from .settings import EstimatorError
+from .settings import EstimatorError, EstimatorSettings
+
+if TYPE_CHECKING:
+    from ..regressors import KinematicTree
+    from ..robot_model import RobotModel
 
 
-def segment_bounds(t, horizon_s, max_gap_s):
+def segment_bounds(t: ArrayLike, horizon_s: float, max_gap_s: float) -> tuple[np.ndarray, int]:
     """Inclusive sample index pairs (a, b) of segments of about horizon_s seconds.
 
     A segment ends at the first sample with t_b − t_a ≥ horizon_s; consecutive segments share
@@ -43,7 +49,7 @@ def segment_bounds(t, horizon_s, max_gap_s):
     return np.asarray(out, int).reshape(-1, 2), int(next_start)
 
 
-def sample_weights(t, a, b, integration):
+def sample_weights(t: np.ndarray, a: int, b: int, integration: str) -> np.ndarray:
     """Quadrature weights of samples a..b for ∫ over [t_a, t_b]."""
     dt = np.diff(t[a : b + 1])
     w = np.zeros(b - a + 1)
@@ -107,7 +113,15 @@ def _pair_factors(tree, q, v):
     return _Factors(joints, screws, twist_grav, nsamp)
 
 
-def integrated_rate_regressor(tree, q, v, t, bounds, integration="trapezoid", factors=None):
+def integrated_rate_regressor(
+    tree: KinematicTree,
+    q: np.ndarray,
+    v: np.ndarray,
+    t: np.ndarray,
+    bounds: np.ndarray,
+    integration: str = "trapezoid",
+    factors: _Factors | None = None,
+) -> np.ndarray:
     """∫ Wc_rigid dt over each segment (S, n, 10 n), exact quadrature of the per-sample Wc.
 
     Uses sᵀK(x) = Σ_ab s_a x_b K_ab: per segment and body one (k·6 × 2K)(2K × 6) product,
@@ -135,7 +149,7 @@ def integrated_rate_regressor(tree, q, v, t, bounds, integration="trapezoid", fa
     return out
 
 
-def segment_sums(values, t, bounds, integration):
+def segment_sums(values: np.ndarray, t: np.ndarray, bounds: np.ndarray, integration: str) -> np.ndarray:
     """∫ values dt per segment with the same quadrature, values (N, ...) -> (S, ...)."""
     out = np.empty((len(bounds),) + values.shape[1:])
     for s, (a, b) in enumerate(bounds):
@@ -153,7 +167,7 @@ def _rate_blocks(factors, n):
         yield i, factors.joints[i], s[:N] @ xk[:N] + s[N:] @ xk[N:]
 
 
-def rate_regressor_samples(factors, n):
+def rate_regressor_samples(factors: _Factors, n: int) -> np.ndarray:
     """W_c,rigid at every sample (N, n, 10 n): the per-sample form of `integrated_rate_regressor`."""
     out = np.zeros((factors.nsamp, n, 10 * n))
     for i, joints, block in _rate_blocks(factors, n):
@@ -161,7 +175,9 @@ def rate_regressor_samples(factors, n):
     return out
 
 
-def integrand_rates(t, factors, fric_cols, theta_centre, theta_radius):
+def integrand_rates(
+    t: np.ndarray, factors: _Factors, fric_cols: np.ndarray, theta_centre: np.ndarray, theta_radius: np.ndarray
+) -> np.ndarray:
     """Per step k and joint, a_k ≥ |f(t_k+1) − f(t_k)| / h_k for the integrand f = W_c θ and
     EVERY θ in θ_centre ± θ_radius (the mean of ḟ over the step), (N − 1, n). W_c = rigid part
     (from the factors, body by body: never the whole (N, n, 14 n) array) + fric_cols (N, n, 4 n)."""
@@ -175,7 +191,9 @@ def integrand_rates(t, factors, fric_cols, theta_centre, theta_radius):
     return (np.abs(np.diff(f, axis=0)) + spread) / np.diff(t)[:, None]
 
 
-def quadrature_bound(t, rates, bounds, integration, safety):
+def quadrature_bound(
+    t: np.ndarray, rates: np.ndarray, bounds: np.ndarray, integration: str, safety: float
+) -> np.ndarray:
     """Per segment and joint, a bound on |∫ f dt − quadrature(f)| for the integrand f = W_c θ.
 
     Assumption (κ = safety ≥ 2): on every step, f is monotone, or |ḟ| ≤ κ·max(a_k−1, a_k, a_k+1)
@@ -198,7 +216,9 @@ def quadrature_bound(t, rates, bounds, integration, safety):
     return out
 
 
-def torque_rate_bound(t, tau_meas, radius, bounds, rate_limit):
+def torque_rate_bound(
+    t: np.ndarray, tau_meas: np.ndarray, radius: np.ndarray, bounds: np.ndarray, rate_limit: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Continuous torque signal with |dτ/dt| ≤ rate_limit: per segment and joint the trapezoid
     error bound rate_limit·Σ h²/4, and per segment whether the measurements contradict the
     declared rate (|Δτ_meas| > rate_limit·h + r_k + r_k+1 on some step: the assumption failed)."""
@@ -233,7 +253,7 @@ class SegmentRows:
     start_index: np.ndarray
 
     @classmethod
-    def empty(cls, n, nr):
+    def empty(cls, n: int, nr: int) -> SegmentRows:
         z = lambda *s: np.zeros(s)  # noqa: E731
         return cls(
             z(0),
@@ -257,12 +277,12 @@ class SegmentRows:
     def __len__(self):
         return len(self.t0)
 
-    def concat(self, other):
+    def concat(self, other: SegmentRows) -> SegmentRows:
         vals = {k: np.concatenate([getattr(self, k), getattr(other, k)]) for k in self.__dataclass_fields__}
         return SegmentRows(**vals)
 
 
-def torque_radius(tau_meas, settings):
+def torque_radius(tau_meas: np.ndarray, settings: EstimatorSettings) -> np.ndarray:
     """Per-sample bound on |τ_true − τ_meas| from the declared |τ_meas − τ| ≤ ratio|τ| + floor."""
     ratio = settings.torque_ratio
     if ratio >= 1:
@@ -270,7 +290,17 @@ def torque_radius(tau_meas, settings):
     return (ratio * np.abs(tau_meas) + settings.torque_floor_Nm) / (1.0 - ratio)
 
 
-def build_segment_rows(robot, t, q, v, tau, bounds, settings, theta_box=None, index_offset=0):
+def build_segment_rows(
+    robot: RobotModel,
+    t: np.ndarray,
+    q: np.ndarray,
+    v: np.ndarray,
+    tau: np.ndarray,
+    bounds: np.ndarray,
+    settings: EstimatorSettings,
+    theta_box: tuple[np.ndarray, np.ndarray] | None = None,
+    index_offset: int = 0,
+) -> SegmentRows:
     """Y, D_r, ∫τ and interval bookkeeping for the given segments (vectorized over samples).
 
     theta_box: (centre, radius) over all 14 n parameters, the box the true θ lies in, for the

@@ -3,10 +3,16 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..uncertainty import ParameterFloors
+
+if TYPE_CHECKING:
+    from ..config import BoundingVolume as VolumeField
+    from ..config import Scenario
+    from .physical import BoundingVolume
 
 EPS = np.finfo(float).eps
 
@@ -15,7 +21,7 @@ class EstimatorError(ValueError):
     """Bad estimator input (too little data, wrong shapes, non-finite values)."""
 
 
-def payload_volume(field):
+def payload_volume(field: VolumeField) -> BoundingVolume | None:
     """The scenario's payload.bounding_volume as a physical.BoundingVolume (None for shape none)."""
     if field.shape == "none":
         return None
@@ -67,10 +73,10 @@ class EstimatorSettings:
     # and, given a volume containing the payload, its density-realizability LMI. The data-driven
     # box is reported separately (Estimate.data_lower/upper).
     physical_pruning: bool = False
-    payload_volume: object = None  # physical.BoundingVolume | None
+    payload_volume: BoundingVolume | None = None
 
     @classmethod
-    def from_scenario(cls, s):
+    def from_scenario(cls, s: Scenario) -> EstimatorSettings:
         e = s.estimator
         return cls(
             horizon_s=e.horizon_s,
@@ -91,13 +97,13 @@ class EstimatorSettings:
             payload_volume=payload_volume(s.payload.bounding_volume),
         )
 
-    def segment_gap_s(self):
+    def segment_gap_s(self) -> float:
         """Longest step a segment may span: max_gap_s, and for a held torque 1.5 hold periods
         (a longer step lost held samples whose torque is unknown)."""
         if self.torque_signal == "held" and self.hold_period_s:
             return min(self.max_gap_s, 1.5 * self.hold_period_s)
         return self.max_gap_s
 
-    def torque_rule(self):
+    def torque_rule(self) -> str:
         """Quadrature of ∫τ dt: the exact left sum of a held torque, else the trapezoid."""
         return "euler" if self.torque_signal == "held" else "trapezoid"

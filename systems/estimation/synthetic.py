@@ -4,23 +4,33 @@ joint limits, the held torque that produces them, bounded noise.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .settings import EstimatorError
 
+if TYPE_CHECKING:
+    from ..robot_model import RobotModel
+
+# motion(times) -> (q, v, a) at those times
+Motion = Callable[[ArrayLike], tuple[np.ndarray, np.ndarray, np.ndarray]]
+
 
 def fourier_motion(
-    rng,
-    robot,
-    duration_s,
-    rate_hz,
-    harmonics=5,
-    period_s=None,
-    centre=None,
-    velocity_fraction=0.7,
-    position_amplitude_rad=0.6,
-    t0=0.0,
-):
+    rng: np.random.Generator,
+    robot: RobotModel,
+    duration_s: float,
+    rate_hz: float,
+    harmonics: int = 5,
+    period_s: float | None = None,
+    centre: ArrayLike | None = None,
+    velocity_fraction: float = 0.7,
+    position_amplitude_rad: float = 0.6,
+    t0: float = 0.0,
+) -> tuple[np.ndarray, Motion]:
     """Smooth random finite Fourier series (Swevers form) within joint position/velocity limits.
 
     q_j(t) = c_j + Σ_l a_jl/(lω) sin(lωt) − b_jl/(lω) cos(lωt), scaled on the sample grid.
@@ -65,7 +75,9 @@ def fourier_motion(
     return t, motion
 
 
-def fourier_trajectory(rng, robot, duration_s, rate_hz, **kw):
+def fourier_trajectory(
+    rng: np.random.Generator, robot: RobotModel, duration_s: float, rate_hz: float, **kw: Any
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """`fourier_motion` sampled on its grid: t, q, v, a."""
     t, motion = fourier_motion(rng, robot, duration_s, rate_hz, **kw)
     return (t, *motion(t))
@@ -74,7 +86,7 @@ def fourier_trajectory(rng, robot, duration_s, rate_hz, **kw):
 _GAUSS_NODES, _GAUSS_WEIGHTS = np.polynomial.legendre.leggauss(3)
 
 
-def held_torque(robot, motion, t, theta):
+def held_torque(robot: RobotModel, motion: Motion, t: np.ndarray, theta: np.ndarray) -> np.ndarray:
     """The torque a zero-order hold must apply on each step [t_k, t_k+1] to produce `motion`
     exactly, in the momentum sense: τ̄_k = (1/h_k) ∫ τ_ID dt (3-point Gauss, error ~h⁶; the last sample
     holds over one more step of the same length). Over any segment of whole steps
@@ -87,7 +99,7 @@ def held_torque(robot, motion, t, theta):
     return 0.5 * np.tensordot(tau, _GAUSS_WEIGHTS, axes=([1], [0]))
 
 
-def perturbed_robot_theta(rng, robot, ratio):
+def perturbed_robot_theta(rng: np.random.Generator, robot: RobotModel, ratio: float) -> np.ndarray:
     """Rest-of-robot θ_r perturbed uniformly within ±ratio·|θ_r| (what [θ_r] allows)."""
     theta = robot.theta.copy()
     mask = robot.rest_mask()
@@ -96,17 +108,17 @@ def perturbed_robot_theta(rng, robot, ratio):
 
 
 def simulate_log(
-    rng,
-    robot,
-    theta_true,
-    duration_s=7.5,
-    rate_hz=1000.0,
-    noise_ratio=0.025,
-    noise_floor_Nm=0.05,
-    noise_scale=1.0,
-    torque="held",
-    **traj,
-):
+    rng: np.random.Generator,
+    robot: RobotModel,
+    theta_true: np.ndarray,
+    duration_s: float = 7.5,
+    rate_hz: float = 1000.0,
+    noise_ratio: float = 0.025,
+    noise_floor_Nm: float = 0.05,
+    noise_scale: float = 1.0,
+    torque: str = "held",
+    **traj: Any,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Joint log of an open-loop exciting motion with θ_true, plus uniform noise inside
     |τ_meas − τ| ≤ noise_scale·(ratio|τ| + floor). torque "held": τ is the zero-order-hold
     torque that produces the motion (`held_torque`, what a digital controller applies);
