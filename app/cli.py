@@ -16,6 +16,13 @@ class BadInput(ValueError):
     """Raised for user-input problems; printed as one line, exit code 2."""
 
 
+def require_positive(**counts: int) -> None:
+    """BadInput naming the first option (--trials, --workers, ...) below 1."""
+    for name, value in counts.items():
+        if value < 1:
+            raise BadInput(f"--{name}: must be >= 1")
+
+
 def _bad_input_types():
     from safesysid.joint_log import LogError
     from safesysid.scenario import ScenarioError

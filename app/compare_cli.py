@@ -18,7 +18,7 @@ import json
 import sys
 from pathlib import Path
 
-from safesysid.cli import BadInput
+from safesysid.cli import BadInput, require_positive
 from safesysid.scenario import Scenario
 
 TABLE_FILES = ("table.md", "table.csv", "table.json", "table.png")
@@ -202,10 +202,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
     scenario = load_scenario(path, overrides=args.scenario_text)  # exit 2 on bad input before any worker starts
     methods = parse_methods(args.methods)
     dumbbells = parse_dumbbells(args.dumbbells, dumbbell_catalogue(scenario), scenario.payload.dumbbell)
-    if args.trials < 1:
-        raise BadInput("--trials: must be >= 1")
-    if args.workers < 1:
-        raise BadInput("--workers: must be >= 1")
+    require_positive(trials=args.trials, workers=args.workers)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     jsonl = out / "runs.jsonl"

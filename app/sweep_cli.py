@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import yaml
 from safesysid import pool
-from safesysid.cli import BadInput
+from safesysid.cli import BadInput, require_positive
 from safesysid.pool import read_jsonl
 
 if TYPE_CHECKING:
@@ -276,10 +276,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     texts = list(args.scenario_text)
     scenario = load_scenario(path, overrides=texts)  # validates (exit 2 on bad input) before any worker starts
     methods = _methods(args.methods, scenario.method)
-    if args.trials < 1:
-        raise BadInput("--trials: must be >= 1")
-    if args.workers < 1:
-        raise BadInput("--workers: must be >= 1")
+    require_positive(trials=args.trials, workers=args.workers)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     jsonl = out / "trials.jsonl"
