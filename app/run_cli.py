@@ -26,7 +26,7 @@ def _method(name, scenario):
     return method
 
 
-def method_list(text):
+def method_list(text: str) -> list[str]:
     """--methods: comma-separated names, or "all" (every method of the paper's table, in its order)."""
     names = [m.strip() for m in text.split(",") if m.strip()]
     return list(METHODS) if names == ["all"] else names

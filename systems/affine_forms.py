@@ -22,7 +22,15 @@ the time interval and the k box enter as remainders.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
 import numpy as np
+from numpy.typing import ArrayLike
+
+if TYPE_CHECKING:
+    from .armour import TrackingBounds
+    from .intervals import Interval
 
 _U = np.finfo(float).eps
 
@@ -37,7 +45,7 @@ def _mag(x):
     return x.m
 
 
-def filter_gain(kr):
+def filter_gain(kr: ArrayLike) -> float:
     """kappa = int_0^inf max_i kr_i exp(-kr_i t) dt (>= 1), rounded up: the upper envelope of the
     lines log kr_i - kr_i t, integrated piece by piece (int_a^b k e^{-k t} = e^{-k a} - e^{-k b})."""
     ks = np.unique(np.asarray(kr, float))[::-1]  # fastest first: it dominates near t = 0
@@ -57,7 +65,7 @@ def filter_gain(kr):
 class Layout:
     """Symbol layout: n_box box symbols, then n_cap box symbols with |s|_2 <= kappa, then a ball."""
 
-    def __init__(self, n_box, n_cap, kappa):
+    def __init__(self, n_box: int, n_cap: int, kappa: float) -> None:
         self.n_box, self.n_cap, self.kappa = n_box, n_cap, kappa
 
 
@@ -66,18 +74,20 @@ class Affine:
 
     __array_ufunc__ = None  # ndarray op Affine -> Affine's reflected op
 
-    def __init__(self, c, g, r, layout, m=None):
+    def __init__(
+        self, c: np.ndarray, g: np.ndarray, r: np.ndarray, layout: Layout, m: np.ndarray | None = None
+    ) -> None:
         self.c, self.g, self.r, self.layout, self.m = c, g, r, layout, m
         self._dev = None
 
-    def deviation(self):
+    def deviation(self) -> np.ndarray:
         """B(g) + r: the largest |x - c| (cached: a form is often multiplied several times)."""
         if self._dev is None:
             self._dev = self.spread() + self.r
         return self._dev
 
     @classmethod
-    def constant(cls, lo, hi, like):
+    def constant(cls, lo: ArrayLike, hi: ArrayLike, like: Affine) -> Affine:
         """An interval [lo, hi] (no symbols) in the symbol space of `like`."""
         lo, hi = np.asarray(lo, float), np.asarray(hi, float)
         c = 0.5 * (lo + hi)
@@ -85,7 +95,7 @@ class Affine:
         return cls(c, np.zeros(c.shape + (like.g.shape[-1],)), r, like.layout)
 
     # -- bounds --------------------------------------------------------------------------------
-    def spread(self, g=None):
+    def spread(self, g: np.ndarray | None = None) -> np.ndarray:
         """B(g) = max over the symbol set of |g . s| (rounded up)."""
         g = self.g if g is None else g
         a, b = self.layout.n_box, self.layout.n_box + self.layout.n_cap
@@ -96,23 +106,23 @@ class Affine:
         return (box + capped + ball) * (1 + 8 * _U)
 
     @property
-    def rad(self):
+    def rad(self) -> np.ndarray:
         return (self.spread() + self.r) * (1 + 4 * _U)
 
     @property
-    def lo(self):
+    def lo(self) -> np.ndarray:
         return self.c - self.rad
 
     @property
-    def hi(self):
+    def hi(self) -> np.ndarray:
         return self.c + self.rad
 
     @property
-    def mag(self):
+    def mag(self) -> np.ndarray:
         return np.abs(self.c) + self.rad
 
     @property
-    def shape(self):
+    def shape(self) -> tuple[int, ...]:
         return self.c.shape
 
     # -- arithmetic ----------------------------------------------------------------------------
@@ -167,14 +177,14 @@ class Affine:
 
     __rmul__ = __mul__
 
-    def sum(self, axis):
+    def sum(self, axis: int) -> Affine:
         k = self.c.shape[axis]
         gaxis = axis if axis >= 0 else axis - 1
         m = _mag(self).sum(axis)
         return self._new(self.c.sum(axis), self.g.sum(gaxis), (self.r.sum(axis) + (k + 1) * _U * m) * _UP, m * _UP)
 
 
-def stack(items, axis=-1):
+def stack(items: Sequence[Affine], axis: int = -1) -> Affine:
     gaxis = axis if axis >= 0 else axis - 1
     return items[0]._new(
         np.stack([x.c for x in items], axis),
@@ -184,7 +194,7 @@ def stack(items, axis=-1):
     )
 
 
-def cat(items):
+def cat(items: Sequence[Affine]) -> Affine:
     return items[0]._new(
         np.concatenate([x.c for x in items], -1),
         np.concatenate([x.g for x in items], -2),
@@ -193,7 +203,7 @@ def cat(items):
     )
 
 
-def concat_rows(items):
+def concat_rows(items: Sequence[Affine]) -> Affine:
     """Affine forms of the same layout concatenated along the first axis."""
     return items[0]._new(
         np.concatenate([x.c for x in items]),
@@ -203,14 +213,14 @@ def concat_rows(items):
     )
 
 
-def swap_last(x):
+def swap_last(x: Affine) -> Affine:
     """Transpose of the last two (data) axes."""
     return x._new(
         np.swapaxes(x.c, -1, -2), np.swapaxes(x.g, -2, -3), np.swapaxes(x.r, -1, -2), np.swapaxes(_mag(x), -1, -2)
     )
 
 
-def gather(x, comp, sign, shape):
+def gather(x: Affine, comp: np.ndarray, sign: np.ndarray, shape: tuple[int, ...]) -> Affine:
     """y[..., m] = sign[m] x[..., comp[m]] reshaped to (..., *shape) (exact)."""
     lead = x.c.shape[:-1]
     c = (x.c[..., comp] * sign).reshape(lead + shape)
@@ -219,7 +229,7 @@ def gather(x, comp, sign, shape):
     return x._new(c, g, r, (_mag(x)[..., comp] * np.abs(sign)).reshape(lead + shape))
 
 
-def sin_cos(q):
+def sin_cos(q: Affine) -> tuple[Affine, Affine]:
     """sin q, cos q as affine forms: first-order Taylor at the centre, |remainder| <= B(g)^2 / 2 + r."""
     s, c = np.sin(q.c), np.cos(q.c)
     b = q.spread() + q.r
@@ -230,7 +240,9 @@ def sin_cos(q):
     )
 
 
-def tube_states(q_box, vd, ad, bounds):
+def tube_states(
+    q_box: Interval, vd: Interval, ad: Interval, bounds: TrackingBounds
+) -> tuple[Affine, Affine, Affine, Affine]:
     """Affine (q, qd, qd_a, qdd_a) of the time intervals: q_box (Interval (N, n), the planner's q
     hull with the tube), vd, ad (Intervals (N, n): the DESIRED velocity and acceleration hulls,
     no tube) and the controller's TrackingBounds. Symbols: [q (n), e (n) | r (n, ball)]."""

@@ -22,8 +22,13 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
+
+if TYPE_CHECKING:
+    from .robot_model import RobotModel
 
 # Smooths r_il = sqrt(a^2 + b^2 + eps^2) at 0 for the solver; it only over-estimates r_il, so the
 # constraint stays sufficient.
@@ -46,7 +51,7 @@ class FourierTrajectory:
     def duration(self) -> float:
         return self.period_s
 
-    def evaluate(self, t) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def evaluate(self, t: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(q, qd, qdd), each (len(t), n) for an array t, (n,) for a scalar; at rest at q0
         outside [0, T]."""
         scalar = np.ndim(t) == 0
@@ -69,7 +74,7 @@ class FourierTrajectory:
         return self.omega * (np.hypot(self.a, self.b) * harmonics).sum(1)
 
 
-def basis(t, omega: float, num_harmonics: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def basis(t: ArrayLike, omega: float, num_harmonics: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(G_q, G_v, G_a), each (len(t), 2L): q - q0, qd, qdd = G [a_1..a_L, b_1..b_L] per joint."""
     wl = omega * np.arange(1, num_harmonics + 1)
     x = np.outer(np.asarray(t, float), wl)
@@ -116,7 +121,7 @@ class FourierResult:
 class _Problem:
     """The exciting cost and the bound constraints on the free coefficients x (n, 2L - 2)."""
 
-    def __init__(self, robot, q0, settings: FourierSettings):
+    def __init__(self, robot: RobotModel, q0: ArrayLike, settings: FourierSettings) -> None:
         self.robot, self.s = robot, settings
         self.q0 = np.asarray(q0, float)
         self.n, self.L = robot.n, settings.num_harmonics
@@ -207,7 +212,7 @@ class _Problem:
         return (x * scale[:, None]).ravel()
 
 
-def optimize_fourier(robot, q0, settings: FourierSettings) -> FourierResult:
+def optimize_fourier(robot: RobotModel, q0: ArrayLike, settings: FourierSettings) -> FourierResult:
     """The most exciting Fourier trajectory (min cond W_e) from rest at q0 back to rest at q0,
     inside the velocity and acceleration limits only. SLSQP's iterates may sit slightly outside the
     bounds: each is projected inside (Problem.project) and the best projected one is kept (the

@@ -13,7 +13,10 @@ interval bounds sup |u_j| rigorously (`interval_passivity_regressor`, `torque_bo
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from . import affine_forms as aff
 from . import regressors
@@ -24,6 +27,9 @@ from .armour import (
     spectral_bound,
 )
 from .intervals import Interval, _down, _up
+
+if TYPE_CHECKING:
+    from .robot_model import RobotModel
 
 # ---------------------------------------------------------------------------------------------
 # Interval passivity regressor (local-frame RNEA over interval states), torque bound
@@ -137,7 +143,7 @@ def _cat(items):
     return _Box(np.concatenate([x.lo for x in items], -1), np.concatenate([x.hi for x in items], -1))
 
 
-def signed_selection(tensor):
+def signed_selection(tensor: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """(comp, sign) such that x @ tensor.reshape(k, -1) == x[..., comp] * sign, for a constant
     linear map (k, ...) whose every output entry is +-one input component or 0 (K(x), x x*):
     a gather instead of a product, exact, any dtype, interval-friendly."""
@@ -255,7 +261,7 @@ def _joint_screws(tree):
     return s_local
 
 
-def interval_body_jacobians(tree, q):
+def interval_body_jacobians(tree: regressors.KinematicTree, q: Interval) -> Interval:
     """Interval body Jacobians (N, n_bodies, n, 6): [row, i, j] = twist of body i (its own
     coordinates) per unit velocity of joint j, over the configuration boxes q (Interval (N, n));
     the velocity pass of the local-frame RNEA below with one unit velocity per joint at once."""
@@ -278,7 +284,9 @@ _INERTIA_FORMS = np.einsum("bak->kab", regressors.inertia_times(np.eye(6)))  # [
 _INERTIA_FORMS = 0.5 * (_INERTIA_FORMS + np.swapaxes(_INERTIA_FORMS, 1, 2))
 
 
-def interval_mass_spread(robot, q, theta_lo, theta_hi, per_joint=False):
+def interval_mass_spread(
+    robot: RobotModel, q: Interval, theta_lo: ArrayLike, theta_hi: ArrayLike, per_joint: bool = False
+) -> np.ndarray:
     """mu (N,) >= controller.mass_spread(q') for every q' in each configuration box q (Interval (N, n)).
 
     r^T M r = sum_i (J_i r)^T I_i (J_i r) + sum_j Ia_j r_j^2 (J_i: body Jacobians), so
@@ -309,7 +317,7 @@ def interval_mass_spread(robot, q, theta_lo, theta_hi, per_joint=False):
     return joint_spread_bound(spread) if per_joint else spectral_bound(spread)
 
 
-def joint_spread_bound(spread, grid=512):
+def joint_spread_bound(spread: np.ndarray, grid: int = 512) -> np.ndarray:
     """mu_j (N, n) >= max over unit u of |u_j| |u|^T S |u| for entrywise nonnegative S (N, n, n):
     the controller's |v_j| = lambda |u_j| (u = r/|r|), so joint j only sees the barrier excess
     along directions that have a component on j. With |u| = c e_j + s w (w >= 0, unit, _|_ e_j):
@@ -332,7 +340,9 @@ def joint_spread_bound(spread, grid=512):
     return np.minimum(top, spectral_bound(spread)[:, None])
 
 
-def interval_passivity_regressor(robot, q, v, va, aa, gravity=True):
+def interval_passivity_regressor(
+    robot: RobotModel, q: Interval, v: Interval, va: Interval, aa: Interval, gravity: bool = True
+) -> Interval:
     """Interval Wp (N, n, 14n) enclosing RobotModel.passivity_regressor over boxes q, v, va, aa
     (Intervals (N, n)). Local-frame RNEA: each body's velocity/acceleration from its parent's
     through one interval joint transform; the body wrench regressors carried back up the tree."""
@@ -345,7 +355,9 @@ def interval_passivity_regressor(robot, q, v, va, aa, gravity=True):
     return Interval(lo, hi)
 
 
-def affine_passivity_regressor(robot, q, v, va, aa, gravity=True):
+def affine_passivity_regressor(
+    robot: RobotModel, q: Affine, v: Affine, va: Affine, aa: Affine, gravity: bool = True
+) -> Affine:
     """Affine Wp (N, n, 14n) (affine_forms.Affine) enclosing RobotModel.passivity_regressor for every
     state of the affine forms q, v, va, aa (N, n) (e.g. affine_forms.tube_states): the same RNEA on
     first-order forms, so each entry keeps its dependence on the shared symbols."""
@@ -409,7 +421,19 @@ def _regressor_columns(robot, q, v, va, aa, gravity):
             yield j, slice(base + off, base + off + 1), x[:, j, None]
 
 
-def robust_bound_vertex(robot, q, v, va, aa, theta0, theta_lo, theta_hi, block, full=None, b_rows=1):
+def robust_bound_vertex(
+    robot: RobotModel,
+    q: Interval,
+    v: Interval,
+    va: Interval,
+    aa: Interval,
+    theta0: ArrayLike,
+    theta_lo: ArrayLike,
+    theta_hi: ArrayLike,
+    block: slice | np.ndarray,
+    full: Interval | None = None,
+    b_rows: int = 1,
+) -> tuple[np.ndarray, np.ndarray]:
     """Tighter w_bar (N, n) for the parameters in `block` (e.g. the end effector's 10).
 
     W_p is affine in aa: W_p = A(q, v, va) + sum_j B_j(q) aa_j (B_j: the M(q) columns, no gravity,
@@ -469,7 +493,9 @@ def robust_bound_vertex(robot, q, v, va, aa, theta0, theta_lo, theta_hi, block, 
     return _up(np.minimum(plain, best + rest)), plain
 
 
-def barrier_excess(robot, q, theta_lo, theta_hi, bounds: TrackingBounds, rows=1):
+def barrier_excess(
+    robot: RobotModel, q: Interval, theta_lo: ArrayLike, theta_hi: ArrayLike, bounds: TrackingBounds, rows: int = 1
+) -> np.ndarray:
     """(N, n): alpha eps mu_j / 2 over each configuration box, the amount by which the controller's
     |v_j| = lambda |r_j|/|r| may exceed |w_bar| on the tube (controller.robust_gain_bound with the
     per-joint mu_j of `joint_spread_bound`); mu on hulls of `rows` consecutive boxes (it varies
@@ -481,7 +507,9 @@ def barrier_excess(robot, q, theta_lo, theta_hi, bounds: TrackingBounds, rows=1)
     return robust_gain_bound(np.zeros_like(mu), bounds.alpha, bounds.eps, mu)
 
 
-def torque_bound(wp, theta0, theta_lo, theta_hi, excess):
+def torque_bound(
+    wp: Interval, theta0: ArrayLike, theta_lo: ArrayLike, theta_hi: ArrayLike, excess: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """sup |u| per (interval, joint) over the boxes of wp (Interval (N, n, p)).
 
     u = W_p theta0 + v, |v_j| <= ||w_bar||_2 + excess_j (excess (N, n) from barrier_excess on the
@@ -500,7 +528,9 @@ def torque_bound(wp, theta0, theta_lo, theta_hi, excess):
     return _up(nominal + robust), nominal, robust
 
 
-def affine_torque_bound(wp: Affine, theta0, theta_lo, theta_hi, excess):
+def affine_torque_bound(
+    wp: Affine, theta0: ArrayLike, theta_lo: ArrayLike, theta_hi: ArrayLike, excess: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """torque_bound for an affine regressor (affine_passivity_regressor): the nominal torque keeps the
     dependence across columns, |c theta0 + (g theta0) . s| <= |c theta0| + B(g theta0) + r |theta0|,
     and w_bar_i <= sum_k d_k (|c_ik| + B(g_ik) + r_ik) (each entry's own range, B of affine_forms)."""
@@ -523,12 +553,12 @@ def affine_torque_bound(wp: Affine, theta0, theta_lo, theta_hi, excess):
     return _up(nominal + robust), nominal, robust
 
 
-def robust_term(w_bar, excess):
+def robust_term(w_bar: np.ndarray, excess: np.ndarray) -> np.ndarray:
     """(N, n): rounded-up ||w_bar||_2 (last axis) + excess (N, n): the bound of the controller's |v_j|."""
     return _up(_up(np.linalg.norm(w_bar, axis=-1) * (1 + 1e-12))[:, None] + excess)
 
 
-def merge_rows(box, group):
+def merge_rows(box: Interval, group: int) -> Interval:
     """Hull of consecutive groups of `group` rows of an Interval (rows, n) (the last group padded
     with the last row)."""
     rows = box.lo.shape[0]

@@ -20,9 +20,18 @@ carries the model's source.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
+
+if TYPE_CHECKING:
+    from .config import Scenario
+    from .fourier_excitation import FourierResult, FourierSettings
+    from .intervals import Interval
+    from .robot_model import RobotModel
 
 NO_PAYLOAD, PRIOR, IDENTIFIED, ADAPTED = "no_payload", "prior", "identified", "adapted"
 # Trajectories of the identification phase.
@@ -130,7 +139,9 @@ def method_spec(name: str) -> MethodSpec:
         raise ValueError(f"method {name!r} is not one of {', '.join(METHODS_SPEC)}") from None
 
 
-def parameters_from(source: str, robot, scenario, identified=None):
+def parameters_from(
+    source: str, robot: RobotModel, scenario: Scenario, identified: Sequence[ArrayLike] | None = None
+) -> tuple[np.ndarray, Interval]:
     """(theta0 (14 n), Interval) of a parameter source; IDENTIFIED needs `identified` =
     (theta0, lower, upper) of the estimator."""
     from .armour import prior_box
@@ -144,7 +155,7 @@ def parameters_from(source: str, robot, scenario, identified=None):
     return prior_box(robot, scenario.initial_interval, scenario.noise, exact=source == NO_PAYLOAD)
 
 
-def initial_parameters(spec: MethodSpec, robot, scenario):
+def initial_parameters(spec: MethodSpec, robot: RobotModel, scenario: Scenario) -> tuple[np.ndarray, Interval]:
     """(theta0, [theta]) the run starts with: Table II when there is an identification phase
     (paper: "assigned to the planner and the controller at the beginning of the identification
     phase"), else the task's own (which then never identifies from data)."""
@@ -152,7 +163,9 @@ def initial_parameters(spec: MethodSpec, robot, scenario):
     return parameters_from(source, robot, scenario)
 
 
-def task_parameters(spec: MethodSpec, robot, scenario, identified=None):
+def task_parameters(
+    spec: MethodSpec, robot: RobotModel, scenario: Scenario, identified: Sequence[ArrayLike] | None = None
+) -> tuple[np.ndarray, Interval]:
     """(theta0, [theta]) the task-phase controller takes (identified: the estimator's final
     (theta0, lower, upper), for the IDENTIFIED methods). Where the model and box sources differ
     (none today) the box's source wins only for the box."""
@@ -161,7 +174,7 @@ def task_parameters(spec: MethodSpec, robot, scenario, identified=None):
     return theta0, box
 
 
-def excitation_duration_s(spec: MethodSpec, scenario) -> float:
+def excitation_duration_s(spec: MethodSpec, scenario: Scenario) -> float:
     """Length of the identification phase: planner (N - 1) t_p + t_f, Fourier one period, else 0."""
     if spec.excitation is None:
         return 0.0
@@ -170,13 +183,13 @@ def excitation_duration_s(spec: MethodSpec, scenario) -> float:
     return planner_horizon_s(scenario)
 
 
-def planner_horizon_s(scenario) -> float:
+def planner_horizon_s(scenario: Scenario) -> float:
     """Algorithm 2's identification phase: plans start every t_p, the last runs t_f to rest."""
     p = scenario.planner
     return (p.num_plans - 1) * p.replan_period_s + p.duration_s
 
 
-def fourier_settings(robot, scenario):
+def fourier_settings(robot: RobotModel, scenario: Scenario) -> FourierSettings:
     from .fourier_excitation import FourierSettings
 
     f = scenario.fourier
@@ -194,7 +207,7 @@ def fourier_settings(robot, scenario):
 _FOURIER_CACHE: dict = {}  # (id(robot), q0, settings) -> (robot, FourierResult); the robot kept alive
 
 
-def fourier_excitation(robot, scenario):
+def fourier_excitation(robot: RobotModel, scenario: Scenario) -> FourierResult:
     """The grav-pid-excit trajectory of a scenario (FourierResult), optimized once per process
     and robot model."""
     from .fourier_excitation import optimize_fourier

@@ -25,10 +25,13 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from functools import lru_cache
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from . import reachability as reach
 from . import regressors
@@ -37,6 +40,11 @@ from .armour import TrackingBounds
 from .bezier import QuinticBezier, restriction_matrix
 from .intervals import Interval
 from .spatial import cross, to_body
+
+if TYPE_CHECKING:
+    from .config import Obstacle, Planner
+    from .payload import Dumbbell
+    from .robot_model import RobotModel
 
 COLLISION_SOLVER_MARGIN_M = 1e-4
 # The plain interval bound is tried on the shrunk k boxes only when the whole box is at most this far
@@ -80,7 +88,9 @@ def _motion_cross(v, m):
     return np.concatenate([cross(w, m[..., :3]), cross(w, m[..., 3:]) + cross(u, m[..., :3])], -1)
 
 
-def ee_standard_regressor(tree, body, q, v, a):
+def ee_standard_regressor(
+    tree: regressors.KinematicTree, body: int, q: ArrayLike, v: ArrayLike, a: ArrayLike
+) -> np.ndarray:
     """W_e (N, n, 10): the end-effector (body `body`) columns of the standard regressor.
 
     Same as RobotModel.standard_regressor(q, v, a)[..., ee_slice]; dtype-generic (complex-step).
@@ -177,7 +187,7 @@ class PlanResult:
     max_torque_ratio: float = float("nan")  # sup |u| / limit over the plan (rigorous)
     details: dict = field(default_factory=dict)
 
-    def evaluate(self, t):
+    def evaluate(self, t: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Desired q, qd, qdd (each (len(t), n)) at times t since the plan's start."""
         return self.trajectory.evaluate(t, self.q_end)
 
@@ -196,7 +206,17 @@ def _restrictions(num_intervals):
 class PlanningProblem:
     """Constraints and costs of one planning call, as functions of k (numpy, vectorized)."""
 
-    def __init__(self, planner, q0, v0, a0, theta0, theta_lo, theta_hi, mode=None):
+    def __init__(
+        self,
+        planner: SafePlanner,
+        q0: ArrayLike,
+        v0: ArrayLike,
+        a0: ArrayLike,
+        theta0: ArrayLike,
+        theta_lo: ArrayLike,
+        theta_hi: ArrayLike,
+        mode: str | None = None,
+    ) -> None:
         self.planner = planner
         self.mode = mode or planner.config.cost
         cfg = planner.config
@@ -397,16 +417,16 @@ class PlanningProblem:
             )
 
     @property
-    def num_constraints(self):
+    def num_constraints(self) -> int:
         """Number of solver constraints (soft-min groups)."""
         return len(self.group_start)
 
     @property
-    def num_pairs(self):
+    def num_pairs(self) -> int:
         """Number of (interval, sphere, obstacle) constraints checked rigorously."""
         return len(self.pair_i)
 
-    def collision_grouped(self, k):
+    def collision_grouped(self, k: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """Soft-min per group, -log(sum exp(-beta g))/beta <= min g: >= 0 implies every pair >= 0."""
         vals, jac = self.collision(k)
         if len(vals) == 0:
@@ -419,7 +439,7 @@ class PlanningProblem:
         weights = e / total[self.group_of_pair]
         return soft, np.add.reduceat(weights[:, None] * jac, self.group_start, axis=0)
 
-    def collision(self, k, with_jacobian=True):
+    def collision(self, k: ArrayLike, with_jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """Constraint values (P,) >= 0 means safe, and d/dk (P, n)."""
         k = np.asarray(k, float)
         if len(self.pair_i) == 0:
@@ -449,7 +469,7 @@ class PlanningProblem:
         jac = (dcdq @ grad[..., None])[..., 0] * dqdk
         return vals, jac
 
-    def is_feasible(self, k):
+    def is_feasible(self, k: ArrayLike) -> bool:
         k = np.asarray(k, float)
         if np.any(k < self.k_lo) or np.any(k > self.k_hi):
             return False
@@ -457,10 +477,10 @@ class PlanningProblem:
         return bool(np.all(vals >= 0))
 
     # -- costs -----------------------------------------------------------------------------------
-    def desired_at(self, t, k):
+    def desired_at(self, t: ArrayLike, k: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return self.reach.bezier.evaluate(t, self.reach.q_end(k))
 
-    def exciting_cost(self, k):
+    def exciting_cost(self, k: ArrayLike) -> tuple[float, np.ndarray, np.ndarray]:
         """log sigma_max - log sigma_min of stacked W_e(k) and its exact gradient in k (cached)."""
         key = np.asarray(k, float).tobytes()
         if key not in self._excite_cache:
@@ -493,18 +513,18 @@ class PlanningProblem:
         d_min = np.einsum("r,jrc,c->j", u[:, -1], dW, vt[-1])
         return float(np.log(s[0]) - np.log(s[-1])), d_max / s[0] - d_min / s[-1], W
 
-    def goal_cost(self, k):
+    def goal_cost(self, k: ArrayLike) -> tuple[float, np.ndarray]:
         goal = np.asarray(self.planner.config.goal_q_rad, float)
         diff = self.reach.q_end(k) - goal
         return float(diff @ diff), 2 * diff * self.reach.kr
 
-    def cost(self, k):
+    def cost(self, k: ArrayLike) -> tuple[float, np.ndarray]:
         if self.mode == "goal":
             return self.goal_cost(k)
         val, grad, _ = self.exciting_cost(k)
         return val, grad
 
-    def cond(self, k):
+    def cond(self, k: ArrayLike) -> float:
         _, _, W = self.exciting_cost(k)
         s = np.linalg.svd(W, compute_uv=False)
         return float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
@@ -527,16 +547,16 @@ class SafePlanner:
 
     def __init__(
         self,
-        robot,
-        config,
-        obstacles=(),
-        payload=None,
-        tracking=None,
-        floor=True,
-        torque_shrink_steps=4,
-        torque_group=2,
-        spread_rows=4,
-    ):
+        robot: RobotModel,
+        config: Planner,
+        obstacles: Iterable[Obstacle] | reach.Boxes = (),
+        payload: Dumbbell | None = None,
+        tracking: TrackingBounds | None = None,
+        floor: bool = True,
+        torque_shrink_steps: int = 4,
+        torque_group: int = 2,
+        spread_rows: int = 4,
+    ) -> None:
         self.robot = robot
         self.config = config
         n = robot.n
@@ -552,10 +572,30 @@ class SafePlanner:
         self.torque_group = torque_group
         self.spread_rows = spread_rows  # torque boxes per hull on which the M spread mu is bounded
 
-    def problem(self, q0, v0, a0, theta0, theta_lo, theta_hi, mode=None):
+    def problem(
+        self,
+        q0: ArrayLike,
+        v0: ArrayLike,
+        a0: ArrayLike,
+        theta0: ArrayLike,
+        theta_lo: ArrayLike,
+        theta_hi: ArrayLike,
+        mode: str | None = None,
+    ) -> PlanningProblem:
         return PlanningProblem(self, q0, v0, a0, theta0, theta_lo, theta_hi, mode)
 
-    def plan(self, q0, v0, a0, theta0, theta_lo, theta_hi, k_init=None, rng=None, mode=None):
+    def plan(
+        self,
+        q0: ArrayLike,
+        v0: ArrayLike,
+        a0: ArrayLike,
+        theta0: ArrayLike,
+        theta_lo: ArrayLike,
+        theta_hi: ArrayLike,
+        k_init: ArrayLike | None = None,
+        rng: np.random.Generator | None = None,
+        mode: str | None = None,
+    ) -> PlanResult:
         """One planning call -> PlanResult (ok False: keep the previous plan, which brakes)."""
         t_start = time.perf_counter()
         cpu_start = time.process_time()
@@ -759,7 +799,7 @@ class SafePlanner:
         return None, "infeasible", status
 
     @property
-    def n(self):
+    def n(self) -> int:
         return self.robot.n
 
 

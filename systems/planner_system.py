@@ -39,8 +39,11 @@ from __future__ import annotations
 import copy
 import dataclasses
 import time
+from collections.abc import Iterable, Mapping
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import EventStatus, LeafSystem
 
@@ -48,35 +51,41 @@ from .faults import remaining_plan_clearance, with_obstacle
 from .planner import PlanResult
 from .trajectory_source import at_rest
 
+if TYPE_CHECKING:
+    from pydrake.systems.framework import Context
+
+    from .config import Obstacle
+    from .planner import SafePlanner
+
 
 @dataclasses.dataclass
 class PlannerState:
-    plan: object = None  # PlanResult being followed (None: hold q0)
+    plan: PlanResult | None = None  # PlanResult being followed (None: hold q0)
     t_start: float = 0.0  # simulation time at which `plan` started
     calls: int = 0  # planning calls made
     done: bool = False  # no more planning (num_plans reached, a call failed or was refused)
-    records: tuple = ()  # one dict per planning call
-    results: tuple = ()  # the PlanResult of every planning call (failed ones too)
-    rng: object = None  # numpy Generator of the random plans and starts; advanced by each call
+    records: tuple[dict, ...] = ()  # one dict per planning call
+    results: tuple[PlanResult, ...] = ()  # the PlanResult of every planning call (failed ones too)
+    rng: np.random.Generator | None = None  # of the random plans and starts; advanced by each call
     thetas: tuple = ()  # (theta0, lower, upper) `plan` was certified with (before any plan: the last call's)
-    events: tuple = ()  # {t, kind, detail}: plan_failed, plan_refused, brake
+    events: tuple[dict, ...] = ()  # {t, kind, detail}: plan_failed, plan_refused, brake
 
 
 class ExcitingPlanner(LeafSystem):
     def __init__(
         self,
-        planner,
-        q0,
-        theta0,
-        theta_lower,
-        theta_upper,
-        num_plans=None,
-        replan_period_s=None,
-        mode=None,
-        seed=0,
-        forced_failures=None,
-        appearing=(),
-    ):
+        planner: SafePlanner,
+        q0: ArrayLike,
+        theta0: ArrayLike,
+        theta_lower: ArrayLike,
+        theta_upper: ArrayLike,
+        num_plans: int | None = None,
+        replan_period_s: float | None = None,
+        mode: str | None = None,
+        seed: int = 0,
+        forced_failures: Mapping[int, str] | None = None,
+        appearing: Iterable[tuple[float, Obstacle]] = (),
+    ) -> None:
         super().__init__()
         self._planner = planner
         self._forced = dict(forced_failures or {})
@@ -129,16 +138,16 @@ class ExcitingPlanner(LeafSystem):
     def _get(self, context) -> PlannerState:
         return context.get_abstract_state(int(self._state)).get_value()
 
-    def planner_state(self, context) -> PlannerState:
+    def planner_state(self, context: Context) -> PlannerState:
         return self._get(context)
 
-    def records(self, context):
+    def records(self, context: Context) -> list[dict]:
         return list(self._get(context).records)
 
-    def events(self, context):
+    def events(self, context: Context) -> list[dict]:
         return list(self._get(context).events)
 
-    def results(self, context):
+    def results(self, context: Context) -> list[PlanResult]:
         """Every planning call's PlanResult, in order (failed ones too)."""
         return list(self._get(context).results)
 

@@ -39,14 +39,26 @@ tracking error inside the bound and every theta in [theta]:
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from . import regressors
 from .armour import TrackingBounds  # the controller's certified bounds (position, velocity, qd_a, qdd_a)
 from .bezier import QuinticBezier, restriction_matrix
 from .intervals import Interval, _down, _up
+
+if TYPE_CHECKING:
+    from pydrake.multibody.plant import MultibodyPlant
+    from pydrake.multibody.tree import RigidBody
+
+    from .affine_forms import Affine
+    from .config import Obstacle
+    from .payload import Dumbbell
+    from .robot_model import JointParameters, RobotModel
 
 # ---------------------------------------------------------------------------------------------
 # Collision geometry: spheres on bodies, oriented boxes
@@ -60,12 +72,12 @@ class Spheres:
     body: np.ndarray
     centre: np.ndarray
     radius: np.ndarray
-    names: list = field(default_factory=list)
+    names: list[str] = field(default_factory=list)
 
-    def __len__(self):
+    def __len__(self) -> int:
         return len(self.radius)
 
-    def concat(self, other):
+    def concat(self, other: Spheres) -> Spheres:
         return Spheres(
             np.concatenate([self.body, other.body]),
             np.concatenate([self.centre, other.centre]),
@@ -74,7 +86,7 @@ class Spheres:
         )
 
 
-def arm_spheres(robot):
+def arm_spheres(robot: RobotModel) -> Spheres:
     """The planner's collision spheres of the arm, per tree body (-1: fixed to the world).
 
     They come from the sphere file named by `planner_spheres` in the robot's parameter file
@@ -124,7 +136,7 @@ def arm_spheres(robot):
     return Spheres(np.array(body, int), np.array(centre, float).reshape(-1, 3), np.array(radius, float), names)
 
 
-def carrier_index(plant, body, body_names):
+def carrier_index(plant: MultibodyPlant, body: RigidBody, body_names: Sequence[str]) -> int:
     """Tree index (in `body_names`) of the body that carries `body`: itself or the nearest body
     above it through welds; -1 when it is welded to the world (it never moves)."""
     inboard = {plant.get_joint(j).child_body().index(): plant.get_joint(j) for j in plant.GetJointIndices()}
@@ -133,7 +145,7 @@ def carrier_index(plant, body, body_names):
     return body_names.index(body.name()) if body.name() in body_names else -1
 
 
-def payload_spheres(robot, dumbbell):
+def payload_spheres(robot: RobotModel, dumbbell: Dumbbell | None) -> Spheres:
     """Covering spheres of a dumbbell held at robot.extra['grasp_point'] (handle along EE x)."""
     if dumbbell is None:
         return Spheres(np.zeros(0, int), np.zeros((0, 3)), np.zeros(0), [])
@@ -147,7 +159,7 @@ def payload_spheres(robot, dumbbell):
     )
 
 
-def sphere_lipschitz(tree, spheres):
+def sphere_lipschitz(tree: regressors.KinematicTree, spheres: Spheres) -> np.ndarray:
     """L (m, n): bound of |d c_s / d q_j| over ALL configurations.
 
     Revolute: |z_j x (c - o_j)| <= |c - o_j| <= length of the fixed chain o_j -> child origin ->
@@ -173,7 +185,13 @@ def sphere_lipschitz(tree, spheres):
     return out
 
 
-def local_spread(tree, lipschitz, jac_norm, rho, reach_radius):
+def local_spread(
+    tree: regressors.KinematicTree,
+    lipschitz: np.ndarray,
+    jac_norm: np.ndarray,
+    rho: np.ndarray,
+    reach_radius: np.ndarray,
+) -> np.ndarray:
     """spread (N, m) with |c_s(q) - c_s(q_mid)| <= spread for |q - q_mid| <= rho (per joint).
 
     |dc_s/dq_j| is the distance of c_s from axis j. Joints above j and j itself move c_s and the
@@ -189,7 +207,9 @@ def local_spread(tree, lipschitz, jac_norm, rho, reach_radius):
     return _up(_up(np.einsum("nsj,nj->ns", local, rho)) * (1 + 1e-12))
 
 
-def sphere_centres(tree, spheres, q, with_jacobian=True):
+def sphere_centres(
+    tree: regressors.KinematicTree, spheres: Spheres, q: np.ndarray, with_jacobian: bool = True
+) -> tuple[np.ndarray, np.ndarray | None]:
     """Centres (N, m, 3) in world and d c / d q (N, m, n, 3) at configurations q (N, n)."""
     kin = regressors.forward_kinematics(tree, q)
     nsamp = kin.p.shape[0]
@@ -215,13 +235,13 @@ class Boxes:
     centre: np.ndarray
     rotation: np.ndarray
     half_size: np.ndarray
-    names: list = field(default_factory=list)
+    names: list[str] = field(default_factory=list)
 
-    def __len__(self):
+    def __len__(self) -> int:
         return len(self.centre)
 
     @classmethod
-    def from_obstacles(cls, obstacles):
+    def from_obstacles(cls, obstacles: Sequence[Obstacle]) -> Boxes:
         """From scenario Obstacle records (xyz_m, rpy_rad, size_m), Drake's roll-pitch-yaw."""
         from pydrake.math import RollPitchYaw
 
@@ -235,7 +255,9 @@ class Boxes:
         )
 
 
-def box_signed_distance(points, centre, rotation, half_size):
+def box_signed_distance(
+    points: np.ndarray, centre: np.ndarray, rotation: np.ndarray, half_size: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Signed distance of points (P, 3) to boxes given per point (P, ...) and its gradient (P, 3)."""
     local = np.einsum("pji,pj->pi", rotation, points - centre)
     d = np.abs(local) - half_size
@@ -267,8 +289,17 @@ class PlanReach:
     """Per-interval over-approximations of one plan family (fixed start, k free in a box)."""
 
     def __init__(
-        self, q0, v0, a0, duration, k_center, k_range, num_intervals, bounds: TrackingBounds, restrictions=None
-    ):
+        self,
+        q0: ArrayLike,
+        v0: ArrayLike,
+        a0: ArrayLike,
+        duration: float,
+        k_center: ArrayLike,
+        k_range: ArrayLike,
+        num_intervals: int,
+        bounds: TrackingBounds,
+        restrictions: list[np.ndarray] | None = None,
+    ) -> None:
         self.bezier = QuinticBezier(
             np.asarray(q0, float), np.asarray(v0, float), np.asarray(a0, float), float(duration)
         )
@@ -297,13 +328,13 @@ class PlanReach:
         self.rho = _up(_up(dev * (1 + 1e-12)) + bounds.position[None, :])  # (nint, n)
 
     # -- centres -------------------------------------------------------------------------------
-    def q_end(self, k):
+    def q_end(self, k: ArrayLike) -> np.ndarray:
         return self.q_end0 + self.kr * np.asarray(k, float)
 
-    def k_of_q_end(self, q_end):
+    def k_of_q_end(self, q_end: ArrayLike) -> np.ndarray:
         return (np.asarray(q_end, float) - self.q_end0) / self.kr
 
-    def q_mid(self, k):
+    def q_mid(self, k: ArrayLike) -> np.ndarray:
         """(nint, n) joint-box centres; d q_mid[i, j] / d k_j = w_mid[i] * kr[j]."""
         return self.q_mid0 + self.w_mid[:, None] * (self.kr * np.asarray(k, float))[None, :]
 
@@ -317,7 +348,7 @@ class PlanReach:
         weight = (r @ (one - zero))[..., 0]
         return fixed, weight
 
-    def limit_box(self, joint_params):
+    def limit_box(self, joint_params: JointParameters) -> tuple[np.ndarray | None, np.ndarray | None, str]:
         """(k_lo, k_hi, reason): the box of k whose plans respect position and velocity limits
         for every t and every tracking error (reason is '' when not empty)."""
         qe_lo = self.q_end(-np.ones(self.n))
@@ -377,7 +408,7 @@ class PlanReach:
         return k_lo, k_hi, ""
 
     # -- state boxes for every k in a box -------------------------------------------------------
-    def desired_hulls(self, k_lo, k_hi):
+    def desired_hulls(self, k_lo: ArrayLike, k_hi: ArrayLike) -> list[Interval]:
         """Intervals (nint, n) of the DESIRED q, qd, qdd over every t in I_i and k in [k_lo, k_hi] (hull of
         the restricted control points at both k ends: the control points are affine in each q_end_j)."""
         hulls = []
@@ -387,7 +418,7 @@ class PlanReach:
             hulls.append(Interval(np.minimum(pts[0].min(1), pts[1].min(1)), np.maximum(pts[0].max(1), pts[1].max(1))))
         return hulls
 
-    def state_boxes(self, k_lo, k_hi):
+    def state_boxes(self, k_lo: ArrayLike, k_hi: ArrayLike) -> tuple[Interval, Interval, Interval, Interval]:
         """Intervals (nint, n) of q, qd, qd_a, qdd_a covering every t in I_i, k in [k_lo, k_hi] and
         tracking error in the bound (the desired hulls padded by the tube)."""
         qd, vd, ad = self.desired_hulls(k_lo, k_hi)
@@ -398,7 +429,7 @@ class PlanReach:
 
         return pad(qd, b.position), pad(vd, b.velocity), pad(vd, b.qd_a), pad(ad, b.qdd_a)
 
-    def tube_states(self, k_lo, k_hi, group=1):
+    def tube_states(self, k_lo: ArrayLike, k_hi: ArrayLike, group: int = 1) -> tuple[Affine, Affine, Affine, Affine]:
         """Affine forms (affine_forms.tube_states) of q, qd, qd_a, qdd_a on hulls of `group` consecutive
         intervals: the tracking error kept as the shared symbols (e, r) instead of four independent boxes."""
         from .affine_forms import tube_states
