@@ -1,0 +1,209 @@
+"""The 1 kHz controller path made cheap: the same ARMOUR law and regressors as systems/armour.py
+(tests/test_bench.py checks them equal to 1e-12 on fixed states), with fewer numpy calls.
+
+At one sample the cost is numpy call overhead, not arithmetic, so:
+- serial chains: the parent twist is a shifted copy, the poses a prefix product in log2(n)
+  batched steps, the three twists' tree sums one matrix product, and X_pj Rot(q) X_jc =
+  A0 + sin q A1 + (1 - cos q) A2 with the three (n, 4, 4) constants built once (Rodrigues);
+- the box's mid, radius and magnitude (what the interval product needs) are computed once per
+  [theta] input, not once per step, and the validity check of theta inputs with them;
+- the friction columns land with one fancy-indexed assignment.
+Trees that are not chains fall back to ControllerDynamics' general code.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from . import regressors
+from .armour import (
+    _BILINEAR,
+    _CROSS_MOTION,
+    _INERTIA,
+    _SKEW,
+    _TINY_R,
+    _UP,
+    ArmourGains,
+    ArmourOutput,
+    ControllerDynamics,
+    TrackingErrors,
+    _outer,
+    wrap_error,
+)
+from .spatial import cross_rows
+
+_PASSIVITY = np.vstack([_INERTIA, _BILINEAR])  # [a, v (x) va] -> I a + B(v) va  (42 x 60)
+# x^T K(x): K(x)[k, l] = sum_m x_m _INERTIA[m, 10 k + l], so over the outer product x_m x_k (36 x 10).
+_ENERGY = _INERTIA.reshape(36, 10)
+_ROUNDING = 4 * np.finfo(float).eps  # intervals.matmul's allowance for the float products
+
+
+class FastControllerDynamics(ControllerDynamics):
+    """ControllerDynamics with the serial-chain fast path (same results to rounding)."""
+
+    def __init__(self, robot):
+        super().__init__(robot)
+        n = self.n
+        pad = np.zeros((2, n, 4, 4))
+        pad[0, :, :3, :3], pad[1, :, :3, :3] = self.k1, self.k2
+        # Rodrigues: Rot(q) = I + sin q K + (1 - cos q) K^2, so X_pj Rot X_jc is linear in (1, s, 1 - c).
+        terms = [self.x_pj @ self.x_jc, self.x_pj @ pad[0] @ self.x_jc, self.x_pj @ pad[1] @ self.x_jc]
+        self._rodrigues = np.stack(terms, 1).reshape(n, 3, 16)
+        self._weights = np.ones((n, 1, 3))
+        # Joint axis and origin in the parent body's frame, as homogeneous columns [z; 0], [o; 1].
+        self._joint_cols = np.zeros((n, 4, 2))
+        self._joint_cols[:, :3, 0] = (self.x_pj[:, :3, :3] @ self.axis[:, :, None])[:, :, 0]
+        self._joint_cols[:, :, 1] = self.x_pj[:, :, 3]
+        self._H = np.empty((n + 1, 4, 4))  # [0] the base, [i + 1] body i
+        self._H[0] = np.eye(4)
+        self._prefix_shifts = [1 << k for k in range(max(n - 1, 0).bit_length())]
+        self._v_par = np.zeros((n, 6))
+        self._XT = np.zeros((n, 6, 6))
+        self._world = np.empty((n, 4 + n, 6))
+        p = 14 * n
+        j = np.arange(n)
+        f0 = 10 * n + 4 * j
+        # Flat indices in the (2, n, 14 n) output of [coulomb, va, aa, 1] (Wp) and x (Wm, armature).
+        self._friction_at = np.concatenate([j * p + f0 + k for k in range(4)] + [n * p + j * p + f0 + 2])
+        self._ones = np.ones(n)
+
+    def _poses(self, q):
+        if not self.serial:
+            return super()._poses(q)
+        n = self.n
+        self._weights[:, 0, 1] = np.sin(q)
+        self._weights[:, 0, 2] = 1 - np.cos(q)
+        G = (self._weights @ self._rodrigues).reshape(n, 4, 4)
+        H = self._H
+        H[1:] = G
+        for shift in self._prefix_shifts:  # H_i = G_0 ... G_i as log2(n) batched products
+            H[1 + shift :] = H[1:-shift] @ H[1 + shift :]
+        cols = H[:-1] @ self._joint_cols  # joint axes and origins in the world
+        z = cols[:, :3, 0]
+        S = np.concatenate([z, cross_rows(cols[:, :3, 1], z)], -1)
+        return H[1:, :3, :3], H[1:, :3, 3], S  # views of a buffer the next call overwrites
+
+    def _body_terms(self, q, v, va, aa, x):
+        """Body-frame twists of v, va, x, the acceleration term, and s_body [i, j] = X_i S_j (0
+        when joint j does not move body i): what both regressors are built from. Motion vectors
+        are rows here, so one product (rows) @ X_i^T moves all of them to body i."""
+        n = self.n
+        R, p, S = self._poses(q)
+        world = self._world  # [i] rows: V, va twist, x twist, acceleration, S_0 .. S_n-1
+        # Twists of v, va and x: [i] = sum over ancestors j of i of S_j x_j (one product for all three).
+        world[:, :3] = (self.anc_t @ (S[:, None, :] * np.stack([v, va, x], 1)[:, :, None]).reshape(n, 18)).reshape(
+            n, 3, 6
+        )
+        v_par = self._v_par
+        v_par[1:] = world[:-1, 0]
+        Sdot = _outer(v_par, S) @ _CROSS_MOTION
+        world[:, 3] = self.gravity_acc + self.anc_t @ (S * aa[:, None] + Sdot * va[:, None])
+        world[:, 4:] = S
+        XT = self._XT  # X_i^T = [[R, [p]x R], [0, R]] (X_i: world about O -> body i)
+        XT[:, :3, :3] = R
+        XT[:, 3:, 3:] = R
+        XT[:, :3, 3:] = (p @ _SKEW).reshape(n, 3, 3) @ R
+        body = world @ XT
+        s_body = body[:, 4:] * self.anc_t[:, :, None]
+        return body[:, 0], body[:, 1], body[:, 3], body[:, 2], s_body
+
+    def _rigid_columns(self, out, s_body, y):
+        """out[..., j, 10 i + l] = (X_i S_j) . y[..., i, :, l] (the joint torques of body i's regressor)."""
+        n = self.n
+        np.matmul(s_body, y.reshape(-1, n, 6, 10), out=out[..., : 10 * n].reshape(-1, n, n, 10).swapaxes(-3, -2))
+        out[..., 10 * n :] = 0.0
+
+    def regressors(self, q, v, va, aa, x):
+        if not self.serial:
+            return super().regressors(q, v, va, aa, x)
+        q, v, va, aa, x = (np.asarray(a, float).reshape(-1) for a in (q, v, va, aa, x))
+        n = self.n
+        vb, vab, ab, xb, s_body = self._body_terms(q, v, va, aa, x)
+        y = np.concatenate([ab, xb]) @ _INERTIA  # I a and I x
+        y[:n] += _outer(vb, vab) @ _BILINEAR
+        out = np.empty((2, n, 14 * n))
+        self._rigid_columns(out, s_body, y)
+        coulomb = regressors.coulomb_shape(va, self.smoothing)
+        out.reshape(-1)[self._friction_at] = np.concatenate([coulomb, va, aa, self._ones, x])
+        return out[0], out[1]
+
+    def passivity_and_energy(self, q, v, va, aa, r):
+        """(n + 1, 14 n): rows 0..n-1 Wp(q, v, va, aa), row n r^T Wm(q, r) (2 x the kinetic
+        energy of r as a function of theta: the body terms r_b^T I r_b, without Wm itself)."""
+        if not self.serial:
+            wp, wm_r = self.regressors(q, v, va, aa, r)
+            return np.vstack([wp, r @ wm_r])
+        q, v, va, aa, r = (np.asarray(a, float).reshape(-1) for a in (q, v, va, aa, r))
+        n = self.n
+        vb, vab, ab, rb, s_body = self._body_terms(q, v, va, aa, r)
+        out = np.empty((n + 1, 14 * n))
+        self._rigid_columns(out[:n], s_body, np.concatenate([ab, _outer(vb, vab)], 1) @ _PASSIVITY)
+        out[n, : 10 * n] = (_outer(rb, rb) @ _ENERGY).reshape(-1)
+        out[n, 10 * n :] = 0.0
+        out[n, 10 * n + 2 :: 4] = r * r  # armature
+        coulomb = regressors.coulomb_shape(va, self.smoothing)
+        out.reshape(-1)[self._friction_at[: 4 * n]] = np.concatenate([coulomb, va, aa, self._ones])
+        return out
+
+
+class FastArmourLaw:
+    """armour.armour_control with the parameter inputs' derived vectors cached between steps.
+
+    law(q, v, q_d, qd_d, qdd_d, theta0, theta_lower, theta_upper) -> ArmourOutput, or None when
+    the theta inputs are invalid (not finite, or lower > upper): the caller's fallback.
+    """
+
+    def __init__(self, dyn: FastControllerDynamics, gains: ArmourGains):
+        self.dyn, self.gains = dyn, gains
+        self.continuous = dyn.robot.joint_params.continuous
+        self._key = None  # the bytes of (theta0, lo, hi) the cache below belongs to
+        self._valid = False
+
+    def _box(self, theta0, lo, hi):
+        """Validity of the theta inputs; caches mid, radius and magnitude of the box (as
+        intervals.Interval defines them) and theta0, recomputed only when an input changes."""
+        key = b"".join(np.ascontiguousarray(a, float).tobytes() for a in (theta0, lo, hi))
+        if key == self._key:
+            return self._valid
+        self._key = key
+        theta0, lo, hi = (np.array(a, float) for a in (theta0, lo, hi))
+        self._valid = bool(np.all(np.isfinite(theta0)) and np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)))
+        self._valid = self._valid and bool(np.all(lo <= hi))
+        if self._valid:
+            self._mid_theta0 = np.stack([0.5 * (lo + hi), theta0], 1)
+            rad, mag = np.nextafter(0.5 * (hi - lo), np.inf), np.maximum(np.abs(lo), np.abs(hi))
+            self._spread = np.nextafter(rad + _ROUNDING * mag, np.inf)  # per parameter, outward
+        return self._valid
+
+    def __call__(self, q, v, q_d, qd_d, qdd_d, theta0, theta_lower, theta_upper) -> ArmourOutput | None:
+        if not self._box(theta0, theta_lower, theta_upper):
+            return None
+        g = self.gains
+        q, v = np.asarray(q, float), np.asarray(v, float)
+        e = wrap_error(np.asarray(q_d, float) - q, self.continuous)
+        edot = np.asarray(qd_d, float) - v
+        r = edot + g.Kr * e
+        err = TrackingErrors(e, edot, qd_d + g.Kr * e, qdd_d + g.Kr * edot, r)
+        # intervals.matmul([Wp; r^T Wm(q, r)], box): mid +- (rad + rounding allowance), outward.
+        a = self.dyn.passivity_and_energy(q, v, err.qd_a, err.qdd_a, r)
+        n = len(q)
+        mid, tau_nom = (a @ self._mid_theta0).T  # box centre and theta0 in one product
+        tau_nom = tau_nom[:n]
+        spread = np.abs(a) @ self._spread
+        lo, hi = np.nextafter(mid - spread, -np.inf), np.nextafter(mid + spread, np.inf)
+        w_bar = np.maximum(np.nextafter(np.maximum(hi[:n] - tau_nom, tau_nom - lo[:n]), np.inf), 0.0)
+        V_bar = 0.5 * float(hi[n])
+        h = g.V_max - V_bar
+        v_rob, lam = _robust_input(r, w_bar, h, g.alpha)
+        return ArmourOutput(tau_nom + v_rob, tau_nom, v_rob, w_bar, V_bar, h, lam, err)
+
+
+def _robust_input(r, w_bar, h, alpha):
+    """armour.robust_input with scalar math (math.sqrt and np.sqrt are both correctly rounded)."""
+    norm_r = math.sqrt(float(r @ r))
+    if norm_r < _TINY_R:
+        return np.zeros_like(r), 0.0
+    lam = max(0.0, -alpha * h / norm_r + math.sqrt(float(w_bar @ w_bar)) * _UP)
+    return lam * r / norm_r, lam
