@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from safesysid.benchmarks.scaling import load_average, png
 from safesysid.closed_loop import build_closed_loop
 from safesysid.scenario import load_scenario, robot_from_scenario
 from safesysid.systems import armour as C
@@ -25,8 +26,6 @@ from safesysid.systems.armour_fast import FastArmourLaw, FastControllerDynamics
 from safesysid.systems.bezier import QuinticBezier
 from safesysid.systems.config import METHODS
 from safesysid.systems.intervals import Interval
-
-from .scaling import load_average, png
 
 TARGET_RTF = 4.0
 

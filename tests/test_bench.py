@@ -126,3 +126,26 @@ def test_sim_bench_quick_measures_both_paths(tmp_path):
     assert out["armour_law_fast_vs_reference_max_rel_diff"] <= TOL
     assert (tmp_path / "sim_real_time_factor.png").stat().st_size > 0
     json.dumps(out)
+
+
+def test_scaling_benchmarks_quick_and_readme_tables(tmp_path):
+    """Estimator and regressor scalings at CI size write their plots, and the README tables list
+    every size measured; a bench.json from before the scaling fields gives no table, no error."""
+    from safesysid.benchmarks import bench_estimator, bench_regressors, readme_table
+
+    results = {
+        "estimator": {"scaling": bench_estimator.scaling(quick=True, out=tmp_path)},
+        "regressors": {"scaling": bench_regressors.scaling(quick=True, out=tmp_path)},
+    }
+    for png in ("estimator_vs_length.png", "regressors_vs_batch.png"):
+        assert (tmp_path / png).stat().st_size > 0
+    rows = results["estimator"]["scaling"]["vs_length_s"]
+    assert [r["samples"] for r in rows.values()] == [1500, 7500]
+    text = readme_table.tables(json.loads(json.dumps(results, default=float)))
+    for needle in ("| 1.5 | 1500 |", "| 7.5 | 7500 |", "| 1 |", "| 100 |", "Pinocchio"):
+        assert needle in text
+    assert readme_table.tables({"estimator": {"full_update_s": 0.1}, "sim": {"error": "x"}}) == ""
+    path = tmp_path / "bench.json"
+    path.write_text(json.dumps(results, default=float))
+    assert readme_table.main([str(path)]) == 0
+    assert readme_table.main([str(tmp_path / "missing.json")]) == 2
