@@ -41,7 +41,9 @@ _ROUNDING = 4 * np.finfo(float).eps  # intervals.matmul's allowance for the floa
 
 
 class FastControllerDynamics(ControllerDynamics):
-    """ControllerDynamics with the serial-chain fast path (same results to rounding)."""
+    """ControllerDynamics with the serial-chain fast path (same results to rounding). It keeps
+    scratch buffers between calls, so one instance must not be shared between threads (the
+    project runs in parallel with processes only)."""
 
     def __init__(self, robot):
         super().__init__(robot)
@@ -60,6 +62,7 @@ class FastControllerDynamics(ControllerDynamics):
         self._H[0] = np.eye(4)
         self._prefix_shifts = [1 << k for k in range(max(n - 1, 0).bit_length())]
         self._v_par = np.zeros((n, 6))
+        self._rates = np.empty((n, 3, 1))  # v, va, x per joint
         self._XT = np.zeros((n, 6, 6))
         self._world = np.empty((n, 4 + n, 6))
         p = 14 * n
@@ -93,9 +96,9 @@ class FastControllerDynamics(ControllerDynamics):
         R, p, S = self._poses(q)
         world = self._world  # [i] rows: V, va twist, x twist, acceleration, S_0 .. S_n-1
         # Twists of v, va and x: [i] = sum over ancestors j of i of S_j x_j (one product for all three).
-        world[:, :3] = (self.anc_t @ (S[:, None, :] * np.stack([v, va, x], 1)[:, :, None]).reshape(n, 18)).reshape(
-            n, 3, 6
-        )
+        rates = self._rates
+        rates[:, 0, 0], rates[:, 1, 0], rates[:, 2, 0] = v, va, x
+        world[:, :3] = (self.anc_t @ (S[:, None, :] * rates).reshape(n, 18)).reshape(n, 3, 6)
         v_par = self._v_par
         v_par[1:] = world[:-1, 0]
         Sdot = _outer(v_par, S) @ _CROSS_MOTION

@@ -133,7 +133,7 @@ class ArmourController(ControllerBase):
         *args, theta0, lo, hi = self._raw_inputs(context)
         armour = self.gains.armour
         out = self._fast_law(*args, theta0, lo, hi)  # None when theta0 or [theta] is not finite, or lo > hi
-        if out is None or not np.all(np.isfinite(out.u)):
+        if out is None or not np.isfinite(out.u).all():
             # Bad parameter input (an estimator failure): never command NaN. Fall back to the
             # model's nominal parameters, logged; the guarantee is void until inputs recover.
             _log.warning("ArmourController at t=%.4f s: invalid theta inputs, nominal model used", context.get_time())
