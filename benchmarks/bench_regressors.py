@@ -13,6 +13,7 @@ import time
 import numpy as np
 from safesysid.benchmarks.scaling import load_average, plot, png
 from safesysid.systems import regressors
+from safesysid.systems.armour_fast import FastControllerDynamics
 from safesysid.systems.robot_model import load_robot, make_plant
 
 
@@ -106,6 +107,11 @@ def _batch_row(robot, model, setup, q, v, a, n_ad):
         )
 
     row = {"ours_We_us": ours(bodies=ee), "ours_W_full_us": ours()}
+    # The controller's one-sample path (Wp and Wm of all 14 n parameters at once, armour_fast).
+    dyn, m = FastControllerDynamics(robot), min(b, 100)
+    row["ours_controller_Wp_Wm_us"] = 1e6 * _per_sample(
+        lambda: [dyn.regressors(q[k], v[k], v[k], a[k], v[k]) for k in range(m)], m
+    )
     ad = lambda: drake_autodiff_we(robot, q[:n_ad], v[:n_ad], a[:n_ad], setup)  # noqa: E731
     row["drake_autodiff_We_us"] = 1e6 * _per_sample(ad, n_ad, repeat=1)
     if model is not None:
@@ -117,8 +123,9 @@ def _batch_row(robot, model, setup, q, v, a, n_ad):
 
 def scaling(quick: bool = False, out=None) -> dict:
     """Time per sample vs batch size in one run: ours (W_e and the full W, vectorized over the
-    batch), Drake AutoDiffXd (W_e, one sample at a time: its per-sample cost does not depend on
-    the batch; at most 300 samples timed), and Pinocchio when installed."""
+    batch; the controller's one-sample Wp + Wm, looped), Drake AutoDiffXd (W_e, one sample at a
+    time, at most 300 timed) and Pinocchio when installed; the looped ones do not depend on the
+    batch beyond noise."""
     robot = load_robot()
     batches = BATCHES[:3] if quick else BATCHES
     rng = np.random.default_rng(1)

@@ -101,18 +101,33 @@ def loop_rtf(s, robot, theta0, box, kind, sim_s, repeat):
     return _best_rtf(prepare, sim_s, repeat)
 
 
-def plant_rtf(s, robot, sim_s, repeat):
-    """(wall, CPU) real-time factor of the real arm station alone: zero command, the same state
-    and measured-torque loggers as the closed loop."""
+def loop_command(s, robot, theta0, box, sim_s):
+    """(t, u): the torque the ARMOUR loop commands over sim_s (what the plant alone replays)."""
+    from safesysid.closed_loop import simulate_closed_loop
+
+    q0, trajectory = _trajectory(s, robot)
+    logs = simulate_closed_loop(build_closed_loop(s, trajectory, theta0, box, kind="armour", robot=robot), q0, sim_s)
+    return logs["torque"]
+
+
+def plant_rtf(s, robot, sim_s, repeat, command=None):
+    """(wall, CPU) real-time factor of the real arm station alone: the loop's command (t, u)
+    replayed as a zero-order hold from C++ (zero torque if None: the arm then falls and its
+    contacts change the cost), the same state and measured-torque loggers as the closed loop."""
     from pydrake.systems.framework import DiagramBuilder
-    from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput
+    from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput, TrajectorySource
+    from pydrake.trajectories import PiecewisePolynomial
     from safesysid.systems.real_arm import add_real_arm
 
     def prepare():
         builder = DiagramBuilder()
         arm = add_real_arm(builder, s, robot=robot)
-        zero = builder.AddSystem(ConstantVectorSource(np.zeros(robot.n)))
-        builder.Connect(zero.get_output_port(), arm.commanded_torque_input)
+        if command is None:
+            source = ConstantVectorSource(np.zeros(robot.n))
+        else:
+            t, u = command
+            source = TrajectorySource(PiecewisePolynomial.ZeroOrderHold(t, u.T))
+        builder.Connect(builder.AddSystem(source).get_output_port(), arm.commanded_torque_input)
         for port in (arm.state_output, arm.measured_torque_output):
             LogVectorOutput(port, builder, s.plant.time_step_s)
         return _simulator(builder.Build(), arm, s.q0_rad)
@@ -161,8 +176,9 @@ def run(quick: bool = False, out: Path | None = None) -> dict:
     repeat = 1 if quick else 3
     result = {"sim_time_s": sim_s, "time_step_s": s.plant.time_step_s, "target_real_time_factor": TARGET_RTF}
     result["load_average_at_start"] = load_average()
+    command = loop_command(s, robot, theta0, box, sim_s)
     result["plant_alone_real_time_factor"], result["plant_alone_cpu_real_time_factor"] = plant_rtf(
-        s, robot, sim_s, repeat
+        s, robot, sim_s, repeat, command
     )
     rtf, rtf_cpu = loop_rtf(s, robot, theta0, box, "armour", sim_s, repeat)
     result["armour_real_time_factor"], result["armour_cpu_real_time_factor"] = rtf, rtf_cpu

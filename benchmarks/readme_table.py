@@ -76,12 +76,20 @@ def regressor_table(reg):
             b,
             _f(r["ours_We_us"], 1),
             _f(r["ours_W_full_us"], 1),
+            _f(r.get("ours_controller_Wp_Wm_us"), 1),
             _f(r["drake_autodiff_We_us"], 1),
             _f(r.get("pinocchio_W_full_us"), 1),
         )
         for b, r in sc["vs_batch"].items()
     ]
-    head = ("batch", "ours W_e µs/sample", "ours full W µs/sample", "Drake AutoDiffXd W_e", "Pinocchio full W")
+    head = (
+        "batch",
+        "ours W_e µs/sample",
+        "ours full W",
+        "ours one-sample Wp + Wm (controller)",
+        "Drake AutoDiffXd W_e",
+        "Pinocchio full W",
+    )
     return _table(head, rows) + f"\n\nPinocchio: {sc['pinocchio']}."
 
 
@@ -119,8 +127,9 @@ def tables(results: dict) -> str:
 
 
 def load_line(results: dict) -> str:
-    loads = [v.get("load_average_at_start") or v.get("load_average") for v in results.values() if isinstance(v, dict)]
-    loads = [x for x in loads if x is not None]
+    parts = [v for v in results.values() if isinstance(v, dict)]
+    parts += [v["scaling"] for v in parts if isinstance(v.get("scaling"), dict)]
+    loads = [x for v in parts for k, x in v.items() if k.startswith("load_average") and x is not None]
     return f"Load average during the run: {min(loads):.1f}-{max(loads):.1f} on 2 cores." if loads else ""
 
 
