@@ -34,9 +34,12 @@ from .armour import (
 )
 from .spatial import cross_rows
 
-_PASSIVITY = np.vstack([_INERTIA, _BILINEAR])  # [a, v (x) va] -> I a + B(v) va  (42 x 60)
 # x^T K(x): K(x)[k, l] = sum_m x_m _INERTIA[m, 10 k + l], so over the outer product x_m x_k (36 x 10).
 _ENERGY = _INERTIA.reshape(36, 10)
+# [a, v (x) va, r (x) r] (78) -> [I a + B(v) va (60), r^T I r (10)]: block diagonal in the two outputs.
+_PASSIVITY_ENERGY = np.zeros((78, 70))
+_PASSIVITY_ENERGY[:42, :60] = np.vstack([_INERTIA, _BILINEAR])
+_PASSIVITY_ENERGY[42:, 60:] = _ENERGY
 _ROUNDING = 4 * np.finfo(float).eps  # intervals.matmul's allowance for the float products
 
 
@@ -62,7 +65,7 @@ class FastControllerDynamics(ControllerDynamics):
         self._H[0] = np.eye(4)
         self._prefix_shifts = [1 << k for k in range(max(n - 1, 0).bit_length())]
         self._v_par = np.zeros((n, 6))
-        self._rates = np.empty((n, 3, 1))  # v, va, x per joint
+        self._rates = np.empty((n, 4, 1))  # v, va, x, aa per joint
         self._XT = np.zeros((n, 6, 6))
         self._world = np.empty((n, 4 + n, 6))
         p = 14 * n
@@ -71,6 +74,7 @@ class FastControllerDynamics(ControllerDynamics):
         # Flat indices in the (2, n, 14 n) output of [coulomb, va, aa, 1] (Wp) and x (Wm, armature).
         self._friction_at = np.concatenate([j * p + f0 + k for k in range(4)] + [n * p + j * p + f0 + 2])
         self._ones = np.ones(n)
+        self._features = np.empty((n, 78))  # per body: a_b, v_b (x) va_b, r_b (x) r_b
 
     def _poses(self, q):
         if not self.serial:
@@ -89,28 +93,31 @@ class FastControllerDynamics(ControllerDynamics):
         return H[1:, :3, :3], H[1:, :3, 3], S  # views of a buffer the next call overwrites
 
     def _body_terms(self, q, v, va, aa, x):
-        """Body-frame twists of v, va, x, the acceleration term, and s_body [i, j] = X_i S_j (0
-        when joint j does not move body i): what both regressors are built from. Motion vectors
+        """(body, s_body): body [i] rows = twists of v, va, x, the acceleration term, all in body
+        i; s_body [i, j] = X_i S_j (0 when joint j does not move body i): what both regressors are
+        built from. Motion vectors
         are rows here, so one product (rows) @ X_i^T moves all of them to body i."""
         n = self.n
         R, p, S = self._poses(q)
         world = self._world  # [i] rows: V, va twist, x twist, acceleration, S_0 .. S_n-1
         # Twists of v, va and x: [i] = sum over ancestors j of i of S_j x_j (one product for all three).
         rates = self._rates
-        rates[:, 0, 0], rates[:, 1, 0], rates[:, 2, 0] = v, va, x
-        world[:, :3] = (self.anc_t @ (S[:, None, :] * rates).reshape(n, 18)).reshape(n, 3, 6)
+        rates[:, 0, 0], rates[:, 1, 0], rates[:, 2, 0], rates[:, 3, 0] = v, va, x, aa
+        joint = S[:, None, :] * rates  # S_j v_j, S_j va_j, S_j x_j, S_j aa_j
+        # Tree sums of all four (ancestors j of i) in one product: the twists of v, va and x, and
+        # the S aa part of the acceleration.
+        world[:, :4] = (self.anc_t @ joint.reshape(n, 24)).reshape(n, 4, 6)
         v_par = self._v_par
         v_par[1:] = world[:-1, 0]
-        Sdot = _outer(v_par, S) @ _CROSS_MOTION
-        world[:, 3] = self.gravity_acc + self.anc_t @ (S * aa[:, None] + Sdot * va[:, None])
+        # dS_j/dt va_j = V_parent(j) x (S_j va_j); plus gravity (base acceleration).
+        world[:, 3] += self.gravity_acc + self.anc_t @ (_outer(v_par, joint[:, 1]) @ _CROSS_MOTION)
         world[:, 4:] = S
         XT = self._XT  # X_i^T = [[R, [p]x R], [0, R]] (X_i: world about O -> body i)
         XT[:, :3, :3] = R
         XT[:, 3:, 3:] = R
         XT[:, :3, 3:] = (p @ _SKEW).reshape(n, 3, 3) @ R
-        body = world @ XT
-        s_body = body[:, 4:] * self.anc_t[:, :, None]
-        return body[:, 0], body[:, 1], body[:, 3], body[:, 2], s_body
+        body = world @ XT  # rows as world's, in body i
+        return body, body[:, 4:] * self.anc_t[:, :, None]
 
     def _rigid_columns(self, out, s_body, y):
         """out[..., j, 10 i + l] = (X_i S_j) . y[..., i, :, l] (the joint torques of body i's regressor)."""
@@ -123,9 +130,9 @@ class FastControllerDynamics(ControllerDynamics):
             return super().regressors(q, v, va, aa, x)
         q, v, va, aa, x = (np.asarray(a, float).reshape(-1) for a in (q, v, va, aa, x))
         n = self.n
-        vb, vab, ab, xb, s_body = self._body_terms(q, v, va, aa, x)
-        y = np.concatenate([ab, xb]) @ _INERTIA  # I a and I x
-        y[:n] += _outer(vb, vab) @ _BILINEAR
+        body, s_body = self._body_terms(q, v, va, aa, x)
+        y = np.concatenate([body[:, 3], body[:, 2]]) @ _INERTIA  # I a and I x
+        y[:n] += _outer(body[:, 0], body[:, 1]) @ _BILINEAR
         out = np.empty((2, n, 14 * n))
         self._rigid_columns(out, s_body, y)
         coulomb = regressors.coulomb_shape(va, self.smoothing)
@@ -135,18 +142,27 @@ class FastControllerDynamics(ControllerDynamics):
     def passivity_and_energy(self, q, v, va, aa, r):
         """(n + 1, 14 n): rows 0..n-1 Wp(q, v, va, aa), row n r^T Wm(q, r) (2 x the kinetic
         energy of r as a function of theta: the body terms r_b^T I r_b, without Wm itself)."""
+        q, v, va, aa, r = (np.asarray(a, float).reshape(-1) for a in (q, v, va, aa, r))
         if not self.serial:
             wp, wm_r = self.regressors(q, v, va, aa, r)
             return np.vstack([wp, r @ wm_r])
-        q, v, va, aa, r = (np.asarray(a, float).reshape(-1) for a in (q, v, va, aa, r))
+        return self._passivity_and_energy(q, v, va, aa, r)
+
+    def _passivity_and_energy(self, q, v, va, aa, r):
+        """passivity_and_energy for a chain, inputs already (n,) float arrays."""
         n = self.n
-        vb, vab, ab, rb, s_body = self._body_terms(q, v, va, aa, r)
-        out = np.empty((n + 1, 14 * n))
-        self._rigid_columns(out[:n], s_body, np.concatenate([ab, _outer(vb, vab)], 1) @ _PASSIVITY)
-        out[n, : 10 * n] = (_outer(rb, rb) @ _ENERGY).reshape(-1)
-        out[n, 10 * n :] = 0.0
+        body, s_body = self._body_terms(q, v, va, aa, r)
+        # Per body [a_b, v_b (x) va_b, r_b (x) r_b] -> [I a + B(v) va, r_b^T I r_b] in one product
+        # (body rows: 0 v, 1 va, 2 r, 3 a; the outer products of rows (0, 1) and (2, 2)).
+        features = self._features
+        features[:, :6] = body[:, 3]
+        np.multiply(body[:, 0:3:2, :, None], body[:, 1:3, None, :], out=features[:, 6:].reshape(n, 2, 6, 6))
+        y = features @ _PASSIVITY_ENERGY
+        out = np.zeros((n + 1, 14 * n))
+        np.matmul(s_body, y[:, :60].reshape(n, 6, 10), out=out[:n, : 10 * n].reshape(n, n, 10).swapaxes(0, 1))
+        out[n, : 10 * n] = y[:, 60:].reshape(-1)
         out[n, 10 * n + 2 :: 4] = r * r  # armature
-        coulomb = regressors.coulomb_shape(va, self.smoothing)
+        coulomb = np.tanh(va / self.smoothing) if self.smoothing > 0 else np.sign(va)  # regressors.coulomb_shape
         out.reshape(-1)[self._friction_at[: 4 * n]] = np.concatenate([coulomb, va, aa, self._ones])
         return out
 
@@ -190,7 +206,9 @@ class FastArmourLaw:
         r = edot + g.Kr * e
         err = TrackingErrors(e, edot, qd_d + g.Kr * e, qdd_d + g.Kr * edot, r)
         # intervals.matmul([Wp; r^T Wm(q, r)], box): mid +- (rad + rounding allowance), outward.
-        a = self.dyn.passivity_and_energy(q, v, err.qd_a, err.qdd_a, r)
+        dyn = self.dyn
+        evaluate = dyn._passivity_and_energy if dyn.serial else dyn.passivity_and_energy
+        a = evaluate(q, v, err.qd_a, err.qdd_a, r)  # (n + 1, 14 n)
         n = len(q)
         mid, tau_nom = (a @ self._mid_theta0).T  # box centre and theta0 in one product
         tau_nom = tau_nom[:n]
