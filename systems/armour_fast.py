@@ -32,7 +32,6 @@ from .armour import (
     _outer,
     wrap_error,
 )
-from .spatial import cross_rows
 
 # x^T K(x): K(x)[k, l] = sum_m x_m _INERTIA[m, 10 k + l], so over the outer product x_m x_k (36 x 10).
 _ENERGY = _INERTIA.reshape(36, 10)
@@ -40,7 +39,16 @@ _ENERGY = _INERTIA.reshape(36, 10)
 _PASSIVITY_ENERGY = np.zeros((78, 70))
 _PASSIVITY_ENERGY[:42, :60] = np.vstack([_INERTIA, _BILINEAR])
 _PASSIVITY_ENERGY[42:, 60:] = _ENERGY
-_ROUNDING = 4 * np.finfo(float).eps  # intervals.matmul's allowance for the float products
+_ROUNDING = 4 * np.finfo(float).eps
+
+
+def _adjoint(T):
+    """Motion-vector transform [w; v] of homogeneous transforms T (..., 4, 4): [[R, 0], [[p]x R, R]]."""
+    R, p = T[..., :3, :3], T[..., :3, 3]
+    out = np.zeros(T.shape[:-2] + (6, 6))
+    out[..., :3, :3] = out[..., 3:, 3:] = R
+    out[..., 3:, :3] = (p @ _SKEW).reshape(p.shape[:-1] + (3, 3)) @ R
+    return out  # intervals.matmul's allowance for the float products
 
 
 class FastControllerDynamics(ControllerDynamics):
@@ -51,22 +59,24 @@ class FastControllerDynamics(ControllerDynamics):
     def __init__(self, robot):
         super().__init__(robot)
         n = self.n
-        pad = np.zeros((2, n, 4, 4))
-        pad[0, :, :3, :3], pad[1, :, :3, :3] = self.k1, self.k2
-        # Rodrigues: Rot(q) = I + sin q K + (1 - cos q) K^2, so X_pj Rot X_jc is linear in (1, s, 1 - c).
-        terms = [self.x_pj @ self.x_jc, self.x_pj @ pad[0] @ self.x_jc, self.x_pj @ pad[1] @ self.x_jc]
-        self._rodrigues = np.stack(terms, 1).reshape(n, 3, 16)
+        # Body i -> its parent as a motion transform: Ad(X_pj Rot(q_i) X_jc) = Ad(X_pj) Ad(Rot) Ad(X_jc),
+        # and Ad(Rot) = diag(Rot, Rot) with Rot = I + sin q K + (1 - cos q) K^2 (Rodrigues): linear in
+        # (1, sin q, 1 - cos q), so one product with three constant (n, 6, 6) terms gives it.
+        eye, zero = np.broadcast_to(np.eye(3), (n, 3, 3)), np.zeros((n, 3, 3))
+        rot = [np.block([[k, zero], [zero, k]]) for k in (eye, self.k1, self.k2)]
+        self._local = np.stack([_adjoint(self.x_pj) @ r @ _adjoint(self.x_jc) for r in rot], 1).reshape(n, 3, 36)
         self._weights = np.ones((n, 1, 3))
-        # Joint axis and origin in the parent body's frame, as homogeneous columns [z; 0], [o; 1].
-        self._joint_cols = np.zeros((n, 4, 2))
-        self._joint_cols[:, :3, 0] = (self.x_pj[:, :3, :3] @ self.axis[:, :, None])[:, :, 0]
-        self._joint_cols[:, :, 1] = self.x_pj[:, :, 3]
-        self._H = np.empty((n + 1, 4, 4))  # [0] the base, [i + 1] body i
-        self._H[0] = np.eye(4)
+        # Joint screw in its body's frame (constant: the rotation leaves its axis fixed).
+        screw = np.concatenate([self.axis, np.zeros((n, 3))], 1)[:, :, None]
+        self._screw = np.linalg.solve(_adjoint(self.x_jc), screw)
+        self._Y = np.empty((n + 1, 6, 6))  # [0] the base, [i + 1] body i -> world (motion vectors)
+        self._Y[0] = np.eye(6)
         self._prefix_shifts = [1 << k for k in range(max(n - 1, 0).bit_length())]
+        # X_i^T = (Y_i^-1)^T is Y_i with its 3 x 3 blocks swapped ([[R, 0], [P R, R]] -> [[R, P R], [0, R]]).
+        swap = np.r_[3:6, 0:3]
+        self._swap = (swap[:, None], swap[None, :])
         self._v_par = np.zeros((n, 6))
         self._rates = np.empty((n, 4, 1))  # v, va, x, aa per joint
-        self._XT = np.zeros((n, 6, 6))
         self._world = np.empty((n, 4 + n, 6))
         p = 14 * n
         j = np.arange(n)
@@ -76,21 +86,18 @@ class FastControllerDynamics(ControllerDynamics):
         self._ones = np.ones(n)
         self._features = np.empty((n, 78))  # per body: a_b, v_b (x) va_b, r_b (x) r_b
 
-    def _poses(self, q):
-        if not self.serial:
-            return super()._poses(q)
+    def _transforms(self, q):
+        """(S, XT): joint screws in the world (n, 6) and X_i^T (world -> body i, transposed) for a chain."""
         n = self.n
-        self._weights[:, 0, 1] = np.sin(q)
-        self._weights[:, 0, 2] = 1 - np.cos(q)
-        G = (self._weights @ self._rodrigues).reshape(n, 4, 4)
-        H = self._H
-        H[1:] = G
-        for shift in self._prefix_shifts:  # H_i = G_0 ... G_i as log2(n) batched products
-            H[1 + shift :] = H[1:-shift] @ H[1 + shift :]
-        cols = H[:-1] @ self._joint_cols  # joint axes and origins in the world
-        z = cols[:, :3, 0]
-        S = np.concatenate([z, cross_rows(cols[:, :3, 1], z)], -1)
-        return H[1:, :3, :3], H[1:, :3, 3], S  # views of a buffer the next call overwrites
+        w = self._weights
+        np.sin(q, out=w[:, 0, 1])
+        np.subtract(1.0, np.cos(q), out=w[:, 0, 2])
+        Y = self._Y
+        Y[1:] = (w @ self._local).reshape(n, 6, 6)
+        for shift in self._prefix_shifts:  # Y_i = L_0 ... L_i as log2(n) batched products
+            Y[1 + shift :] = Y[1:-shift] @ Y[1 + shift :]
+        S = (Y[1:] @ self._screw)[:, :, 0]
+        return S, Y[1:][:, self._swap[0], self._swap[1]]
 
     def _body_terms(self, q, v, va, aa, x):
         """(body, s_body): body [i] rows = twists of v, va, x, the acceleration term, all in body
@@ -98,7 +105,7 @@ class FastControllerDynamics(ControllerDynamics):
         built from. Motion vectors
         are rows here, so one product (rows) @ X_i^T moves all of them to body i."""
         n = self.n
-        R, p, S = self._poses(q)
+        S, XT = self._transforms(q)
         world = self._world  # [i] rows: V, va twist, x twist, acceleration, S_0 .. S_n-1
         # Twists of v, va and x: [i] = sum over ancestors j of i of S_j x_j (one product for all three).
         rates = self._rates
@@ -112,10 +119,6 @@ class FastControllerDynamics(ControllerDynamics):
         # dS_j/dt va_j = V_parent(j) x (S_j va_j); plus gravity (base acceleration).
         world[:, 3] += self.gravity_acc + self.anc_t @ (_outer(v_par, joint[:, 1]) @ _CROSS_MOTION)
         world[:, 4:] = S
-        XT = self._XT  # X_i^T = [[R, [p]x R], [0, R]] (X_i: world about O -> body i)
-        XT[:, :3, :3] = R
-        XT[:, 3:, 3:] = R
-        XT[:, :3, 3:] = (p @ _SKEW).reshape(n, 3, 3) @ R
         body = world @ XT  # rows as world's, in body i
         return body, body[:, 4:] * self.anc_t[:, :, None]
 
