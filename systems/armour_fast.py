@@ -206,8 +206,9 @@ class FastArmourLaw:
         q, v = np.asarray(q, float), np.asarray(v, float)
         e = wrap_error(np.asarray(q_d, float) - q, self.continuous)
         edot = np.asarray(qd_d, float) - v
-        r = edot + g.Kr * e
-        err = TrackingErrors(e, edot, qd_d + g.Kr * e, qdd_d + g.Kr * edot, r)
+        ke = g.Kr * e
+        r = edot + ke
+        err = TrackingErrors(e, edot, qd_d + ke, qdd_d + g.Kr * edot, r)
         # intervals.matmul([Wp; r^T Wm(q, r)], box): mid +- (rad + rounding allowance), outward.
         dyn = self.dyn
         evaluate = dyn._passivity_and_energy if dyn.serial else dyn.passivity_and_energy
