@@ -149,3 +149,23 @@ def test_scaling_benchmarks_quick_and_readme_tables(tmp_path):
     path.write_text(json.dumps(results, default=float))
     assert readme_table.main([str(path)]) == 0
     assert readme_table.main([str(tmp_path / "missing.json")]) == 2
+
+
+def test_fast_hull_contains_the_exact_one(robot, gains):
+    """Soundness of the fast path's rounding, checked in exact rational arithmetic: with a
+    zero-width box (the hull is a point, only the rounding allowance covers the float error) and
+    theta0 = the box, w_bar_i >= |exact Wp_i theta - tau_nom_i| and 2 V_bar >= exact r^T Wm theta r."""
+    from fractions import Fraction
+
+    fast = FastControllerDynamics(robot)
+    law = FastArmourLaw(fast, gains)
+    theta0 = robot.theta * (1 + 1e3 * np.finfo(float).eps)  # not a round number
+    exact_theta = [Fraction(x) for x in theta0]
+    for q, v, q_d, qd_d, qdd_d in _states(robot.n)[:8]:
+        out = law(q, v, q_d, qd_d, qdd_d, theta0, theta0, theta0)
+        e = out.err
+        a = fast.passivity_and_energy(q, v, e.qd_a, e.qdd_a, e.r)
+        exact = [sum(Fraction(x) * t for x, t in zip(row, exact_theta)) for row in a]
+        for i in range(robot.n):
+            assert Fraction(out.w_bar[i]) >= abs(exact[i] - Fraction(out.tau_nom[i]))
+        assert Fraction(2 * out.V_bar) >= exact[robot.n]
