@@ -148,7 +148,7 @@ class ArmourController(ControllerBase):
         return self.law(context).u
 
     def _calc_torque(self, context, output):
-        output.SetFromVector(self.law(context).u)  # the law reads its inputs itself (no second pass)
+        output.SetFromVector(self._torque(context))  # the law reads its inputs itself (no second pass)
 
     def _calc_diag(self, context, output):
         out = self.law(context)
