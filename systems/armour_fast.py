@@ -1,13 +1,16 @@
 """The 1 kHz controller path made cheap: the same ARMOUR law and regressors as systems/armour.py
 (tests/test_bench.py checks them equal to 1e-12 on fixed states), with fewer numpy calls.
 
-At one sample the cost is numpy call overhead, not arithmetic, so:
-- serial chains: the parent twist is a shifted copy, the poses a prefix product in log2(n)
-  batched steps, the three twists' tree sums one matrix product, and X_pj Rot(q) X_jc =
-  A0 + sin q A1 + (1 - cos q) A2 with the three (n, 4, 4) constants built once (Rodrigues);
-- the box's mid, radius and magnitude (what the interval product needs) are computed once per
-  [theta] input, not once per step, and the validity check of theta inputs with them;
-- the friction columns land with one fancy-indexed assignment.
+At one sample the cost is numpy call overhead, not arithmetic, so for serial chains:
+- the bodies' motion transforms are prefix products (log2(n) batched steps) of the links' 6 x 6
+  transforms Ad(X_pj) diag(Rot, Rot) Ad(X_jc), linear in (1, sin q, 1 - cos q) (Rodrigues), so
+  one product with three constant terms; joint screws S = Y s, and X^T = Y with blocks swapped;
+- the tree sums of the twists of v, va, x and of S aa are one product; dS/dt va the bilinear
+  cross of (V_parent, S va);
+- per body, [I a + B(v) va, r^T I r] is one product, so Wm itself is never formed (the law
+  needs only r^T Wm(q, r));
+- the box's mid, radius and magnitude (what the interval product needs) and the validity
+  check of the theta inputs are computed once per [theta] input, not once per step.
 Trees that are not chains fall back to ControllerDynamics' general code.
 """
 
@@ -39,7 +42,7 @@ _ENERGY = _INERTIA.reshape(36, 10)
 _PASSIVITY_ENERGY = np.zeros((78, 70))
 _PASSIVITY_ENERGY[:42, :60] = np.vstack([_INERTIA, _BILINEAR])
 _PASSIVITY_ENERGY[42:, 60:] = _ENERGY
-_ROUNDING = 4 * np.finfo(float).eps
+_ROUNDING = 4 * np.finfo(float).eps  # intervals.matmul's allowance for the float products
 
 
 def _adjoint(T):
@@ -48,7 +51,7 @@ def _adjoint(T):
     out = np.zeros(T.shape[:-2] + (6, 6))
     out[..., :3, :3] = out[..., 3:, 3:] = R
     out[..., 3:, :3] = (p @ _SKEW).reshape(p.shape[:-1] + (3, 3)) @ R
-    return out  # intervals.matmul's allowance for the float products
+    return out
 
 
 class FastControllerDynamics(ControllerDynamics):
