@@ -1,6 +1,9 @@
-"""`safesysid bench --out DIR`: every benchmarks/bench_*.py module's run(quick) into bench.json."""
+"""`safesysid bench --out DIR`: every benchmarks/bench_*.py module's run(quick) into bench.json;
+modules whose run() takes `out` write their scaling plots (PNG) to DIR; the README tables go to
+DIR/bench.md (benchmarks/readme_table.py)."""
 
 import importlib
+import inspect
 import json
 import pkgutil
 import sys
@@ -24,7 +27,8 @@ def cmd_bench(args):
         t0 = time.perf_counter()
         try:
             module = importlib.import_module(f"safesysid.benchmarks.{info.name}")
-            results[name] = module.run(quick=args.quick)
+            kwargs = {"out": out} if "out" in inspect.signature(module.run).parameters else {}
+            results[name] = module.run(quick=args.quick, **kwargs)
         except Exception as err:  # a broken benchmark is reported, the others still run
             failed = True
             results[name] = {"error": f"{type(err).__name__}: {err}", "traceback": traceback.format_exc()}
@@ -38,5 +42,8 @@ def cmd_bench(args):
             default=float,
         )
     )
-    print(f"wrote {path}", file=sys.stderr)
+    from safesysid.benchmarks.readme_table import load_line, tables
+
+    (out / "bench.md").write_text(tables(results) + "\n\n" + load_line(results) + "\n")
+    print(f"wrote {path}, {out / 'bench.md'}", file=sys.stderr)
     return 1 if failed else 0

@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from safesysid.benchmarks.scaling import load_average, plot, png, timed
 from safesysid.joint_log import JointLog, read_joint_log
 from safesysid.systems import diagnosis as dg
 from safesysid.systems.robot_model import load_robot
@@ -23,15 +24,15 @@ REFERENCE_URDF = SHARED / "models" / "reference" / "kinova_gen3_raptor_nomesh.ur
 SELF_CHECK_SEEDS = (1, 2, 11)
 
 
-def logs_3x1500(model, seed, with_a):
-    """Three simulated Kinova logs of 1 500 samples (one 0.5 s gap each) with a 20 ms delay and
-    viscous friction on joint 1 withheld."""
+def logs_3x1500(model, seed, with_a, count=3, samples=1500):
+    """`count` simulated Kinova logs of `samples` samples (one 0.5 s gap each, in the middle) with
+    a 20 ms delay and viscous friction on joint 1 withheld."""
     rng = np.random.default_rng(seed)
     logs = []
-    for _ in range(3):
+    for _ in range(count):
         traj = dg.random_trajectory(model, rng)
-        t = np.arange(1500) / dg.RATE_HZ
-        t[750:] += dg.GAP_S
+        t = np.arange(samples) / dg.RATE_HZ
+        t[samples // 2 :] += dg.GAP_S
         effects = {"time_delay": {"delay_s": 0.02}, "viscous_friction": {"delta": np.r_[2.0, np.zeros(model.n - 1)]}}
         q, v, a, tau = dg.true_torque(model, traj, t, effects)
         tau = tau + 0.5 * rng.uniform(-1, 1, tau.shape)
@@ -55,6 +56,38 @@ def timing_3x1500(seed=0):
             "cross_validation_reduction": d.result["cross_validation"]["reduction"],
         }
     return out
+
+
+LOG_SAMPLES = (750, 1500, 3000, 6000)
+LOG_COUNTS = (2, 3, 4, 6)
+
+
+def scaling(quick: bool = False, out=None) -> dict:
+    """Diagnosis time (wall, CPU; momentum form, no acceleration) vs log length (3 logs) and vs
+    number of logs (1 500 samples each); the last log is the check log, the rest fit logs."""
+    model = load_robot()
+    lengths, counts = ((500, 1000), (2, 3)) if quick else (LOG_SAMPLES, LOG_COUNTS)
+    size = 500 if quick else 1500
+
+    def one(count, samples):
+        logs = logs_3x1500(model, 0, False, count=count, samples=samples)
+        d, wall, cpu = timed(lambda: dg.diagnose(model, logs[:-1], logs[-1:]))
+        return {"logs": count, "samples": samples, "wall_s": wall, "cpu_s": cpu, "cause": d.result["cause"]}
+
+    result = {"load_average": load_average()}
+    result["vs_samples"] = {str(k): one(3, k) for k in lengths}
+    result["vs_logs"] = {str(k): one(k, size) for k in counts}
+    for name, xs, label in (("vs_samples", lengths, "samples per log (3 logs)"), ("vs_logs", counts, "logs")):
+        rows = result[name].values()
+        result[f"plot_{name}"] = plot(
+            png(out, f"diagnose_{name}"),
+            list(xs),
+            {"wall": [r["wall_s"] for r in rows], "CPU": [r["cpu_s"] for r in rows]},
+            label,
+            "diagnosis time [s]",
+            f"gap diagnosis time vs {label.split()[0]}",
+        )
+    return result
 
 
 def real_leave_one_out():
@@ -85,8 +118,10 @@ def self_check(seeds=SELF_CHECK_SEEDS, cases=40, workers=2):
     return out
 
 
-def run(quick: bool = False) -> dict:
+def run(quick: bool = False, out=None) -> dict:
+    out_dir = out
     out = {"timing_3x1500": timing_3x1500(), "target_time_s": 10.0}
+    out["scaling"] = scaling(quick, out_dir)
     out["real_leave_one_run_out"] = real_leave_one_out()
     if not quick:
         out["self_check_40"] = self_check()

@@ -12,6 +12,7 @@ import time
 from dataclasses import replace
 
 import numpy as np
+from safesysid.benchmarks.scaling import load_average, plot, png, timed
 from safesysid.systems import estimation as est_mod
 from safesysid.systems.payload import load_dumbbells, payload_theta_in_end_effector
 from safesysid.systems.robot_model import MODELS_DIR, load_robot
@@ -30,6 +31,54 @@ def _data(robot, seed=0, duration_s=7.5, rate_hz=1000.0):
     return t, q, v, tau
 
 
+LENGTHS_S = (1.5, 7.5, 30.0, 120.0)
+
+
+def scaling(quick: bool = False, out=None) -> dict:
+    """One full update (add + solve + interval) vs data length at 1 kHz, wall and CPU time (best
+    of 2; the data for the longest length is simulated once and cut)."""
+    robot = load_robot(coulomb_smoothing=0.01)
+    settings = est_mod.EstimatorSettings()
+    lengths = LENGTHS_S[:2] if quick else LENGTHS_S
+    t, q, v, tau = _data(robot, duration_s=max(lengths))
+    rows = {}
+    for length in lengths:
+        k = int(round(length * 1000))
+
+        def update(k=k):
+            e = est_mod.IncrementalEstimator(robot, settings)
+            e.add(t[:k], q[:k], v[:k], tau[:k])
+            return e.update()
+
+        best = [np.inf, np.inf]
+        for _ in range(1 if quick else 2):
+            result, wall, cpu = timed(update)
+            best = [min(best[0], wall), min(best[1], cpu)]
+        rows[str(length)] = {
+            "samples": k,
+            "segments": int(result.num_segments),
+            "wall_s": best[0],
+            "cpu_s": best[1],
+            "cpu_us_per_sample": 1e6 * best[1] / k,
+            "case": result.case,
+        }
+    return {
+        "rate_hz": 1000.0,
+        "load_average": load_average(),
+        "vs_length_s": rows,
+        "plot": plot(
+            png(out, "estimator_vs_length"),
+            list(lengths),
+            {"wall": [r["wall_s"] for r in rows.values()], "CPU": [r["cpu_s"] for r in rows.values()]},
+            "data length [s] at 1 kHz",
+            "full update [s]",
+            "estimator update time vs data length",
+            logx=True,
+            logy=True,
+        ),
+    }
+
+
 def _best(fn, repeat):
     best, out = np.inf, None
     for _ in range(repeat):
@@ -39,7 +88,7 @@ def _best(fn, repeat):
     return best, out
 
 
-def run(quick: bool = False) -> dict:
+def run(quick: bool = False, out=None) -> dict:
     robot = load_robot(coulomb_smoothing=0.01)
     settings = est_mod.EstimatorSettings()
     repeat = 2 if quick else 5
@@ -108,6 +157,7 @@ def run(quick: bool = False) -> dict:
         "full_update_paper_only_s": paper_s,
         "mass_halfwidth_paper_only_kg": float(0.5 * paper.widths[0]),
         "full_update_snopt_s": snopt_s,
+        "scaling": scaling(quick, out),
     }
 
 

@@ -17,6 +17,7 @@ import sys
 import time
 
 import numpy as np
+from safesysid.benchmarks.scaling import load_average, plot, png, stats
 from safesysid.scenario import Obstacle, Planner
 from safesysid.systems import reachability as reach
 from safesysid.systems.payload import load_dumbbells
@@ -84,14 +85,17 @@ def near_boxes(robot, q, rng, count=3, clearance=(0.06, 0.12), payload=None):
     return out
 
 
-def _solve_series(robot, payload, thetas, bounds, solver, scenes, plans_per_scene):
+def _solve_series(robot, payload, thetas, bounds, solver, scenes, plans_per_scene, obstacles=3, **config):
+    """Receding-horizon plans from seeded scenes (`obstacles` boxes near the arm; Planner(**config))."""
     theta0, lo, hi = thetas
     times, cpu, statuses, conds, clear = [], [], [], [], []
     for scene in range(scenes):
         rng = np.random.default_rng(100 + scene)
         q = Q0 + rng.uniform(-0.3, 0.3, 7) * np.array([1, 0.5, 1, 0.5, 1, 0.5, 1])
-        cfg = Planner(solver=solver, budget="wall_time")  # the real-time mode: the deadline is what is measured
-        planner = SafePlanner(robot, cfg, near_boxes(robot, q, rng, payload=payload), payload, bounds)
+        # the real-time mode: the deadline is what is measured
+        cfg = Planner(solver=solver, **{"budget": "wall_time", **config})
+        boxes = near_boxes(robot, q, rng, count=obstacles, payload=payload)
+        planner = SafePlanner(robot, cfg, boxes, payload, bounds)
         v = a = np.zeros(7)
         k_prev = None
         for _ in range(plans_per_scene):
@@ -119,12 +123,49 @@ def _solve_series(robot, payload, thetas, bounds, solver, scenes, plans_per_scen
         "median_cond": float(np.median(conds)) if conds else None,
         "min_verified_clearance_m": float(np.min(clear)) if clear else None,
         "pass": bool(np.median(t) <= 0.5 and t.max() <= 1.5),
+        "times_s": [float(x) for x in t],
     }
 
 
-def run(quick: bool = False) -> dict:
+OBSTACLE_COUNTS = (0, 1, 3, 8)
+# N_s: the exciting cost's samples; the reachability time intervals are set equal (both 128 by default).
+N_S = (32, 64, 128, 256)
+
+
+def scaling(quick: bool = False, out=None) -> dict:
+    """Solve time (median, p95, max, missed t_p = 1.5 s deadlines) vs obstacle count and vs N_s,
+    Ipopt, ee +-20 % prior; one PNG per sweep."""
+    robot = load_robot(coulomb_smoothing=0.01)
+    payload = load_dumbbells(MODELS_DIR / "dumbbells.yaml")["4lb"]
+    thetas = parameter_box(robot, payload)
+    bounds = tracking(robot, thetas[1])
+    deadline = Planner().replan_period_s
+    scenes, plans = (1, 2) if quick else (3, 4)
+    counts, n_s = ((0, 3), (32, 128)) if quick else (OBSTACLE_COUNTS, N_S)
+
+    def series(**kw):
+        row = _solve_series(robot, payload, thetas, bounds, "ipopt", scenes, plans, **kw)
+        return {**stats(row["times_s"], deadline), "feasible": row["feasible"], "statuses": row["statuses"]}
+
+    result = {"solver": "ipopt", "scenes": scenes, "plans_per_scene": plans, "load_average": load_average()}
+    result["vs_obstacles"] = {str(k): series(obstacles=k) for k in counts}
+    result["vs_N_s"] = {str(k): series(num_cost_samples=k, num_time_intervals=k) for k in n_s}
+    for name, rows, label in (("vs_obstacles", counts, "obstacles"), ("vs_N_s", n_s, "N_s (= time intervals)")):
+        result[f"plot_{name}"] = plot(
+            png(out, f"planner_{name}"),
+            list(rows),
+            {q: [result[name][str(k)][f"{q}_s"] for k in rows] for q in ("median", "p95", "max")},
+            label,
+            "solve time [s]",
+            f"planner solve time vs {label.split()[0]} (deadline {deadline:g} s)",
+        )
+    return result
+
+
+def run(quick: bool = False, out=None) -> dict:
     import os
 
+    out_dir = out
     robot = load_robot(coulomb_smoothing=0.01)
     payload = load_dumbbells(MODELS_DIR / "dumbbells.yaml")["4lb"]
     scenes = 2 if quick else 6
@@ -145,12 +186,13 @@ def run(quick: bool = False) -> dict:
             out[f"{solver}_{prior_name}"] = _solve_series(
                 robot, payload, thetas, bounds, solver, scenes, plans_per_scene
             )
+    out["scaling"] = scaling(quick, out_dir)
     return out
 
 
 if __name__ == "__main__":
     t0 = time.time()
-    result = run(quick="--quick" in sys.argv)
+    result = run(quick="--quick" in sys.argv, out="out/bench")
     result["bench_wall_s"] = time.time() - t0
     result["load_average_at_end"] = __import__("os").getloadavg()[0]
     print(json.dumps(result, indent=2))

@@ -11,7 +11,9 @@ from __future__ import annotations
 import time
 
 import numpy as np
+from safesysid.benchmarks.scaling import load_average, plot, png
 from safesysid.systems import regressors
+from safesysid.systems.armour_fast import FastControllerDynamics
 from safesysid.systems.robot_model import load_robot, make_plant
 
 
@@ -24,10 +26,11 @@ def _per_sample(fn, count, repeat=3):
     return best / count
 
 
-def drake_autodiff_we(robot, q, v, a):
-    """W_e rows for each sample from Drake's AutoDiffXd inverse dynamics."""
-    from pydrake.autodiffutils import ExtractGradient, InitializeAutoDiff
-    from pydrake.multibody.tree import MultibodyForces_
+def drake_autodiff_setup(robot):
+    """(plant, context, forces): Drake's AutoDiffXd plant with the 10 end-effector parameters as
+    the derivative directions (built once; not part of the per-sample cost)."""
+    from pydrake.autodiffutils import InitializeAutoDiff
+    from pydrake.multibody.tree import MultibodyForces_, SpatialInertia_, UnitInertia_
 
     plant, _, _ = make_plant(robot.source)
     plant.Finalize()
@@ -35,14 +38,19 @@ def drake_autodiff_we(robot, q, v, a):
     ctx = ad.CreateDefaultContext()
     body = ad.GetBodyByName(robot.body_names[robot.end_effector])
     theta_ad = InitializeAutoDiff(robot.theta_e)[:, 0]
-    from pydrake.multibody.tree import SpatialInertia_, UnitInertia_
-
     m = theta_ad[0]
     com = theta_ad[1:4] / m
     i = theta_ad[4:]
     unit = UnitInertia_[type(m)](i[0] / m, i[1] / m, i[2] / m, i[3] / m, i[5] / m, i[4] / m)
     body.SetSpatialInertiaInBodyFrame(ctx, SpatialInertia_[type(m)](m, com, unit, skip_validity_check=True))
-    forces = MultibodyForces_[type(m)](ad)
+    return ad, ctx, MultibodyForces_[type(m)](ad)
+
+
+def drake_autodiff_we(robot, q, v, a, setup=None):
+    """W_e rows for each sample from Drake's AutoDiffXd inverse dynamics."""
+    from pydrake.autodiffutils import ExtractGradient
+
+    ad, ctx, forces = setup or drake_autodiff_setup(robot)
     out = []
     for k in range(len(q)):
         ad.SetPositions(ctx, q[k].astype(object) * 1.0)
@@ -85,7 +93,72 @@ def pinocchio_regressor(model, q, v, a):
     return np.array([pin.computeJointTorqueRegressor(model, data, qp[k], v[k], a[k]).copy() for k in range(len(q))])
 
 
-def run(quick=False):
+BATCHES = (1, 10, 100, 1000, 10000)
+
+
+def _batch_row(robot, model, setup, q, v, a, n_ad):
+    """µs per sample at one batch size (small batches repeated so the clock resolves them)."""
+    tree, ee, b = robot.tree, [robot.end_effector], len(q)
+    count = max(1, min(1000 // b, 100))
+
+    def ours(**kw):
+        return 1e6 * _per_sample(
+            lambda: [regressors.standard_regressor(tree, q, v, a, **kw) for _ in range(count)], b * count
+        )
+
+    row = {"ours_We_us": ours(bodies=ee), "ours_W_full_us": ours()}
+    # The controller's one-sample path (Wp and Wm of all 14 n parameters at once, armour_fast).
+    dyn, m = FastControllerDynamics(robot), min(b, 100)
+    row["ours_controller_Wp_Wm_us"] = 1e6 * _per_sample(
+        lambda: [dyn.regressors(q[k], v[k], v[k], a[k], v[k]) for k in range(m)], m
+    )
+    ad = lambda: drake_autodiff_we(robot, q[:n_ad], v[:n_ad], a[:n_ad], setup)  # noqa: E731
+    row["drake_autodiff_We_us"] = 1e6 * _per_sample(ad, n_ad, repeat=1)
+    if model is not None:
+        n_pin = min(b, 2000)
+        pin = lambda: pinocchio_regressor(model, q[:n_pin], v[:n_pin], a[:n_pin])  # noqa: E731
+        row["pinocchio_W_full_us"] = 1e6 * _per_sample(pin, n_pin)
+    return row
+
+
+def scaling(quick: bool = False, out=None) -> dict:
+    """Time per sample vs batch size in one run: ours (W_e and the full W, vectorized over the
+    batch; the controller's one-sample Wp + Wm, looped), Drake AutoDiffXd (W_e, one sample at a
+    time, at most 300 timed) and Pinocchio when installed; the looped ones do not depend on the
+    batch beyond noise."""
+    robot = load_robot()
+    batches = BATCHES[:3] if quick else BATCHES
+    rng = np.random.default_rng(1)
+    setup = drake_autodiff_setup(robot)
+    try:
+        import pinocchio  # noqa: F401
+
+        model = pinocchio_model(robot)
+    except ImportError:
+        model = None
+    rows = {}
+    for b in batches:
+        q, v, a = rng.uniform(-2, 2, size=(3, b, robot.n))
+        rows[str(b)] = _batch_row(robot, model, setup, q, v, a, min(b, 30 if quick else 300))
+    series = {k: [r.get(k, np.nan) for r in rows.values()] for k in rows[str(batches[0])]}
+    return {
+        "vs_batch": rows,
+        "pinocchio": "measured" if model is not None else "not installed (pip install -e '.[bench]'): column skipped",
+        "load_average": load_average(),
+        "plot": plot(
+            png(out, "regressors_vs_batch"),
+            list(batches),
+            series,
+            "batch size",
+            "µs per sample",
+            "regressor time per sample vs batch",
+            logx=True,
+            logy=True,
+        ),
+    }
+
+
+def run(quick=False, out=None):
     robot = load_robot()
     n_samples = 1000 if quick else 10000
     rng = np.random.default_rng(0)
@@ -129,6 +202,7 @@ def run(quick=False):
         )
         result["ours_over_pinocchio_full"] = result["ours_W_full_us"] / result["pinocchio_W_full_us"]
         result["ours_We_over_pinocchio_full"] = result["ours_We_us"] / result["pinocchio_W_full_us"]
+    result["scaling"] = scaling(quick, out)
     return result
 
 

@@ -15,7 +15,7 @@ import os
 import sys
 
 
-def run():
+def run(quick: bool = False) -> dict:
     import numpy as np
     from safesysid.benchmarks.bench_planner import Q0, near_boxes, table_ii_box
     from safesysid.scenario import Planner

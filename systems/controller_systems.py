@@ -23,13 +23,15 @@ Gains come from ControllerGains (from the scenario via gains_from_scenario).
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import BasicVector, Context, LeafSystem, ValueProducer
 
-from .armour import ArmourGains, ControllerDynamics, armour_control, tracking_errors, wrap_error
+from .armour import ArmourGains, armour_control, tracking_errors, wrap_error
+from .armour_fast import FastArmourLaw, FastControllerDynamics
 from .config import ScenarioError
 from .intervals import Interval
 
@@ -78,7 +80,7 @@ class ControllerBase(LeafSystem):
         super().__init__()
         self.robot, self.gains, self.n = robot, gains, robot.n
         n, p = robot.n, 14 * robot.n
-        self.dyn = ControllerDynamics(robot)
+        self.dyn = FastControllerDynamics(robot)
         self.desired = self.DeclareVectorInputPort("desired", 3 * n)
         self.state = self.DeclareVectorInputPort("state", 2 * n)
         self.theta0 = self.DeclareVectorInputPort("theta0", p)
@@ -125,16 +127,14 @@ class ArmourController(ControllerBase):
         super().__init__(robot, gains)
         # One evaluation of the law per step, shared by the torque and diagnostics outputs.
         self._law = self._declare_step_cache("law", self._calc_law)
+        self._fast_law = FastArmourLaw(self.dyn, gains.armour)  # caches what depends on [theta] only
         self.DeclareVectorOutputPort("diagnostics", BasicVector(5), self._calc_diag)
 
     def _calc_law(self, context, value):
         *args, theta0, lo, hi = self._raw_inputs(context)
         armour = self.gains.armour
-        if np.all(np.isfinite(theta0)) and np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(lo <= hi):
-            out = armour_control(self.dyn, armour, *args, theta0, Interval(lo, hi))
-        else:
-            out = None
-        if out is None or not np.all(np.isfinite(out.u)):
+        out = self._fast_law(*args, theta0, lo, hi)  # None when theta0 or [theta] is not finite, or lo > hi
+        if out is None or not np.isfinite(out.u).all():
             # Bad parameter input (an estimator failure): never command NaN. Fall back to the
             # model's nominal parameters, logged; the guarantee is void until inputs recover.
             _log.warning("ArmourController at t=%.4f s: invalid theta inputs, nominal model used", context.get_time())
@@ -148,9 +148,13 @@ class ArmourController(ControllerBase):
     def _torque(self, context, *args):
         return self.law(context).u
 
+    def _calc_torque(self, context, output):
+        output.SetFromVector(self._torque(context))  # the law reads its inputs itself (no second pass)
+
     def _calc_diag(self, context, output):
         out = self.law(context)
-        output.SetFromVector([out.V_bar, out.h, out.lam, np.linalg.norm(out.err.r), np.linalg.norm(out.w_bar)])
+        norms = [math.sqrt(out.err.r @ out.err.r), math.sqrt(out.w_bar @ out.w_bar)]  # = np.linalg.norm, cheaper
+        output.SetFromVector([out.V_bar, out.h, out.lam, *norms])
 
 
 class GravityPidController(ControllerBase):

@@ -63,6 +63,7 @@ def test_every_system_of_the_online_diagram_is_a_module_level_class():
 # Files other engineers were changing while the annotations went in; the lead removes each
 # entry once that file is annotated (the test then holds it to the rule).
 NOT_YET_TYPED = {
+    "systems/armour_fast.py",
     "app/bench_cli.py",
     "systems/armour.py",
     "systems/controller_systems.py",
