@@ -2,6 +2,7 @@
 modules whose run() takes `out` write their scaling plots (PNG) to DIR; the README tables go to
 DIR/bench.md (benchmarks/readme_table.py)."""
 
+import argparse
 import importlib
 import inspect
 import json
@@ -14,7 +15,7 @@ from pathlib import Path
 import safesysid.benchmarks as benchmarks
 
 
-def cmd_bench(args):
+def cmd_bench(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     results = {}

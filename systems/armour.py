@@ -52,19 +52,25 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from itertools import accumulate
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from . import regressors
 from .intervals import Interval, matmul
 from .spatial import cross_rows
 from .uncertainty import ParameterFloors, parameter_radius
 
+if TYPE_CHECKING:
+    from .config import InitialInterval, Noise
+    from .robot_model import RobotModel
+
 _TINY_R = 1e-9  # below this |r| the direction r/|r| is meaningless and lambda is 0 anyway
 _UP = 1 + 8 * np.finfo(float).eps  # outward factor for the few float sums done here
 
 
-def friction_index(n, joint, name):
+def friction_index(n: int, joint: int, name: str) -> int:
     """Index of a friction parameter ('Fc', 'Fv', 'Ia', 'beta') of `joint` in theta (14 n)."""
     return 10 * n + 4 * joint + ("Fc", "Fv", "Ia", "beta").index(name)
 
@@ -96,7 +102,7 @@ class ControllerDynamics:
     one batch over bodies, with the ancestor matrix doing the tree sums.
     """
 
-    def __init__(self, robot):
+    def __init__(self, robot: RobotModel) -> None:
         tree = robot.tree
         if np.any(tree.prismatic):
             raise NotImplementedError("ControllerDynamics handles revolute joints only")
@@ -137,7 +143,9 @@ class ControllerDynamics:
         S = np.concatenate([z, cross_rows(F[:, :3, 3], z)], -1)
         return H[:, :3, :3], H[:, :3, 3], S
 
-    def regressors(self, q, v, va, aa, x):
+    def regressors(
+        self, q: ArrayLike, v: ArrayLike, va: ArrayLike, aa: ArrayLike, x: ArrayLike
+    ) -> tuple[np.ndarray, np.ndarray]:
         """(Wp, Wm): Wp theta = M aa + C(q, v) va + g + F(va, aa); Wm theta = (M + diag Ia) x."""
         q, v, va, aa, x = (np.asarray(a, float).reshape(-1) for a in (q, v, va, aa, x))
         n = self.n
@@ -170,7 +178,7 @@ class ControllerDynamics:
         out[1, idx, f0 + 2] = x
         return out[0], out[1]
 
-    def gravity(self, q, theta):
+    def gravity(self, q: ArrayLike, theta: ArrayLike) -> np.ndarray:
         """g(q; theta) + beta (the passivity regressor at rest) (n,)."""
         zero = np.zeros(self.n)
         wp, _ = self.regressors(q, zero, zero, zero, zero)
@@ -194,19 +202,29 @@ class TrackingErrors:
     r: np.ndarray
 
 
-def wrap_error(e, continuous):
+def wrap_error(e: ArrayLike, continuous: ArrayLike) -> np.ndarray:
     """Position error wrapped to (-pi, pi] on continuous joints."""
     e = np.asarray(e, float)
     return np.where(continuous, np.mod(e + np.pi, 2 * np.pi) - np.pi, e)
 
 
-def tracking_errors(Kr, q, v, q_d, qd_d, qdd_d, continuous):
+def tracking_errors(
+    Kr: ArrayLike,
+    q: ArrayLike,
+    v: ArrayLike,
+    q_d: ArrayLike,
+    qd_d: ArrayLike,
+    qdd_d: ArrayLike,
+    continuous: ArrayLike,
+) -> TrackingErrors:
     e = wrap_error(np.asarray(q_d, float) - q, continuous)
     edot = np.asarray(qd_d, float) - v
     return TrackingErrors(e, edot, qd_d + Kr * e, qdd_d + Kr * edot, edot + Kr * e)
 
 
-def disturbance_bound(wp, theta0, theta_box: Interval):
+def disturbance_bound(
+    wp: np.ndarray, theta0: ArrayLike, theta_box: Interval
+) -> tuple[np.ndarray, Interval, np.ndarray]:
     """(tau_nom, [tau], w_bar): nominal torque, its exact hull over the box, per-joint bound."""
     tau_nom = wp @ theta0
     tau_box = matmul(wp, theta_box)
@@ -214,13 +232,13 @@ def disturbance_bound(wp, theta0, theta_box: Interval):
     return tau_nom, tau_box, np.maximum(w_bar, 0.0)
 
 
-def lyapunov_upper(wm_r, r, theta_box: Interval):
+def lyapunov_upper(wm_r: np.ndarray, r: ArrayLike, theta_box: Interval) -> float:
     """V_bar = max over the box of 1/2 r^T M(q; theta) r, with wm_r = Wm(q, r) (exact hull)."""
     row = (np.asarray(r, float) @ wm_r)[None, :]
     return 0.5 * float(matmul(row, theta_box).hi[0])
 
 
-def spectral_bound(a):
+def spectral_bound(a: ArrayLike) -> np.ndarray | float:
     """Upper bound of max over unit u of u^T a u, i.e. the largest eigenvalue of the symmetric
     part of a (..., n, n). eigvalsh is backward stable (its eigenvalues are those of a + E with
     |E|_2 <= p(n) u |a|_2, p(n) a small multiple of n), so 1e-12 |a|_F covers its error."""
@@ -230,7 +248,7 @@ def spectral_bound(a):
     return np.nextafter(top + 1e-12 * np.linalg.norm(sym, axis=(-2, -1)), np.inf)
 
 
-def mass_spread(robot, q, theta_lo, theta_hi):
+def mass_spread(robot: RobotModel, q: ArrayLike, theta_lo: ArrayLike, theta_hi: ArrayLike) -> float:
     """mu(q) = lambda_max(sum_k (hi_k - lo_k) |dM/dtheta_k(q)|) (entrywise |.|), an upper bound of
     max over unit u of sum_k (hi_k - lo_k) |u^T dM/dtheta_k(q) u| (|u^T A u| <= |u|^T |A| |u|): the
     largest change of u^T M u between two parameters of the box, at configuration q (n,). M
@@ -242,13 +260,13 @@ def mass_spread(robot, q, theta_lo, theta_hi):
     return float(spectral_bound(spread))
 
 
-def robust_gain_bound(w_bar_norm, alpha, eps, mu):
+def robust_gain_bound(w_bar_norm: ArrayLike, alpha: float, eps: float, mu: ArrayLike) -> np.ndarray | float:
     """Upper bound of lambda on the tube (true V <= V_max, so |r| <= eps): |w_bar| + alpha eps mu / 2
     (module docstring; mu from `mass_spread` at q or over a box of configurations)."""
     return np.nextafter(np.asarray(w_bar_norm, float) + 0.5 * alpha * eps * np.asarray(mu, float) * _UP, np.inf)
 
 
-def robust_input(r, w_bar, h, alpha):
+def robust_input(r: np.ndarray, w_bar: np.ndarray, h: float, alpha: float) -> tuple[np.ndarray, float]:
     """(v, lambda): v = lambda r/|r|, lambda = max(0, -alpha h/|r| + |w_bar|)."""
     norm_r = float(np.sqrt(r @ r))
     if norm_r < _TINY_R:
@@ -269,7 +287,17 @@ class ArmourOutput:
     err: TrackingErrors
 
 
-def armour_control(dyn: ControllerDynamics, gains: ArmourGains, q, v, q_d, qd_d, qdd_d, theta0, theta_box: Interval):
+def armour_control(
+    dyn: ControllerDynamics,
+    gains: ArmourGains,
+    q: ArrayLike,
+    v: ArrayLike,
+    q_d: ArrayLike,
+    qd_d: ArrayLike,
+    qdd_d: ArrayLike,
+    theta0: ArrayLike,
+    theta_box: Interval,
+) -> ArmourOutput:
     """One evaluation of the ARMOUR law at measured (q, v) and desired (q_d, qd_d, qdd_d)."""
     q, v = np.asarray(q, float), np.asarray(v, float)
     err = tracking_errors(gains.Kr, q, v, q_d, qd_d, qdd_d, dyn.robot.joint_params.continuous)
@@ -287,7 +315,7 @@ def armour_control(dyn: ControllerDynamics, gains: ArmourGains, q, v, q_d, qd_d,
 
 
 # ---- the ultimate bound ---------------------------------------------------------------------------
-def mass_matrix_lower_bound(n, theta_lower):
+def mass_matrix_lower_bound(n: int, theta_lower: ArrayLike) -> float:
     """Certified sigma_min: a lower bound of eig(M(q; theta)) for every q and every physically
     consistent theta whose armature entries are >= those of theta_lower.
 
@@ -304,7 +332,7 @@ def mass_matrix_lower_bound(n, theta_lower):
     return float(np.min(ia))
 
 
-def ultimate_bound(V_max, sigma_min):
+def ultimate_bound(V_max: float, sigma_min: float) -> float:
     """epsilon with |r|_2 <= epsilon whenever V <= V_max (inf when sigma_min <= 0)."""
     if sigma_min <= 0:
         return np.inf
@@ -331,17 +359,17 @@ class TrackingBounds:
     alpha: float  # the barrier rate: lambda <= |w_bar| + alpha eps mu / 2 (robust_gain_bound)
 
     @classmethod
-    def from_ultimate_bound(cls, V_max, sigma_min, Kr, n, alpha):
+    def from_ultimate_bound(cls, V_max: float, sigma_min: float, Kr: ArrayLike, n: int, alpha: float) -> TrackingBounds:
         """Bounds of n joints (Kr scalar or per joint) from V_max, sigma_min and the barrier rate."""
         return tracking_bounds(np.broadcast_to(np.asarray(Kr, float), (n,)), V_max, sigma_min, alpha)
 
     @classmethod
-    def zero(cls, n):
+    def zero(cls, n: int) -> TrackingBounds:
         """Perfect tracking (tests only)."""
         return cls(0.0, np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n), 0.0)
 
     @classmethod
-    def coerce(cls, bounds, n):
+    def coerce(cls, bounds: TrackingBounds | None, n: int) -> TrackingBounds:
         """None -> zero(n); otherwise the same bounds with every field an (n,) array."""
         if bounds is None:
             return cls.zero(n)
@@ -356,28 +384,28 @@ class TrackingBounds:
         )
 
 
-def tracking_bounds(Kr, V_max, sigma_min, alpha):
+def tracking_bounds(Kr: ArrayLike, V_max: float, sigma_min: float, alpha: float) -> TrackingBounds:
     Kr = np.asarray(Kr, float)
     eps = ultimate_bound(V_max, sigma_min)
     ones = np.ones_like(Kr)
     return TrackingBounds(eps, eps / Kr * _UP, 2 * eps * ones, eps * ones, 2 * Kr * eps * _UP, float(alpha))
 
 
-def tracking_bounds_for(robot, gains: ArmourGains, theta_lower):
+def tracking_bounds_for(robot: RobotModel, gains: ArmourGains, theta_lower: ArrayLike) -> TrackingBounds:
     """Convenience: bounds from a RobotModel, the gains and the lower end of [theta]."""
     return tracking_bounds(gains.Kr, gains.V_max, mass_matrix_lower_bound(robot.n, theta_lower), gains.alpha)
 
 
 # ---- parameter boxes ------------------------------------------------------------------------------
 def parameter_box(
-    robot,
-    theta_e_nominal,
-    theta_e_lower,
-    theta_e_upper,
-    rest_ratio=None,
-    friction_ratio=None,
+    robot: RobotModel,
+    theta_e_nominal: ArrayLike,
+    theta_e_lower: ArrayLike,
+    theta_e_upper: ArrayLike,
+    rest_ratio: float | None = None,
+    friction_ratio: float | None = None,
     floors: ParameterFloors | None = None,
-):
+) -> tuple[np.ndarray, Interval]:
     """(theta0, [theta]) over all 14 n parameters: the end effector from the given box, the rest
     of the robot +- max(ratio |theta|, floor) around the model (ratios from the parameter YAML and
     the default floors unless given)."""
@@ -392,7 +420,9 @@ def parameter_box(
     return theta0, Interval(lo, hi)
 
 
-def prior_box(robot, initial_interval, noise, exact=False):
+def prior_box(
+    robot: RobotModel, initial_interval: InitialInterval, noise: Noise, exact: bool = False
+) -> tuple[np.ndarray, Interval]:
     """(theta0, [theta]) a run starts from: the end effector's scenario.initial_interval, the rest
     of the robot nominal +- max(noise.theta_r_ratio |theta|, noise.theta_r_floor). exact: the
     model's own theta with zero width (the "wrong"-model baseline)."""

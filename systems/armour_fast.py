@@ -17,8 +17,10 @@ Trees that are not chains fall back to ControllerDynamics' general code.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from . import regressors
 from .armour import (
@@ -35,6 +37,9 @@ from .armour import (
     _outer,
     wrap_error,
 )
+
+if TYPE_CHECKING:
+    from .robot_model import RobotModel
 
 # x^T K(x): K(x)[k, l] = sum_m x_m _INERTIA[m, 10 k + l], so over the outer product x_m x_k (36 x 10).
 _ENERGY = _INERTIA.reshape(36, 10)
@@ -59,7 +64,7 @@ class FastControllerDynamics(ControllerDynamics):
     scratch buffers between calls, so one instance must not be shared between threads (the
     project runs in parallel with processes only)."""
 
-    def __init__(self, robot):
+    def __init__(self, robot: RobotModel) -> None:
         super().__init__(robot)
         n = self.n
         # Body i -> its parent as a motion transform: Ad(X_pj Rot(q_i) X_jc) = Ad(X_pj) Ad(Rot) Ad(X_jc),
@@ -131,7 +136,9 @@ class FastControllerDynamics(ControllerDynamics):
         np.matmul(s_body, y.reshape(-1, n, 6, 10), out=out[..., : 10 * n].reshape(-1, n, n, 10).swapaxes(-3, -2))
         out[..., 10 * n :] = 0.0
 
-    def regressors(self, q, v, va, aa, x):
+    def regressors(
+        self, q: ArrayLike, v: ArrayLike, va: ArrayLike, aa: ArrayLike, x: ArrayLike
+    ) -> tuple[np.ndarray, np.ndarray]:
         if not self.serial:
             return super().regressors(q, v, va, aa, x)
         q, v, va, aa, x = (np.asarray(a, float).reshape(-1) for a in (q, v, va, aa, x))
@@ -145,7 +152,9 @@ class FastControllerDynamics(ControllerDynamics):
         out.reshape(-1)[self._friction_at] = np.concatenate([coulomb, va, aa, self._ones, x])
         return out[0], out[1]
 
-    def passivity_and_energy(self, q, v, va, aa, r):
+    def passivity_and_energy(
+        self, q: ArrayLike, v: ArrayLike, va: ArrayLike, aa: ArrayLike, r: ArrayLike
+    ) -> np.ndarray:
         """(n + 1, 14 n): rows 0..n-1 Wp(q, v, va, aa), row n r^T Wm(q, r) (2 x the kinetic
         energy of r as a function of theta: the body terms r_b^T I r_b, without Wm itself)."""
         q, v, va, aa, r = (np.asarray(a, float).reshape(-1) for a in (q, v, va, aa, r))
@@ -180,7 +189,7 @@ class FastArmourLaw:
     the theta inputs are invalid (not finite, or lower > upper): the caller's fallback.
     """
 
-    def __init__(self, dyn: FastControllerDynamics, gains: ArmourGains):
+    def __init__(self, dyn: FastControllerDynamics, gains: ArmourGains) -> None:
         self.dyn, self.gains = dyn, gains
         self.continuous = dyn.robot.joint_params.continuous
         self._key = None  # the bytes of (theta0, lo, hi) the cache below belongs to
@@ -202,7 +211,17 @@ class FastArmourLaw:
             self._spread = np.nextafter(rad + _ROUNDING * mag, np.inf)  # per parameter, outward
         return self._valid
 
-    def __call__(self, q, v, q_d, qd_d, qdd_d, theta0, theta_lower, theta_upper) -> ArmourOutput | None:
+    def __call__(
+        self,
+        q: ArrayLike,
+        v: ArrayLike,
+        q_d: ArrayLike,
+        qd_d: ArrayLike,
+        qdd_d: ArrayLike,
+        theta0: ArrayLike,
+        theta_lower: ArrayLike,
+        theta_upper: ArrayLike,
+    ) -> ArmourOutput | None:
         if not self._box(theta0, theta_lower, theta_upper):
             return None
         g = self.gains

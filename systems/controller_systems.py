@@ -25,15 +25,20 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import BasicVector, Context, LeafSystem, ValueProducer
 
-from .armour import ArmourGains, armour_control, tracking_errors, wrap_error
+from .armour import ArmourGains, ArmourOutput, armour_control, tracking_errors, wrap_error
 from .armour_fast import FastArmourLaw, FastControllerDynamics
 from .config import ScenarioError
 from .intervals import Interval
+
+if TYPE_CHECKING:
+    from .config import Scenario
+    from .robot_model import RobotModel
 
 _log = logging.getLogger(__name__)
 
@@ -47,7 +52,7 @@ class ControllerGains:
     adaptive_kd: np.ndarray
     adaptive_gamma: np.ndarray
     robust_boundary: float
-    extra: dict = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)
 
 
 def _fit(values, n, name):
@@ -59,7 +64,7 @@ def _fit(values, n, name):
     return arr
 
 
-def gains_from_scenario(scenario, n):
+def gains_from_scenario(scenario: Scenario, n: int) -> ControllerGains:
     """Gains from scenario.controller (defaults and units: systems/config.py, class Controller)."""
     c = scenario.controller
     return ControllerGains(
@@ -76,7 +81,7 @@ def gains_from_scenario(scenario, n):
 class ControllerBase(LeafSystem):
     """Common ports; subclasses implement _torque(context, q, v, q_d, qd_d, qdd_d, theta0, box)."""
 
-    def __init__(self, robot, gains: ControllerGains):
+    def __init__(self, robot: RobotModel, gains: ControllerGains) -> None:
         super().__init__()
         self.robot, self.gains, self.n = robot, gains, robot.n
         n, p = robot.n, 14 * robot.n
@@ -123,7 +128,7 @@ class ControllerBase(LeafSystem):
 class ArmourController(ControllerBase):
     """The robust passivity law (armour.armour_control); extra output 'diagnostics'."""
 
-    def __init__(self, robot, gains: ControllerGains):
+    def __init__(self, robot: RobotModel, gains: ControllerGains) -> None:
         super().__init__(robot, gains)
         # One evaluation of the law per step, shared by the torque and diagnostics outputs.
         self._law = self._declare_step_cache("law", self._calc_law)
@@ -141,7 +146,7 @@ class ArmourController(ControllerBase):
             out = armour_control(self.dyn, armour, *args, self.robot.theta, Interval(self.robot.theta))
         value.set_value(out)
 
-    def law(self, context):
+    def law(self, context: Context) -> ArmourOutput:
         """ArmourOutput of the current step (u, tau_nom, v, w_bar, V_bar, h, lam, err)."""
         return self._law.Eval(context)
 
@@ -160,7 +165,7 @@ class ArmourController(ControllerBase):
 class GravityPidController(ControllerBase):
     """u = g(q; theta0) + Kp e + Ki int e + Kd edot; the integral is discrete state, stepped every time_step."""
 
-    def __init__(self, robot, gains: ControllerGains, time_step):
+    def __init__(self, robot: RobotModel, gains: ControllerGains, time_step: float) -> None:
         super().__init__(robot, gains)
         self.time_step = float(time_step)
         self._integral = self.DeclareDiscreteState(robot.n)
@@ -186,7 +191,7 @@ class AdaptiveController(ControllerBase):
     """adap-1 (robust=False) or adap-2 (robust=True); the adapted offset theta_hat_e - theta0_e
     is discrete state, stepped every time_step."""
 
-    def __init__(self, robot, gains: ControllerGains, time_step, robust=False):
+    def __init__(self, robot: RobotModel, gains: ControllerGains, time_step: float, robust: bool = False) -> None:
         super().__init__(robot, gains)
         self.time_step, self.robust, self.ee = float(time_step), bool(robust), robot.ee_slice
         self._delta = self.DeclareDiscreteState(10)  # theta_hat_e - theta0_e
@@ -209,7 +214,7 @@ class AdaptiveController(ControllerBase):
         wp, _ = self.dyn.regressors(q, v, err.qd_a, err.qdd_a, np.zeros(self.n))
         value.set_value((err, wp))
 
-    def estimate(self, context, theta0, box):
+    def estimate(self, context: Context, theta0: np.ndarray, box: Interval) -> np.ndarray:
         """theta_hat (14 n): theta0 with the adapted end effector, projected on the box."""
         ee = self.ee
         theta = theta0.copy()
@@ -250,7 +255,7 @@ CONTROLLERS = {
 }
 
 
-def make_controller(kind: str, robot, gains: ControllerGains, time_step: float) -> ControllerBase:
+def make_controller(kind: str, robot: RobotModel, gains: ControllerGains, time_step: float) -> ControllerBase:
     """kind: a key of CONTROLLERS (a method's MethodSpec.controller, or scenario.controller.kind)."""
     try:
         factory = CONTROLLERS[kind]

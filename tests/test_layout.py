@@ -60,16 +60,6 @@ def test_every_system_of_the_online_diagram_is_a_module_level_class():
         assert any(t.endswith("real_arm.TorqueSensor") for t in types)
 
 
-# Files other engineers were changing while the annotations went in; the lead removes each
-# entry once that file is annotated (the test then holds it to the rule).
-NOT_YET_TYPED = {
-    "systems/armour_fast.py",
-    "app/bench_cli.py",
-    "systems/armour.py",
-    "systems/controller_systems.py",
-}
-
-
 def _is_dataclass(node):
     names = [d.func if isinstance(d, ast.Call) else d for d in node.decorator_list]
     return any((n.attr if isinstance(n, ast.Attribute) else getattr(n, "id", "")) == "dataclass" for n in names)
@@ -131,7 +121,5 @@ def test_the_annotation_check_sees_what_is_missing(tmp_path):
 
 def test_public_functions_and_dataclass_fields_are_annotated():
     files = [p for folder in ("app", "systems") for p in sorted((ROOT / folder).rglob("*.py"))]
-    pending = [p for p in files if any(str(p.relative_to(ROOT)).startswith(k) for k in NOT_YET_TYPED)]
-    assert len(pending) >= len(NOT_YET_TYPED)  # every entry names files that exist
-    offenders = {str(p.relative_to(ROOT)): untyped(p) for p in files if p not in pending}
+    offenders = {str(p.relative_to(ROOT)): untyped(p) for p in files}
     assert {k: v for k, v in offenders.items() if v} == {}
