@@ -102,7 +102,8 @@ def run(tmp_path_factory):
         law = ctrl._torque
 
         def torque(context, *args):
-            params = np.concatenate([args[-2], args[-1].lo, args[-1].hi])
+            theta0, box = ctrl._inputs(context)[-2:]  # what the law reads (ARMOUR reads its own inputs)
+            params = np.concatenate([theta0, box.lo, box.hi])
             if not used or not np.array_equal(used[-1][1], params) or used[-1][0] > context.get_time():
                 used.append((context.get_time(), params))
             return law(context, *args)
