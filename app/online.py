@@ -387,7 +387,10 @@ def run_online(
         theta0, box = built.theta_prior
         theta_e0, lo, hi = theta0[robot.ee_slice], box.lo[robot.ee_slice], box.hi[robot.ee_slice]
         if spec.identifies == methods.ADAPTATION:  # the adaptive law's estimate, inside its projection box
-            theta_e0 = built.controller.GetOutputPort("estimate").Eval(built.controller.GetMyContextFromRoot(ctx))
+            # its last value holding the payload: after the release the law adapts to the bare gripper
+            t_est, adapted = _log(built.loggers["adaptive_estimate"], ctx)
+            held = t_est < ((task_summary or {}).get("release_time_s") or np.inf)
+            theta_e0 = adapted[held][-1] if held.any() else adapted[0]
         history, cond_y, update_times = [], float("nan"), []
         consistent, estimator_events = True, []
         extra_estimate = {}
