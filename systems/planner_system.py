@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import time
 from collections.abc import Iterable, Mapping
 from typing import TYPE_CHECKING
@@ -49,7 +50,7 @@ from pydrake.systems.framework import EventStatus, LeafSystem
 
 from .faults import remaining_plan_clearance, with_obstacle
 from .planner import PlanResult
-from .trajectory_source import at_rest
+from .trajectory_source import Piece, at_rest
 
 if TYPE_CHECKING:
     from pydrake.systems.framework import Context
@@ -69,6 +70,12 @@ class PlannerState:
     rng: np.random.Generator | None = None  # of the random plans and starts; advanced by each call
     thetas: tuple = ()  # (theta0, lower, upper) `plan` was certified with (before any plan: the last call's)
     events: tuple[dict, ...] = ()  # {t, kind, detail}: plan_failed, plan_refused, brake
+
+    @functools.cached_property
+    def piece(self) -> Piece | None:
+        """`plan` as a trajectory piece (monomial coefficients: the desired state is read every
+        control step, so it is computed once per plan, not per evaluation)."""
+        return None if self.plan is None else Piece(self.t_start, self.plan.trajectory, self.plan.q_end)
 
 
 class ExcitingPlanner(LeafSystem):
@@ -152,10 +159,9 @@ class ExcitingPlanner(LeafSystem):
         return list(self._get(context).results)
 
     def _desired_at(self, st: PlannerState, t):
-        if st.plan is None:
+        if st.piece is None:
             return at_rest(self._q0)
-        q, v, a = st.plan.evaluate([t - st.t_start])
-        return q[0], v[0], a[0]
+        return st.piece.evaluate(t)
 
     def _desired(self, context):
         return self._desired_at(self._get(context), context.get_time())

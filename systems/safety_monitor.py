@@ -101,6 +101,12 @@ class SafetyMonitor(LeafSystem):
         self._ignored = {plant.GetBodyFrameIdOrThrow(b.index()) for b in ignore_bodies}
         self._max_distance = max_distance_m
         self._fixed_pairs = self._base_environment_pairs(plant, set(supports))
+        # Geometry classes as id sets, so the per-step filter does no inspector calls.
+        from pydrake.geometry import Role
+
+        ids = self._inspector.GetAllGeometryIds(Role.kProximity)
+        self._environment_ids = frozenset(g for g in ids if self._is_environment(g))
+        self._ignored_ids = frozenset(g for g in ids if self._inspector.GetFrameId(g) in self._ignored)
         n = robot.n
         self.query_port = self.DeclareAbstractInputPort("query", AbstractValue.Make(QueryObject()))
         self.state_port = self.DeclareVectorInputPort("state", 2 * n)
@@ -135,17 +141,15 @@ class SafetyMonitor(LeafSystem):
     def min_clearance(self, query: QueryObject) -> tuple[float, tuple[str, str] | None]:
         distances = list(query.ComputeSignedDistancePairwiseClosestPoints(self._max_distance))
         distances += [query.ComputeSignedDistancePairClosestPoints(a, b) for a, b in self._fixed_pairs]
-        best, pair = np.inf, None
-        frame = self._inspector.GetFrameId
+        best, closest = self._max_distance, None
+        environment, ignored = self._environment_ids, self._ignored_ids
         for d in distances:
-            if self._ignored and (frame(d.id_A) in self._ignored or frame(d.id_B) in self._ignored):
-                continue
-            if self._is_environment(d.id_A) != self._is_environment(d.id_B) and d.distance < min(
-                best, self._max_distance
-            ):
-                best = d.distance
-                pair = (self._inspector.GetName(d.id_A), self._inspector.GetName(d.id_B))
-        return (self._max_distance if pair is None else best), pair
+            if d.distance < best and ((d.id_A in environment) != (d.id_B in environment)):
+                if not (d.id_A in ignored or d.id_B in ignored):
+                    best, closest = d.distance, d
+        if closest is None:
+            return self._max_distance, None
+        return best, (self._inspector.GetName(closest.id_A), self._inspector.GetName(closest.id_B))
 
     def measure(self, context: Context) -> tuple:
         """One sample (t, clearance, joint, velocity, torque and command ratios, closest pair),
