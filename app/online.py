@@ -499,7 +499,10 @@ def run_online(
             [h["upper"] for h in history],
             truth,
         )
-    replay = viz.ReplayScene(robot, t, q, desired[:, :n], figures.phases_of(summary), scenario.obstacles)
+    # After the release the welded payload is empty (no mass, no collision) but still drawn: hide it.
+    released = [e["t"] for e in summary["events"] if e["kind"] == "release"]
+    hidden = [(viz.body_path(arm.payload_frame_name()), released[0])] if released else []
+    replay = viz.ReplayScene(robot, t, q, desired[:, :n], figures.phases_of(summary), scenario.obstacles, hidden)
     viz.decorate(meshcat, built.visualizer, replay)
     if built.visualizer is not None:
         if built.planner is not None:

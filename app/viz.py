@@ -21,6 +21,7 @@ if TYPE_CHECKING:  # Drake's visualizer is imported when a run shows or records
 PLAN_PATH = "planner/plan"
 SWEPT_PATH = "planner/swept"
 TASK_PATH = "task/path"
+VISUALIZER_PREFIX = "visualizer"  # Drake's default, named so body_path can address a body
 PHASE_COLOURS = {"identification": "#1f66ff", "task": "#1a9e3a", "settle": "#8a8a8a"}
 
 
@@ -51,6 +52,7 @@ def add_visualizer(builder: DiagramBuilder, query_object_port: OutputPort, meshc
 
     params = MeshcatVisualizerParams()
     params.role = Role.kIllustration
+    params.prefix = VISUALIZER_PREFIX
     return MeshcatVisualizer.AddToBuilder(builder, query_object_port, meshcat, params)
 
 
@@ -107,6 +109,7 @@ class ReplayScene:
     qd: np.ndarray
     phases: list
     obstacles: Sequence[Obstacle] = ()  # scenario Obstacles: those within REACH_M of the base are framed too
+    hidden_from: Sequence[tuple[str, float]] = ()  # (Meshcat path, t): hidden in the recording from t on
 
 
 REACH_M = 1.2  # Gen3 reach (0.9 m) plus a held dumbbell and margin: obstacles beyond are not framed
@@ -177,6 +180,16 @@ def decorate(
         full = f"/drake/{TASK_PATH}"
         recording.SetProperty(0, full, "visible", False)
         recording.SetProperty(recording.frame(t0), full, "visible", True)
+    recording = visualizer.get_mutable_recording()
+    for path, t in scene.hidden_from:
+        recording.SetProperty(0, path, "visible", True)
+        recording.SetProperty(recording.frame(t), path, "visible", False)
+
+
+def body_path(frame_name: str) -> str:
+    """Meshcat path of a body's geometry under the run's visualizer (frame_name: SceneGraph's scoped
+    frame name, 'model_instance::body', as MeshcatVisualizer lays the tree out)."""
+    return f"/drake/{VISUALIZER_PREFIX}/" + frame_name.replace("::", "/")
 
 
 def phase_banner(phases: list[tuple[str, float, float]]) -> str:

@@ -253,6 +253,11 @@ class RealArm:
                 CollisionFilterDeclaration().ExcludeWithin(self.robot_geometries)
             )
 
+    def payload_frame_name(self) -> str:
+        """SceneGraph's scoped name of the welded payload's frame ('instance::body')."""
+        frame = self.plant.GetBodyFrameIdOrThrow(self.payload_body.index())
+        return self.scene_graph.model_inspector().GetName(frame)
+
     def payload_pose(self, root_context: Context) -> RigidTransform:
         """RigidTransform of the payload in the world: the released body once released, else the
         welded one (its frame: the dumbbell centre, x along the handle)."""

@@ -146,3 +146,41 @@ def test_progress_line_names_phase_and_plan():
     assert phase_at(0.2, s, None) == "identification, plan 1/4"
     assert phase_at(4.6, s, None) == "identification, plan 4/4"
     assert phase_at(7.6, s, 7.501) == "task"
+
+
+def visibility_keys(page, path):
+    """[(frame, visible)] of a path's '.visible' animation track in the page's recording: the
+    msgpack bytes of the track (path, then clip, tracks, keys of time and boolean value)."""
+    for blob in re.findall(r'fetch\("data:application/octet-binary;base64,([^"]+)"\)', page):
+        data = base64.b64decode(blob)
+        start = data.find(path.encode() + b"\xa4clip")
+        if b"set_animation" not in data or start < 0:
+            continue
+        end = data.find(b"\xa4path", start)
+        segment = data[start : end if end > 0 else None]
+        keys = []
+        for m in re.finditer(rb"\xa4time(\xcc.|\xcd..|[\x00-\x7f])\xa5value([\xc2\xc3])", segment, re.S):
+            raw = m.group(1)
+            keys.append((raw[0] if len(raw) == 1 else int.from_bytes(raw[1:], "big"), m.group(2) == b"\xc3"))
+        return keys
+    return []
+
+
+def test_the_released_payload_leaves_the_gripper_in_the_replay(tmp_path):
+    """After the release the welded payload is empty (no mass, no contact) but was still drawn in
+    the gripper: the recording hides it from the release frame on, and the released copy is there."""
+    from safesysid.online import run_online
+    from safesysid.scenario import SCENARIOS_DIR, load_scenario
+
+    summary = run_online(
+        load_scenario(SCENARIOS_DIR / "experiment_a.yaml", overrides=["task: {settle_time_s: 0.2}"]),
+        tmp_path,
+        method="wrong",
+    )
+    release = [e["t"] for e in summary["events"] if e["kind"] == "release"]
+    assert release, summary["events"]
+    page = (tmp_path / "replay.html").read_text()
+    held = "/drake/visualizer/payload/payload"
+    assert held in meshcat_paths(page) and "/drake/visualizer/released_payload/released_payload" in meshcat_paths(page)
+    fps = 64
+    assert visibility_keys(page, held) == [(0, True), (round(release[0] * fps), False)]
