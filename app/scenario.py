@@ -31,7 +31,9 @@ from safesysid.systems.config import (
     scenario_dir,
     task_enabled,
 )
-from safesysid.systems.model_corrections import Correction
+
+if typing.TYPE_CHECKING:
+    from safesysid.systems.diagnosis.corrected_model import CorrectedModel
 
 SCENARIOS_DIR = Path(__file__).resolve().parent.parent / "scenarios"
 __all__ = [  # the loader, and the schema of systems/config.py re-exported
@@ -321,7 +323,7 @@ def _apply_corrected_model(s: Scenario, given, where):
         setattr(s.plant.effects, key, value)
 
 
-def check_starting_scenario(corr: Correction) -> None:
+def check_starting_scenario(corr: "CorrectedModel") -> None:
     """A corrected model that starts from a scenario YAML: that scenario, validated (ScenarioError
     naming its file and key); systems/config.py starting_robot then reads only its robot section."""
     start = corr.model_path()

@@ -16,8 +16,11 @@ from pathlib import Path
 import numpy as np
 
 from .methods import METHODS_SPEC
-from .model_corrections import Correction, CorrectionError, corrected_robot, read_correction
+from .model_corrections import CorrectionError, corrected_robot, read_correction
 from .robot_model import MODELS_DIR, RobotModel, load_robot
+
+if typing.TYPE_CHECKING:
+    from .diagnosis.corrected_model import CorrectedModel
 
 List = list
 Optional = typing.Optional
@@ -379,7 +382,7 @@ def _robot_of(robot: Robot, base: Path, where: str) -> RobotModel:
     return load_robot(model, resolve_path(robot.params, base), coulomb_smoothing=robot.coulomb_smoothing_rad_s)
 
 
-def starting_robot(corr: Correction, coulomb_smoothing: float = 0.0) -> RobotModel:
+def starting_robot(corr: "CorrectedModel", coulomb_smoothing: float = 0.0) -> RobotModel:
     """The model a diagnosis started from (a corrected model's `model`): a URDF/SDF (root welded,
     friction zero) or the robot of a scenario YAML, read from its `robot` section (the rest of
     that scenario does not change the robot; app/scenario.py validates the whole file)."""

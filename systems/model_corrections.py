@@ -18,22 +18,22 @@ parameter applies to all joints (per-joint lists of n values); `joints` only say
 effect was found to matter, as in diagnosis.json.
 
 The params of each effect are diagnosis.effect_params' (units in the key names); the time law is
-`time_law: lag | shift` when present, else read from the `law` text. `read_correction` is a
-small local reader whose objects have the shape of systems/diagnosis/corrected_model.py's
-(CorrectedModel: model, effects, path, model_path(); CorrectedEffect: name, joints, params),
-so everything below works with either.
+`time_law: lag | shift` (from the `law` text in older files). The file is read by
+systems/diagnosis/corrected_model.py's reader (CorrectedModel, CorrectedEffect).
 """
 
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .robot_model import RobotModel
+
+if TYPE_CHECKING:
+    from .diagnosis.corrected_model import CorrectedEffect, CorrectedModel
 
 # effect -> (JointParameters field, params key of the increment on the starting model)
 ROBOT_SIDE = {
@@ -49,62 +49,19 @@ class CorrectionError(ValueError):
     """A corrected model that cannot be applied; the message names the file and the field."""
 
 
-@dataclass
-class Effect:
-    name: str
-    joints: list[int]  # 1-based, where the effect matters (information)
-    params: dict[str, Any]  # diagnosis.effect_params
-
-
-@dataclass
-class Correction:
-    """The parts of corrected_model.yaml the consumers use (schema: diagnosis/corrected_model.py)."""
-
-    model: str  # starting URDF/SDF/scenario, as written
-    effects: list[Effect]
-    path: str = ""
-    model_resolved: str = ""
-
-    def model_path(self) -> Path:
-        """The starting model: model_resolved when it exists, else `model` relative to this
-        file's folder, else as written."""
-        p = Path(self.model)
-        candidates = [Path(self.model_resolved)] if self.model_resolved else []
-        if self.path and not p.is_absolute():
-            candidates.append(Path(self.path).parent / p)
-        candidates.append(p)
-        return next((c for c in candidates if c.is_file()), candidates[-1])
-
-
-def find_effect(corr: Correction, name: str) -> Effect | None:
+def find_effect(corr: CorrectedModel, name: str) -> CorrectedEffect | None:
     return next((e for e in corr.effects if e.name == name), None)
 
 
-def read_correction(path: str | Path) -> Correction:
-    """Correction from a corrected_model.yaml (CorrectionError naming file and field)."""
-    import yaml
+def read_correction(path: str | Path) -> CorrectedModel:
+    """A corrected_model.yaml through the diagnosis' own reader (one schema, one reader); its
+    error (naming file and field) as a CorrectionError."""
+    from .diagnosis.corrected_model import CorrectedModelError, read_corrected_model  # no cycle via config
 
-    where = str(path)
     try:
-        doc = yaml.safe_load(Path(path).read_text())
-    except OSError as err:
-        raise CorrectionError(f"{where}: cannot read ({err.strerror})") from err
-    except yaml.YAMLError as err:
-        raise CorrectionError(f"{where}: not valid YAML") from err
-    if not isinstance(doc, dict) or not isinstance(doc.get("model"), str) or not doc["model"]:
-        raise CorrectionError(f"{where}: model: missing (path of the starting URDF/SDF/scenario)")
-    effects = doc.get("effects")
-    if not isinstance(effects, list):
-        raise CorrectionError(f"{where}: effects: missing or not a list")
-    for k, e in enumerate(effects):
-        if not isinstance(e, dict) or not isinstance(e.get("name"), str) or not isinstance(e.get("params"), dict):
-            raise CorrectionError(f"{where}: effects[{k}]: expected {{name, joints, params}}")
-    return Correction(
-        doc["model"],
-        [Effect(e["name"], list(e.get("joints") or []), e["params"]) for e in effects],
-        str(path),
-        doc.get("model_resolved") or "",
-    )
+        return read_corrected_model(path)
+    except CorrectedModelError as err:
+        raise CorrectionError(str(err)) from err
 
 
 def _param(corr, effect, key, n=None):
@@ -124,21 +81,18 @@ def _param(corr, effect, key, n=None):
     return value
 
 
-def time_law(effect: Effect) -> str:
+def time_law(effect: CorrectedEffect) -> str:
     """'lag' (first-order lag of the torque signal) or 'shift' (pure delay) of a time_delay."""
-    params = effect.params
-    if "time_law" in params:
-        return params["time_law"]
-    return "lag" if str(params.get("law", "")).startswith("first-order") else "shift"
+    return effect.params["time_law"]  # the reader fills it in from the prose law of older files
 
 
-def torque_lag_s(corr: Correction) -> float:
+def torque_lag_s(corr: CorrectedModel) -> float:
     """Time constant of a diagnosed first-order lag of the torque signal (0 when none)."""
     e = find_effect(corr, "time_delay")
     return float(_param(corr, e, "delay_s")) if e is not None and time_law(e) == "lag" else 0.0
 
 
-def corrected_robot(robot: RobotModel, corr: Correction) -> RobotModel:
+def corrected_robot(robot: RobotModel, corr: CorrectedModel) -> RobotModel:
     """The RobotModel with the robot-side corrections (increments on `robot`, the starting
     model): joint parameters and the friction part of theta (Fc, Fv, Ia, beta per joint)."""
     jp = robot.joint_params
@@ -155,7 +109,7 @@ def corrected_robot(robot: RobotModel, corr: Correction) -> RobotModel:
     return dataclasses.replace(robot, joint_params=jp, theta=theta)
 
 
-def plant_effects(corr: Correction, n: int | None = None) -> dict:
+def plant_effects(corr: CorrectedModel, n: int | None = None) -> dict:
     """{scenario plant.effects field: value} of the plant-side effects (see module docstring)."""
     out = {}
     for e in corr.effects:

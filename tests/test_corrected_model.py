@@ -125,7 +125,15 @@ def test_scenario_loads_both_sides(tmp_path):
             {"name": "load_friction", "joints": [4], "params": {"mu": [0, 0, 0, 0.1, 0, 0, 0]}},
             {"name": "joint_elasticity", "joints": [2], "params": {"compliance_rad_per_Nm": [0, 0.002, 0, 0, 0, 0, 0]}},
             {"name": "torque_scale", "joints": [5], "params": {"scale": [1, 1, 1, 1, 1.05, 1, 1]}},
-            {"name": "base_tilt", "joints": [1], "params": {"roll_rad": 0.01, "pitch_rad": -0.02}},
+            {
+                "name": "base_tilt",  # as diagnose writes it: gravity in the base frame, and the angles
+                "joints": [1],
+                "params": {
+                    "gravity_xy_over_g": [-0.01999866669333308, -0.009997833434164497],
+                    "roll_rad": 0.01,
+                    "pitch_rad": -0.02,
+                },
+            },
             {
                 "name": "stribeck_friction",
                 "joints": [6],

@@ -229,6 +229,9 @@ def read_corrected_model(path: str | Path) -> CorrectedModel:
         params = e.get("params")
         if not isinstance(params, dict):
             raise bad(f"{f}.params", "missing or not a mapping")
+        if name == "time_delay" and "time_law" not in params and isinstance(params.get("law"), str):
+            # Files written before `time_law` existed name the law in prose only.
+            params = {**params, "time_law": "lag" if params["law"].startswith("first-order") else "shift"}
         for key, kind in REQUIRED[name].items():
             if key not in params:
                 raise bad(f"{f}.params.{key}", "missing")
