@@ -26,6 +26,7 @@ TABLE_FILES = ("table.md", "table.csv", "table.json", "table.png")
 SUMMARY_COLUMNS = (
     "method trial seed success failure collisions min_clearance_m max_torque_ratio max_tracking_error_rad"
     " tracking_bound_rad contains_truth cond_Y mass_estimate_kg mass_width_kg brakes median_solve_s wall_time_s"
+    " task_certified_torque_ratio"
 ).split()
 
 
@@ -179,6 +180,7 @@ def row_of(summary: dict, trial: int) -> dict:
         "brakes": summary["planner"]["brakes"],
         "median_solve_s": times[len(times) // 2] if times else float("nan"),
         "wall_time_s": summary["wall_time_s"],
+        "task_certified_torque_ratio": (summary.get("task") or {}).get("certified_torque_ratio"),
     }
 
 

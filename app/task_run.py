@@ -102,6 +102,21 @@ def judge(
     return first_failure(checks, t_switch)
 
 
+def task_certificate(built: OnlineDiagram, scenario: Scenario, method: str, thetas: tuple) -> float | None:
+    """sup |u| / limit of ARMOUR's command over the task trajectory, every tracking error in the
+    tube and every parameter in the box the controller latched at the switch (task_check.
+    certified_torque_ratio); > 1: the method's own model cannot certify the task's torque (what
+    the paper's `conservative` meets on hardware). None for the other controllers, or without a
+    task trajectory. Information only: the referee judges what the run did."""
+    from safesysid.systems import methods
+    from safesysid.systems.task_check import certified_torque_ratio
+
+    problem, plan = built.task
+    if methods.method_spec(method).controller != "armour" or not plan.ok or len(thetas) != 3:
+        return None
+    return certified_torque_ratio(problem, plan.trajectory, *(np.asarray(x, float) for x in thetas))[0]
+
+
 def run_task_phase(built: OnlineDiagram, sim: Simulator, scenario: Scenario, method: str) -> dict:
     """Advance a built run through identification, the task phase, the release and the settling;
     returns the task's summary (placement measured on the simulated payload pose)."""
@@ -113,6 +128,7 @@ def run_task_phase(built: OnlineDiagram, sim: Simulator, scenario: Scenario, met
     # The switch fires at switch_time_s; one step later its curves are in the context.
     sim.AdvanceTo(source.switch_time_s + scenario.plant.time_step_s)
     st = source.phase_state(source_ctx)
+    certificate = task_certificate(built, scenario, method, st.thetas)
     t_release = max(st.t_end, ctx.get_time())
     sim.AdvanceTo(t_release)
     release_xyz = None
@@ -142,6 +158,7 @@ def run_task_phase(built: OnlineDiagram, sim: Simulator, scenario: Scenario, met
             "cache": plan.details.get("cache"),
             "payload_model": scenario.task.payload_model,
         },
+        "certified_torque_ratio": certificate,
         "placement": {
             "kind": kind or None,
             "target_m": as_list(target),
