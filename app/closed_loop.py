@@ -10,12 +10,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike
 from pydrake.systems.analysis import Simulator
-from pydrake.systems.framework import Diagram, DiagramBuilder, OutputPort
+from pydrake.systems.framework import Diagram, DiagramBuilder, LeafSystem, OutputPort
 from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput, VectorLogSink
 from safesysid.systems import controller_systems
 from safesysid.systems.intervals import Interval
 from safesysid.systems.real_arm import RealArm, add_real_arm
-from safesysid.systems.trajectory_source import Piece, TrajectorySource, make_trajectory_source
+from safesysid.systems.trajectory_source import Piece, make_trajectory_source
 
 if TYPE_CHECKING:
     from safesysid.systems.bezier import QuinticBezier
@@ -65,7 +65,7 @@ class ClosedLoop:
     diagram: Diagram
     arm: RealArm
     controller: ControllerBase
-    source: TrajectorySource
+    source: LeafSystem  # trajectory_source.make_trajectory_source
     loggers: dict[str, VectorLogSink]  # state, desired, torque, measured_torque, diagnostics
 
 

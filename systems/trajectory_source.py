@@ -109,8 +109,18 @@ class TrajectorySource(LeafSystem):
         output.SetFromVector(np.concatenate([q, qd, qdd]))
 
 
-def make_trajectory_source(n: int, trajectory: tuple[QuinticBezier, np.ndarray] | list[Piece]) -> TrajectorySource:
-    """TrajectorySource with output 'desired' (3 n); trajectory = (QuinticBezier, q_end) or [Piece]."""
+def make_trajectory_source(n: int, trajectory: tuple[QuinticBezier, np.ndarray] | list[Piece]) -> LeafSystem:
+    """A source of [q_d, qd_d, qdd_d] (3 n) on its output port 0. One fixed (QuinticBezier, q_end)
+    from t = 0 becomes Drake's TrajectorySource over a BezierCurve (evaluated in C++, clamped
+    after its end: at rest at q_end, as Piece.evaluate); a list of Piece this module's
+    TrajectorySource, whose pieces can change while the diagram runs."""
+    if isinstance(trajectory, tuple) and len(trajectory) == 2 and isinstance(trajectory[0], QuinticBezier):
+        from pydrake.systems.primitives import TrajectorySource as DrakeTrajectorySource
+        from pydrake.trajectories import BezierCurve
+
+        curve, q_end = trajectory
+        points = curve.control_points(np.asarray(q_end, float)).T  # (n, 6)
+        return DrakeTrajectorySource(BezierCurve(0.0, curve.duration, points), output_derivative_order=2)
     return TrajectorySource(n, trajectory)
 
 

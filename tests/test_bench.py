@@ -72,6 +72,10 @@ def test_fast_law_equals_reference_law(robot, gains):
             worst = max(worst, *(_close(getattr(a, f), getattr(b, f)) for f in FIELDS))
             assert _close(a.err.r, b.err.r) == 0.0
     assert worst <= TOL, worst
+    # A tree that is not a chain takes the reference law: the same numbers.
+    law.dyn.serial = False
+    b = law(*state, theta0, box.lo, box.hi)
+    assert _close(C.armour_control(ref, gains, *state, theta0, box).u, b.u) <= TOL
 
 
 def test_fast_law_cache_follows_its_inputs(robot, gains):

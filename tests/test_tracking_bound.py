@@ -292,3 +292,23 @@ def test_trajectory_source_matches_bezier_and_switches_pieces():
         curve, start, end = (first, 0.0, end1) if t < 1.0 else (second, 1.0, end2)
         expected = np.concatenate([x[0] for x in curve.evaluate([t - start], end)])
         np.testing.assert_allclose(source.get_output_port().Eval(ctx), expected, atol=1e-12)
+
+
+def test_fixed_trajectory_source_in_cpp_equals_the_piece_source():
+    """One (QuinticBezier, q_end) becomes Drake's TrajectorySource (a BezierCurve, C++): the same
+    [q, qd, qdd] as the Python source of that piece, during the curve and at rest after its end."""
+    from safesysid.systems.trajectory_source import Piece, TrajectorySource, make_trajectory_source
+
+    rng = np.random.default_rng(3)
+    q0, v0, a0 = rng.normal(size=(3, 7))
+    curve, q_end = QuinticBezier(q0, v0, a0, 1.5), q0 + rng.normal(size=7)
+    fast, reference = make_trajectory_source(7, (curve, q_end)), make_trajectory_source(7, [Piece(0.0, curve, q_end)])
+    assert not isinstance(fast, TrajectorySource) and isinstance(reference, TrajectorySource)
+    contexts = [fast.CreateDefaultContext(), reference.CreateDefaultContext()]
+    for t in (0.0, 0.3, 0.75, 1.2, 1.5, 1.6, 4.0):
+        values = []
+        for system, ctx in zip((fast, reference), contexts):
+            ctx.SetTime(t)
+            values.append(system.get_output_port().Eval(ctx))
+        np.testing.assert_allclose(values[0], values[1], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(values[0], np.concatenate([q_end, np.zeros(14)]), atol=1e-12)
