@@ -179,6 +179,11 @@ class Planner:
     # Columns of W_e whose log cond the exciting cost minimises: all ten (the paper) or the six
     # rotational inertias only (the directions the paper's cost leaves poorly excited).
     exciting_columns: str = "all"  # all | inertia
+    # true: the exciting cost conditions the motion executed so far stacked with the candidate
+    # plan, so each plan excites what the data still lack (cond(Y) well below random plans');
+    # false: the plan alone, the paper's cost (its data no better conditioned than random plans'
+    # here, but no wider intervals either: README "Exciting vs random").
+    cumulative_excitation: bool = False
     goal_q_rad: List[float] = dc.field(default_factory=list)
     solver: str = "ipopt"  # ipopt | snopt
     max_solve_time_s: float = 1.2  # wall cap inside t_p (budget: wall_time only)

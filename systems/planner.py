@@ -216,9 +216,13 @@ class PlanningProblem:
         theta_lo: ArrayLike,
         theta_hi: ArrayLike,
         mode: str | None = None,
+        past: np.ndarray | None = None,
     ) -> None:
         self.planner = planner
         self.mode = mode or planner.config.cost
+        # W_e rows of the motion executed before this plan (SafePlanner.executed_rows): the
+        # exciting cost then conditions [past; W_e(k)], so a plan excites what is still missing.
+        self.past = None if past is None or len(past) == 0 else np.asarray(past, float)
         cfg = planner.config
         robot = planner.robot
         self.n = robot.n
@@ -481,7 +485,8 @@ class PlanningProblem:
         return self.reach.bezier.evaluate(t, self.reach.q_end(k))
 
     def exciting_cost(self, k: ArrayLike) -> tuple[float, np.ndarray, np.ndarray]:
-        """log sigma_max - log sigma_min of stacked W_e(k) and its exact gradient in k (cached)."""
+        """(log sigma_max - log sigma_min of W_e(k) stacked over the cost samples, below the past
+        motion's rows when given; its exact gradient in k; the plan's own W_e(k)), cached."""
         key = np.asarray(k, float).tobytes()
         if key not in self._excite_cache:
             self._excite_cache[key] = self._exciting_cost(np.asarray(k, float))
@@ -506,9 +511,12 @@ class PlanningProblem:
         cols = _EXCITING_COLUMNS[getattr(pl.config, "exciting_columns", "all")]
         W = w[0].real[:, cols]
         dW = w.imag[..., cols] / h  # (n_k, rows, columns)
-        u, s, vt = np.linalg.svd(W, full_matrices=False)
+        # With the past motion stacked on top, only the plan's rows depend on k.
+        stacked = W if self.past is None else np.vstack([self.past[:, cols], W])
+        u, s, vt = np.linalg.svd(stacked, full_matrices=False)
         if s[-1] <= 0:
             return np.inf, np.zeros(n), W
+        u = u[len(stacked) - len(W) :]
         d_max = np.einsum("r,jrc,c->j", u[:, 0], dW, vt[0])
         d_min = np.einsum("r,jrc,c->j", u[:, -1], dW, vt[-1])
         return float(np.log(s[0]) - np.log(s[-1])), d_max / s[0] - d_min / s[-1], W
@@ -581,8 +589,17 @@ class SafePlanner:
         theta_lo: ArrayLike,
         theta_hi: ArrayLike,
         mode: str | None = None,
+        past: np.ndarray | None = None,
     ) -> PlanningProblem:
-        return PlanningProblem(self, q0, v0, a0, theta0, theta_lo, theta_hi, mode)
+        return PlanningProblem(self, q0, v0, a0, theta0, theta_lo, theta_hi, mode, past)
+
+    def executed_rows(self, plan: PlanResult, duration_s: float) -> np.ndarray:
+        """W_e rows (rows, 10) of the first duration_s of an accepted plan, at the exciting cost's
+        sample spacing: the `past` of the next planning call when planner.cumulative_excitation."""
+        cfg = self.config
+        t = np.arange(0.0, duration_s, cfg.duration_s / (cfg.num_cost_samples - 1))
+        q, v, a = plan.evaluate(t)
+        return ee_standard_regressor(self.robot.tree, self.robot.end_effector, q, v, a).reshape(-1, 10)
 
     def plan(
         self,
@@ -595,12 +612,14 @@ class SafePlanner:
         k_init: ArrayLike | None = None,
         rng: np.random.Generator | None = None,
         mode: str | None = None,
+        past: np.ndarray | None = None,
     ) -> PlanResult:
-        """One planning call -> PlanResult (ok False: keep the previous plan, which brakes)."""
+        """One planning call -> PlanResult (ok False: keep the previous plan, which brakes).
+        past: W_e rows of the motion executed so far (executed_rows), for the exciting cost."""
         t_start = time.perf_counter()
         cpu_start = time.process_time()
         mode = mode or self.config.cost
-        prob = self.problem(q0, v0, a0, theta0, theta_lo, theta_hi, mode)
+        prob = self.problem(q0, v0, a0, theta0, theta_lo, theta_hi, mode, past)
         res = PlanResult(
             ok=False, status="infeasible_start", solver=self.config.solver if mode != "random" else "random"
         )

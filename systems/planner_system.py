@@ -70,6 +70,7 @@ class PlannerState:
     rng: np.random.Generator | None = None  # of the random plans and starts; advanced by each call
     thetas: tuple = ()  # (theta0, lower, upper) `plan` was certified with (before any plan: the last call's)
     events: tuple[dict, ...] = ()  # {t, kind, detail}: plan_failed, plan_refused, brake
+    past: np.ndarray | None = None  # W_e rows of the executed plans (planner.cumulative_excitation)
 
     @functools.cached_property
     def piece(self) -> Piece | None:
@@ -232,8 +233,12 @@ class ExcitingPlanner(LeafSystem):
         rng = copy.deepcopy(st.rng)  # the stored one may be shared with other copies of this state
         wall = time.perf_counter()
         forced = self._forced.get(st.calls)
+        past = st.past
+        if st.plan is not None and self._planner.config.cumulative_excitation:
+            executed = self._planner.executed_rows(st.plan, t - st.t_start)
+            past = executed if past is None else np.vstack([past, executed])
         if forced is None:
-            res = self._planner_at(t).plan(q, v, a, *thetas, k_init=k_prev, rng=rng, mode=self._mode)
+            res = self._planner_at(t).plan(q, v, a, *thetas, k_init=k_prev, rng=rng, mode=self._mode, past=past)
         else:  # injected: the solver failed or did not return in time, no verified plan
             res = PlanResult(ok=False, status=forced, reason="injected fault", solver=self._planner.config.solver)
             st = dataclasses.replace(
@@ -259,7 +264,9 @@ class ExcitingPlanner(LeafSystem):
             max_torque_ratio=res.max_torque_ratio,
             constraints=res.num_collision_constraints,
         )
-        new = dataclasses.replace(st, calls=calls, records=st.records + (record,), results=st.results + (res,), rng=rng)
+        new = dataclasses.replace(
+            st, calls=calls, records=st.records + (record,), results=st.results + (res,), rng=rng, past=past
+        )
         if res.ok:
             new.plan, new.t_start, new.thetas = res, t, thetas
         else:

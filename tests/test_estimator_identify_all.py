@@ -60,3 +60,13 @@ def test_every_interval_narrower_than_the_prior_and_inertias_within_half_of_it(r
 )
 def test_mass_half_width_at_most_a_tenth_of_a_kilogram(runs):
     assert max(widths(s)[0] / 2 for s in runs.values()) <= 0.1
+
+
+def test_exciting_plans_condition_the_data_better_than_random(runs):
+    """The paper's Table IV claim on this scene: median cond(Y) ours / random <= 0.7 (paired seeds)."""
+    cond = {m: np.array([runs[m, seed]["cond_Y"] for seed in SEEDS]) for m in ("ours", "random")}
+    ratio = np.median(cond["ours"]) / np.median(cond["random"])
+    lower = int(np.sum(cond["ours"] < cond["random"]))
+    print(f"median cond(Y) ours {np.median(cond['ours']):.0f} / random {np.median(cond['random']):.0f} = {ratio:.2f}")
+    print(f"ours lower in {lower}/{len(SEEDS)} pairs")
+    assert ratio <= 0.7

@@ -200,6 +200,33 @@ def test_inertia_columns_cost_is_the_log_cond_of_the_six_inertia_columns(robot, 
     assert np.allclose(grad, fd, rtol=1e-5, atol=1e-6)
 
 
+def test_cumulative_cost_conditions_the_past_motion_with_the_plan(robot, payload):
+    """planner.cumulative_excitation: the cost is log cond([past; W_e(k)]) with the past motion's
+    rows (executed_rows of an earlier plan) on top, its gradient exact; a plan that repeats the
+    past motion is worth less than alone, so the optimum moves elsewhere."""
+    planner, thetas = make_planner(robot, payload, [])
+    first = planner.plan(Q0, np.zeros(7), np.zeros(7), *thetas)
+    assert first.ok, first.reason
+    past = planner.executed_rows(first, planner.config.replan_period_s)
+    spacing = planner.config.duration_s / (planner.config.num_cost_samples - 1)
+    assert past.shape == (7 * len(np.arange(0.0, planner.config.replan_period_s, spacing)), 10)
+    q, v, a = (x[0] for x in first.evaluate([planner.config.replan_period_s]))
+    alone, stacked = (planner.problem(q, v, a, *thetas, past=p) for p in (None, past))
+    rng = np.random.default_rng(5)
+    k = rng.uniform(stacked.k_lo, stacked.k_hi)
+    val, grad, W = stacked.exciting_cost(k)
+    assert np.isclose(val, np.log(np.linalg.cond(np.vstack([past, W]))))
+    assert np.allclose(W, alone.exciting_cost(k)[2])  # the plan's own W_e (its cond is reported)
+    fd = np.array(
+        [(stacked.exciting_cost(k + 1e-6 * e)[0] - stacked.exciting_cost(k - 1e-6 * e)[0]) / 2e-6 for e in np.eye(7)]
+    )
+    assert np.allclose(grad, fd, rtol=1e-5, atol=1e-6)
+    # The optimum of the plan alone and of the plan after the past motion differ.
+    k_alone = planner.plan(q, v, a, *thetas, k_init=first.k).k
+    k_stacked = planner.plan(q, v, a, *thetas, k_init=first.k, past=past).k
+    assert np.max(np.abs(k_alone - k_stacked)) > 1e-3
+
+
 def test_planned_and_random_plans_are_safe_in_continuous_time(robot, planned):
     """Monte Carlo: feasible k (optimized, then random feasible ones) checked densely."""
     planner, thetas, scene = planned

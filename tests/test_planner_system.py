@@ -195,3 +195,20 @@ def test_two_contexts_do_not_share_plans_or_the_random_generator(setup):
         r.ok for r in system.results(system.GetMyContextFromRoot(alone.get_context()))
     )
     assert plans(together[0]) == plans(together[1]) == plans(alone)
+
+
+def test_cumulative_excitation_hands_each_call_the_executed_motion(setup):
+    """planner.cumulative_excitation: before each call the executed part of the running plan
+    (from its start to now) is appended to the past rows the exciting cost stacks; off: none."""
+    import dataclasses
+
+    robot, planner, thetas = setup
+    cumulative = SafePlanner(
+        robot, dataclasses.replace(planner.config, cumulative_excitation=True), [], None, planner.tracking
+    )
+    st, _ = simulate(ExcitingPlanner(cumulative, Q0, *thetas, num_plans=3), 4.6, connect_thetas=thetas)
+    assert st.calls == 3 and all(r["ok"] for r in st.records)
+    executed = [cumulative.executed_rows(res, 1.5) for res in st.results[:2]]
+    np.testing.assert_array_equal(st.past, np.vstack(executed))
+    st_off, _ = simulate(ExcitingPlanner(planner, Q0, *thetas, num_plans=3), 4.6, connect_thetas=thetas)
+    assert st_off.past is None
