@@ -30,7 +30,7 @@ from .armour import (
     TrackingErrors,
     armour_control,
 )
-from .intervals import Interval
+from .intervals import Interval, dot_rounding
 
 if TYPE_CHECKING:
     from .robot_model import RobotModel
@@ -41,7 +41,6 @@ if TYPE_CHECKING:
 _INERTIA_NZ = armour_kernel.sparse_bilinear(_INERTIA, width=1)
 _BILINEAR_NZ = armour_kernel.sparse_bilinear(_BILINEAR_TENSOR)
 _ENERGY_NZ = armour_kernel.sparse_bilinear(_INERTIA.reshape(36, 10))
-_ROUNDING = 4 * np.finfo(float).eps  # intervals.matmul's allowance for the float products
 
 
 def _adjoint(T):
@@ -83,7 +82,7 @@ class FastControllerDynamics(ControllerDynamics):
     ) -> tuple[np.ndarray, np.ndarray]:
         if not self.serial:
             return super().regressors(q, v, va, aa, x)
-        out = armour_kernel.chain_regressors(*_samples(q, v, va, aa, x), *self.kernel_constants[:6])
+        out = armour_kernel.chain_regressors(*_samples(q, v, va, aa, x), self.kernel_constants)
         return out[0], out[1]
 
     def passivity_and_energy(
@@ -94,7 +93,7 @@ class FastControllerDynamics(ControllerDynamics):
         if not self.serial:
             wp, wm_r = self.regressors(q, v, va, aa, r)
             return np.vstack([wp, np.asarray(r, float).reshape(-1) @ wm_r])
-        return armour_kernel.chain_passivity_energy(*_samples(q, v, va, aa, r), *self.kernel_constants)
+        return armour_kernel.chain_passivity_energy(*_samples(q, v, va, aa, r), self.kernel_constants)
 
 
 def _samples(*arrays):
@@ -128,7 +127,9 @@ class FastArmourLaw:
         if self._valid:
             self._mid_theta0 = np.stack([0.5 * (lo + hi), theta0], 1)
             rad, mag = np.nextafter(0.5 * (hi - lo), np.inf), np.maximum(np.abs(lo), np.abs(hi))
-            self._spread = np.nextafter(rad + _ROUNDING * mag, np.inf)  # per parameter, outward
+            # Per parameter, outward; intervals.matmul's allowance for the float products, here
+            # for the kernel's sum of |a| spread, which is itself rounded (dot_rounding).
+            self._spread = np.nextafter(rad + dot_rounding(len(lo)) * mag, np.inf)
         return self._valid
 
     def __call__(

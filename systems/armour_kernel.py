@@ -148,21 +148,11 @@ def _friction(va, aa, smoothing, out):
 
 
 @_jit
-def chain_regressors(
-    q: Vector,
-    v: Vector,
-    va: Vector,
-    aa: Vector,
-    x: Vector,
-    local: np.ndarray,
-    screw: np.ndarray,
-    gravity: Vector,
-    smoothing: float,
-    inertia: Table,
-    bilinear: Table,
-) -> np.ndarray:
-    """(2, n, 14 n): [Wp(q, v, va, aa), Wm(q, x)] (armour.ControllerDynamics.regressors)."""
+def chain_regressors(q: Vector, v: Vector, va: Vector, aa: Vector, x: Vector, dynamics: tuple) -> np.ndarray:
+    """(2, n, 14 n): [Wp(q, v, va, aa), Wm(q, x)] (armour.ControllerDynamics.regressors);
+    dynamics: the robot's constants (armour_fast.FastControllerDynamics.kernel_constants)."""
     n = q.shape[0]
+    local, screw, gravity, smoothing, inertia, bilinear, _ = dynamics
     body, s_body = _bodies(q, v, va, aa, x, local, screw, gravity)
     y_p, y_m = np.zeros((n, 60)), np.zeros((n, 60))
     for i in range(n):
@@ -179,23 +169,11 @@ def chain_regressors(
 
 
 @_jit
-def chain_passivity_energy(
-    q: Vector,
-    v: Vector,
-    va: Vector,
-    aa: Vector,
-    r: Vector,
-    local: np.ndarray,
-    screw: np.ndarray,
-    gravity: Vector,
-    smoothing: float,
-    inertia: Table,
-    bilinear: Table,
-    energy: Table,
-) -> np.ndarray:
+def chain_passivity_energy(q: Vector, v: Vector, va: Vector, aa: Vector, r: Vector, dynamics: tuple) -> np.ndarray:
     """(n + 1, 14 n): rows 0..n-1 Wp(q, v, va, aa), row n r^T Wm(q, r) (2 x the kinetic energy of
-    r as a function of theta: per body r_b^T I r_b, without forming Wm)."""
+    r as a function of theta: per body r_b^T I r_b, without forming Wm); dynamics as chain_regressors."""
     n = q.shape[0]
+    local, screw, gravity, smoothing, inertia, bilinear, energy = dynamics
     body, s_body = _bodies(q, v, va, aa, r, local, screw, gravity)
     y_p = np.zeros((n, 60))
     out = np.zeros((n + 1, 14 * n))
@@ -240,8 +218,7 @@ def armour_law(
     ke = Kr * e
     r = edot + ke
     qd_a, qdd_a = qd_d + ke, qdd_d + Kr * edot
-    local, screw, gravity, smoothing, inertia, bilinear, energy = dynamics
-    a = chain_passivity_energy(q, v, qd_a, qdd_a, r, local, screw, gravity, smoothing, inertia, bilinear, energy)
+    a = chain_passivity_energy(q, v, qd_a, qdd_a, r, dynamics)
     # The interval product a [theta] (intervals.matmul): mid +- spread, outward.
     lo, hi, tau_nom = np.empty(n + 1), np.empty(n + 1), np.empty(n)
     for k in range(n + 1):

@@ -114,7 +114,20 @@ class Interval:
         return Interval(_down(low), _up(np.maximum(lo2, hi2)))
 
     def sum(self, axis: int | None = None) -> Interval:
-        return Interval(_down(self.lo.sum(axis)), _up(self.hi.sum(axis)))
+        k = self.lo.size if axis is None else self.lo.shape[axis]
+        err = dot_rounding(k) * self.mag.sum(axis)  # the float sums' error (dot_rounding)
+        return Interval(_down(self.lo.sum(axis) - err), _up(self.hi.sum(axis) + err))
+
+
+def dot_rounding(k: int) -> float:
+    """c such that c * (|a| . mag) bounds the rounding of a mid-radius product of length k: the
+    float dot products a . mid and |a| . rad each differ from the exact ones by at most
+    gamma_k |a| . mag in any summation order (Higham, Accuracy and Stability of Numerical
+    Algorithms, 2nd ed., eq. 3.5: gamma_k = k u / (1 - k u), u = eps / 2), so 2 gamma_k <=
+    k eps (1 + k eps); the midpoint's own rounding adds eps / 2. (k + 2) eps covers all of them with
+    room for the rounding of c (|a| . mag) itself while k (k + 2) eps <= 1 (k <= 6e7), barring
+    underflow (products below 1e-308)."""
+    return (k + 2) * np.finfo(float).eps
 
 
 def as_interval(x: Interval | ArrayLike) -> Interval:
@@ -124,13 +137,13 @@ def as_interval(x: Interval | ArrayLike) -> Interval:
 def matmul(a: np.ndarray, x: Interval) -> Interval:
     """Point matrix (..., m, k) times interval vectors/matrices (..., k[, p]): exact hull, outward.
 
-    The product is linear in x, so mid/radius form is exact up to rounding.
+    The product is linear in x, so mid/radius form is exact up to rounding (dot_rounding).
     """
     x = as_interval(x)
     a = np.asarray(a, float)
     mid = a @ x.mid
     rad = np.abs(a) @ x.rad
-    err = 4 * np.finfo(float).eps * (np.abs(a) @ x.mag)  # rounding of the float products
+    err = dot_rounding(a.shape[-1]) * (np.abs(a) @ x.mag)  # rounding of the float products
     return Interval(_down(mid - rad - err), _up(mid + rad + err))
 
 

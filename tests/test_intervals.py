@@ -51,3 +51,27 @@ def test_intersection_and_empty():
 
     with pytest.raises(ValueError):
         Interval(0.0, 1.0).intersect(Interval(2.0, 3.0))
+
+
+def test_sums_and_products_contain_the_exact_value_in_rational_arithmetic():
+    """Interval.sum and matmul allow for the float sums' rounding (intervals.dot_rounding): numpy
+    sums 100 copies of 1/3 to 1.59 ulp above the exact value (one ulp outward is not enough);
+    random rows of length 98 (the controller's) and 2000."""
+    from fractions import Fraction
+
+    from safesysid.systems.intervals import matmul
+
+    third = Interval(np.full(100, 1 / 3))
+    exact = 100 * Fraction(1 / 3)
+    total = third.sum()
+    assert Fraction(float(total.lo)) <= exact <= Fraction(float(total.hi))
+    rng = np.random.default_rng(4)
+    for k in (98, 2000):
+        a = rng.uniform(-1, 1, (3, k))
+        lo = rng.uniform(-2, 2, k)
+        box = Interval(lo, lo + rng.uniform(0, 1e-9, k) * (rng.random(k) < 0.5))
+        hull = matmul(a, box)
+        for x in (box.lo, box.hi):  # the exact products at the corners lie inside the hull
+            for row, lo_k, hi_k in zip(a, hull.lo, hull.hi):
+                value = sum(Fraction(ai) * Fraction(xi) for ai, xi in zip(row, x))
+                assert Fraction(lo_k) <= value <= Fraction(hi_k)
