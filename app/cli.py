@@ -79,6 +79,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--trials", type=int, default=1, help="trials per method and dumbbell (seed = scenario seed + trial)"
     )
     p.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    p.add_argument(
+        "--stack",
+        action="store_true",
+        help="place each dumbbell on the lighter ones of --dumbbells (the paper's stacking; task.stack_on)",
+    )
     p.add_argument("--out", default="out/compare")
     _add_scenario_text(p)
 

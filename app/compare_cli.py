@@ -87,6 +87,13 @@ def cell(runs: list[dict], dumbbells: list[str], expected: int) -> str:
     return "success"
 
 
+def stack_layer(dumbbells: list[str], dumbbell: str, stack: bool) -> list[str]:
+    """--stack: the scenario layer of `dumbbell`'s runs, with the lighter dumbbells of the list
+    already on the platform (the paper stacks them in order); [] without --stack."""
+    below = dumbbells[: dumbbells.index(dumbbell)]
+    return [f"task: {{stack_on: [{', '.join(below)}]}}"] if stack and below else []
+
+
 def run_folder(out: Path, method: str, dumbbell: str, trial: int) -> Path:
     return out / method / dumbbell / f"trial{trial}"
 
@@ -209,7 +216,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     jsonl = out / "runs.jsonl"
     # Earlier runs of other scenario layers would not be these runs: resume only the same setup.
-    setup = {"scenario": str(path.resolve()), "scenario_text": list(args.scenario_text)}
+    setup = {"scenario": str(path.resolve()), "scenario_text": list(args.scenario_text), "stack": bool(args.stack)}
     setup_file = out / "setup.json"
     if setup_file.exists() and json.loads(setup_file.read_text()) != setup:
         raise BadInput(f"--out: {out} holds a compare of another scenario or --scenario-text; use a new folder")
@@ -217,7 +224,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
     done = [s for s in read_jsonl(jsonl, _key) if s.get("scenario") == scenario.name]
     have = {_key(s) for s in done}
     jobs = [
-        (str(path), list(args.scenario_text), m, d, k, str(out))
+        (str(path), list(args.scenario_text) + stack_layer(dumbbells, d, args.stack), m, d, k, str(out))
         for k in range(args.trials)
         for d in dumbbells
         for m in methods

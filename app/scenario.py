@@ -219,6 +219,9 @@ def _validate_task(s: Scenario, need):
 
         names = list(load_dumbbells(resolve_path(s.payload.dumbbells_file, scenario_dir(s))))
         need(t.payload_model in names, "task.payload_model", f"{t.payload_model!r} is not one of {', '.join(names)}")
+        for k, name in enumerate(t.stack_on):
+            need(name in names, f"task.stack_on[{k}]", f"{name!r} is not one of {', '.join(names)}")
+    need(not t.stack_on or t.platform, "task.stack_on", "needs task.platform (the stack stands on it)")
 
 
 def _validate_faults(s: Scenario, need):
@@ -275,7 +278,23 @@ def load_scenario(
     _apply_corrected_model(scenario, _given_keys([text, *overrides]), where)
     label = where if path is not None else str(SCENARIOS_DIR / "defaults.yaml")
     _validate(scenario, f"{label} with --scenario-text" if overrides else label)
+    _stack_on_platform(scenario)
     return scenario
+
+
+def _stack_on_platform(s: Scenario) -> None:
+    """task.stack_on: the placed dumbbells become obstacle boxes on the platform (once, at load)
+    and the payload's platform is the top one; stack_on is cleared so the result loads as is."""
+    if not s.task.stack_on:
+        return
+    from safesysid.systems.payload import load_dumbbells
+    from safesysid.systems.task_phase import stack_boxes
+
+    bells = load_dumbbells(resolve_path(s.payload.dumbbells_file, scenario_dir(s)))
+    platform = next(ob for ob in s.obstacles if ob.name == s.task.platform)
+    boxes = stack_boxes(platform, [bells[name] for name in s.task.stack_on])
+    s.obstacles = [*s.obstacles, *boxes]
+    s.task = dc.replace(s.task, platform=boxes[-1].name, stack_on=[])
 
 
 def _given_keys(layers):

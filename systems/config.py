@@ -266,6 +266,9 @@ class Task:
     goal_q_rad: List[float] = dc.field(default_factory=list)
     place_xyz_m: List[float] = dc.field(default_factory=list)  # payload centre target, base frame
     platform: str = ""  # name of the obstacle (in `obstacles`) the payload is placed on
+    # Stacking (paper §VII): dumbbells already placed on the platform, bottom first; each becomes a
+    # box on the stack (task_phase.stack_boxes) and the payload is placed on the top one.
+    stack_on: List[str] = dc.field(default_factory=list)
     release_height_m: float = 0.03  # payload's lowest point above the platform top at release
     placement_tolerance_m: float = 0.01  # success: |settled payload centre - target| (see above)
     return_duration_s: float = 2.0  # identification end -> q0_rad (one degree-5 piece)

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from . import task_trajectory as tt
-from .config import Scenario, resolve_path, scenario_dir
+from .config import Obstacle, Scenario, resolve_path, scenario_dir
 
 if TYPE_CHECKING:
     from .payload import Dumbbell
@@ -53,6 +53,29 @@ def return_move(problem: tt.TaskProblem, q_from: np.ndarray, duration_s: float) 
     settings = dataclasses.replace(problem.settings, num_pieces=1, duration_s=float(duration_s))
     move = dataclasses.replace(problem, q_start=q_from, goal_q=problem.q_start, place_xyz=None, settings=settings)
     return tt.solve_task_trajectory(move)
+
+
+def stack_boxes(platform: Obstacle, dumbbells: Sequence[Dumbbell]) -> list[Obstacle]:
+    """The dumbbells already placed on `platform` (bottom first) as obstacle boxes stacked on its
+    top centre: each lies on its heads (height 2 x head radius) at an unknown yaw, so its box has a
+    square footprint of side sqrt(length^2 + (2 head radius)^2), which holds it at any yaw. They
+    stand for the placed dumbbells in the planner's, the task trajectory's and the referee's
+    world (welded: a model of a stack that stays put, not simulated free bodies)."""
+    x, y, z = np.asarray(platform.xyz_m, float)
+    top = z + 0.5 * float(platform.size_m[2])
+    boxes = []
+    for k, bell in enumerate(dumbbells):
+        height, side = 2 * bell.head_radius_m, float(np.hypot(bell.length_m, 2 * bell.head_radius_m))
+        boxes.append(
+            Obstacle(
+                name=f"stacked_{k + 1}_{bell.name}",
+                xyz_m=[float(x), float(y), float(top + 0.5 * height)],
+                rpy_rad=[0.0, 0.0, 0.0],
+                size_m=[side, side, height],
+            )
+        )
+        top += height
+    return boxes
 
 
 def placement_target(scenario: Scenario, dumbbell: Dumbbell | None) -> tuple[np.ndarray | None, str]:

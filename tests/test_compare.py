@@ -7,7 +7,7 @@ import re
 
 import pytest
 from safesysid.cli import BadInput, main
-from safesysid.compare_cli import cell, parse_dumbbells, parse_methods, table
+from safesysid.compare_cli import cell, parse_dumbbells, parse_methods, stack_layer, table
 from safesysid.scenario import METHODS, SCENARIOS_DIR
 
 CATALOGUE = {"4lb": 1.814, "5lb": 2.268, "6lb": 2.722, "7lb": 3.175, "8lb": 3.629}
@@ -122,3 +122,13 @@ def test_compare_bad_input_exits_2(tmp_path, capsys):
     assert main(["compare", quick, "--dumbbells", "4lb..9lb", "--out", str(tmp_path)]) == 2
     assert "--dumbbells" in capsys.readouterr().err
     assert main(["compare", quick, "--methods", "ours,best", "--out", str(tmp_path)]) == 2
+
+
+def test_stack_places_each_dumbbell_on_the_lighter_ones_of_the_list():
+    names = ["4lb", "5lb", "6lb"]
+    assert [stack_layer(names, d, True) for d in names] == [
+        [],
+        ["task: {stack_on: [4lb]}"],
+        ["task: {stack_on: [4lb, 5lb]}"],
+    ]
+    assert stack_layer(names, "6lb", False) == []

@@ -150,3 +150,30 @@ def test_collision_in_the_task_phase_is_reported_with_phase_task(cache, monkeypa
     s = run_online(scene, None, method="ours", write=False)
     assert s["failure"] == "collision" and s["phase"] == "task", s
     assert s["failure_time_s"] > s["task"]["switch_time_s"] and s["collisions"] >= 1
+
+
+def test_stacking_puts_the_placed_dumbbells_on_the_platform_and_the_payload_on_top():
+    """task.stack_on: each placed dumbbell becomes a box on the previous one (2 x head radius
+    high, wide enough for any yaw), the payload's platform is the top box and its target rests on
+    it; a name outside the dumbbell set or a stack without a platform is a one-line error."""
+    from safesysid.scenario import ScenarioError
+    from safesysid.systems.payload import load_dumbbells
+    from safesysid.systems.robot_model import MODELS_DIR
+
+    bells = load_dumbbells(MODELS_DIR / "dumbbells.yaml")
+    base = load_scenario(SCENARIOS_DIR / "experiment_a.yaml")
+    s = load_scenario(SCENARIOS_DIR / "experiment_a.yaml", overrides=["task: {stack_on: [4lb, 5lb]}"])
+    assert [ob.name for ob in s.obstacles] == [ob.name for ob in base.obstacles] + ["stacked_1_4lb", "stacked_2_5lb"]
+    platform = next(ob for ob in base.obstacles if ob.name == base.task.platform)
+    top = platform.xyz_m[2] + platform.size_m[2] / 2 + 2 * bells["4lb"].head_radius_m + 2 * bells["5lb"].head_radius_m
+    box = s.obstacles[-1]
+    assert s.task.platform == box.name and s.task.stack_on == []
+    assert box.xyz_m[2] + box.size_m[2] / 2 == pytest.approx(top)
+    assert box.size_m[0] >= np.hypot(bells["5lb"].length_m, 2 * bells["5lb"].head_radius_m) - 1e-12
+    target, kind = task_phase.placement_target(s, bells["8lb"])
+    assert kind == "settled" and target[2] == pytest.approx(top + bells["8lb"].head_radius_m)
+    assert target[:2] == pytest.approx(platform.xyz_m[:2])
+    with pytest.raises(ScenarioError, match=r"task.stack_on\[1\]: '9lb'"):
+        load_scenario(SCENARIOS_DIR / "experiment_a.yaml", overrides=["task: {stack_on: [4lb, 9lb]}"])
+    with pytest.raises(ScenarioError, match="task.stack_on: needs task.platform"):
+        load_scenario(SCENARIOS_DIR / "quickstart.yaml", overrides=["task: {stack_on: [4lb], goal_q_rad: []}"])
