@@ -163,10 +163,10 @@ def task_switch_time_s(scenario: Scenario, spec: methods.MethodSpec) -> float:
 
 
 def make_estimator_system(
-    robot: RobotModel, scenario: Scenario, update_period_s: float | None = None
+    robot: RobotModel, scenario: Scenario, update_period_s: float | None = None, stop_time_s: float = np.inf
 ) -> SysIdEstimator:
     """The SysIdEstimator of a scenario: its estimator settings and initial interval, sampling at
-    the plant step, updating every t_p (planner.replan_period_s unless given)."""
+    the plant step, updating every t_p (planner.replan_period_s unless given), until stop_time_s."""
     from safesysid.systems.estimation import EstimatorSettings
     from safesysid.systems.sysid_system import SysIdEstimator
 
@@ -178,6 +178,7 @@ def make_estimator_system(
         update_period_s or scenario.planner.replan_period_s,
         (np.array(ii.lower, float), np.array(ii.upper, float)),
         np.array(ii.nominal, float),
+        stop_time_s,
     )
 
 
@@ -207,7 +208,9 @@ def build_online(
     tracking = tracking_bounds_for(robot, gains.armour, box.lo)
     estimator = None
     if spec.identifies == methods.ESTIMATOR:
-        estimator = builder.AddSystem(make_estimator_system(robot, scenario))
+        # With a task phase the estimator stops at the switch: the task uses the box latched then.
+        stop = task_switch_time_s(scenario, spec) if task else np.inf
+        estimator = builder.AddSystem(make_estimator_system(robot, scenario, stop_time_s=stop))
         estimator.set_name("estimator")
         builder.Connect(arm.state_output, estimator.GetInputPort("state"))
         builder.Connect(arm.measured_torque_output, estimator.GetInputPort("measured_torque"))

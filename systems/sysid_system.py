@@ -68,12 +68,16 @@ class SysIdEstimator(LeafSystem):
         update_period_s: float,
         prior: tuple[np.ndarray, np.ndarray],
         prior_nominal: np.ndarray,
+        stop_time_s: float = np.inf,
     ) -> None:
         """settings: the estimator's (EstimatorSettings.from_scenario); sample_period_s: the plant
         step; update_period_s: t_p; prior: (lower, upper) of θ_e; prior_nominal: θ_e published
-        before the first update. app/online.py make_estimator_system takes them from a scenario."""
+        before the first update; stop_time_s: after it the estimator neither samples nor updates
+        (the task phase: the controller has latched its box). app/online.py
+        make_estimator_system takes them from a scenario."""
         super().__init__()
         self.robot = robot
+        self.stop_time_s = float(stop_time_s)
         self.settings = settings
         self.sample_period_s = float(sample_period_s)
         self.update_period_s = float(update_period_s)
@@ -128,6 +132,8 @@ class SysIdEstimator(LeafSystem):
 
     def _on_sample(self, context, state):
         t = context.get_time()
+        if t > self.stop_time_s + 1e-12:
+            return EventStatus.DidNothing()
         run = self._get(context)
         for row in self._arrived(context):
             run = self._accept(run, row)

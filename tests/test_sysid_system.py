@@ -53,7 +53,7 @@ def rigid_robot():
     return robot.with_theta(theta)
 
 
-def build(robot, update_period_s=1.0, duration_s=3.0, sensor_offset_Nm=0.0):
+def build(robot, update_period_s=1.0, duration_s=3.0, sensor_offset_Nm=0.0, stop_time_s=np.inf):
     """Plant <- ZOH(1 ms) <- computed torque; the estimator logs the controller's output at t_k,
     which is what the hold latches at t_k and applies over [t_k, t_k+1] (the hold's own output
     at t_k is still the previous sample: logging it would shift the log by one step)."""
@@ -73,6 +73,7 @@ def build(robot, update_period_s=1.0, duration_s=3.0, sensor_offset_Nm=0.0):
             update_period_s=update_period_s,
             prior=(np.array(scenario.initial_interval.lower), np.array(scenario.initial_interval.upper)),
             prior_nominal=np.array(scenario.initial_interval.nominal),
+            stop_time_s=stop_time_s,
         )
     )
     q0 = np.array([0.0, 0.3, 0.0, 1.5, 0.0, 0.8, 0.0])
@@ -145,6 +146,20 @@ def test_estimator_system_in_a_diagram(rigid_robot):
     ctx.SetTime(0.0)
     sim.Initialize()
     assert est.GetOutputPort("update_info").Eval(est_ctx)[0] == 0
+
+
+def test_estimator_stops_at_its_stop_time(rigid_robot):
+    """stop_time_s (the task phase's switch): no sample after it is collected and no update runs,
+    so the published box stays the one of the last update before it."""
+    sim, diagram, plant, est = build(rigid_robot, update_period_s=1.0, stop_time_s=1.5)
+    ctx = sim.get_mutable_context()
+    est_ctx = est.GetMyContextFromRoot(ctx)
+    sim.Initialize()
+    sim.AdvanceTo(3.0005)
+    assert [round(h["t"], 6) for h in est.history(est_ctx)] == [1.0]
+    run = est._get(est_ctx)
+    assert run.samples and max(row[0] for row in run.samples) <= 1.5 + 1e-9
+    assert est.GetOutputPort("update_info").Eval(est_ctx)[0] == 1
 
 
 def test_consistent_port_latches_off_and_the_box_is_kept(rigid_robot):
