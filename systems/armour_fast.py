@@ -125,11 +125,11 @@ class FastArmourLaw:
         self._valid = bool(np.all(np.isfinite(theta0)) and np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)))
         self._valid = self._valid and bool(np.all(lo <= hi))
         if self._valid:
-            self._mid_theta0 = np.stack([0.5 * (lo + hi), theta0], 1)
-            rad, mag = np.nextafter(0.5 * (hi - lo), np.inf), np.maximum(np.abs(lo), np.abs(hi))
+            box = Interval(lo, hi)
+            self._mid_theta0 = np.stack([box.mid, theta0], 1)
             # Per parameter, outward; intervals.matmul's allowance for the float products, here
             # for the kernel's sum of |a| spread, which is itself rounded (dot_rounding).
-            self._spread = np.nextafter(rad + dot_rounding(len(lo)) * mag, np.inf)
+            self._spread = np.nextafter(box.rad + dot_rounding(len(lo)) * box.mag, np.inf)
         return self._valid
 
     def __call__(
@@ -148,7 +148,7 @@ class FastArmourLaw:
         g, dyn = self.gains, self.dyn
         if not dyn.serial:  # a tree: the reference law (no robot of this project takes it)
             return armour_control(dyn, g, q, v, q_d, qd_d, qdd_d, theta0, Interval(theta_lower, theta_upper))
-        u, tau_nom, v_rob, w_bar, V_bar, h, lam, e, edot, qd_a, qdd_a, r, _ = armour_kernel.armour_law(
+        u, tau_nom, v_rob, w_bar, V_bar, h, lam, e, edot, qd_a, qdd_a, r = armour_kernel.armour_law(
             *_samples(q, v, q_d, qd_d, qdd_d),
             self._Kr,
             self.continuous,

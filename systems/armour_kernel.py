@@ -57,17 +57,18 @@ def _bodies(q, v, va, aa, x, local, screw, gravity):
     body = np.zeros((n, 4, 6))
     s_body = np.zeros((n, n, 6))
     S = np.zeros((n, 6))
-    Y, L = np.eye(6), np.empty((6, 6))
+    Y, L, link = np.eye(6), np.empty((6, 6)), np.empty((6, 6))
     world = np.zeros((4, 6))  # running twists of v, va, x and acceleration (tree sums of a chain)
     world[3] = gravity
     sva = np.zeros(6)
     for i in range(n):
         s, c = math.sin(q[i]), 1.0 - math.cos(q[i])
-        for row in range(6):  # Y_i = Y_(i-1) L_i(q_i) (into L, then swapped); by hand: a BLAS call costs more at 6 x 6
+        link[:] = local[i, 0] + s * local[i, 1] + c * local[i, 2]  # L_i(q_i)
+        for row in range(6):  # Y_i = Y_(i-1) L_i (into L, then swapped); by hand: a BLAS call costs more at 6 x 6
             for col in range(6):
                 acc = 0.0
                 for d in range(6):
-                    acc += Y[row, d] * (local[i, 0, d, col] + s * local[i, 1, d, col] + c * local[i, 2, d, col])
+                    acc += Y[row, d] * link[d, col]
                 L[row, col] = acc
         Y, L = L, Y
         for row in range(6):
@@ -208,7 +209,7 @@ def armour_law(
     """armour.armour_control for a chain, with the box given as mid_theta0 (p, 2) = [box centre,
     theta0] and `spread` (p,) = outward (radius + rounding allowance per unit |a|), as
     armour_fast.FastArmourLaw caches them. Returns (u, tau_nom, v, w_bar, V_bar, h, lam, e, edot,
-    qd_a, qdd_a, r, a), a = [Wp; r^T Wm] at (q, v, qd_a, qdd_a, r)."""
+    qd_a, qdd_a, r)."""
     n = q.shape[0]
     e = q_d - q
     for j in range(n):
@@ -241,4 +242,4 @@ def armour_law(
     if norm_r >= tiny_r:
         lam = max(0.0, -alpha * h / norm_r + math.sqrt(_dot(w_bar, w_bar)) * up)
         v_rob = lam * r / norm_r
-    return tau_nom + v_rob, tau_nom, v_rob, w_bar, V_bar, h, lam, e, edot, qd_a, qdd_a, r, a
+    return tau_nom + v_rob, tau_nom, v_rob, w_bar, V_bar, h, lam, e, edot, qd_a, qdd_a, r

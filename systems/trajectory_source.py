@@ -71,10 +71,15 @@ def evaluate_pieces(pieces: list[Piece], t: float) -> tuple[np.ndarray, np.ndarr
     return active.evaluate(t)
 
 
+def _is_single_curve(trajectory):
+    """True for one (QuinticBezier, q_end) from t = 0 (the other form: a list of Piece)."""
+    return isinstance(trajectory, tuple) and len(trajectory) == 2 and isinstance(trajectory[0], QuinticBezier)
+
+
 def _as_pieces(trajectory):
     if isinstance(trajectory, QuinticBezier):
         raise TypeError("pass (QuinticBezier, q_end) or a list of Piece")
-    if isinstance(trajectory, tuple) and len(trajectory) == 2 and isinstance(trajectory[0], QuinticBezier):
+    if _is_single_curve(trajectory):
         return [Piece(0.0, trajectory[0], np.asarray(trajectory[1], float))]
     pieces = list(trajectory)
     return sorted(pieces, key=lambda p: p.t_start)
@@ -114,7 +119,7 @@ def make_trajectory_source(n: int, trajectory: tuple[QuinticBezier, np.ndarray] 
     from t = 0 becomes Drake's TrajectorySource over a BezierCurve (evaluated in C++, clamped
     after its end: at rest at q_end, as Piece.evaluate); a list of Piece this module's
     TrajectorySource, whose pieces can change while the diagram runs."""
-    if isinstance(trajectory, tuple) and len(trajectory) == 2 and isinstance(trajectory[0], QuinticBezier):
+    if _is_single_curve(trajectory):
         from pydrake.systems.primitives import TrajectorySource as DrakeTrajectorySource
         from pydrake.trajectories import BezierCurve
 
