@@ -280,11 +280,27 @@ def profile_online(method="ours", sim_s=3.0, top=25):
     pstats.Stats(profiler).sort_stats("cumulative").print_stats(top)
 
 
+def advance_loop(sim_s: float) -> None:
+    """Only the ARMOUR closed loop of `run` (8 lb, Table II prior) advanced over sim_s: the target
+    of an instruction count, e.g. `valgrind --tool=callgrind --collect-atstart=no
+    '--toggle-collect=*AdvanceTo*' python -m safesysid.benchmarks.bench_sim --loop 0.3` (instructions
+    per step = the collected count / 300)."""
+    s = load_scenario(overrides={"payload": {"dumbbell": "8lb"}})
+    robot = robot_from_scenario(s)
+    ii = s.initial_interval
+    theta0, box = C.parameter_box(robot, ii.nominal, ii.lower, ii.upper)
+    q0, trajectory = _trajectory(s, robot)
+    loop = build_closed_loop(s, trajectory, theta0, box, kind="armour", robot=robot)
+    _simulator(loop.diagram, loop.arm, q0).AdvanceTo(sim_s)
+
+
 if __name__ == "__main__":
     import json
     import sys
 
     if "--profile-online" in sys.argv:
         profile_online()
+    elif "--loop" in sys.argv:
+        advance_loop(float(sys.argv[sys.argv.index("--loop") + 1]))
     else:
         print(json.dumps(run(quick="--quick" in sys.argv, out=Path("out/bench")), indent=2))
