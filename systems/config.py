@@ -184,6 +184,10 @@ class Planner:
     # false: the plan alone, the paper's cost (its data no better conditioned than random plans'
     # here, but no wider intervals either: README "Exciting vs random").
     cumulative_excitation: bool = False
+    # true: after the plan in the certified k box, a wider plan certified on its own k (each plan
+    # only needs its own k safe; the box is certified for every k in it, so it shrinks much
+    # more): SafePlanner._refine. Larger motions, the same checks. false: the box alone.
+    point_refinement: bool = False
     goal_q_rad: List[float] = dc.field(default_factory=list)
     solver: str = "ipopt"  # ipopt | snopt
     max_solve_time_s: float = 1.2  # wall cap inside t_p (budget: wall_time only)

@@ -217,6 +217,9 @@ class PlanningProblem:
         theta_hi: ArrayLike,
         mode: str | None = None,
         past: np.ndarray | None = None,
+        k_box: tuple[np.ndarray, np.ndarray] | None = None,
+        certify_torque: bool = True,
+        shrink_toward: np.ndarray | None = None,
     ) -> None:
         self.planner = planner
         self.mode = mode or planner.config.cost
@@ -243,9 +246,15 @@ class PlanningProblem:
         if k_lo is None:
             self._fail(why)
             return
+        if k_box is not None:  # a sub-box (a point: the certificate of one plan, SafePlanner._refine)
+            k_lo, k_hi = np.maximum(k_lo, k_box[0]), np.minimum(k_hi, k_box[1])
+            if np.any(k_lo > k_hi):
+                self._fail("the given k box is outside the joint position/velocity limits")
+                return
         self.k_lo, self.k_hi = k_lo, k_hi
         self.torque_ratio = np.nan
-        if not self._torque_box(theta0, theta_lo, theta_hi):
+        self.torque_infeasible = False  # True: no shrunk k box fits the torque limits
+        if certify_torque and not self._torque_box(theta0, theta_lo, theta_hi, shrink_toward):
             return
         self._collision_pairs()
         # Exciting-cost sample instants and their end weights (dq/dq_end, dqd/dq_end, dqdd/dq_end).
@@ -260,8 +269,9 @@ class PlanningProblem:
         self.reason = why
 
     # -- torque: rigorous check over the k box, shrinking it toward the centre when needed ----------
-    def _torque_box(self, theta0, theta_lo, theta_hi):
-        """Largest k box (the allowed one, or shrunk toward k = 0 by halves) whose rigorous torque
+    def _torque_box(self, theta0, theta_lo, theta_hi, shrink_toward=None):
+        """Largest k box (the allowed one, or shrunk toward k = 0 by halves; toward shrink_toward
+        when given: on a point box, the points of the segment to it) whose rigorous torque
         bound fits the limits: plain interval bound on the whole box; if that fails, on all shrink
         levels at once (one batched call); if all fail, again with the affine (zonotope) enclosure of
         the regressor on hulls of `coarse` boxes, whose tracking error keeps its (e, r) coupling
@@ -269,7 +279,7 @@ class PlanningProblem:
         limit = self.planner.robot.joint_params.torque_limit
         robot = self.planner.robot
         tracking = self.planner.tracking
-        centre = np.clip(np.zeros(self.n), self.k_lo, self.k_hi)
+        centre = np.clip(np.zeros(self.n), self.k_lo, self.k_hi) if shrink_toward is None else shrink_toward
         group = max(1, int(self.planner.torque_group))
         coarse = 4  # the affine bound runs on hulls of `coarse` boxes (it costs more per box)
 
@@ -305,9 +315,11 @@ class PlanningProblem:
         if (whole / limit).max() <= 1.0:
             self.torque_ratio = float((whole / limit).max())
             return True
-        scales = [0.5**s for s in range(1, self.planner.torque_shrink_steps + 1)]
+        point = np.array_equal(self.k_lo, centre) and np.array_equal(self.k_hi, centre)
+        steps = 0 if point else self.planner.torque_shrink_steps  # nothing to shrink
+        scales = [0.5**s for s in range(1, steps + 1)]
         nb = len(whole)
-        if (whole / limit).max() <= PLAIN_SHRINK_RATIO:
+        if scales and (whole / limit).max() <= PLAIN_SHRINK_RATIO:
             sup, *_, nb = plain_bound(scales)
             if take_largest_fit(scales, sup, nb):  # the plain bound admits a shrunk box
                 return True
@@ -343,6 +355,7 @@ class PlanningProblem:
             return True
         i, j = np.unravel_index(np.argmax(last / limit), last.shape)
         t_box = self.reach.edges[min(i * group, len(self.reach.t_mid) - 1)]
+        self.torque_infeasible = True
         self._fail(
             f"torque limit of joint {j + 1} cannot be guaranteed (bound {last[i, j]:.1f} N m > "
             f"{limit[j]:.1f} N m from t = {t_box:.2f} s, robust term included)"
@@ -590,8 +603,10 @@ class SafePlanner:
         theta_hi: ArrayLike,
         mode: str | None = None,
         past: np.ndarray | None = None,
+        **kw,
     ) -> PlanningProblem:
-        return PlanningProblem(self, q0, v0, a0, theta0, theta_lo, theta_hi, mode, past)
+        """kw: PlanningProblem's k_box (a sub-box, e.g. one point), certify_torque, shrink_toward."""
+        return PlanningProblem(self, q0, v0, a0, theta0, theta_lo, theta_hi, mode, past, **kw)
 
     def executed_rows(self, plan: PlanResult, duration_s: float) -> np.ndarray:
         """W_e rows (rows, 10) of the first duration_s of an accepted plan, at the exciting cost's
@@ -619,29 +634,41 @@ class SafePlanner:
         t_start = time.perf_counter()
         cpu_start = time.process_time()
         mode = mode or self.config.cost
+        rng = rng or np.random.default_rng(0)
         prob = self.problem(q0, v0, a0, theta0, theta_lo, theta_hi, mode, past)
         res = PlanResult(
             ok=False, status="infeasible_start", solver=self.config.solver if mode != "random" else "random"
         )
-        if not prob.feasible_start:
+        refine = self.config.point_refinement
+        k = None
+        if prob.feasible_start:
+            res.k_box = (prob.k_lo.copy(), prob.k_hi.copy())
+            res.num_collision_constraints = prob.num_pairs
+            res.details["solver_constraints"] = prob.num_constraints
+            res.max_torque_ratio = prob.torque_ratio
+            if mode == "random":
+                k = self._random(prob, rng, self._deadline(t_start))
+                status, solver_status = "random", "sampled"
+            else:
+                k, status, solver_status = self._optimize(prob, k_init, t_start)
+            res.solver_status = solver_status
+            if k is None:
+                res.status = "infeasible" if status != "solver_failed" else status
+                res.reason = f"no feasible k found ({solver_status})"
+        else:
             res.reason = prob.reason
-            res.solve_time_s = time.perf_counter() - t_start
-            res.details["cpu_time_s"] = time.process_time() - cpu_start
-            return res
-        res.k_box = (prob.k_lo.copy(), prob.k_hi.copy())
-        res.num_collision_constraints = prob.num_pairs
-        res.details["solver_constraints"] = prob.num_constraints
-        res.max_torque_ratio = prob.torque_ratio
-        if mode == "random":
-            k = self._random(prob, rng or np.random.default_rng(0), self._deadline(t_start))
-            status, solver_status = "random", "sampled"
-        else:
-            k, status, solver_status = self._optimize(prob, k_init, t_start)
-        res.solver_status = solver_status
-        if k is None:
-            res.status = "infeasible" if status != "solver_failed" else status
-            res.reason = f"no feasible k found ({solver_status})"
-        else:
+        if refine and (k is not None or prob.torque_infeasible):
+            # From the box's plan, or, when no box fits the torque limits, from k = 0 (uncertified).
+            base = k if k is not None else np.clip(np.zeros(self.n), prob.k_lo, prob.k_hi)
+            args = (q0, v0, a0, theta0, theta_lo, theta_hi, mode, past)
+            refined = self._refine(prob if k is not None else None, base, args, rng, t_start)
+            res.details["refined"] = refined is not None
+            if refined is not None:  # certified on its own: the box's certificate does not apply
+                k, prob, status, res.solver_status = refined
+                res.k_box = (k.copy(), k.copy())
+                res.num_collision_constraints = prob.num_pairs
+                res.max_torque_ratio = prob.torque_ratio
+        if k is not None:
             vals, _ = prob.collision(k, with_jacobian=False)
             res.ok, res.status, res.k = True, status, k
             res.q_end = prob.reach.q_end(k)
@@ -658,6 +685,37 @@ class SafePlanner:
         res.solve_time_s = time.perf_counter() - t_start
         res.details["cpu_time_s"] = time.process_time() - cpu_start
         return res
+
+    def _refine(self, prob, base, args, rng, t_start):
+        """A larger motion than the certified k box allows (planner.point_refinement): the box
+        is certified for EVERY k in it, so its interval enclosures are wide and the box shrinks
+        until they fit; one plan only needs its own k certified. Solve again over the whole
+        position/velocity limit box without the torque check (random: sample it), then take the
+        farthest point toward that target, at 1, 1/2, ..., 1/16 of the way from `base`, that the
+        rigorous torque bound certifies on the point itself (the box machinery on point boxes,
+        whose enclosures only span time and the tube), and check its collisions and limits as
+        any plan's. prob: the box's problem with base its plan (the point must also lower its
+        cost; random: any certified point), or None when no box fitted (base is k = 0,
+        uncertified). (k, its problem, status, solver status) or None."""
+        mode = args[6]
+        wide = self.problem(*args, certify_torque=False)
+        if not wide.feasible_start:
+            return None
+        if mode == "random":
+            target, status, solver_status = self._random(wide, rng, self._deadline(t_start)), "random", "sampled"
+        else:
+            target, status, solver_status = self._optimize(wide, base, t_start)
+        if target is None:
+            return None
+        point = self.problem(*args, k_box=(target, target), shrink_toward=base)
+        if not point.feasible_start:
+            return None
+        k = point.k_lo.copy()
+        if not point.is_feasible(k):
+            return None
+        if prob is not None and mode != "random" and not point.cost(k)[0] < prob.cost(base)[0]:
+            return None
+        return k, point, status, solver_status
 
     def _initial_guess(self, prob, k_init, rng=None):
         """(start, fallback). Warm start from k_init; a plan that does not move at all makes W_e

@@ -263,6 +263,7 @@ class ExcitingPlanner(LeafSystem):
             min_clearance_m=res.min_clearance_m,
             max_torque_ratio=res.max_torque_ratio,
             constraints=res.num_collision_constraints,
+            refined=bool(res.details.get("refined", False)),  # planner.point_refinement adopted a point
         )
         new = dataclasses.replace(
             st, calls=calls, records=st.records + (record,), results=st.results + (res,), rng=rng, past=past

@@ -1,5 +1,5 @@
 """scenarios/identify_all.yaml over paired seeds (issue 15), SAFESYSID_FULL=1 only (40 closed-loop
-runs, ~15 min on a quiet 2-core machine):
+runs, ~17 min on one core of this 2-core machine):
 
     SAFESYSID_FULL=1 python -m pytest -q tests/test_estimator_identify_all.py
 
@@ -60,6 +60,27 @@ def test_every_interval_narrower_than_the_prior_and_inertias_within_half_of_it(r
 )
 def test_mass_half_width_at_most_a_tenth_of_a_kilogram(runs):
     assert max(widths(s)[0] / 2 for s in runs.values()) <= 0.1
+
+
+def test_the_data_alone_narrow_every_inertia_below_the_prior(runs):
+    """Ours' data-driven box (before the bounding-volume pruning): each of the six inertias
+    narrower than the prior (point-certified plans; with the k box alone they stayed at it)."""
+    for seed in SEEDS:
+        ratio = widths(runs["ours", seed], "data_") / WIDTH_PRIOR
+        assert np.all(ratio < 1.0), (seed, ratio)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="measured 10/20 pairs (wave 2, session 5): ours narrower than random on 15, 8, 13, 15, 17, 19, "
+    "10, 16, 18, 13 of 20 pairs per parameter; m, m cx, m cy sit at their noise and robot-box floor for "
+    "both (ratio 0.95-1.07), and Izz is not better excited than by random plans",
+)
+def test_ours_narrower_than_random_on_eight_of_ten_parameters_in_most_pairs(runs):
+    """The paper's Fig. 5 claim on the data-driven intervals: >= 8 of 10 in >= 80 % of the pairs."""
+    wins = [int(np.sum(widths(runs["ours", s], "data_") < widths(runs["random", s], "data_"))) for s in SEEDS]
+    print("parameters where ours is narrower, per pair:", wins)
+    assert sum(w >= 8 for w in wins) >= 0.8 * len(SEEDS)
 
 
 def test_exciting_plans_condition_the_data_better_than_random(runs):

@@ -441,3 +441,88 @@ def test_table_ii_prior_plans_with_a_shrunk_torque_box_and_stays_within_limits(r
         gains=gains,
     )
     assert st["negative_h"] > 0.3 * st["samples"]
+
+
+def _table_ii_planner(robot, payload, obstacles, **cfg):
+    """A planner with the paper's Table II end-effector interval and the scenario's V_max."""
+    from safesysid.scenario import InitialInterval, load_scenario
+
+    ii = InitialInterval()
+    theta0, box = ctl.parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper))
+    gains = ctl.ArmourGains(GAINS.Kr, GAINS.alpha, load_scenario().controller.V_max)
+    config = Planner(**{"num_cost_samples": 32, **cfg})
+    planner = P.SafePlanner(robot, config, obstacles, payload, ctl.tracking_bounds_for(robot, gains, box.lo))
+    orig = planner.problem
+
+    def keep(*args, **kw):
+        planner._last_problem = orig(*args, **kw)
+        return planner._last_problem
+
+    planner.problem = keep
+    return planner, (theta0, box.lo, box.hi), gains
+
+
+def test_point_refinement_moves_farther_than_the_certified_box_and_stays_safe(robot, payload):
+    """planner.point_refinement: the box certified for every k shrinks to 1/8 of k_range with the
+    Table II prior; the refined plan leaves that box (a larger motion), is certified on its own
+    point, and passes the dense continuous-time check on the true geometry with the ARMOUR law on
+    the tube boundary and random parameters in the box."""
+    obstacles = scene_obstacles()
+    kw = dict(k_range_rad=[np.pi / 8] * 7)
+    boxed, thetas, gains = _table_ii_planner(robot, payload, obstacles, **kw)
+    planner, _, _ = _table_ii_planner(robot, payload, obstacles, point_refinement=True, **kw)
+    z = np.zeros(7)
+    plain = boxed.plan(Q0, z, z, *thetas)
+    res = planner.plan(Q0, z, z, *thetas)
+    assert plain.ok and res.ok and res.details["refined"], res.reason
+    box_half = 0.5 * (plain.k_box[1] - plain.k_box[0])
+    assert np.max(np.abs(res.k)) > 1.5 * np.max(box_half)  # outside the box the solver was confined to
+    assert np.array_equal(res.k_box[0], res.k) and res.max_torque_ratio <= 1.0
+    assert res.cost < plain.cost
+    moved = np.abs(res.q_end - Q0).max()
+    assert moved > 1.5 * np.abs(plain.q_end - Q0).max()
+    st = check_plan_densely(
+        robot, planner, thetas, res.k, DrakeScene(robot, payload, obstacles), np.random.default_rng(3),
+        samples=n_trials(150, 1500), gains=gains,
+    )
+    assert st["negative_h"] > 0.3 * st["samples"]
+
+
+def test_point_refinement_adopts_only_certified_points(robot, payload, monkeypatch):
+    """If no point toward the wider optimum is certified, the plan stays the box's (k_range pi/8),
+    or there is no plan when no box fits either (pi/4): a point the certificate rejects is never
+    adopted."""
+    z = np.zeros(7)
+    for k_range, box_fits in ((np.pi / 8, True), (np.pi / 4, False)):
+        kw = dict(k_range_rad=[k_range] * 7, point_refinement=True)
+        planner, thetas, _ = _table_ii_planner(robot, payload, scene_obstacles(), **kw)
+        orig = planner.problem
+
+        def reject_points(*args, orig=orig, **kw):
+            prob = orig(*args, **kw)
+            if "k_box" in kw:
+                prob._fail("rejected by the test")
+            return prob
+
+        monkeypatch.setattr(planner, "problem", reject_points)
+        res = planner.plan(Q0, z, z, *thetas)
+        assert res.ok == box_fits and not res.details["refined"], res.reason
+        if box_fits:
+            assert np.all(res.k >= res.k_box[0]) and np.all(res.k <= res.k_box[1])
+            assert np.any(res.k_box[1] > res.k_box[0])
+        else:
+            assert "torque limit" in res.reason
+
+
+def test_a_point_problem_certifies_that_point_only(robot, payload):
+    """PlanningProblem on k_box = (k, k): the box is the point, its torque bound is the point's (no
+    shrinking), and a point far outside the certifiable motion is refused with the torque reason."""
+    planner, thetas, _ = _table_ii_planner(robot, payload, [], k_range_rad=[np.pi / 2] * 7)
+    z = np.zeros(7)
+    small = np.full(7, 0.05)
+    prob = planner.problem(Q0, z, z, *thetas, k_box=(small, small))
+    assert prob.feasible_start and np.array_equal(prob.k_lo, small) and np.array_equal(prob.k_hi, small)
+    assert prob.torque_ratio <= 1.0
+    big = np.array([1.0, 1.0, 1.0, -1.0, 1.0, -1.0, 1.0])  # inside the position and velocity limits
+    prob = planner.problem(Q0, z, z, *thetas, k_box=(big, big))
+    assert not prob.feasible_start and prob.torque_infeasible and "torque limit" in prob.reason
