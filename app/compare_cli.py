@@ -26,7 +26,7 @@ TABLE_FILES = ("table.md", "table.csv", "table.json", "table.png")
 SUMMARY_COLUMNS = (
     "method trial seed success failure collisions min_clearance_m max_torque_ratio max_tracking_error_rad"
     " tracking_bound_rad contains_truth cond_Y mass_estimate_kg mass_width_kg brakes median_solve_s wall_time_s"
-    " task_certified_torque_ratio"
+    " task_certified_torque_ratio task_robust_active_fraction task_max_lambda_Nm"
 ).split()
 
 
@@ -169,6 +169,7 @@ def write_tables(out: Path, scenario_name: str, rows: dict, dumbbells: list[str]
 def row_of(summary: dict, trial: int) -> dict:
     est = summary["estimate"]
     times = sorted(summary["planner"]["solve_time_s"])
+    task_robust = (summary.get("robust_input") or {}).get("task") or {}
     return {
         "method": summary["method"],
         "trial": trial,
@@ -188,6 +189,9 @@ def row_of(summary: dict, trial: int) -> dict:
         "median_solve_s": times[len(times) // 2] if times else float("nan"),
         "wall_time_s": summary["wall_time_s"],
         "task_certified_torque_ratio": (summary.get("task") or {}).get("certified_torque_ratio"),
+        # how hard ARMOUR's robust input worked in the task phase (None: another controller)
+        "task_robust_active_fraction": task_robust.get("active_fraction"),
+        "task_max_lambda_Nm": task_robust.get("max_lambda_Nm"),
     }
 
 

@@ -71,6 +71,24 @@ class OnlineDiagram:
     task: tuple = ()  # (TaskProblem, TaskResult) of the scenario's task
 
 
+def robust_input_summary(diag: np.ndarray, armour_active: np.ndarray, identification: np.ndarray) -> dict:
+    """How hard ARMOUR's robust input worked, per phase, from its diagnostics log (rows [V_bar, h,
+    lambda, |r|, |w_bar|], one per logged step): the fraction of steps with lambda > 0 (the
+    robust input v = lambda r/|r| acting), the largest lambda [N m], the smallest barrier
+    h = V_max - V_bar [J] and the largest |w_bar| [N m] (the model uncertainty it must cover)."""
+    out = {}
+    for name, mask in (("identification", armour_active & identification), ("task", armour_active & ~identification)):
+        rows = diag[mask[: len(diag)]]
+        if len(rows):
+            out[name] = {
+                "active_fraction": float(np.mean(rows[:, 2] > 0)),
+                "max_lambda_Nm": float(rows[:, 2].max()),
+                "min_h_J": float(rows[:, 1].min()),
+                "max_w_bar_Nm": float(rows[:, 4].max()),
+            }
+    return out
+
+
 def _add_logger(builder, port, period, name):
     from pydrake.systems.primitives import LogVectorOutput
 
@@ -276,6 +294,8 @@ def build_online(
         "command": _add_logger(builder, command, h, "command"),
         "desired": _add_logger(builder, desired_port, h, "desired"),
     }
+    if controller.HasOutputPort("diagnostics"):  # ARMOUR's [V_bar, h, lambda, |r|, |w_bar|]
+        loggers["armour"] = _add_logger(builder, controller.GetOutputPort("diagnostics"), h, "armour")
     if controller.HasOutputPort("estimate"):  # what an adaptive controller identifies
         loggers["adaptive_estimate"] = _add_logger(builder, controller.GetOutputPort("estimate"), h, "estimate")
     visualizer = None
@@ -418,6 +438,10 @@ def run_online(
     # The tube is ARMOUR's certificate: a PID or adaptive phase claims none, so is not judged on it.
     armour_active = np.where(np.asarray(t) < t_switch, spec.first_controller == "armour", spec.controller == "armour")
     failure, phase, t_fail = judge(record, plans, t, np.where(armour_active, ratio_t, 0.0), task_summary, t_switch)
+    robust = None
+    if "armour" in built.loggers:
+        _, diag = _log(built.loggers["armour"], ctx)
+        robust = robust_input_summary(diag, armour_active, np.asarray(t) < t_switch)
     summary = {
         "scenario": scenario.name,
         "method": method,
@@ -460,8 +484,10 @@ def run_online(
             "budget": scenario.planner.budget,  # iterations (deterministic) | wall_time (real time)
             "status": [p["status"] for p in plans],
             "cond_W": [p.get("cond") for p in plans],
+            "refined": [p.get("refined", False) for p in plans],  # planner.point_refinement: certified on its own k
         },
         "sysid": {"updates": len(history), "update_time_s": update_times},
+        "robust_input": robust,
         "wall_time_s": wall,
         "sim_time_s": float(sim_end),
     }

@@ -157,6 +157,7 @@ def _validate(s: Scenario, where):
     need(all(0 <= mu < 1 for mu in eff.load_friction_mu), "plant.effects.load_friction_mu", "values must be in [0, 1)")
     need(all(fs >= 0 for fs in eff.stribeck_friction_Nm), "plant.effects.stribeck_friction_Nm", "values must be >= 0")
     need(eff.stribeck_velocity_rad_s > 0, "plant.effects.stribeck_velocity_rad_s", "must be > 0")
+    need(eff.velocity_noise_rad_s >= 0, "plant.effects.velocity_noise_rad_s", "must be >= 0")
     need(s.estimator.horizon_s > 0, "estimator.horizon_s", "must be > 0")
     need(s.estimator.quadrature_safety >= 2, "estimator.quadrature_safety", "must be >= 2")
     need(s.estimator.hold_period_s >= 0, "estimator.hold_period_s", "must be >= 0")

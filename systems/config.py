@@ -130,6 +130,9 @@ class PlantEffects:
     # ... and Stribeck Fs sgn v exp(-(v / vs)^2): Fs per joint [N m], vs shared [rad/s].
     stribeck_friction_Nm: List[float] = dc.field(default_factory=list)
     stribeck_velocity_rad_s: float = 0.05
+    # Encoder velocity noise: uniform in +-bound on each joint's measured velocity, every step
+    # (controller and estimator read it; the referee judges the plant's true state).
+    velocity_noise_rad_s: float = 0.0
 
 
 @dc.dataclass

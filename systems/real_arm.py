@@ -50,6 +50,8 @@ Unmodelled effects (scenario.plant.effects, each off by default):
   if rigid, but encoders sit on the motor side and read q + tau_s / K, tau_s = the torque the
   transmission carries (applied torque minus friction). Velocities are reported unchanged. This
   captures the torque-proportional position offset of a stiff gearbox, not its resonance.
+- velocity_noise_rad_s: the encoders' velocities carry uniform noise in +-bound per joint and
+  step (a Drake RandomSource seeded with the others), seen by controller and estimator.
 """
 
 from __future__ import annotations
@@ -132,6 +134,23 @@ class SeriesElasticEncoders(LeafSystem):
     def _calc(self, context, output):
         x = self.state.Eval(context).copy()
         x[: self.n] += self.transmitted.Eval(context) / self.stiffness
+        output.SetFromVector(x)
+
+
+class NoisyVelocity(LeafSystem):
+    """Encoders whose velocity reading is v + bound (2 u - 1), u the `unit_noise` input (n draws of
+    U(0, 1) per step); positions unchanged."""
+
+    def __init__(self, n, bound):
+        super().__init__()
+        self.n, self.bound = n, float(bound)
+        self.state = self.DeclareVectorInputPort("state", 2 * n)
+        self.unit_noise = self.DeclareVectorInputPort("unit_noise", n)
+        self.DeclareVectorOutputPort("measured_state", BasicVector(2 * n), self._calc)
+
+    def _calc(self, context, output):
+        x = self.state.Eval(context).copy()
+        x[self.n :] += self.bound * (2.0 * self.unit_noise.Eval(context) - 1.0)
         output.SetFromVector(x)
 
 
@@ -309,6 +328,15 @@ def add_real_arm(
         station.Connect(plant.get_state_output_port(instance), encoders.state)
         station.Connect(friction.get_output_port(), encoders.transmitted)
         state_out = encoders.get_output_port()
+    velocity_noise = None
+    if eff.velocity_noise_rad_s > 0:
+        velocity_noise = station.AddSystem(RandomSource(RandomDistribution.kUniform, n, h))
+        velocity_noise.set_name("velocity_noise")
+        encoders = station.AddSystem(NoisyVelocity(n, eff.velocity_noise_rad_s))
+        encoders.set_name("noisy_velocity_encoders")
+        station.Connect(state_out, encoders.state)
+        station.Connect(velocity_noise.get_output_port(), encoders.unit_noise)
+        state_out = encoders.get_output_port()
     noise = scenario.noise
     noisy = noise.distribution == "uniform"
     sensor = station.AddSystem(
@@ -384,6 +412,6 @@ def add_real_arm(
         seed=int(seed),
         released_body=released_body,
         fault_stages=injected.stages,
-        fault_sources=injected.sources,
+        fault_sources=(*injected.sources, velocity_noise),  # seeded streams (seed_noise skips None)
         estimator_samples_output=out("estimator_samples") if injected.samples else None,
     )

@@ -61,6 +61,9 @@ def test_quickstart_outputs(quickstart, tmp_path):
     assert (tmp_path / "replay.html").stat().st_size > 100_000 and (tmp_path / "log.csv").exists()
     assert_safe(summary)
     assert summary["planner"]["iterations"] >= 1 and summary["sysid"]["updates"] >= 4
+    robust = summary["robust_input"]["identification"]  # ARMOUR's robust term, from its diagnostics
+    assert 0 < robust["max_w_bar_Nm"] and robust["min_h_J"] <= quickstart.controller.V_max
+    assert (robust["active_fraction"] > 0) == (robust["max_lambda_Nm"] > 0)
     est = summary["estimate"]
     assert est["upper"][0] - est["lower"][0] < 4.0  # tightened from Table II's [1.2, 5.2]
     # The run's log is a valid joint log: Algorithm 1 offline on it contains the truth too.
@@ -83,6 +86,18 @@ def test_quickstart_outputs(quickstart, tmp_path):
     truth = np.array(summary["payload_true"]["theta"])
     lower, upper = np.array(offline["lower"]), np.array(offline["upper"])
     assert np.all((lower <= truth) & (truth <= upper))
+
+
+def test_robust_input_summary_splits_the_armour_steps_by_phase():
+    from safesysid.online import robust_input_summary
+
+    # rows [V_bar, h, lambda, |r|, |w_bar|]; ARMOUR runs steps 0-3 (identification 0-1, task 2-3)
+    diag = np.array([[0, 0.02, 0, 0, 5], [0, 0.01, 2, 0, 6], [0, 0.03, 0, 0, 1], [0, 0.04, 0, 0, 2], [0, -1, 9, 0, 9]])
+    armour = np.array([True, True, True, True, False])
+    out = robust_input_summary(diag, armour, np.array([True, True, False, False, False]))
+    assert out["identification"] == {"active_fraction": 0.5, "max_lambda_Nm": 2.0, "min_h_J": 0.01, "max_w_bar_Nm": 6.0}
+    assert out["task"] == {"active_fraction": 0.0, "max_lambda_Nm": 0.0, "min_h_J": 0.03, "max_w_bar_Nm": 2.0}
+    assert robust_input_summary(diag, np.zeros(5, bool), np.ones(5, bool)) == {}
 
 
 @pytest.mark.parametrize("index", range(n_trials(2, 100)))

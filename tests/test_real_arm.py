@@ -231,6 +231,30 @@ def test_joint_elasticity_offsets_the_encoders(robot):
     np.testing.assert_allclose(x[-1, :7], q0 + (hold - robot.joint_params.offset) / stiffness, atol=1e-8)
 
 
+def test_velocity_noise_is_bounded_seeded_and_only_on_the_reading(robot):
+    """plant.effects.velocity_noise_rad_s: the encoders' velocity = the plant's + uniform noise
+    within the bound (reaching near it), positions exact; the same seed gives the same draws."""
+    bound = 0.02
+    s = load_scenario(overrides={"payload": {"dumbbell": "none"}, "plant": {"effects": {"velocity_noise_rad_s": bound}}})
+    q0 = np.array(s.q0_rad)
+    hold = ControllerDynamics(robot).gravity(q0, robot.theta)
+    readings = []
+    for seed in (3, 3, 4):
+        sim, arm, logs = _rig(s, robot, hold)
+        arm.set_state(sim.get_mutable_context(), q0)
+        arm.seed_noise(sim.get_mutable_context(), seed)
+        sim.AdvanceTo(0.2)
+        readings.append(_log(sim, logs["state"]))
+    x = readings[0]
+    q_true = arm.plant.GetPositions(arm.plant_context(sim.get_context()))
+    np.testing.assert_allclose(x[-1, :7], q_true, atol=1e-4)  # the arm holds still: positions exact
+    noise = x[:, 7:]  # the arm is (almost) at rest, so the reading is the noise
+    assert np.abs(noise).max() <= bound + 1e-6 and np.abs(noise).max() > 0.9 * bound
+    assert abs(noise.mean()) < 0.1 * bound
+    np.testing.assert_array_equal(readings[0], readings[1])
+    assert not np.array_equal(readings[0], readings[2])
+
+
 def test_obstacles_and_floor_for_signed_distance(robot):
     s = load_scenario(overrides={"payload": {"dumbbell": "8lb"}})
     q0 = np.array(s.q0_rad)
