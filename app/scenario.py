@@ -68,6 +68,7 @@ _CHOICES = {
     "method": METHODS,
     "planner.cost": ("exciting", "goal", "random"),
     "planner.exciting_columns": ("all", "inertia"),
+    "planner.exciting_criterion": ("cond", "a_optimal"),
     "planner.solver": ("ipopt", "snopt"),
     "planner.budget": ("iterations", "wall_time"),
     "estimator.solver": ("ipopt", "snopt"),

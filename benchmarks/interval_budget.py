@@ -12,9 +12,10 @@ per joint, torque noise uniform at the declared bound, robot parameters drawn in
   volume of the payload, estimation/physical.py) on top of the LP box.
 
 Swept over the motion amplitude (→ peak joint acceleration) and the data length. Prints one table;
-`python -m safesysid.benchmarks.interval_budget [--quick]`. With `--closed-loop N`: the median
-width / prior width per parameter over N closed-loop seeds of scenarios/identify_all.yaml (ours and
-random; published, data-driven and the paper's first-order interval).
+`python -m safesysid.benchmarks.interval_budget [--quick]`. With `--closed-loop N [--workers W]`:
+the median width / prior width per parameter over N closed-loop seeds of scenarios/identify_all.yaml
+(ours and random; published, data-driven and the paper's first-order interval), the worst data-driven
+ratio, and where ours' data-driven box is narrower than random's on the paired seeds.
 """
 
 from __future__ import annotations
@@ -161,26 +162,41 @@ def print_table(result: dict) -> None:
             print(f"| {label:<20} | " + " | ".join(f"{x:7.3f}" for x in case[key]) + " |")
 
 
-def closed_loop(seeds, scenario="identify_all.yaml", methods=("ours", "random")) -> dict:
-    """Median width / prior width per parameter over closed-loop runs of a scenario (payloads 4-8 lb
-    by seed): published, data-driven (before pruning) and the paper's first-order interval."""
+def _closed_loop_run(args):
+    """One closed-loop run (scenario, method, seed) -> summary; payloads 4-8 lb by seed."""
     from safesysid.online import run_online
     from safesysid.scenario import SCENARIOS_DIR, load_scenario
 
+    scenario, method, seed = args
     base = load_scenario(SCENARIOS_DIR / scenario)
-    payloads = ["4lb", "5lb", "6lb", "7lb", "8lb"]
+    payload = ["4lb", "5lb", "6lb", "7lb", "8lb"][seed % 5]
+    scene = dataclasses.replace(base, payload=dataclasses.replace(base.payload, dumbbell=payload))
+    return run_online(scene, None, method=method, seed=seed, write=False)
+
+
+def closed_loop(seeds, scenario="identify_all.yaml", methods=("ours", "random"), workers=1) -> dict:
+    """Width / prior width per parameter over closed-loop runs of a scenario (payloads 4-8 lb by
+    seed), medians of the published, data-driven (before pruning) and the paper's first-order
+    interval; the data-driven ratios of every run; cond(Y) of every run."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    jobs = [(scenario, method, seed) for method in methods for seed in seeds]
+    if workers > 1:
+        with ProcessPoolExecutor(workers) as pool:
+            summaries = list(pool.map(_closed_loop_run, jobs))
+    else:
+        summaries = [_closed_loop_run(job) for job in jobs]
+    width = lambda s, key: np.array(s["estimate"][f"{key}upper"]) - np.array(s["estimate"][f"{key}lower"])  # noqa: E731
+    prior = PRIOR[1] - PRIOR[0]
     out = {}
     for method in methods:
-        runs = []
-        for seed in seeds:
-            scene = dataclasses.replace(base, payload=dataclasses.replace(base.payload, dumbbell=payloads[seed % 5]))
-            runs.append(run_online(scene, None, method=method, seed=seed, write=False))
-        width = lambda s, key: np.array(s["estimate"][f"{key}upper"]) - np.array(s["estimate"][f"{key}lower"])  # noqa: E731
-        prior = PRIOR[1] - PRIOR[0]
+        runs = [s for (_, m, _), s in zip(jobs, summaries) if m == method]
         out[method] = {
             "contains": [bool(s["contains_truth"]) for s in runs],
             "consistent": [bool(s["estimate"]["consistent"]) for s in runs],
             "mass_half_width_kg": [float(width(s, "")[0] / 2) for s in runs],
+            "cond_Y": [float(s["cond_Y"]) for s in runs],
+            "data_ratios": [(width(s, "data_") / prior).tolist() for s in runs],
             **{
                 f"{key or 'published_'}ratio": np.median([width(s, key) / prior for s in runs], 0).tolist()
                 for key in ("", "data_", "first_order_")
@@ -199,15 +215,25 @@ def print_closed_loop(result: dict) -> None:
             ("first_order_ratio", "paper first-order"),
         ):
             print(f"| {method + ' ' + label:<26} | " + " | ".join(f"{x:6.3f}" for x in r[key]) + " |")
+        worst = np.max(r["data_ratios"], 0)
+        print(f"| {method + ' data-driven, max':<26} | " + " | ".join(f"{x:6.3f}" for x in worst) + " |")
     for method, r in result.items():
         print(
             f"{method}: contains {sum(r['contains'])}/{len(r['contains'])}, consistent {sum(r['consistent'])}, "
-            f"mass half-width kg {[round(x, 3) for x in r['mass_half_width_kg']]}"
+            f"median cond(Y) {np.median(r['cond_Y']):.1f}, mass half-width kg {[round(x, 3) for x in r['mass_half_width_kg']]}"
         )
+    if {"ours", "random"} <= result.keys():  # paired seeds: where ours' data-driven box is narrower
+        narrower = np.array(result["ours"]["data_ratios"]) < np.array(result["random"]["data_ratios"])
+        wins = narrower.sum(1)
+        print(f"ours narrower than random, pairs per parameter: {narrower.sum(0).tolist()} of {len(wins)}")
+        print(f"parameters where ours is narrower, per pair: {wins.tolist()}; pairs with >= 8: {int(np.sum(wins >= 8))}")
+        cond = [np.array(result[m]["cond_Y"]) for m in ("ours", "random")]
+        print(f"cond(Y) ours lower in {int(np.sum(cond[0] < cond[1]))}/{len(wins)}, medians ratio {np.median(cond[0]) / np.median(cond[1]):.2f}")
 
 
 if __name__ == "__main__":
-    if "--closed-loop" in sys.argv:  # --closed-loop N: seeds 0..N-1 of scenarios/identify_all.yaml
-        print_closed_loop(closed_loop(range(int(sys.argv[sys.argv.index("--closed-loop") + 1]))))
+    if "--closed-loop" in sys.argv:  # --closed-loop N [--workers W]: seeds 0..N-1 of scenarios/identify_all.yaml
+        workers = int(sys.argv[sys.argv.index("--workers") + 1]) if "--workers" in sys.argv else 1
+        print_closed_loop(closed_loop(range(int(sys.argv[sys.argv.index("--closed-loop") + 1])), workers=workers))
     else:
         print_table(run(quick="--quick" in sys.argv))

@@ -182,6 +182,10 @@ class Planner:
     # Columns of W_e whose log cond the exciting cost minimises: all ten (the paper) or the six
     # rotational inertias only (the directions the paper's cost leaves poorly excited).
     exciting_columns: str = "all"  # all | inertia
+    # What the exciting cost minimises: cond, the paper's log cond(W_e); a_optimal, log of the sum
+    # over parameters of the least-squares variance the plan would leave, each relative to its
+    # current interval width squared (the widths the estimator publishes, not the ratio of extremes).
+    exciting_criterion: str = "cond"  # cond | a_optimal
     # true: the exciting cost conditions the motion executed so far stacked with the candidate
     # plan, so each plan excites what the data still lack (cond(Y) well below random plans');
     # false: the plan alone, the paper's cost (its data no better conditioned than random plans'

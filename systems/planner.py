@@ -226,6 +226,10 @@ class PlanningProblem:
         # W_e rows of the motion executed before this plan (SafePlanner.executed_rows): the
         # exciting cost then conditions [past; W_e(k)], so a plan excites what is still missing.
         self.past = None if past is None or len(past) == 0 else np.asarray(past, float)
+        # planner.exciting_criterion a_optimal: each parameter's predicted variance relative to
+        # its current interval (theta_lo/hi of the end effector) squared.
+        ee_width = np.asarray(theta_hi, float)[planner.robot.ee_slice] - np.asarray(theta_lo, float)[planner.robot.ee_slice]
+        self.variance_weight = 1.0 / np.maximum(ee_width, 1e-6) ** 2
         cfg = planner.config
         robot = planner.robot
         self.n = robot.n
@@ -526,6 +530,8 @@ class PlanningProblem:
         dW = w.imag[..., cols] / h  # (n_k, rows, columns)
         # With the past motion stacked on top, only the plan's rows depend on k.
         stacked = W if self.past is None else np.vstack([self.past[:, cols], W])
+        if getattr(pl.config, "exciting_criterion", "cond") == "a_optimal":
+            return (*self._a_optimal(stacked, W, dW, self.variance_weight[cols]), W)
         u, s, vt = np.linalg.svd(stacked, full_matrices=False)
         if s[-1] <= 0:
             return np.inf, np.zeros(n), W
@@ -533,6 +539,24 @@ class PlanningProblem:
         d_max = np.einsum("r,jrc,c->j", u[:, 0], dW, vt[0])
         d_min = np.einsum("r,jrc,c->j", u[:, -1], dW, vt[-1])
         return float(np.log(s[0]) - np.log(s[-1])), d_max / s[0] - d_min / s[-1], W
+
+    @staticmethod
+    def _a_optimal(stacked, W, dW, weight):
+        """(log sum_j w_j (A^-1)_jj, its gradient), A = S^T S of the stacked rows S whose last
+        rows W move with k (dW: (n_k, rows, columns)): the least-squares estimate's variance per
+        parameter under unit white noise, weighted (A-optimal design). dC = -C dA C."""
+        A = stacked.T @ stacked
+        try:
+            C = np.linalg.inv(A)
+        except np.linalg.LinAlgError:
+            return np.inf, np.zeros(len(dW))
+        value = float(weight @ np.diag(C))
+        if not np.isfinite(value) or value <= 0:
+            return np.inf, np.zeros(len(dW))
+        G = C @ (weight[:, None] * C)  # d value / dA = -G
+        dA = np.einsum("jrc,rd->jcd", dW, W)
+        dA = dA + dA.transpose(0, 2, 1)
+        return float(np.log(value)), -np.einsum("jcd,cd->j", dA, G) / value
 
     def goal_cost(self, k: ArrayLike) -> tuple[float, np.ndarray]:
         goal = np.asarray(self.planner.config.goal_q_rad, float)

@@ -227,6 +227,24 @@ def test_cumulative_cost_conditions_the_past_motion_with_the_plan(robot, payload
     assert np.max(np.abs(k_alone - k_stacked)) > 1e-3
 
 
+def test_a_optimal_cost_is_the_weighted_least_squares_variance(robot, payload):
+    """planner.exciting_criterion a_optimal: log sum_j (A^-1)_jj / width_j^2 with A = S^T S of
+    [past; W_e(k)] and width the end effector's current interval (floored at 1e-6); exact gradient."""
+    planner, thetas = make_planner(robot, payload, [], exciting_criterion="a_optimal")
+    rng = np.random.default_rng(12)
+    past = rng.normal(size=(70, 10))
+    prob = planner.problem(Q0 + 0.1, rng.uniform(-0.2, 0.2, 7), rng.uniform(-0.2, 0.2, 7), *thetas, past=past)
+    k = rng.uniform(-1, 1, 7)
+    val, grad, W = prob.exciting_cost(k)
+    S = np.vstack([past, W])
+    width = np.maximum((thetas[2] - thetas[1])[robot.ee_slice], 1e-6)  # floored: a zero width stays finite
+    assert np.isclose(val, np.log(np.sum(np.diag(np.linalg.inv(S.T @ S)) / width**2)))
+    fd = np.array(
+        [(prob.exciting_cost(k + 1e-6 * e)[0] - prob.exciting_cost(k - 1e-6 * e)[0]) / 2e-6 for e in np.eye(7)]
+    )
+    assert np.allclose(grad, fd, rtol=1e-5, atol=1e-6)
+
+
 def test_planned_and_random_plans_are_safe_in_continuous_time(robot, planned):
     """Monte Carlo: feasible k (optimized, then random feasible ones) checked densely."""
     planner, thetas, scene = planned
