@@ -52,10 +52,11 @@ def _lp_half(est, rad_r, box, rows=None):
     return 0.5 * (hi - lo) if ok else np.full(10, np.nan)
 
 
-def budget(robot, theta_true, amplitude_rad, duration_s, seed=0):
-    """Half-widths per source for one run: a dict of (10,) arrays plus the peak |q̈| per joint."""
+def budget(robot, theta_true, amplitude_rad, duration_s, seed=0, velocity_fraction=0.7):
+    """Half-widths per source for one run: a dict of (10,) arrays plus the peak |q̈| per joint
+    (the motion: each joint within amplitude_rad of CENTRE and velocity_fraction of its limit)."""
     rng = np.random.default_rng(seed)
-    motion_kw = dict(centre=CENTRE, position_amplitude_rad=amplitude_rad)
+    motion_kw = dict(centre=CENTRE, position_amplitude_rad=amplitude_rad, velocity_fraction=velocity_fraction)
     t, motion = E.fourier_motion(np.random.default_rng(seed), robot, duration_s, 1000.0, **motion_kw)
     q, v, acc = motion(t)
     tau = E.held_torque(robot, motion, t, theta_true)
@@ -63,7 +64,8 @@ def budget(robot, theta_true, amplitude_rad, duration_s, seed=0):
     tau_meas = tau + rng.uniform(-1, 1, tau.shape) * noise
     est = _estimator(robot, t, q, v, tau_meas)
     hull, _ = interval_hull(est.rows, est.theta_r, est.theta_r_radius, est.settings)
-    out = {"peak_acc_rad_s2": np.abs(acc).max(0), "cond_Y": est.estimate.cond_Y}
+    peak_torque = np.abs(tau).max(0) / robot.joint_params.torque_limit
+    out = {"peak_acc_rad_s2": np.abs(acc).max(0), "peak_torque_ratio": peak_torque.max(), "cond_Y": est.estimate.cond_Y}
     for k, key in SOURCES.items():
         out[f"ls_{k}"] = hull[key]
     out["ls_total"] = sum(out[f"ls_{k}"] for k in SOURCES)
@@ -126,11 +128,12 @@ def run(quick: bool = False) -> dict:
     db = load_dumbbells(MODELS_DIR / "dumbbells.yaml")["4lb"]
     theta = E.perturbed_robot_theta(np.random.default_rng(15), robot, 0.05)
     theta[robot.ee_slice] = robot.theta_e + payload_theta_in_end_effector(db, robot.extra["grasp_point"])
-    cases = [(0.6, 3.0)] if quick else [(0.15, 7.5), (0.3, 7.5), (0.6, 7.5), (0.6, 1.5), (0.6, 3.0)]
+    # (amplitude rad, duration s, velocity fraction); the last: at the velocity limit (how far physics allows)
+    cases = [(0.6, 3.0, 0.7)] if quick else [(0.15, 7.5, 0.7), (0.3, 7.5, 0.7), (0.6, 7.5, 0.7), (0.6, 1.5, 0.7), (0.6, 3.0, 0.7), (2.0, 7.5, 1.0)]
     rows = []
-    for amp, dur in cases:
-        b = budget(robot, theta, amp, dur)
-        rows.append({"amplitude_rad": amp, "duration_s": dur, **{k: np.asarray(v).tolist() for k, v in b.items()}})
+    for amp, dur, vf in cases:
+        b = budget(robot, theta, amp, dur, velocity_fraction=vf)
+        rows.append({"amplitude_rad": amp, "duration_s": dur, "velocity_fraction": vf, **{k: np.asarray(v).tolist() for k, v in b.items()}})
     return {"payload": "4lb", "names": list(NAMES), "cases": rows}
 
 
@@ -152,7 +155,8 @@ def print_table(result: dict) -> None:
     for case in result["cases"]:
         acc = " ".join(f"{a:.1f}" for a in case["peak_acc_rad_s2"])
         print(
-            f"\namplitude {case['amplitude_rad']} rad, {case['duration_s']} s, peak |q̈| per joint [{acc}] rad/s², "
+            f"\namplitude {case['amplitude_rad']} rad, {case['duration_s']} s, velocity <= {case['velocity_fraction']} of the "
+            f"limit, peak |q̈| per joint [{acc}] rad/s², peak |τ|/limit {case['peak_torque_ratio']:.2f}, "
             f"cond(Y) {case['cond_Y']:.3g}; update {case['update_all_s']:.2f} s (LP all), "
             f"{case['update_all_pruned_s']:.2f} s (+ LMI pruning); half-widths:"
         )
