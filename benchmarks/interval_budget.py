@@ -129,11 +129,22 @@ def run(quick: bool = False) -> dict:
     theta = E.perturbed_robot_theta(np.random.default_rng(15), robot, 0.05)
     theta[robot.ee_slice] = robot.theta_e + payload_theta_in_end_effector(db, robot.extra["grasp_point"])
     # (amplitude rad, duration s, velocity fraction); the last: at the velocity limit (how far physics allows)
-    cases = [(0.6, 3.0, 0.7)] if quick else [(0.15, 7.5, 0.7), (0.3, 7.5, 0.7), (0.6, 7.5, 0.7), (0.6, 1.5, 0.7), (0.6, 3.0, 0.7), (2.0, 7.5, 1.0)]
+    cases = (
+        [(0.6, 3.0, 0.7)]
+        if quick
+        else [(0.15, 7.5, 0.7), (0.3, 7.5, 0.7), (0.6, 7.5, 0.7), (0.6, 1.5, 0.7), (0.6, 3.0, 0.7), (2.0, 7.5, 1.0)]
+    )
     rows = []
     for amp, dur, vf in cases:
         b = budget(robot, theta, amp, dur, velocity_fraction=vf)
-        rows.append({"amplitude_rad": amp, "duration_s": dur, "velocity_fraction": vf, **{k: np.asarray(v).tolist() for k, v in b.items()}})
+        rows.append(
+            {
+                "amplitude_rad": amp,
+                "duration_s": dur,
+                "velocity_fraction": vf,
+                **{k: np.asarray(v).tolist() for k, v in b.items()},
+            }
+        )
     return {"payload": "4lb", "names": list(NAMES), "cases": rows}
 
 
@@ -155,8 +166,9 @@ def print_table(result: dict) -> None:
     for case in result["cases"]:
         acc = " ".join(f"{a:.1f}" for a in case["peak_acc_rad_s2"])
         print(
-            f"\namplitude {case['amplitude_rad']} rad, {case['duration_s']} s, velocity <= {case['velocity_fraction']} of the "
-            f"limit, peak |q̈| per joint [{acc}] rad/s², peak |τ|/limit {case['peak_torque_ratio']:.2f}, "
+            f"\namplitude {case['amplitude_rad']} rad, {case['duration_s']} s, "
+            f"velocity <= {case['velocity_fraction']} of the limit, peak |q̈| per joint [{acc}] rad/s², "
+            f"peak |τ|/limit {case['peak_torque_ratio']:.2f}, "
             f"cond(Y) {case['cond_Y']:.3g}; update {case['update_all_s']:.2f} s (LP all), "
             f"{case['update_all_pruned_s']:.2f} s (+ LMI pruning); half-widths:"
         )
@@ -224,15 +236,19 @@ def print_closed_loop(result: dict) -> None:
     for method, r in result.items():
         print(
             f"{method}: contains {sum(r['contains'])}/{len(r['contains'])}, consistent {sum(r['consistent'])}, "
-            f"median cond(Y) {np.median(r['cond_Y']):.1f}, mass half-width kg {[round(x, 3) for x in r['mass_half_width_kg']]}"
+            f"median cond(Y) {np.median(r['cond_Y']):.1f}, "
+            f"mass half-width kg {[round(x, 3) for x in r['mass_half_width_kg']]}"
         )
     if {"ours", "random"} <= result.keys():  # paired seeds: where ours' data-driven box is narrower
         narrower = np.array(result["ours"]["data_ratios"]) < np.array(result["random"]["data_ratios"])
         wins = narrower.sum(1)
         print(f"ours narrower than random, pairs per parameter: {narrower.sum(0).tolist()} of {len(wins)}")
-        print(f"parameters where ours is narrower, per pair: {wins.tolist()}; pairs with >= 8: {int(np.sum(wins >= 8))}")
-        cond = [np.array(result[m]["cond_Y"]) for m in ("ours", "random")]
-        print(f"cond(Y) ours lower in {int(np.sum(cond[0] < cond[1]))}/{len(wins)}, medians ratio {np.median(cond[0]) / np.median(cond[1]):.2f}")
+        print(
+            f"parameters where ours is narrower, per pair: {wins.tolist()}; pairs with >= 8: {int(np.sum(wins >= 8))}"
+        )
+        ours, rand = (np.array(result[m]["cond_Y"]) for m in ("ours", "random"))
+        ratio = np.median(ours) / np.median(rand)
+        print(f"cond(Y) ours lower in {int(np.sum(ours < rand))}/{len(wins)}, medians ratio {ratio:.2f}")
 
 
 if __name__ == "__main__":

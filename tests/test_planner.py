@@ -500,8 +500,14 @@ def test_point_refinement_moves_farther_than_the_certified_box_and_stays_safe(ro
     moved = np.abs(res.q_end - Q0).max()
     assert moved > 1.5 * np.abs(plain.q_end - Q0).max()
     st = check_plan_densely(
-        robot, planner, thetas, res.k, DrakeScene(robot, payload, obstacles), np.random.default_rng(3),
-        samples=n_trials(150, 1500), gains=gains,
+        robot,
+        planner,
+        thetas,
+        res.k,
+        DrakeScene(robot, payload, obstacles),
+        np.random.default_rng(3),
+        samples=n_trials(150, 1500),
+        gains=gains,
     )
     assert st["negative_h"] > 0.3 * st["samples"]
 

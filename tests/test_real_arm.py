@@ -235,7 +235,9 @@ def test_velocity_noise_is_bounded_seeded_and_only_on_the_reading(robot):
     """plant.effects.velocity_noise_rad_s: the encoders' velocity = the plant's + uniform noise
     within the bound (reaching near it), positions exact; the same seed gives the same draws."""
     bound = 0.02
-    s = load_scenario(overrides={"payload": {"dumbbell": "none"}, "plant": {"effects": {"velocity_noise_rad_s": bound}}})
+    s = load_scenario(
+        overrides={"payload": {"dumbbell": "none"}, "plant": {"effects": {"velocity_noise_rad_s": bound}}}
+    )
     q0 = np.array(s.q0_rad)
     hold = ControllerDynamics(robot).gravity(q0, robot.theta)
     readings = []
