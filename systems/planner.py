@@ -629,10 +629,15 @@ class SafePlanner:
         theta_hi: ArrayLike,
         mode: str | None = None,
         past: np.ndarray | None = None,
-        **kw,
+        k_box: tuple[np.ndarray, np.ndarray] | None = None,
+        certify_torque: bool = True,
+        shrink_toward: np.ndarray | None = None,
     ) -> PlanningProblem:
-        """kw: PlanningProblem's k_box (a sub-box, e.g. one point), certify_torque, shrink_toward."""
-        return PlanningProblem(self, q0, v0, a0, theta0, theta_lo, theta_hi, mode, past, **kw)
+        """k_box: a sub-box (e.g. one point); certify_torque False: no torque check (the wider solve
+        of point_refinement); shrink_toward: where the torque check shrinks the box (PlanningProblem)."""
+        return PlanningProblem(
+            self, q0, v0, a0, theta0, theta_lo, theta_hi, mode, past, k_box, certify_torque, shrink_toward
+        )
 
     def executed_rows(self, plan: PlanResult, duration_s: float) -> np.ndarray:
         """W_e rows (rows, 10) of the first duration_s of an accepted plan, at the exciting cost's
