@@ -248,6 +248,7 @@ class PlanningProblem:
         )
         self.reason = ""
         self.feasible_start = True
+        self.torque_infeasible = False  # True: no shrunk k box fits the torque limits
         k_lo, k_hi, why = self.reach.limit_box(robot.joint_params)
         if k_lo is None:
             self._fail(why)
@@ -259,7 +260,6 @@ class PlanningProblem:
                 return
         self.k_lo, self.k_hi = k_lo, k_hi
         self.torque_ratio = np.nan
-        self.torque_infeasible = False  # True: no shrunk k box fits the torque limits
         if certify_torque and not self._torque_box(theta0, theta_lo, theta_hi, shrink_toward):
             return
         self._collision_pairs()

@@ -550,3 +550,14 @@ def test_a_point_problem_certifies_that_point_only(robot, payload):
     big = np.array([1.0, 1.0, 1.0, -1.0, 1.0, -1.0, 1.0])  # inside the position and velocity limits
     prob = planner.problem(Q0, z, z, *thetas, k_box=(big, big))
     assert not prob.feasible_start and prob.torque_infeasible and "torque limit" in prob.reason
+
+
+def test_point_refinement_with_no_admissible_k_gives_no_plan_and_the_reason(robot, payload):
+    """A start the position/velocity limits rule out for every k (joint 2 already beyond its
+    velocity limit): no plan and the limit's reason, with point_refinement as without it."""
+    v0 = np.zeros(7)
+    v0[1] = 1.5
+    for refine in (False, True):
+        planner, thetas = make_planner(robot, payload, [], point_refinement=refine)
+        res = planner.plan(Q0, v0, np.zeros(7), *thetas)
+        assert not res.ok and res.status == "infeasible_start" and "velocity" in res.reason, res.reason
