@@ -78,7 +78,7 @@ def robust_input_summary(diag: np.ndarray, armour_active: np.ndarray, identifica
     h = V_max - V_bar [J] and the largest |w_bar| [N m] (the model uncertainty it must cover)."""
     out = {}
     for name, mask in (("identification", armour_active & identification), ("task", armour_active & ~identification)):
-        rows = diag[mask[: len(diag)]]
+        rows = diag[mask]  # the loggers share the period: one row per logged step
         if len(rows):
             out[name] = {
                 "active_fraction": float(np.mean(rows[:, 2] > 0)),

@@ -228,9 +228,7 @@ class PlanningProblem:
         self.past = None if past is None or len(past) == 0 else np.asarray(past, float)
         # planner.exciting_criterion a_optimal: each parameter's predicted variance relative to
         # its current interval (theta_lo/hi of the end effector) squared.
-        ee_width = (
-            np.asarray(theta_hi, float)[planner.robot.ee_slice] - np.asarray(theta_lo, float)[planner.robot.ee_slice]
-        )
+        ee_width = np.subtract(theta_hi, theta_lo, dtype=float)[planner.robot.ee_slice]
         self.variance_weight = 1.0 / np.maximum(ee_width, 1e-6) ** 2
         cfg = planner.config
         robot = planner.robot

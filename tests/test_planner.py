@@ -144,11 +144,8 @@ def check_plan_densely(robot, planner, thetas, k, scene, rng, samples=400, gains
     return stats
 
 
-@pytest.fixture(scope="module")
-def planned(robot, payload):
-    """A planner on the 3-box scene, with its last problem kept for the dense checks."""
-    obstacles = scene_obstacles()
-    planner, thetas = make_planner(robot, payload, obstacles)
+def keep_last_problem(planner):
+    """The planner, keeping its last PlanningProblem as planner._last_problem (check_plan_densely)."""
     orig = planner.problem
 
     def keep(*args, **kw):
@@ -156,7 +153,15 @@ def planned(robot, payload):
         return planner._last_problem
 
     planner.problem = keep
-    return planner, thetas, DrakeScene(robot, payload, obstacles)
+    return planner
+
+
+@pytest.fixture(scope="module")
+def planned(robot, payload):
+    """A planner on the 3-box scene, with its last problem kept for the dense checks."""
+    obstacles = scene_obstacles()
+    planner, thetas = make_planner(robot, payload, obstacles)
+    return keep_last_problem(planner), thetas, DrakeScene(robot, payload, obstacles)
 
 
 def test_ee_regressor_equals_the_robot_model_columns(robot):
@@ -425,26 +430,23 @@ def test_wall_time_cap_stops_the_solver_and_keeps_a_verified_point(robot, payloa
         assert planner.problem(Q0, np.zeros(7), np.zeros(7), *thetas).is_feasible(res.k)
 
 
-def test_table_ii_prior_plans_with_a_shrunk_torque_box_and_stays_within_limits(robot, payload):
-    """With the paper's wide Table II end-effector interval and the scenario's V_max (the hardware 0.02,
-    certified through the affine tube enclosure) the torque bound rejects the full k box; a shrunk box
-    is admitted, and the ARMOUR command stays within limits on the tube boundary."""
+def _table_ii_planner(robot, payload, obstacles, **cfg):
+    """A planner with the paper's Table II end-effector interval and the scenario's V_max."""
     from safesysid.scenario import InitialInterval, load_scenario
 
     ii = InitialInterval()
     theta0, box = ctl.parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper))
-    thetas = (theta0, box.lo, box.hi)
     gains = ctl.ArmourGains(GAINS.Kr, GAINS.alpha, load_scenario().controller.V_max)
-    planner = P.SafePlanner(
-        robot, Planner(num_cost_samples=32), [], payload, ctl.tracking_bounds_for(robot, gains, box.lo)
-    )
-    orig = planner.problem
+    config = Planner(**{"num_cost_samples": 32, **cfg})
+    planner = P.SafePlanner(robot, config, obstacles, payload, ctl.tracking_bounds_for(robot, gains, box.lo))
+    return keep_last_problem(planner), (theta0, box.lo, box.hi), gains
 
-    def keep(*args, **kw):
-        planner._last_problem = orig(*args, **kw)
-        return planner._last_problem
 
-    planner.problem = keep
+def test_table_ii_prior_plans_with_a_shrunk_torque_box_and_stays_within_limits(robot, payload):
+    """With the paper's wide Table II end-effector interval and the scenario's V_max (the hardware 0.02,
+    certified through the affine tube enclosure) the torque bound rejects the full k box; a shrunk box
+    is admitted, and the ARMOUR command stays within limits on the tube boundary."""
+    planner, thetas, gains = _table_ii_planner(robot, payload, [])
     res = planner.plan(Q0, np.zeros(7), np.zeros(7), *thetas)
     assert res.ok, res.reason
     assert np.all(res.k_box[1] < 1.0)  # the box had to shrink
@@ -459,25 +461,6 @@ def test_table_ii_prior_plans_with_a_shrunk_torque_box_and_stays_within_limits(r
         gains=gains,
     )
     assert st["negative_h"] > 0.3 * st["samples"]
-
-
-def _table_ii_planner(robot, payload, obstacles, **cfg):
-    """A planner with the paper's Table II end-effector interval and the scenario's V_max."""
-    from safesysid.scenario import InitialInterval, load_scenario
-
-    ii = InitialInterval()
-    theta0, box = ctl.parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper))
-    gains = ctl.ArmourGains(GAINS.Kr, GAINS.alpha, load_scenario().controller.V_max)
-    config = Planner(**{"num_cost_samples": 32, **cfg})
-    planner = P.SafePlanner(robot, config, obstacles, payload, ctl.tracking_bounds_for(robot, gains, box.lo))
-    orig = planner.problem
-
-    def keep(*args, **kw):
-        planner._last_problem = orig(*args, **kw)
-        return planner._last_problem
-
-    planner.problem = keep
-    return planner, (theta0, box.lo, box.hi), gains
 
 
 def test_point_refinement_moves_farther_than_the_certified_box_and_stays_safe(robot, payload):
