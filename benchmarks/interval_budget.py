@@ -12,10 +12,11 @@ per joint, torque noise uniform at the declared bound, robot parameters drawn in
   volume of the payload, estimation/physical.py) on top of the LP box.
 
 Swept over the motion amplitude (→ peak joint acceleration) and the data length. Prints one table;
-`python -m safesysid.benchmarks.interval_budget [--quick]`. With `--closed-loop N [--workers W]`:
-the median width / prior width per parameter over N closed-loop seeds of scenarios/identify_all.yaml
-(ours and random; published, data-driven and the paper's first-order interval), the worst data-driven
-ratio, and where ours' data-driven box is narrower than random's on the paired seeds.
+`python -m safesysid.benchmarks.interval_budget [--quick]`. With `--closed-loop N [--workers W]
+[--scenario-text YAML]`: the median width / prior width per parameter over N closed-loop seeds of
+scenarios/identify_all.yaml (ours and random; published, data-driven and the paper's first-order
+interval), the worst data-driven ratio, and where ours' data-driven box is narrower than random's
+on the paired seeds.
 """
 
 from __future__ import annotations
@@ -179,24 +180,25 @@ def print_table(result: dict) -> None:
 
 
 def _closed_loop_run(args):
-    """One closed-loop run (scenario, method, seed) -> summary; payloads 4-8 lb by seed."""
+    """One closed-loop run (scenario, overrides, method, seed) -> summary; payloads 4-8 lb by seed."""
     from safesysid.online import run_online
     from safesysid.scenario import SCENARIOS_DIR, load_scenario
 
-    scenario, method, seed = args
-    base = load_scenario(SCENARIOS_DIR / scenario)
+    scenario, overrides, method, seed = args
+    base = load_scenario(SCENARIOS_DIR / scenario, overrides=overrides)
     payload = ["4lb", "5lb", "6lb", "7lb", "8lb"][seed % 5]
     scene = dataclasses.replace(base, payload=dataclasses.replace(base.payload, dumbbell=payload))
     return run_online(scene, None, method=method, seed=seed, write=False)
 
 
-def closed_loop(seeds, scenario="identify_all.yaml", methods=("ours", "random"), workers=1) -> dict:
+def closed_loop(seeds, scenario="identify_all.yaml", methods=("ours", "random"), workers=1, overrides=()) -> dict:
     """Width / prior width per parameter over closed-loop runs of a scenario (payloads 4-8 lb by
-    seed), medians of the published, data-driven (before pruning) and the paper's first-order
-    interval; the data-driven ratios of every run; cond(Y) of every run."""
+    seed; overrides: scenario layers, as --scenario-text), medians of the published, data-driven
+    (before pruning) and the paper's first-order interval; the data-driven ratios and cond(Y) of
+    every run."""
     from concurrent.futures import ProcessPoolExecutor
 
-    jobs = [(scenario, method, seed) for method in methods for seed in seeds]
+    jobs = [(scenario, list(overrides), method, seed) for method in methods for seed in seeds]
     if workers > 1:
         with ProcessPoolExecutor(workers) as pool:
             summaries = list(pool.map(_closed_loop_run, jobs))
@@ -206,7 +208,7 @@ def closed_loop(seeds, scenario="identify_all.yaml", methods=("ours", "random"),
     prior = PRIOR[1] - PRIOR[0]
     out = {}
     for method in methods:
-        runs = [s for (_, m, _), s in zip(jobs, summaries) if m == method]
+        runs = [s for (_, _, m, _), s in zip(jobs, summaries) if m == method]
         out[method] = {
             "contains": [bool(s["contains_truth"]) for s in runs],
             "consistent": [bool(s["estimate"]["consistent"]) for s in runs],
@@ -252,8 +254,10 @@ def print_closed_loop(result: dict) -> None:
 
 
 if __name__ == "__main__":
-    if "--closed-loop" in sys.argv:  # --closed-loop N [--workers W]: seeds 0..N-1 of scenarios/identify_all.yaml
-        workers = int(sys.argv[sys.argv.index("--workers") + 1]) if "--workers" in sys.argv else 1
-        print_closed_loop(closed_loop(range(int(sys.argv[sys.argv.index("--closed-loop") + 1])), workers=workers))
+    if "--closed-loop" in sys.argv:  # --closed-loop N [--workers W] [--scenario-text T]: identify_all seeds 0..N-1
+        arg = lambda flag: sys.argv[sys.argv.index(flag) + 1] if flag in sys.argv else None  # noqa: E731
+        seeds = range(int(arg("--closed-loop")))
+        overrides = [arg("--scenario-text")] if arg("--scenario-text") else []
+        print_closed_loop(closed_loop(seeds, workers=int(arg("--workers") or 1), overrides=overrides))
     else:
         print_table(run(quick="--quick" in sys.argv))
