@@ -544,3 +544,30 @@ def test_point_refinement_with_no_admissible_k_gives_no_plan_and_the_reason(robo
         planner, thetas = make_planner(robot, payload, [], point_refinement=refine)
         res = planner.plan(Q0, v0, np.zeros(7), *thetas)
         assert not res.ok and res.status == "infeasible_start" and "velocity" in res.reason, res.reason
+
+
+def test_point_certificate_keeps_a_fast_refined_plan_within_the_torque_limits(robot, payload, monkeypatch):
+    """0.75 s plans with the Table II prior: no k box fits the torque limits, so refinement starts
+    from k = 0 toward the wider optimum. That optimum itself breaks the limits on the tube
+    boundary (the dense check fails on it: adopting it uncertified would be unsafe); the point
+    the certificate adopts passes the same check."""
+    obstacles = scene_obstacles()
+    kw = dict(point_refinement=True, k_range_rad=[np.pi / 4] * 7, duration_s=0.75, replan_period_s=0.375)
+    planner, thetas, gains = _table_ii_planner(robot, payload, obstacles, **kw)
+    targets = []
+    optimize = planner._optimize
+
+    def record(prob, *args):
+        out = optimize(prob, *args)
+        targets.append(out[0])
+        return out
+
+    monkeypatch.setattr(planner, "_optimize", record)
+    z = np.zeros(7)
+    res = planner.plan(Q0, z, z, *thetas)
+    assert res.ok and res.details["refined"] and "torque limit" in res.reason  # no box fitted
+    scene = DrakeScene(robot, payload, obstacles)
+    with pytest.raises(AssertionError):
+        check_plan_densely(robot, planner, thetas, targets[-1], scene, np.random.default_rng(3), 150, gains)
+    assert np.max(np.abs(res.k)) < np.max(np.abs(targets[-1]))
+    check_plan_densely(robot, planner, thetas, res.k, scene, np.random.default_rng(3), n_trials(150, 1500), gains)
