@@ -22,6 +22,7 @@ on the paired seeds.
 from __future__ import annotations
 
 import dataclasses
+import json
 import sys
 
 import numpy as np
@@ -191,6 +192,14 @@ def _closed_loop_run(args):
     return run_online(scene, None, method=method, seed=seed, write=False)
 
 
+SAFETY_RATIOS = (
+    "max_commanded_torque_ratio",
+    "max_joint_limit_ratio",
+    "max_velocity_ratio",
+    "max_tracking_error_ratio",
+)
+
+
 def closed_loop(seeds, scenario="identify_all.yaml", methods=("ours", "random"), workers=1, overrides=()) -> dict:
     """Width / prior width per parameter over closed-loop runs of a scenario (payloads 4-8 lb by
     seed; overrides: scenario layers, as --scenario-text), medians of the published, data-driven
@@ -215,6 +224,13 @@ def closed_loop(seeds, scenario="identify_all.yaml", methods=("ours", "random"),
             "mass_half_width_kg": [float(width(s, "")[0] / 2) for s in runs],
             "cond_Y": [float(s["cond_Y"]) for s in runs],
             "data_ratios": [(width(s, "data_") / prior).tolist() for s in runs],
+            "safety": {  # the referee's measures over the runs (worst case)
+                "success": sum(bool(s["success"]) for s in runs),
+                "collisions": sum(int(s["collisions"]) for s in runs),
+                "min_clearance_m": min(float(s["min_clearance_m"]) for s in runs),
+                **{key: max(float(s[key]) for s in runs) for key in SAFETY_RATIOS},
+            },
+            "solve_time_s": [t for s in runs for t in s["planner"]["solve_time_s"]],
             **{
                 f"{key or 'published_'}ratio": np.median([width(s, key) / prior for s in runs], 0).tolist()
                 for key in ("", "data_", "first_order_")
@@ -240,6 +256,11 @@ def print_closed_loop(result: dict) -> None:
             f"{method}: contains {sum(r['contains'])}/{len(r['contains'])}, consistent {sum(r['consistent'])}, "
             f"median cond(Y) {np.median(r['cond_Y']):.1f}, "
             f"mass half-width kg {[round(x, 3) for x in r['mass_half_width_kg']]}"
+        )
+        times = np.array(r["solve_time_s"])
+        print(
+            f"  safety {json.dumps({k: round(v, 3) for k, v in r['safety'].items()})}; planning call median "
+            f"{np.median(times):.2f} s, max {times.max():.2f} s (simulated; the iteration budget)"
         )
     if {"ours", "random"} <= result.keys():  # paired seeds: where ours' data-driven box is narrower
         narrower = np.array(result["ours"]["data_ratios"]) < np.array(result["random"]["data_ratios"])

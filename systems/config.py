@@ -191,9 +191,9 @@ class Planner:
     # false: the plan alone, the paper's cost (its data no better conditioned than random plans'
     # here, but no wider intervals either: README "Exciting vs random").
     cumulative_excitation: bool = False
-    # true: after the plan in the certified k box, a wider plan certified on its own k (each plan
-    # only needs its own k safe; the box is certified for every k in it, so it shrinks much
-    # more): SafePlanner._refine. Larger motions, the same checks. false: the box alone.
+    # true: a plan certified on its own k (each plan only needs its own k safe; a box is certified
+    # for every k in it, so it shrinks much more), the certified k box only when no such point is
+    # found: SafePlanner._refine. Larger motions, the same checks. false: the box alone.
     point_refinement: bool = False
     goal_q_rad: List[float] = dc.field(default_factory=list)
     solver: str = "ipopt"  # ipopt | snopt

@@ -322,6 +322,9 @@ class PlanningProblem:
         point = np.array_equal(self.k_lo, centre) and np.array_equal(self.k_hi, centre)
         steps = 0 if point else self.planner.torque_shrink_steps  # nothing to shrink
         scales = [0.5**s for s in range(1, steps + 1)]
+        segment = bool(steps) and np.array_equal(self.k_lo, self.k_hi)  # a point: the segment to the centre
+        if segment:  # in eighths (one plan's motion, as large as certifiable), then the finest halving
+            scales = [j / 8 for j in range(7, 0, -1)] + scales[3:]
         nb = len(whole)
         if scales and (whole / limit).max() <= PLAIN_SHRINK_RATIO:
             sup, *_, nb = plain_bound(scales)
@@ -329,9 +332,7 @@ class PlanningProblem:
                 return True
         else:  # far over: shrinking does not rescue the plain bound (its tube terms stay); save the time
             sup = np.full((len(scales) * nb, self.n), np.inf)
-        # Affine bound level by level from the second smallest box: up while it fits (stop at the
-        # first misfit: a larger box contains it), down to the smallest if it does not; adopt the
-        # largest level that fits.
+        # The affine bound, one level at a time (it costs more per box); adopt the largest level that fits.
         scales = [1.0] + scales
         sup = np.concatenate([whole, sup]).reshape(len(scales), nb, -1)
 
@@ -340,19 +341,26 @@ class PlanningProblem:
             bound = np.minimum(sup[level], bound)
             return bound, float((bound / limit).max())
 
-        fitted = None
-        start = max(0, len(scales) - 2)
-        for level in [start, *range(start + 1, len(scales))]:  # the start, then smaller ones if it fails
-            last, ratio = affine_ratio(level)
-            if ratio <= 1.0:
-                fitted = (level, ratio)
-                break
-        if fitted is not None:
-            for level in reversed(range(fitted[0])):  # larger boxes while they fit
-                bound, ratio = affine_ratio(level)
+        def walk_up():
+            """From the second smallest level, up while it fits (a larger box contains a smaller
+            one: stop at the first misfit; points on a segment: nearly monotone), down to the
+            smallest if it does not."""
+            start = max(0, len(scales) - 2)
+            for level in (start, *range(start + 1, len(scales))):
+                last, ratio = affine_ratio(level)
+                if ratio <= 1.0:
+                    break
+            else:
+                return None, last
+            fitted = (level, ratio)
+            for level in reversed(range(fitted[0])):
+                _, ratio = affine_ratio(level)
                 if ratio > 1.0:
                     break
                 fitted = (level, ratio)
+            return fitted, last
+
+        fitted, last = walk_up()
         if fitted is not None:
             self.k_lo, self.k_hi = shrunk(scales[fitted[0]])
             self.torque_ratio = fitted[1]
@@ -664,39 +672,36 @@ class SafePlanner:
         cpu_start = time.process_time()
         mode = mode or self.config.cost
         rng = rng or np.random.default_rng(0)
-        prob = self.problem(q0, v0, a0, theta0, theta_lo, theta_hi, mode, past)
         res = PlanResult(
             ok=False, status="infeasible_start", solver=self.config.solver if mode != "random" else "random"
         )
-        refine = self.config.point_refinement
         k = None
-        if prob.feasible_start:
-            res.k_box = (prob.k_lo.copy(), prob.k_hi.copy())
-            res.num_collision_constraints = prob.num_pairs
-            res.details["solver_constraints"] = prob.num_constraints
-            res.max_torque_ratio = prob.torque_ratio
-            if mode == "random":
-                k = self._random(prob, rng, self._deadline(t_start))
-                status, solver_status = "random", "sampled"
-            else:
-                k, status, solver_status = self._optimize(prob, k_init, t_start)
-            res.solver_status = solver_status
-            if k is None:
-                res.status = "infeasible" if status != "solver_failed" else status
-                res.reason = f"no feasible k found ({solver_status})"
-        else:
-            res.reason = prob.reason
-        if refine and (k is not None or prob.torque_infeasible):
-            # From the box's plan, or, when no box fits the torque limits, from k = 0 (uncertified).
-            base = k if k is not None else np.clip(np.zeros(self.n), prob.k_lo, prob.k_hi)
-            args = (q0, v0, a0, theta0, theta_lo, theta_hi, mode, past)
-            refined = self._refine(prob if k is not None else None, base, args, rng, t_start)
+        if self.config.point_refinement:  # a plan certified on its own k; the k box only if none is
+            refined = self._refine((q0, v0, a0, theta0, theta_lo, theta_hi, mode, past), k_init, rng, t_start)
             res.details["refined"] = refined is not None
-            if refined is not None:  # certified on its own: the box's certificate does not apply
+            if refined is not None:
                 k, prob, status, res.solver_status = refined
                 res.k_box = (k.copy(), k.copy())
                 res.num_collision_constraints = prob.num_pairs
                 res.max_torque_ratio = prob.torque_ratio
+        if k is None:
+            prob = self.problem(q0, v0, a0, theta0, theta_lo, theta_hi, mode, past)
+            if prob.feasible_start:
+                res.k_box = (prob.k_lo.copy(), prob.k_hi.copy())
+                res.num_collision_constraints = prob.num_pairs
+                res.details["solver_constraints"] = prob.num_constraints
+                res.max_torque_ratio = prob.torque_ratio
+                if mode == "random":
+                    k = self._random(prob, rng, self._deadline(t_start))
+                    status, solver_status = "random", "sampled"
+                else:
+                    k, status, solver_status = self._optimize(prob, k_init, t_start)
+                res.solver_status = solver_status
+                if k is None:
+                    res.status = "infeasible" if status != "solver_failed" else status
+                    res.reason = f"no feasible k found ({solver_status})"
+            else:
+                res.reason = prob.reason
         if k is not None:
             vals, _ = prob.collision(k, with_jacobian=False)
             res.ok, res.status, res.k = True, status, k
@@ -715,17 +720,16 @@ class SafePlanner:
         res.details["cpu_time_s"] = time.process_time() - cpu_start
         return res
 
-    def _refine(self, prob, base, args, rng, t_start):
-        """A larger motion than the certified k box allows (planner.point_refinement): the box
-        is certified for EVERY k in it, so its interval enclosures are wide and the box shrinks
-        until they fit; one plan only needs its own k certified. Solve again over the whole
-        position/velocity limit box without the torque check (random: sample it), then take the
-        farthest point toward that target, at 1, 1/2, ..., 1/16 of the way from `base`, that the
-        rigorous torque bound certifies on the point itself (the box machinery on point boxes,
-        whose enclosures only span time and the tube), and check its collisions and limits as
-        any plan's. prob: the box's problem with base its plan (the point must also lower its
-        cost; random: any certified point), or None when no box fitted (base is k = 0,
-        uncertified). (k, its problem, status, solver status) or None."""
+    def _refine(self, args, k_init, rng, t_start):
+        """A larger motion than a certified k box allows (planner.point_refinement): the box is
+        certified for EVERY k in it, so its interval enclosures are wide and the box shrinks until
+        they fit; one plan only needs its own k certified. Solve over the whole position/velocity
+        limit box without the torque check (random: sample it), then take the farthest point
+        toward that target, at 1, 1/2, ..., 1/16 of the way from k = 0 (the limit box's point
+        nearest to it), that the rigorous torque bound certifies on the point itself (the box
+        machinery on point boxes, whose enclosures only span time and the tube), and check its
+        collisions and limits as any plan's. (k, its problem, status, solver status) or None:
+        then the caller plans in the certified box."""
         mode = args[6]
         wide = self.problem(*args, certify_torque=False)
         if not wide.feasible_start:
@@ -733,18 +737,15 @@ class SafePlanner:
         if mode == "random":
             target, status, solver_status = self._random(wide, rng, self._deadline(t_start)), "random", "sampled"
         else:
-            target, status, solver_status = self._optimize(wide, base, t_start)
+            target, status, solver_status = self._optimize(wide, k_init, t_start)
         if target is None:
             return None
+        base = np.clip(np.zeros(self.n), wide.k_lo, wide.k_hi)
         point = self.problem(*args, k_box=(target, target), shrink_toward=base)
         if not point.feasible_start:
             return None
         k = point.k_lo.copy()
-        if not point.is_feasible(k):
-            return None
-        if prob is not None and mode != "random" and not point.cost(k)[0] < prob.cost(base)[0]:
-            return None
-        return k, point, status, solver_status
+        return (k, point, status, solver_status) if point.is_feasible(k) else None
 
     def _initial_guess(self, prob, k_init, rng=None):
         """(start, fallback). Warm start from k_init; a plan that does not move at all makes W_e

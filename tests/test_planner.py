@@ -547,8 +547,8 @@ def test_point_refinement_with_no_admissible_k_gives_no_plan_and_the_reason(robo
 
 
 def test_point_certificate_keeps_a_fast_refined_plan_within_the_torque_limits(robot, payload, monkeypatch):
-    """0.75 s plans with the Table II prior: no k box fits the torque limits, so refinement starts
-    from k = 0 toward the wider optimum. That optimum itself breaks the limits on the tube
+    """0.75 s plans with the Table II prior: no k box fits the torque limits, so only a point
+    certificate gives a plan. That optimum itself breaks the limits on the tube
     boundary (the dense check fails on it: adopting it uncertified would be unsafe); the point
     the certificate adopts passes the same check."""
     obstacles = scene_obstacles()
@@ -564,8 +564,11 @@ def test_point_certificate_keeps_a_fast_refined_plan_within_the_torque_limits(ro
 
     monkeypatch.setattr(planner, "_optimize", record)
     z = np.zeros(7)
+    boxed, _, _ = _table_ii_planner(robot, payload, obstacles, **{**kw, "point_refinement": False})
+    no_box = boxed.plan(Q0, z, z, *thetas)
+    assert not no_box.ok and "torque limit" in no_box.reason  # no k box fits
     res = planner.plan(Q0, z, z, *thetas)
-    assert res.ok and res.details["refined"] and "torque limit" in res.reason  # no box fitted
+    assert res.ok and res.details["refined"], res.reason
     scene = DrakeScene(robot, payload, obstacles)
     with pytest.raises(AssertionError):
         check_plan_densely(robot, planner, thetas, targets[-1], scene, np.random.default_rng(3), 150, gains)
