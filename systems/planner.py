@@ -725,7 +725,7 @@ class SafePlanner:
         certified for EVERY k in it, so its interval enclosures are wide and the box shrinks until
         they fit; one plan only needs its own k certified. Solve over the whole position/velocity
         limit box without the torque check (random: sample it), then take the farthest point
-        toward that target, at 1, 1/2, ..., 1/16 of the way from k = 0 (the limit box's point
+        toward that target, at 1, 7/8, ..., 1/8, 1/16 of the way from k = 0 (the limit box's point
         nearest to it), that the rigorous torque bound certifies on the point itself (the box
         machinery on point boxes, whose enclosures only span time and the tube), and check its
         collisions and limits as any plan's. (k, its problem, status, solver status) or None:
