@@ -548,7 +548,7 @@ def test_point_refinement_with_no_admissible_k_gives_no_plan_and_the_reason(robo
 
 def test_point_certificate_keeps_a_fast_refined_plan_within_the_torque_limits(robot, payload, monkeypatch):
     """0.75 s plans with the Table II prior: no k box fits the torque limits, so only a point
-    certificate gives a plan. That optimum itself breaks the limits on the tube
+    certificate gives a plan. The optimum solved without the torque check breaks the limits on the tube
     boundary (the dense check fails on it: adopting it uncertified would be unsafe); the point
     the certificate adopts passes the same check."""
     obstacles = scene_obstacles()
