@@ -269,6 +269,8 @@ def print_closed_loop(result: dict) -> None:
         print(
             f"parameters where ours is narrower, per pair: {wins.tolist()}; pairs with >= 8: {int(np.sum(wins >= 8))}"
         )
+        ratio = np.median(np.array(result["ours"]["data_ratios"]) / np.array(result["random"]["data_ratios"]), 0)
+        print(f"data-driven width ours / random, median over pairs: {np.round(ratio, 2).tolist()}")
         ours, rand = (np.array(result[m]["cond_Y"]) for m in ("ours", "random"))
         ratio = np.median(ours) / np.median(rand)
         print(f"cond(Y) ours lower in {int(np.sum(ours < rand))}/{len(wins)}, medians ratio {ratio:.2f}")
