@@ -87,6 +87,11 @@ def near_boxes(robot, q, rng, count=3, clearance=(0.06, 0.12), payload=None):
     return out
 
 
+def _gen3_with_4lb():
+    """The benchmark's arm and payload: the Gen3 (Coulomb smoothing 0.01) and the 4 lb dumbbell."""
+    return load_robot(coulomb_smoothing=0.01), load_dumbbells(MODELS_DIR / "dumbbells.yaml")["4lb"]
+
+
 def _solve_series(
     robot, payload, thetas, bounds, solver, scenes, plans_per_scene, obstacles=3, deadline_s=1.5, **config
 ):
@@ -146,8 +151,7 @@ N_S = (32, 64, 128, 256)
 def scaling(quick: bool = False, out=None) -> dict:
     """Solve time (median, p95, max, missed t_p = 1.5 s deadlines) vs obstacle count and vs N_s,
     Ipopt, ee +-20 % prior; one PNG per sweep."""
-    robot = load_robot(coulomb_smoothing=0.01)
-    payload = load_dumbbells(MODELS_DIR / "dumbbells.yaml")["4lb"]
+    robot, payload = _gen3_with_4lb()
     thetas = parameter_box(robot, payload)
     bounds = tracking(robot, thetas[1])
     deadline = Planner().replan_period_s
@@ -193,8 +197,7 @@ def run(quick: bool = False, out=None) -> dict:
     import os
 
     out_dir = out
-    robot = load_robot(coulomb_smoothing=0.01)
-    payload = load_dumbbells(MODELS_DIR / "dumbbells.yaml")["4lb"]
+    robot, payload = _gen3_with_4lb()
     scenes = 2 if quick else 6
     plans_per_scene = 4
     out = {
@@ -219,8 +222,7 @@ def run(quick: bool = False, out=None) -> dict:
 
 
 def _identify_all_only(quick: bool) -> dict:
-    robot = load_robot(coulomb_smoothing=0.01)
-    payload = load_dumbbells(MODELS_DIR / "dumbbells.yaml")["4lb"]
+    robot, payload = _gen3_with_4lb()
     return {"load_average_at_start": load_average(), **identify_all_series(robot, payload, 2 if quick else 6, 4)}
 
 

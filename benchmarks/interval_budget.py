@@ -263,14 +263,14 @@ def print_closed_loop(result: dict) -> None:
             f"{np.median(times):.2f} s, max {times.max():.2f} s (simulated; the iteration budget)"
         )
     if {"ours", "random"} <= result.keys():  # paired seeds: where ours' data-driven box is narrower
-        narrower = np.array(result["ours"]["data_ratios"]) < np.array(result["random"]["data_ratios"])
+        ours, rand = (np.array(result[m]["data_ratios"]) for m in ("ours", "random"))
+        narrower = ours < rand
         wins = narrower.sum(1)
         print(f"ours narrower than random, pairs per parameter: {narrower.sum(0).tolist()} of {len(wins)}")
         print(
             f"parameters where ours is narrower, per pair: {wins.tolist()}; pairs with >= 8: {int(np.sum(wins >= 8))}"
         )
-        ratio = np.median(np.array(result["ours"]["data_ratios"]) / np.array(result["random"]["data_ratios"]), 0)
-        print(f"data-driven width ours / random, median over pairs: {np.round(ratio, 2).tolist()}")
+        print(f"data-driven width ours / random, median over pairs: {np.round(np.median(ours / rand, 0), 2).tolist()}")
         ours, rand = (np.array(result[m]["cond_Y"]) for m in ("ours", "random"))
         ratio = np.median(ours) / np.median(rand)
         print(f"cond(Y) ours lower in {int(np.sum(ours < rand))}/{len(wins)}, medians ratio {ratio:.2f}")

@@ -412,6 +412,6 @@ def add_real_arm(
         seed=int(seed),
         released_body=released_body,
         fault_stages=injected.stages,
-        fault_sources=(*injected.sources, velocity_noise),  # seeded streams (seed_noise skips None)
+        fault_sources=(*injected.sources, *([velocity_noise] if velocity_noise else [])),  # seeded streams
         estimator_samples_output=out("estimator_samples") if injected.samples else None,
     )

@@ -214,7 +214,7 @@ class RealArm:
     # Injected faults (scenario `faults`, systems/faults.py): the stages (their events), their
     # RandomSources (seeded with the noise), and the estimator's packet port when samples are faulty.
     fault_stages: tuple[LeafSystem, ...] = ()
-    fault_sources: tuple[RandomSource | None, ...] = ()
+    fault_sources: tuple[RandomSource, ...] = ()
     estimator_samples_output: OutputPort | None = None  # faults.packet_size(n), or None
 
     @property
