@@ -139,7 +139,9 @@ class Affine:
 
     def __getitem__(self, idx):
         gidx = idx + (slice(None),) if isinstance(idx, tuple) and Ellipsis in idx else idx
-        return self._new(self.c[idx], self.g[gidx], self.r[idx], _mag(self)[idx])
+        part = self._new(self.c[idx], self.g[gidx], self.r[idx], _mag(self)[idx])
+        part._dev = self.deviation()[idx]  # once for the whole form: its parts are multiplied next
+        return part
 
     def __neg__(self):
         return self._new(-self.c, -self.g, self.r, _mag(self))

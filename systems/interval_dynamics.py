@@ -110,11 +110,13 @@ def _stack(items, axis=-1):
 
 
 # Interval twins of regressors.py's cross products (same formulas on _Box; exact per component).
+_NEXT, _PREV = [1, 2, 0], [2, 0, 1]
+
+
 def _cross(a, b):
-    """Interval cross product over the last axis (length 3)."""
-    ax, ay, az = a[..., 0], a[..., 1], a[..., 2]
-    bx, by, bz = b[..., 0], b[..., 1], b[..., 2]
-    return _stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx])
+    """Interval cross product over the last axis (length 3): component i is
+    a[i+1] b[i+2] - a[i+2] b[i+1], all three at once (the same products, three times fewer calls)."""
+    return a[..., _NEXT] * b[..., _PREV] - a[..., _PREV] * b[..., _NEXT]
 
 
 def _matvec(m, x):
