@@ -38,6 +38,7 @@ from . import regressors
 from .affine_forms import concat_rows
 from .armour import TrackingBounds
 from .bezier import QuinticBezier, restriction_matrix
+from .blas import single_threaded_blas
 from .intervals import Interval
 from .spatial import cross, to_body
 
@@ -668,6 +669,10 @@ class SafePlanner:
     ) -> PlanResult:
         """One planning call -> PlanResult (ok False: keep the previous plan, which brakes).
         past: W_e rows of the motion executed so far (executed_rows), for the exciting cost."""
+        with single_threaded_blas():  # tall, thin matrices: more threads only spin
+            return self._plan(q0, v0, a0, theta0, theta_lo, theta_hi, k_init, rng, mode, past)
+
+    def _plan(self, q0, v0, a0, theta0, theta_lo, theta_hi, k_init, rng, mode, past):
         t_start = time.perf_counter()
         cpu_start = time.process_time()
         mode = mode or self.config.cost

@@ -16,6 +16,7 @@ Modules, in the order the data flows:
   simulate, self_check, detection, real_arm_check   the self-check on simulated logs
 """
 
+from ..blas import single_threaded_blas
 from .corrected_model import (  # its TIME_LAWS (law names) is not effects.TIME_LAWS
     EFFECT_NAMES,
     REQUIRED,
@@ -45,7 +46,6 @@ from .design import (
     rms,
     saturation_rule,
     segments,
-    single_threaded_blas,
     smooth_derivative,
     velocity_saturation,
 )

@@ -17,7 +17,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from .. import regressors
 from ..joint_log import JointLog
@@ -35,14 +34,6 @@ Segments = list[tuple[int, int]]  # inclusive index ranges of gap-free pieces
 
 
 WINDOW_S = 0.1  # momentum-form window
-
-
-# ---- BLAS threads ---------------------------------------------------------------------------
-def single_threaded_blas() -> threadpool_limits:
-    """Run with one BLAS thread (threadpoolctl, as a context manager): the design matrices are
-    tall and thin, and on a shared machine a threaded GEMM of that shape measured ~500x slower
-    (spinning threads)."""
-    return threadpool_limits(limits=1, user_api="blas")
 
 
 # ---- per-log preparation --------------------------------------------------------------------

@@ -8,8 +8,8 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from ..blas import single_threaded_blas
 from ..robot_model import RobotModel
-from .design import single_threaded_blas
 from .diagnose import diagnose
 from .self_check import parallel_map
 from .simulate import STRIBECK_VS, make_case, payload_theta

@@ -20,11 +20,12 @@ from typing import Any
 
 import numpy as np
 
+from ..blas import single_threaded_blas
 from ..joint_log import JointLog
 from ..robot_model import RobotModel
 from .corrected_model import CorrectedModel, group_params
 from .cross_validation import inner_folds
-from .design import BLOCK_S, Design, choose_form, rms, saturation_rule, single_threaded_blas
+from .design import BLOCK_S, Design, choose_form, rms, saturation_rule
 from .effects import EFFECTS, Params, corrected_parameters, effect_params, group_of
 from .problem import Problem, design_residual
 from .report_data import held_out_result

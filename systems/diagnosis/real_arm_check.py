@@ -8,10 +8,10 @@ from collections.abc import Callable, Container
 
 import numpy as np
 
+from ..blas import single_threaded_blas
 from ..config import PlantEffects, Scenario
 from ..joint_log import JointLog
 from ..robot_model import RobotModel
-from .design import single_threaded_blas
 from .diagnose import diagnose
 from .simulate import GAP_S, RATE_HZ, random_trajectory
 

@@ -15,8 +15,8 @@ from typing import Any
 
 import numpy as np
 
+from ..blas import single_threaded_blas
 from ..robot_model import RobotModel
-from .design import single_threaded_blas
 from .diagnose import diagnose
 from .effects import EFFECTS, PER_JOINT
 from .simulate import SNR_RANGE, make_case
