@@ -482,6 +482,21 @@ def test_point_refinement_moves_farther_than_the_certified_box_and_stays_safe(ro
     assert res.cost < plain.cost
     moved = np.abs(res.q_end - Q0).max()
     assert moved > 1.5 * np.abs(plain.q_end - Q0).max()
+    # Its reported clearance is that of its own swept spheres to every obstacle and the floor (a
+    # point problem keeps only the pairs within 1 mm of their margin: it once reported inf).
+    centres, radii = res.details["sphere_centres"], res.details["sphere_radii"]  # (intervals, spheres)
+    b, m = planner.boxes, centres.shape[1]
+    per_box = [
+        reach.box_signed_distance(
+            centres.reshape(-1, 3),
+            *(np.broadcast_to(x[o], (centres.size // 3,) + x[o].shape) for x in (b.centre, b.rotation, b.half_size)),
+        )[0].reshape(-1, m)
+        - radii
+        for o in range(len(b))
+    ]
+    floor = (centres[..., 2] - radii - planner.floor_z)[:, ~planner.floor_exempt]
+    least = min(floor.min(), *(d.min() for d in per_box))
+    assert 0.0 <= res.min_clearance_m < np.inf and res.min_clearance_m == pytest.approx(least, abs=1e-9)
     st = check_plan_densely(
         robot,
         planner,
