@@ -170,6 +170,7 @@ def _validate(s: Scenario, where):
     for key, value in dc.asdict(s.noise.theta_r_floor).items():
         need(value >= 0, f"noise.theta_r_floor.{key}", "must be >= 0")
     need(0 < s.planner.replan_period_s <= s.planner.duration_s, "planner.replan_period_s", "must be in (0, duration_s]")
+    need(0 < s.planner.refinement_scale <= 1, "planner.refinement_scale", "must be in (0, 1]")
     need(s.noise.torque_ratio >= 0 and s.noise.declared_torque_ratio >= 0, "noise", "ratios must be >= 0")
     f = s.fourier
     need(f.period_s > 0, "fourier.period_s", "must be > 0")

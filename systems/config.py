@@ -195,6 +195,10 @@ class Planner:
     # for every k in it, so it shrinks much more), the certified k box only when no such point is
     # found: SafePlanner._refine. Larger motions, the same checks. false: the box alone.
     point_refinement: bool = False
+    # The fraction of the position/velocity limit box (around k = 0) that refinement's wide solve
+    # searches: its optimum is then scaled toward k = 0 until certified, so an optimum found among
+    # motions of about the certifiable size keeps more of its excitation than a scaled-down larger one.
+    refinement_scale: float = 1.0
     goal_q_rad: List[float] = dc.field(default_factory=list)
     solver: str = "ipopt"  # ipopt | snopt
     max_solve_time_s: float = 1.2  # wall cap inside t_p (budget: wall_time only)

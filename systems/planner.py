@@ -221,6 +221,7 @@ class PlanningProblem:
         k_box: tuple[np.ndarray, np.ndarray] | None = None,
         certify_torque: bool = True,
         shrink_toward: np.ndarray | None = None,
+        box_scale: float = 1.0,
     ) -> None:
         self.planner = planner
         self.mode = mode or planner.config.cost
@@ -252,6 +253,9 @@ class PlanningProblem:
         if k_lo is None:
             self._fail(why)
             return
+        if box_scale < 1.0:  # the limit box shrunk toward k = 0 (its nearest point): refinement's wide solve
+            base = np.clip(np.zeros(self.n), k_lo, k_hi)
+            k_lo, k_hi = base + box_scale * (k_lo - base), base + box_scale * (k_hi - base)
         if k_box is not None:  # a sub-box (a point: the certificate of one plan, SafePlanner._refine)
             k_lo, k_hi = np.maximum(k_lo, k_box[0]), np.minimum(k_hi, k_box[1])
             if np.any(k_lo > k_hi):
@@ -642,11 +646,13 @@ class SafePlanner:
         k_box: tuple[np.ndarray, np.ndarray] | None = None,
         certify_torque: bool = True,
         shrink_toward: np.ndarray | None = None,
+        box_scale: float = 1.0,
     ) -> PlanningProblem:
         """k_box: a sub-box (e.g. one point); certify_torque False: no torque check (the wider solve
-        of point_refinement); shrink_toward: where the torque check shrinks the box (PlanningProblem)."""
+        of point_refinement); shrink_toward: where the torque check shrinks the box (PlanningProblem);
+        box_scale < 1: the limit box shrunk by it toward k = 0."""
         return PlanningProblem(
-            self, q0, v0, a0, theta0, theta_lo, theta_hi, mode, past, k_box, certify_torque, shrink_toward
+            self, q0, v0, a0, theta0, theta_lo, theta_hi, mode, past, k_box, certify_torque, shrink_toward, box_scale
         )
 
     def executed_rows(self, plan: PlanResult, duration_s: float) -> np.ndarray:
@@ -733,15 +739,16 @@ class SafePlanner:
     def _refine(self, args, k_init, rng, t_start):
         """A larger motion than a certified k box allows (planner.point_refinement): the box is
         certified for EVERY k in it, so its interval enclosures are wide and the box shrinks until
-        they fit; one plan only needs its own k certified. Solve over the whole position/velocity
-        limit box without the torque check (random: sample it), then take the farthest point
+        they fit; one plan only needs its own k certified. Solve over the position/velocity limit
+        box (planner.refinement_scale of it around k = 0) without the torque check (random: sample
+        it), then take the farthest point
         toward that target, at 1, 7/8, ..., 1/8, 1/16 of the way from k = 0 (the limit box's point
         nearest to it), that the rigorous torque bound certifies on the point itself (the box
         machinery on point boxes, whose enclosures only span time and the tube), and check its
         collisions and limits as any plan's. (k, its problem, status, solver status) or None:
         then the caller plans in the certified box."""
         mode = args[6]
-        wide = self.problem(*args, certify_torque=False)
+        wide = self.problem(*args, certify_torque=False, box_scale=self.config.refinement_scale)
         if not wide.feasible_start:
             return None
         if mode == "random":

@@ -510,6 +510,23 @@ def test_point_refinement_moves_farther_than_the_certified_box_and_stays_safe(ro
     assert st["negative_h"] > 0.3 * st["samples"]
 
 
+def test_refinement_scale_confines_the_wide_solve_and_the_plan_to_that_part_of_the_limit_box(robot, payload):
+    """planner.refinement_scale s: the wide solve searches the limit box shrunk by s toward k = 0, so the
+    adopted point (on the segment from k = 0 to that optimum) lies in it, and is certified as ever."""
+    z = np.zeros(7)
+    kw = dict(k_range_rad=[np.pi / 8] * 7, point_refinement=True)
+    planner, thetas, _ = _table_ii_planner(robot, payload, scene_obstacles(), refinement_scale=0.3, **kw)
+    full = planner.problem(Q0, z, z, *thetas, certify_torque=False)
+    base = np.clip(z, full.k_lo, full.k_hi)
+    scaled = planner.problem(Q0, z, z, *thetas, certify_torque=False, box_scale=0.3)
+    assert np.allclose(scaled.k_lo - base, 0.3 * (full.k_lo - base))
+    assert np.allclose(scaled.k_hi - base, 0.3 * (full.k_hi - base))
+    res = planner.plan(Q0, z, z, *thetas)
+    assert res.ok and res.details["refined"] and res.max_torque_ratio <= 1.0, res.reason
+    assert np.all(res.k >= scaled.k_lo - 1e-12) and np.all(res.k <= scaled.k_hi + 1e-12)
+    assert np.abs(res.k - base).max() > 0.05 * np.abs(full.k_hi - full.k_lo).max()  # it moves
+
+
 def test_point_refinement_adopts_only_certified_points(robot, payload, monkeypatch):
     """If no point toward the wider optimum is certified, the plan stays the box's (k_range pi/8),
     or there is no plan when no box fits either (pi/4): a point the certificate rejects is never
