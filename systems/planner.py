@@ -703,7 +703,6 @@ class SafePlanner:
             if prob.feasible_start:
                 res.k_box = (prob.k_lo.copy(), prob.k_hi.copy())
                 res.num_collision_constraints = prob.num_pairs
-                res.details["solver_constraints"] = prob.num_constraints
                 res.max_torque_ratio = prob.torque_ratio
                 if mode == "random":
                     k = self._random(prob, rng, self._deadline(t_start))
