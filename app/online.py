@@ -249,7 +249,9 @@ def build_online(
     source, task_info = None, ()
     if task:
         task_info = task_plan(scenario)
-        source = builder.AddSystem(make_task_source(robot, scenario, task_switch_time_s(scenario, spec), *task_info))
+        source = builder.AddSystem(
+            make_task_source(robot, scenario, task_switch_time_s(scenario, spec), *task_info, arm.dumbbell)
+        )
         source.set_name("task_phase_source")
         # Identification: the parameters the executing plan was certified with; task: the method's.
         if spec.model == methods.IDENTIFIED:

@@ -12,6 +12,7 @@ if TYPE_CHECKING:
     from pydrake.systems.analysis import Simulator
     from safesysid.online import OnlineDiagram
     from safesysid.systems.config import Scenario
+    from safesysid.systems.payload import Dumbbell
     from safesysid.systems.robot_model import RobotModel
     from safesysid.systems.safety_monitor import SafetyRecord
     from safesysid.systems.task_trajectory import TaskProblem, TaskResult
@@ -37,16 +38,22 @@ def released_parameters(
 
 
 def make_task_source(
-    robot: RobotModel, scenario: Scenario, switch_time_s: float, problem: TaskProblem, plan: TaskResult
+    robot: RobotModel,
+    scenario: Scenario,
+    switch_time_s: float,
+    problem: TaskProblem,
+    plan: TaskResult,
+    held: Dumbbell | None = None,
 ) -> TaskPhaseSource:
-    """The TaskPhaseSource of a scenario whose task trajectory `plan` (TaskResult) solves `problem`."""
+    """The TaskPhaseSource of a scenario whose task trajectory `plan` (TaskResult) solves `problem`;
+    held: the payload in the gripper (the return move's geometry, systems/task_phase.return_move)."""
     from safesysid.systems.task_phase import return_move
     from safesysid.systems.trajectory_source import TaskPhaseSource
 
     def make_task(q_now):
         if not plan.ok:
             return [], [dict(kind="task_infeasible", detail=f"task trajectory {plan.status}: {plan.reason}")]
-        back = return_move(problem, q_now, scenario.task.return_duration_s)
+        back = return_move(problem, q_now, scenario.task.return_duration_s, held)
         curves, events = [], []
         if back is not None:
             solve = f"{back.status} ({back.solver}, {back.solve_time_s:.2f} s)"

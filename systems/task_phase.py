@@ -44,14 +44,22 @@ def task_plan(scenario: Scenario, problem: tt.TaskProblem | None = None) -> tupl
     return problem, tt.task_trajectory_cached(problem, cache_dir(scenario))
 
 
-def return_move(problem: tt.TaskProblem, q_from: np.ndarray, duration_s: float) -> tt.TaskResult | None:
+def return_move(
+    problem: tt.TaskProblem, q_from: np.ndarray, duration_s: float, held: Dumbbell | None = None
+) -> tt.TaskResult | None:
     """Rest-to-rest move from q_from to the task start (one degree-5 piece of duration_s) under
-    the task's constraints; None when q_from already is the start."""
+    the task's constraints; None when q_from already is the start. held: the payload in the
+    gripper, whose geometry the collision constraints use (as the identification plans that
+    ended at q_from did; the task's payload model, e.g. the 8 lb one, may be larger and start
+    inside an obstacle's margin there); the torque keeps the task's parameters (model)."""
     q_from = np.asarray(q_from, float)
     if np.max(np.abs(q_from - problem.q_start)) < AT_START_TOL_RAD:
         return None
     settings = dataclasses.replace(problem.settings, num_pieces=1, duration_s=float(duration_s))
-    move = dataclasses.replace(problem, q_start=q_from, goal_q=problem.q_start, place_xyz=None, settings=settings)
+    geometry = {} if held is None else {"dumbbell": held}
+    move = dataclasses.replace(
+        problem, q_start=q_from, goal_q=problem.q_start, place_xyz=None, settings=settings, **geometry
+    )
     return tt.solve_task_trajectory(move)
 
 

@@ -119,6 +119,26 @@ def test_experiment_a_ours_4lb_identifies_then_places_within_tolerance(cache):
     assert kinds.index("task_start") < kinds.index("release")
 
 
+def test_return_move_is_checked_with_the_held_payloads_geometry(cache, monkeypatch):
+    """random, seed 1, 4 lb: identification (plans checked with the 4 lb dumbbell's spheres) ends
+    where the task's 8 lb payload model is 8 mm inside the low obstacle's margin; the return move
+    is checked with the held payload's geometry (as those plans were), so it is found and the run
+    succeeds on the referee's link shapes. With the 8 lb model's geometry it is refused."""
+    calls = []
+    orig = task_phase.return_move
+
+    def record(problem, q_from, duration_s, held=None):
+        calls.append((orig(problem, q_from, duration_s), held))  # the task model's geometry
+        return orig(problem, q_from, duration_s, held)
+
+    monkeypatch.setattr(task_phase, "return_move", record)
+    s = run_online(experiment_a(cache), None, method="random", seed=1, write=False)
+    ((with_model, held),) = calls
+    assert held.name == "4lb" and not with_model.ok and "inside the margin" in with_model.reason
+    assert s["success"] and s["task"]["return_move"], s["events"]
+    assert s["min_clearance_m"] > 0 and s["collisions"] == 0
+
+
 def test_wrong_placement_target_fails_with_placement_in_the_task_phase(cache):
     """The trajectory puts the payload 5 cm beside the platform centre the success criterion
     measures against (conservative: no identification, so the task starts at t = 0)."""
