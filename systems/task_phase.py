@@ -6,7 +6,8 @@ Why a return move rather than re-planning the task from where identification end
 trajectory then depends only on the scenario (the paper's "pre-defined trajectory" every method
 must follow), so it is solved once and cached; the return move is a one-piece minimum-jerk move
 from rest to rest under the same constraints (limits shrunk by the tube, torque with the payload
-model, the planner's spheres against the obstacles with the window and tube margins), solved in a
+model, the planner's spheres against the obstacles with the window and tube margins; the spheres
+of the payload actually held, as in the identification plans that ended there), solved in a
 second or less from its straight-line guess.
 """
 
