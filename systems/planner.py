@@ -720,9 +720,10 @@ class SafePlanner:
             res.ok, res.status, res.k = True, status, k
             res.q_end = prob.reach.q_end(k)
             res.trajectory = prob.reach.bezier
-            res.min_clearance_m = float(vals.min()) if len(vals) else float("inf")
-            if res.details.get("refined"):
+            if res.details.get("refined"):  # its point problem keeps only the pairs within 1 mm
                 res.min_clearance_m = prob.centre_clearance
+            else:
+                res.min_clearance_m = float(vals.min()) if len(vals) else float("inf")
             res.cost = prob.cost(k)[0] if mode != "random" else float("nan")
             res.cond = prob.cond(k)
             # Over-approximated swept spheres per time interval (for display): every point of

@@ -57,9 +57,13 @@ def return_move(
     if np.max(np.abs(q_from - problem.q_start)) < AT_START_TOL_RAD:
         return None
     settings = dataclasses.replace(problem.settings, num_pieces=1, duration_s=float(duration_s))
-    geometry = {} if held is None else {"dumbbell": held}
     move = dataclasses.replace(
-        problem, q_start=q_from, goal_q=problem.q_start, place_xyz=None, settings=settings, **geometry
+        problem,
+        q_start=q_from,
+        goal_q=problem.q_start,
+        place_xyz=None,
+        settings=settings,
+        dumbbell=problem.dumbbell if held is None else held,
     )
     return tt.solve_task_trajectory(move)
 
