@@ -348,7 +348,7 @@ def run_online(
     from safesysid import figures, progress, report, viz
     from safesysid.joint_log import JointLog, write_joint_log
     from safesysid.systems.inertial import NAMES
-    from safesysid.task_run import judge, run_task_phase
+    from safesysid.task_run import GuardedSimulator, judge, run_task_phase
 
     method = method or scenario.method
     seed = scenario.seed if seed is None else seed
@@ -359,8 +359,10 @@ def run_online(
     wall0 = time.perf_counter()
     built = build_online(scenario, method, meshcat=meshcat, seed=seed)
     arm, robot = built.arm, built.arm.robot
-    sim = Simulator(built.diagram)
-    progress.watch(sim, scenario, live_meshcat, getattr(getattr(built, "source", None), "switch_time_s", None))
+    sim = GuardedSimulator(Simulator(built.diagram))
+    progress.watch(
+        sim.simulator, scenario, live_meshcat, getattr(getattr(built, "source", None), "switch_time_s", None)
+    )
     ctx = sim.get_mutable_context()
     arm.seed_noise(ctx)
     arm.set_state(ctx, np.asarray(scenario.q0_rad, float))
@@ -428,7 +430,12 @@ def run_online(
     from safesysid.systems.faults import scenario_events
 
     events = merge_events(  # every system's, in time order
-        estimator_events, planner_events, task_events, arm.fault_events(ctx), scenario_events(scenario)
+        estimator_events,
+        planner_events,
+        task_events,
+        arm.fault_events(ctx),
+        scenario_events(scenario),
+        [sim.failure] if sim.failure else [],
     )
     solve_times = [p["solve_time_s"] for p in plans]
     deadline = scenario.planner.replan_period_s
@@ -439,7 +446,15 @@ def run_online(
     worst_ratio = float(ratio_t.max())
     # The tube is ARMOUR's certificate: a PID or adaptive phase claims none, so is not judged on it.
     armour_active = np.where(np.asarray(t) < t_switch, spec.first_controller == "armour", spec.controller == "armour")
-    failure, phase, t_fail = judge(record, plans, t, np.where(armour_active, ratio_t, 0.0), task_summary, t_switch)
+    failure, phase, t_fail = judge(
+        record,
+        plans,
+        t,
+        np.where(armour_active, ratio_t, 0.0),
+        task_summary,
+        t_switch,
+        sim.failure["t"] if sim.failure else None,
+    )
     robust = None
     if "armour" in built.loggers:
         _, diag = _log(built.loggers["armour"], ctx)

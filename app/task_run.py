@@ -77,12 +77,13 @@ def judge(
     tracking_ratio: np.ndarray,
     task: dict | None,
     t_switch: float,
+    simulation_failed_at: float | None = None,
 ) -> tuple[str | None, str | None, float | None]:
     """(failure, phase, time) of the first failure of a run in contracts.md's order, or
     (None, None, None). Torque is judged on the controller's command before saturation (the
     saturated torque can never exceed the limit). record: the SafetyMonitor's; tracking_ratio:
     max over joints of |error| / tube bound at the logger's times t; task: _run_task_phase's
-    summary (None: no task phase)."""
+    summary (None: no task phase); simulation_failed_at: when the plant's solver failed (GuardedSimulator)."""
     from safesysid.systems.task_phase import first_failure
 
     times = np.asarray(record.times, float)
@@ -104,6 +105,7 @@ def judge(
         ("velocity_limit", above(record.velocity_ratio, 1.0)),
         ("planner_infeasible", infeasible),
         ("tracking", np.asarray(t)[tracking_ratio > 1 + 1e-9]),
+        ("simulation", [] if simulation_failed_at is None else [simulation_failed_at]),
         ("placement", placement),
     ]
     return first_failure(checks, t_switch)
@@ -122,6 +124,29 @@ def task_certificate(built: OnlineDiagram, scenario: Scenario, method: str, thet
     if methods.method_spec(method).controller != "armour" or not plan.ok or len(thetas) != 3:
         return None
     return certified_torque_ratio(problem, plan.trajectory, *(np.asarray(x, float) for x in thetas))[0]
+
+
+class GuardedSimulator:
+    """A Simulator whose AdvanceTo turns a failure of the plant's solver (the state diverged, e.g.
+    a controller exciting an elastic joint) into a judged failure: the run stops there, its
+    summary is written with failure "simulation" and the event, instead of a traceback."""
+
+    def __init__(self, simulator: Simulator) -> None:
+        self.simulator = simulator
+        self.failure: dict | None = None  # the event {t, kind, detail}
+
+    def __getattr__(self, name):
+        return getattr(self.simulator, name)
+
+    def AdvanceTo(self, t: float) -> None:  # noqa: N802 (Drake's name)
+        if self.failure is not None:
+            return
+        try:
+            self.simulator.AdvanceTo(t)
+        except RuntimeError as err:
+            now = self.simulator.get_context().get_time()
+            detail = f"the plant's solver failed ({err}): the simulated state diverged; the run stops here"
+            self.failure = dict(t=now, kind="simulation_failed", detail=detail)
 
 
 def run_task_phase(built: OnlineDiagram, sim: Simulator, scenario: Scenario, method: str) -> dict:

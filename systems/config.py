@@ -124,6 +124,11 @@ class PlantEffects:
     torque_sensor_delay_s: float = 0.0  # the sensor reading arrives late (torque lags the motion)
     base_tilt_rad: List[float] = dc.field(default_factory=lambda: [0.0, 0.0])
     joint_stiffness_Nm_rad: List[float] = dc.field(default_factory=list)
+    # quasi_static: the link moves as if rigid and motor-side encoders read q + tau / K;
+    # dynamic: a motor (inertia = the armature) drives each link through the spring and a damper
+    # (joint_damping_Nms_rad), the encoders read the link; systems/real_arm.ElasticTransmission.
+    joint_elasticity: str = "quasi_static"
+    joint_damping_Nms_rad: List[float] = dc.field(default_factory=list)
     # Friction the robot model has no term for (the diagnosis' laws, sgn = the Coulomb shape):
     # load-dependent mu |tau_motor| sgn v [N m per N m of motor torque], per joint, in [0, 1) ...
     load_friction_mu: List[float] = dc.field(default_factory=list)

@@ -7,6 +7,7 @@ Signal path (everything from the scenario and the RobotModel; nothing hard-coded
                        -> [DiscreteTimeDelay d]        = applied torque tau_a
                        -> JointFriction: tau_a - (Fc tanh(v/vs) + Fv v + beta)  -> plant actuation
     plant state (q, v) -> [SeriesElasticEncoders]      -> state output
+    (dynamic elasticity: JointFriction at the motor's velocity -> ElasticTransmission -> plant)
 
 - Armature Ia: each JointActuator gets rotor inertia Ia and gear ratio 1, so Drake adds the
   reflected inertia Ia to the mass-matrix diagonal (M_plant = M_rigid + diag(Ia), tested).
@@ -50,6 +51,11 @@ Unmodelled effects (scenario.plant.effects, each off by default):
   if rigid, but encoders sit on the motor side and read q + tau_s / K, tau_s = the torque the
   transmission carries (applied torque minus friction). Velocities are reported unchanged. This
   captures the torque-proportional position offset of a stiff gearbox, not its resonance.
+  With joint_elasticity: dynamic (and joint_damping_Nms_rad) it is the flexible-joint model
+  instead (ElasticTransmission): the armature becomes a motor of its own, driven by the applied
+  torque against its friction, and a spring-damper carries the torque to the link; encoders and
+  the referee read the link, the torque sensor still the motor torque. The springs are explicit:
+  stiff ones need a small plant.time_step_s (checked at build, _check_elastic_step).
 - velocity_noise_rad_s: the encoders' velocities carry uniform noise in +-bound per joint and
   step (a Drake RandomSource seeded with the others), seen by controller and estimator.
 """
@@ -61,7 +67,7 @@ from pydrake.common import RandomDistribution
 from pydrake.geometry import CollisionFilterDeclaration, ProximityProperties
 from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.multibody.tree import SpatialInertia
-from pydrake.systems.framework import BasicVector, DiagramBuilder, LeafSystem
+from pydrake.systems.framework import BasicVector, Context, DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import DiscreteTimeDelay, RandomSource, Saturation, ZeroOrderHold
 
 from . import faults
@@ -137,6 +143,48 @@ class SeriesElasticEncoders(LeafSystem):
         output.SetFromVector(x)
 
 
+class ElasticTransmission(LeafSystem):
+    """Series-elastic joints, dynamically (Spong's flexible-joint model): per joint a motor of
+    inertia B (the armature) drives the link through a spring K and a damper D,
+
+        B w_m' = drive - tau_s,   tau_s = K (theta_m - q) + D (w_m - v),   M(q) v' + C + g = tau_s,
+
+    drive = applied torque minus the friction at the motor's velocity (JointFriction fed with
+    `motor_state`). Discrete state (theta_m, w_m), symplectic Euler at the plant's step, in step
+    with the plant's own update (both read the state at the start of the step)."""
+
+    def __init__(self, stiffness, damping, inertia, time_step):
+        super().__init__()
+        self.stiffness, self.damping, self.inertia = (np.asarray(x, float) for x in (stiffness, damping, inertia))
+        n = self.n = len(self.stiffness)
+        self.h = float(time_step)
+        self.drive = self.DeclareVectorInputPort("drive", n)
+        self.link_state = self.DeclareVectorInputPort("link_state", 2 * n)
+        motor = self.DeclareDiscreteState(2 * n)
+        self.DeclarePeriodicDiscreteUpdateEvent(self.h, 0.0, self._step)
+        self.DeclareStateOutputPort("motor_state", motor)
+        self.DeclareVectorOutputPort("spring_torque", BasicVector(n), self._calc)
+
+    def spring_torque(self, motor: np.ndarray, link: np.ndarray) -> np.ndarray:
+        n = self.n
+        return self.stiffness * (motor[:n] - link[:n]) + self.damping * (motor[n:] - link[n:])
+
+    def _calc(self, context, output):
+        output.SetFromVector(
+            self.spring_torque(context.get_discrete_state_vector().value(), self.link_state.Eval(context))
+        )
+
+    def _step(self, context, state):
+        motor = context.get_discrete_state_vector().value()
+        tau_s = self.spring_torque(motor, self.link_state.Eval(context))
+        w = motor[self.n :] + self.h * (self.drive.Eval(context) - tau_s) / self.inertia
+        state.get_mutable_vector().SetFromVector(np.concatenate([motor[: self.n] + self.h * w, w]))
+
+    def set_equilibrium(self, context: Context, q: np.ndarray, v: np.ndarray, link_torque: np.ndarray) -> None:
+        """Motor state that carries `link_torque` (the link's gravity at rest) with the link at (q, v)."""
+        context.SetDiscreteState(np.concatenate([q + link_torque / self.stiffness, v]))
+
+
 class NoisyVelocity(LeafSystem):
     """Encoders whose velocity reading is v + bound (2 u - 1), u the `unit_noise` input (n draws of
     U(0, 1) per step); positions unchanged."""
@@ -210,6 +258,58 @@ def _per_joint(values, n, default, field):
     return arr
 
 
+def _elasticity(eff, n):
+    """(stiffness, damping) per joint from plant.effects, or (None, None) when the joints are rigid."""
+    if not eff.joint_stiffness_Nm_rad:
+        if eff.joint_damping_Nms_rad:
+            raise ScenarioError("plant.effects.joint_damping_Nms_rad: needs joint_stiffness_Nm_rad")
+        return None, None
+    stiffness = _per_joint(eff.joint_stiffness_Nm_rad, n, 0.0, "joint_stiffness_Nm_rad")
+    if np.any(stiffness <= 0):
+        raise ScenarioError("plant.effects.joint_stiffness_Nm_rad: values must be > 0")
+    if eff.joint_elasticity not in ("quasi_static", "dynamic"):
+        raise ScenarioError(f"plant.effects.joint_elasticity: '{eff.joint_elasticity}' is not quasi_static or dynamic")
+    damping = _per_joint(eff.joint_damping_Nms_rad, n, 0.0, "joint_damping_Nms_rad")
+    if np.any(damping < 0):
+        raise ScenarioError("plant.effects.joint_damping_Nms_rad: values must be >= 0")
+    if eff.joint_damping_Nms_rad and eff.joint_elasticity != "dynamic":
+        raise ScenarioError("plant.effects.joint_damping_Nms_rad: only with joint_elasticity: dynamic")
+    return stiffness, damping
+
+
+# The springs and dampers are explicit in the coupled links + motors system: symplectic Euler is
+# stable on a mode of frequency omega and damping rate c while (h omega)^2 + 2 h c < 4; allowed up
+# to half of that (the mass matrix changes with q), for the stiffest modes at q0 without the payload.
+ELASTIC_STEP_LIMIT = 2.0
+
+
+def _check_elastic_step(plant, joints, payload_body, scenario, stiffness, damping, motor_inertia, h):
+    from scipy.linalg import eigh
+
+    ctx = plant.CreateDefaultContext()
+    payload_body.SetSpatialInertiaInBodyFrame(ctx, SpatialInertia.Zero())
+    for joint, angle in zip(joints, scenario.q0_rad):
+        joint.set_angle(ctx, float(angle))
+    idx = [joint.velocity_start() for joint in joints]
+    n = len(idx)
+    mass = np.zeros((2 * n, 2 * n))  # links (q) and motors (theta_m)
+    mass[:n, :n] = plant.CalcMassMatrix(ctx)[np.ix_(idx, idx)]
+    mass[n:, n:] = np.diag(motor_inertia)
+
+    def fastest(coefficient):  # the largest generalized eigenvalue of the spring (or damper) network
+        coupling = np.kron(np.array([[1.0, -1.0], [-1.0, 1.0]]), np.diag(coefficient))
+        return float(eigh(coupling, mass, eigvals_only=True)[-1])
+
+    omega, rate = np.sqrt(max(fastest(stiffness), 0.0)), max(fastest(damping), 0.0)
+    measure = (h * omega) ** 2 + 2 * h * rate
+    if measure > ELASTIC_STEP_LIMIT:
+        raise ScenarioError(
+            f"plant.effects.joint_stiffness_Nm_rad: the joint springs (fastest mode {omega:.0f} rad/s, damping rate "
+            f"{rate:.0f} 1/s without the payload) are too stiff for plant.time_step_s {h:g}: (h omega)^2 + 2 h rate "
+            f"= {measure:.2f} > {ELASTIC_STEP_LIMIT} (explicit coupling); lower them or the time step"
+        )
+
+
 def add_real_arm(
     builder: DiagramBuilder,
     scenario: Scenario,
@@ -235,6 +335,8 @@ def add_real_arm(
 
     seed = scenario.seed if seed is None else seed
     theta, inertials = real_robot_theta(robot, scenario, seed)
+    stiffness, damping = _elasticity(eff, n)
+    dynamic_elasticity = stiffness is not None and eff.joint_elasticity == "dynamic"
     fric = theta[10 * n :].reshape(n, 4)  # [Fc, Fv, Ia, beta] per joint
     station = DiagramBuilder()
     plant, scene_graph, instance = _make_real_plant(robot, inertials, h, station)
@@ -249,7 +351,8 @@ def add_real_arm(
             raise ScenarioError(f"{robot.source}: joint {joint.name()} has no actuator")
         act = actuators[joint.name()]
         act.set_default_gear_ratio(1.0)
-        act.set_default_rotor_inertia(float(fric[k, 2]))  # reflected inertia = Ia
+        # Reflected inertia Ia on the mass matrix; with dynamic elasticity it is the motor's instead.
+        act.set_default_rotor_inertia(0.0 if dynamic_elasticity else float(fric[k, 2]))
     # Payload body welded at the grasp point (its frame: origin at the dumbbell centre, x along it).
     ee_body = plant.GetBodyByName(robot.body_names[robot.end_effector], instance)
     payload_instance = plant.AddModelInstance("payload")
@@ -301,11 +404,6 @@ def add_real_arm(
         delay.set_name("actuation_delay")
         station.Connect(sat.get_output_port(), delay.get_input_port())
         applied_port = delay.get_output_port()
-    stiffness = (
-        _per_joint(eff.joint_stiffness_Nm_rad, n, 0.0, "joint_stiffness_Nm_rad") if eff.joint_stiffness_Nm_rad else None
-    )
-    if stiffness is not None and np.any(stiffness <= 0):
-        raise ScenarioError("plant.effects.joint_stiffness_Nm_rad: values must be > 0")
     friction = station.AddSystem(
         JointFriction(
             fric[:, 0],
@@ -319,10 +417,20 @@ def add_real_arm(
     )
     friction.set_name("joint_friction")
     station.Connect(applied_port, friction.applied)
-    station.Connect(plant.get_state_output_port(instance), friction.state)
-    station.Connect(friction.get_output_port(), plant.get_actuation_input_port(instance))
     state_out = plant.get_state_output_port(instance)
-    if stiffness is not None:
+    transmission = None
+    if dynamic_elasticity:
+        _check_elastic_step(plant, joints, payload_body, scenario, stiffness, damping, fric[:, 2], h)
+        transmission = station.AddSystem(ElasticTransmission(stiffness, damping, fric[:, 2], h))
+        transmission.set_name("elastic_transmission")
+        station.Connect(transmission.GetOutputPort("motor_state"), friction.state)
+        station.Connect(friction.get_output_port(), transmission.drive)
+        station.Connect(state_out, transmission.link_state)
+        station.Connect(transmission.GetOutputPort("spring_torque"), plant.get_actuation_input_port(instance))
+    else:
+        station.Connect(state_out, friction.state)
+        station.Connect(friction.get_output_port(), plant.get_actuation_input_port(instance))
+    if stiffness is not None and not dynamic_elasticity:
         encoders = station.AddSystem(SeriesElasticEncoders(stiffness))
         encoders.set_name("motor_side_encoders")
         station.Connect(plant.get_state_output_port(instance), encoders.state)
@@ -411,6 +519,7 @@ def add_real_arm(
         noise_source=noise_source,
         seed=int(seed),
         released_body=released_body,
+        transmission=transmission,
         fault_stages=injected.stages,
         fault_sources=(*injected.sources, *([velocity_noise] if velocity_noise else [])),  # seeded streams
         estimator_samples_output=out("estimator_samples") if injected.samples else None,

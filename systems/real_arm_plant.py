@@ -213,6 +213,7 @@ class RealArm:
     released_body: RigidBody | None = None  # free body taking the payload over at release (None: not releasable)
     # Injected faults (scenario `faults`, systems/faults.py): the stages (their events), their
     # RandomSources (seeded with the noise), and the estimator's packet port when samples are faulty.
+    transmission: LeafSystem | None = None  # ElasticTransmission (dynamic joint elasticity) or None
     fault_stages: tuple[LeafSystem, ...] = ()
     fault_sources: tuple[RandomSource, ...] = ()
     estimator_samples_output: OutputPort | None = None  # faults.packet_size(n), or None
@@ -308,6 +309,12 @@ class RealArm:
         ctx = self.plant_context(root_context)
         self.plant.SetPositions(ctx, self.instance, np.asarray(q, float))
         self.plant.SetVelocities(ctx, self.instance, np.zeros(self.n) if v is None else np.asarray(v, float))
+        if self.transmission is not None:  # the springs carry the links' weight from the start
+            q_arm, v_arm = (self.plant.GetPositions(ctx, self.instance), self.plant.GetVelocities(ctx, self.instance))
+            weight = -self.plant.GetVelocitiesFromArray(self.instance, self.plant.CalcGravityGeneralizedForces(ctx))
+            self.transmission.set_equilibrium(
+                self.transmission.GetMyMutableContextFromRoot(root_context), q_arm, v_arm, weight
+            )
         if self.released_body is not None:  # waiting, locked, for a release
             self.plant.SetFreeBodyPose(ctx, self.released_body, _PARKED)
             self.released_body.Lock(ctx)

@@ -231,6 +231,86 @@ def test_joint_elasticity_offsets_the_encoders(robot):
     np.testing.assert_allclose(x[-1, :7], q0 + (hold - robot.joint_params.offset) / stiffness, atol=1e-8)
 
 
+def _dynamic_elasticity(stiffness, damping=(), time_step=0.00025, **overrides):
+    effects = {"joint_elasticity": "dynamic", "joint_stiffness_Nm_rad": [float(k) for k in stiffness]}
+    if damping:
+        effects["joint_damping_Nms_rad"] = list(damping)
+    return load_scenario(
+        overrides={
+            "noise": {"distribution": "none"},
+            "payload": {"dumbbell": "none"},
+            "plant": {"time_step_s": time_step, "effects": effects},
+            **overrides,
+        }
+    )
+
+
+def test_dynamic_joint_elasticity_is_a_motor_and_a_spring(robot):
+    """joint_elasticity: dynamic. The holding torque holds the arm from the first step (the springs
+    start wound by the links' weight); after a torque step on joint 7 the plant's velocities follow
+    the two-mass model integrated here independently, M dv = K (theta_m - q), B dw = step - friction(w)
+    - K (theta_m - q) (M: the link-side mass matrix, B: the armature), ringing where the rigid arm
+    does not."""
+    jp = robot.joint_params
+    stiffness = np.array([1e4] * 6 + [2000.0])
+    s = _dynamic_elasticity(stiffness)
+    h, q0 = s.plant.time_step_s, np.array(s.q0_rad)
+    hold = ControllerDynamics(robot).gravity(q0, robot.theta) + jp.offset
+    sim, arm, logs = _rig(s, robot, hold)
+    ctx = sim.get_mutable_context()
+    arm.set_state(ctx, q0)
+    weight = -arm.plant.CalcGravityGeneralizedForces(arm.plant_context(ctx))[:7]
+    motor = arm.transmission.GetMyContextFromRoot(ctx).get_discrete_state_vector().value()
+    np.testing.assert_allclose(motor[:7], q0 + weight / stiffness, atol=1e-12)
+    sim.AdvanceTo(0.2)
+    np.testing.assert_allclose(_log(sim, logs["state"])[:, :7], np.tile(q0, (801, 1)), atol=1e-9)
+
+    step = np.eye(7)[6]
+    sim, arm, logs = _rig(s, robot, hold + step)
+    arm.set_state(sim.get_mutable_context(), q0)
+    m_inv = np.linalg.inv(arm.plant.CalcMassMatrix(arm.plant_context(sim.get_context()))[:7, :7])
+    sim.AdvanceTo(0.02)
+    v_plant = _log(sim, logs["state"])[:, 7:]
+    q, v, motor, w = (np.zeros(7) for _ in range(4))  # deviations from the equilibrium
+    v_model = [v]
+    for _ in range(len(v_plant) - 1):
+        spring = stiffness * (motor - q)
+        friction = jp.coulomb * np.tanh(w / robot.coulomb_smoothing) + jp.viscous * w
+        v = v + h * m_inv @ spring
+        q = q + h * v
+        w = w + h * (step - friction - spring) / jp.armature
+        motor = motor + h * w
+        v_model.append(v)
+    v_model = np.array(v_model)
+    assert np.abs(v_plant - v_model).max() < 0.002 * np.abs(v_model).max()
+    rigid = load_scenario(overrides={"noise": {"distribution": "none"}, "payload": {"dumbbell": "none"}})
+    sim, arm, logs = _rig(rigid, robot, hold + step)
+    arm.set_state(sim.get_mutable_context(), q0)
+    sim.AdvanceTo(0.02)
+    v_rigid = _log(sim, logs["state"])[:, 13]
+    assert np.abs(v_rigid - v_model[::4, 6][: len(v_rigid)]).max() > 0.02 * np.abs(v_model).max()
+
+
+@pytest.mark.parametrize(
+    "effects, message",
+    [
+        ({"joint_stiffness_Nm_rad": [1e4] * 7, "joint_elasticity": "dynamic"}, "too stiff for plant.time_step_s"),
+        ({"joint_stiffness_Nm_rad": [1e4] * 7, "joint_elasticity": "wobbly"}, "joint_elasticity: 'wobbly'"),
+        (
+            {"joint_stiffness_Nm_rad": [1e4] * 7, "joint_damping_Nms_rad": [1.0] * 7},
+            "only with joint_elasticity: dynamic",
+        ),
+        ({"joint_damping_Nms_rad": [1.0] * 7}, "needs joint_stiffness_Nm_rad"),
+    ],
+)
+def test_joint_elasticity_options_are_checked(robot, effects, message):
+    from safesysid.systems.config import ScenarioError
+
+    s = load_scenario(overrides={"payload": {"dumbbell": "none"}, "plant": {"effects": effects}})
+    with pytest.raises(ScenarioError, match=message):
+        add_real_arm(DiagramBuilder(), s, robot=robot)
+
+
 def test_velocity_noise_is_bounded_seeded_and_only_on_the_reading(robot):
     """plant.effects.velocity_noise_rad_s: the encoders' velocity = the plant's + uniform noise
     within the bound (reaching near it), positions exact; the same seed gives the same draws."""

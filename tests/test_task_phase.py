@@ -139,6 +139,33 @@ def test_return_move_is_checked_with_the_held_payloads_geometry(cache, monkeypat
     assert s["min_clearance_m"] > 0 and s["collisions"] == 0
 
 
+def test_a_failed_simulation_is_a_judged_failure_not_a_crash(cache, monkeypatch):
+    """The plant's solver failing mid-run (a diverged state: "factorization not ready") stops the
+    run there and is judged: failure "simulation" at that time, the event logged, the summary
+    written."""
+    from pydrake.systems import analysis
+
+    real = analysis.Simulator
+
+    class Diverging:  # the simulator whose plant solve fails after 0.5 s
+        def __init__(self, diagram):
+            self.simulator = real(diagram)
+
+        def __getattr__(self, name):
+            return getattr(self.simulator, name)
+
+        def AdvanceTo(self, t):  # noqa: N802
+            self.simulator.AdvanceTo(min(t, 0.5))
+            if t > 0.5:
+                raise RuntimeError("Call to Solve() failed: factorization not ready.")
+
+    monkeypatch.setattr(analysis, "Simulator", Diverging)
+    s = run_online(experiment_a(cache), None, method="conservative", write=False)
+    assert s["failure"] == "simulation" and s["phase"] == "task" and s["failure_time_s"] == pytest.approx(0.5)
+    (event,) = [e for e in s["events"] if e["kind"] == "simulation_failed"]
+    assert "factorization not ready" in event["detail"] and event["t"] == pytest.approx(0.5)
+
+
 def test_wrong_placement_target_fails_with_placement_in_the_task_phase(cache):
     """The trajectory puts the payload 5 cm beside the platform centre the success criterion
     measures against (conservative: no identification, so the task starts at t = 0)."""
