@@ -151,7 +151,9 @@ class ElasticTransmission(LeafSystem):
 
     drive = applied torque minus the friction at the motor's velocity (JointFriction fed with
     `motor_state`). Discrete state (theta_m, w_m), symplectic Euler at the plant's step, in step
-    with the plant's own update (both read the state at the start of the step)."""
+    with the plant's own update (both read the state at the start of the step). The damper's
+    -D v on the link is the plant's joint damping (implicit in Drake's discrete solver: a light
+    link would make it unstable here), so `link_actuation` = K (theta_m - q) + D w_m."""
 
     def __init__(self, stiffness, damping, inertia, time_step):
         super().__init__()
@@ -163,16 +165,15 @@ class ElasticTransmission(LeafSystem):
         motor = self.DeclareDiscreteState(2 * n)
         self.DeclarePeriodicDiscreteUpdateEvent(self.h, 0.0, self._step)
         self.DeclareStateOutputPort("motor_state", motor)
-        self.DeclareVectorOutputPort("spring_torque", BasicVector(n), self._calc)
+        self.DeclareVectorOutputPort("link_actuation", BasicVector(n), self._calc)
 
     def spring_torque(self, motor: np.ndarray, link: np.ndarray) -> np.ndarray:
         n = self.n
         return self.stiffness * (motor[:n] - link[:n]) + self.damping * (motor[n:] - link[n:])
 
     def _calc(self, context, output):
-        output.SetFromVector(
-            self.spring_torque(context.get_discrete_state_vector().value(), self.link_state.Eval(context))
-        )
+        motor, link = context.get_discrete_state_vector().value(), self.link_state.Eval(context)
+        output.SetFromVector(self.spring_torque(motor, link) + self.damping * link[self.n :])
 
     def _step(self, context, state):
         motor = context.get_discrete_state_vector().value()
@@ -277,10 +278,12 @@ def _elasticity(eff, n):
     return stiffness, damping
 
 
-# The springs and dampers are explicit in the coupled links + motors system: symplectic Euler is
-# stable on a mode of frequency omega and damping rate c while (h omega)^2 + 2 h c < 4; allowed up
-# to half of that (the mass matrix changes with q), for the stiffest modes at q0 without the payload.
+# The springs are explicit in the coupled links + motors system (and the damper on the motors'
+# side): symplectic Euler is stable on a mode of frequency omega and damping rate c while
+# (h omega)^2 + 2 h c < 4; allowed up to half of that, for the stiffest mode without the payload
+# over q0 and seeded random configurations in the joint limits (the link inertias change with q).
 ELASTIC_STEP_LIMIT = 2.0
+ELASTIC_CHECK_CONFIGURATIONS = 64
 
 
 def _check_elastic_step(plant, joints, payload_body, scenario, stiffness, damping, motor_inertia, h):
@@ -288,25 +291,29 @@ def _check_elastic_step(plant, joints, payload_body, scenario, stiffness, dampin
 
     ctx = plant.CreateDefaultContext()
     payload_body.SetSpatialInertiaInBodyFrame(ctx, SpatialInertia.Zero())
-    for joint, angle in zip(joints, scenario.q0_rad):
-        joint.set_angle(ctx, float(angle))
     idx = [joint.velocity_start() for joint in joints]
     n = len(idx)
+    lower = np.array([max(j.position_lower_limits()[0], -np.pi) for j in joints])
+    upper = np.array([min(j.position_upper_limits()[0], np.pi) for j in joints])
+    poses = np.vstack(
+        [scenario.q0_rad, np.random.default_rng(0).uniform(lower, upper, (ELASTIC_CHECK_CONFIGURATIONS, n))]
+    )
     mass = np.zeros((2 * n, 2 * n))  # links (q) and motors (theta_m)
-    mass[:n, :n] = plant.CalcMassMatrix(ctx)[np.ix_(idx, idx)]
     mass[n:, n:] = np.diag(motor_inertia)
-
-    def fastest(coefficient):  # the largest generalized eigenvalue of the spring (or damper) network
-        coupling = np.kron(np.array([[1.0, -1.0], [-1.0, 1.0]]), np.diag(coefficient))
-        return float(eigh(coupling, mass, eigvals_only=True)[-1])
-
-    omega, rate = np.sqrt(max(fastest(stiffness), 0.0)), max(fastest(damping), 0.0)
+    springs = np.kron(np.array([[1.0, -1.0], [-1.0, 1.0]]), np.diag(stiffness))
+    omega = 0.0
+    for q in poses:
+        for joint, angle in zip(joints, q):
+            joint.set_angle(ctx, float(angle))
+        mass[:n, :n] = plant.CalcMassMatrix(ctx)[np.ix_(idx, idx)]
+        omega = max(omega, np.sqrt(max(float(eigh(springs, mass, eigvals_only=True)[-1]), 0.0)))
+    rate = float(np.max(damping / motor_inertia))
     measure = (h * omega) ** 2 + 2 * h * rate
     if measure > ELASTIC_STEP_LIMIT:
         raise ScenarioError(
-            f"plant.effects.joint_stiffness_Nm_rad: the joint springs (fastest mode {omega:.0f} rad/s, damping rate "
-            f"{rate:.0f} 1/s without the payload) are too stiff for plant.time_step_s {h:g}: (h omega)^2 + 2 h rate "
-            f"= {measure:.2f} > {ELASTIC_STEP_LIMIT} (explicit coupling); lower them or the time step"
+            f"plant.effects.joint_stiffness_Nm_rad: the joint springs (fastest mode {omega:.0f} rad/s without the "
+            f"payload) are too stiff for plant.time_step_s {h:g}: (h omega)^2 + 2 h max(D/B) = {measure:.2f} > "
+            f"{ELASTIC_STEP_LIMIT} (explicit coupling); lower them or the time step"
         )
 
 
@@ -350,6 +357,8 @@ def add_real_arm(
         if joint.name() not in actuators:
             raise ScenarioError(f"{robot.source}: joint {joint.name()} has no actuator")
         act = actuators[joint.name()]
+        if dynamic_elasticity:  # the link's share of the damper, -D v (ElasticTransmission)
+            joint.set_default_damping(joint.default_damping() + float(damping[k]))
         act.set_default_gear_ratio(1.0)
         # Reflected inertia Ia on the mass matrix; with dynamic elasticity it is the motor's instead.
         act.set_default_rotor_inertia(0.0 if dynamic_elasticity else float(fric[k, 2]))
@@ -426,7 +435,7 @@ def add_real_arm(
         station.Connect(transmission.GetOutputPort("motor_state"), friction.state)
         station.Connect(friction.get_output_port(), transmission.drive)
         station.Connect(state_out, transmission.link_state)
-        station.Connect(transmission.GetOutputPort("spring_torque"), plant.get_actuation_input_port(instance))
+        station.Connect(transmission.GetOutputPort("link_actuation"), plant.get_actuation_input_port(instance))
     else:
         station.Connect(state_out, friction.state)
         station.Connect(friction.get_output_port(), plant.get_actuation_input_port(instance))

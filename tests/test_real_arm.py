@@ -233,8 +233,8 @@ def test_joint_elasticity_offsets_the_encoders(robot):
 
 def _dynamic_elasticity(stiffness, damping=(), time_step=0.00025, **overrides):
     effects = {"joint_elasticity": "dynamic", "joint_stiffness_Nm_rad": [float(k) for k in stiffness]}
-    if damping:
-        effects["joint_damping_Nms_rad"] = list(damping)
+    if len(damping):
+        effects["joint_damping_Nms_rad"] = [float(d) for d in damping]
     return load_scenario(
         overrides={
             "noise": {"distribution": "none"},
@@ -248,12 +248,12 @@ def _dynamic_elasticity(stiffness, damping=(), time_step=0.00025, **overrides):
 def test_dynamic_joint_elasticity_is_a_motor_and_a_spring(robot):
     """joint_elasticity: dynamic. The holding torque holds the arm from the first step (the springs
     start wound by the links' weight); after a torque step on joint 7 the plant's velocities follow
-    the two-mass model integrated here independently, M dv = K (theta_m - q), B dw = step - friction(w)
-    - K (theta_m - q) (M: the link-side mass matrix, B: the armature), ringing where the rigid arm
-    does not."""
+    the two-mass model integrated here independently, M dv = tau_s, B dw = step - friction(w) - tau_s,
+    tau_s = K (theta_m - q) + D (w - v) (M: the link-side mass matrix, B: the armature; the damper's
+    -D v on the link implicit, as the plant's joint damping), ringing where the rigid arm does not."""
     jp = robot.joint_params
-    stiffness = np.array([1e4] * 6 + [2000.0])
-    s = _dynamic_elasticity(stiffness)
+    stiffness, damping = np.array([1e4] * 6 + [2000.0]), np.array([20.0] * 6 + [0.5])
+    s = _dynamic_elasticity(stiffness, damping)
     h, q0 = s.plant.time_step_s, np.array(s.q0_rad)
     hold = ControllerDynamics(robot).gravity(q0, robot.theta) + jp.offset
     sim, arm, logs = _rig(s, robot, hold)
@@ -268,17 +268,18 @@ def test_dynamic_joint_elasticity_is_a_motor_and_a_spring(robot):
     step = np.eye(7)[6]
     sim, arm, logs = _rig(s, robot, hold + step)
     arm.set_state(sim.get_mutable_context(), q0)
-    m_inv = np.linalg.inv(arm.plant.CalcMassMatrix(arm.plant_context(sim.get_context()))[:7, :7])
+    mass = arm.plant.CalcMassMatrix(arm.plant_context(sim.get_context()))[:7, :7]
     sim.AdvanceTo(0.02)
     v_plant = _log(sim, logs["state"])[:, 7:]
     q, v, motor, w = (np.zeros(7) for _ in range(4))  # deviations from the equilibrium
     v_model = [v]
     for _ in range(len(v_plant) - 1):
-        spring = stiffness * (motor - q)
+        spring = stiffness * (motor - q) + damping * (w - v)
         friction = jp.coulomb * np.tanh(w / robot.coulomb_smoothing) + jp.viscous * w
-        v = v + h * m_inv @ spring
-        q = q + h * v
+        v_next = np.linalg.solve(mass + h * np.diag(damping), mass @ v + h * (stiffness * (motor - q) + damping * w))
         w = w + h * (step - friction - spring) / jp.armature
+        v = v_next
+        q = q + h * v
         motor = motor + h * w
         v_model.append(v)
     v_model = np.array(v_model)
