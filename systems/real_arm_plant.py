@@ -211,9 +211,9 @@ class RealArm:
     noise_source: RandomSource | None = None  # the torque sensor's noise (None: noiseless)
     seed: int = 0  # the run's seed: drawn parameters at build, sensor noise via seed_noise
     released_body: RigidBody | None = None  # free body taking the payload over at release (None: not releasable)
+    transmission: LeafSystem | None = None  # ElasticTransmission (dynamic joint elasticity) or None
     # Injected faults (scenario `faults`, systems/faults.py): the stages (their events), their
     # RandomSources (seeded with the noise), and the estimator's packet port when samples are faulty.
-    transmission: LeafSystem | None = None  # ElasticTransmission (dynamic joint elasticity) or None
     fault_stages: tuple[LeafSystem, ...] = ()
     fault_sources: tuple[RandomSource, ...] = ()
     estimator_samples_output: OutputPort | None = None  # faults.packet_size(n), or None
