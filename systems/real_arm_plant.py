@@ -307,14 +307,12 @@ class RealArm:
 
     def set_state(self, root_context: Context, q: ArrayLike, v: ArrayLike | None = None) -> None:
         ctx = self.plant_context(root_context)
-        self.plant.SetPositions(ctx, self.instance, np.asarray(q, float))
-        self.plant.SetVelocities(ctx, self.instance, np.zeros(self.n) if v is None else np.asarray(v, float))
+        q, v = np.asarray(q, float), np.zeros(self.n) if v is None else np.asarray(v, float)
+        self.plant.SetPositions(ctx, self.instance, q)
+        self.plant.SetVelocities(ctx, self.instance, v)
         if self.transmission is not None:  # the springs carry the links' weight from the start
-            q_arm, v_arm = (self.plant.GetPositions(ctx, self.instance), self.plant.GetVelocities(ctx, self.instance))
             weight = -self.plant.GetVelocitiesFromArray(self.instance, self.plant.CalcGravityGeneralizedForces(ctx))
-            self.transmission.set_equilibrium(
-                self.transmission.GetMyMutableContextFromRoot(root_context), q_arm, v_arm, weight
-            )
+            self.transmission.set_equilibrium(self.transmission.GetMyMutableContextFromRoot(root_context), q, v, weight)
         if self.released_body is not None:  # waiting, locked, for a release
             self.plant.SetFreeBodyPose(ctx, self.released_body, _PARKED)
             self.released_body.Lock(ctx)
