@@ -201,6 +201,11 @@ def cmd_sysid(args: argparse.Namespace) -> int:
         robot = robot_from_scenario(scenario)
     log = read_log(args.log, robot.n, args.topic, args.joints or list(robot.joint_params.names))
     settings = EstimatorSettings.from_scenario(scenario)
+    if lag > 0 and settings.torque_lag_s > 0:
+        raise BadInput(
+            f"{args.scenario}: estimator.torque_lag_s: the --model's torque lag is undone on the logged "
+            "signal (its noise after the filter); not both"
+        )
     if settings.torque_signal == "held" and not scenario.estimator.hold_period_s:
         # A log's torque is held for the log's own sample period; the scenario's plant step only
         # describes the simulator's logs (a 100 Hz robot log would otherwise be all gaps).

@@ -243,6 +243,9 @@ class Estimator:
     torque_signal: str = "held"
     hold_period_s: float = 0.0  # held: the hold period; 0 = plant.time_step_s
     torque_rate_limit_Nm_s: float = 200.0  # continuous: declared |dtau/dt|, checked on the data
+    # held: the torque sensor's first-order lag (time constant; 0 = none), undone exactly
+    # (estimation/lag.py); set with plant.effects.torque_sensor_lag_s by robot.corrected_model.
+    torque_lag_s: float = 0.0
     quadrature_safety: float = 2.0  # kappa of the quadrature bound (estimation/segments.py), >= 2
     # Prune the published box with physical knowledge: J(theta_e) >= 0 and, with a
     # payload.bounding_volume, its density-realizability LMI (estimation/physical.py).

@@ -152,6 +152,7 @@ def test_scenario_loads_both_sides(tmp_path):
     assert robot.coulomb_smoothing == 0.02
     e = s.plant.effects
     assert e.torque_sensor_lag_s == 0.1 and e.load_friction_mu[3] == 0.1 and e.torque_sensor_scale[4] == 1.05
+    assert s.estimator.torque_lag_s == 0.1  # the estimator reads the same sensor model
     assert e.joint_stiffness_Nm_rad[1] == pytest.approx(500.0) and e.joint_stiffness_Nm_rad[0] >= 1e12
     assert e.base_tilt_rad == [0.01, -0.02] and e.stribeck_friction_Nm[5] == 1.0 and e.stribeck_velocity_rad_s == 0.03
     assert e.torque_sensor_offset_Nm == []  # the offset is the model's beta, counted once
@@ -166,6 +167,16 @@ def test_scenario_loads_both_sides(tmp_path):
             "robot: {corrected_model: c.yaml}\nplant: {effects: {torque_sensor_lag_s: 0.1}}",
             [{"name": "time_delay", "joints": [1], "params": {"delay_s": 0.05, "time_law": "lag"}}],
             "plant.effects.torque_sensor_lag_s: also set by robot.corrected_model",
+        ),
+        (
+            "robot: {corrected_model: c.yaml}\nestimator: {torque_lag_s: 0.1}",
+            [{"name": "time_delay", "joints": [1], "params": {"delay_s": 0.05, "time_law": "lag"}}],
+            "estimator.torque_lag_s: also set by robot.corrected_model",
+        ),
+        (
+            "robot: {corrected_model: c.yaml}\nestimator: {torque_signal: continuous}",
+            [{"name": "time_delay", "joints": [1], "params": {"delay_s": 0.05, "time_law": "lag"}}],
+            "estimator.torque_lag_s: needs estimator.torque_signal: held",
         ),
         (
             "robot: {corrected_model: c.yaml}",

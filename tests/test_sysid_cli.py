@@ -253,3 +253,14 @@ def test_real_gen3_log_with_the_corrected_model(tmp_path, capsys):
     assert {"viscous_friction", "armature", "time_delay"} <= set(applied)
     print("run3 mass [kg] (nominal, lower, upper, consistent updates):", mass, "URDF end effector", model.theta_e[0])
     assert mass["corrected"][3] > mass["bare"][3]
+
+
+def test_a_lag_from_the_model_and_the_scenario_is_refused(unmodelled, tmp_path, capsys):
+    """--model's lag is undone on the logged signal; a scenario that also declares
+    estimator.torque_lag_s (the sensor's own filter) would undo it twice: one line, exit 2."""
+    log, scenario, corrected, _ = unmodelled
+    both = tmp_path / "both.yaml"
+    both.write_text(scenario.read_text() + "estimator: {torque_lag_s: 0.05}\n")
+    code = main(["sysid", str(log), "--scenario", str(both), "--model", str(corrected), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "estimator.torque_lag_s" in err[0] and "both.yaml" in err[0]

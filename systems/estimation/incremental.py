@@ -15,6 +15,7 @@ from numpy.typing import ArrayLike
 from .. import inertial
 from ..uncertainty import parameter_radius
 from .enclosure import box_is_consistent, interval_hull, set_membership_bounds, torque_row_radius
+from .lag import LagInverse
 from .log_cholesky import cost_grad_hess, nearest_consistent, solve_log_cholesky
 from .physical import prune_box
 from .segments import SegmentRows, build_segment_rows, segment_bounds
@@ -127,6 +128,9 @@ class IncrementalEstimator:
             raise EstimatorError(f"estimator.torque_signal: {st.torque_signal!r} is not held or continuous")
         if st.quadrature_safety < 2:
             raise EstimatorError(f"estimator.quadrature_safety: {st.quadrature_safety} must be >= 2")
+        if st.torque_lag_s < 0 or (st.torque_lag_s > 0 and st.torque_signal != "held"):
+            raise EstimatorError(f"estimator.torque_lag_s: {st.torque_lag_s} needs >= 0 and a held torque signal")
+        self._unlag = LagInverse(st.torque_lag_s, st.segment_gap_s()) if st.torque_lag_s > 0 else None
         self.n = robot.n
         rest = robot.rest_mask()
         self.theta_r = robot.theta[rest].copy()
@@ -162,8 +166,10 @@ class IncrementalEstimator:
             np.all(np.isfinite(t)) and np.all(np.isfinite(q)) and np.all(np.isfinite(v)) and np.all(np.isfinite(tau))
         ):
             raise EstimatorError("NaN or inf in the estimator input")
+        if self._unlag is not None:  # the readings of a lagged sensor, one sample late
+            t, q, v, tau = self._unlag.push(t, q, v, tau)
         if self._pending is not None:
-            if len(t) and t[0] <= self._pending[0][-1]:
+            if len(t) and len(self._pending[0]) and t[0] <= self._pending[0][-1]:
                 raise EstimatorError(f"time is not strictly increasing at t={t[0]:.6g}")
             t, q, v, tau = (np.concatenate([a, b]) for a, b in zip(self._pending, (t, q, v, tau)))
         if np.any(np.diff(t) <= 0):

@@ -44,6 +44,9 @@ class EstimatorSettings:
     torque_signal: str = "held"
     hold_period_s: float | None = None  # held: a step longer than 1.5 hold periods is a gap
     torque_rate_limit_Nm_s: float = 200.0  # continuous: declared |dτ/dt| of the applied torque
+    # held: the sensor low-passes its reading with this first-order time constant (0: no lag);
+    # each step's reading is recovered exactly one sample late (estimation/lag.py).
+    torque_lag_s: float = 0.0
     solver: str = "ipopt"  # ipopt | snopt
     torque_ratio: float = 0.025  # declared |τ_meas − τ| ≤ ratio·|τ| + floor
     torque_floor_Nm: float = 0.05
@@ -86,6 +89,7 @@ class EstimatorSettings:
             torque_signal=e.torque_signal,
             hold_period_s=e.hold_period_s or s.plant.time_step_s,
             torque_rate_limit_Nm_s=e.torque_rate_limit_Nm_s,
+            torque_lag_s=e.torque_lag_s,
             quadrature_safety=e.quadrature_safety,
             torque_ratio=s.noise.declared_torque_ratio,
             torque_floor_Nm=s.noise.declared_torque_floor_Nm,
