@@ -10,8 +10,9 @@ it does for an unlagged sensor, so everything downstream (∫τ, the radii, the 
 A noise added AFTER the filter would be amplified ~2d/h by this inversion; the offline
 `safesysid sysid --model` path (app/sysid_cli.py undo_torque_lag) bounds that case instead.
 
-Float rounding of the inversion (~eps·|y|·2/(1 − a), 1e-13 relative at d = 0.11 s, h = 1 ms)
-is far below the torque floor and inside the LP's relative row pad (enclosure.py).
+Float rounding of the inversion (~eps·|y|·2/(1 − a): 2.4e-12 N·m at |y| = 50 N·m, d = 0.11 s,
+h = 1 ms) is inside the relative pads of the hull (64 eps per row on |L||U|) and of the LP
+(1e-9 of each row's bound, ≥ 5e-11 N·m per sample) in enclosure.py.
 """
 
 from __future__ import annotations
