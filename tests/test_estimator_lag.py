@@ -104,27 +104,33 @@ def test_lag_needs_a_held_torque(robot):
         E.IncrementalEstimator(robot, bad)
 
 
+def online_first_update(*texts):
+    """The online diagram of experiment (a), 8 lb, the real arm's sensor lagging LAG_S, after its
+    first update (1.6 s), with the scenario texts given: (its IncrementalEstimator, its update
+    history, the arm's true θ)."""
+    from helpers import simulate_online
+    from safesysid.online import build_online
+    from safesysid.scenario import SCENARIOS_DIR, load_scenario
+
+    lagged_sensor = f"plant: {{effects: {{torque_sensor_lag_s: {LAG_S}}}}}"
+    scene = load_scenario(
+        SCENARIOS_DIR / "experiment_a.yaml", overrides=["payload: {dumbbell: 8lb}", lagged_sensor, *texts]
+    )
+    built = build_online(scene, "ours")
+    sub = built.estimator.GetMyContextFromRoot(simulate_online(built, scene, 1.6))
+    return built.estimator.estimator(sub), built.estimator.history(sub), built.arm.true_theta()
+
+
 @pytest.mark.parametrize("declared", [True, False])
 def test_online_estimator_with_the_real_arms_lagged_sensor(declared):
     """In the online diagram (experiment (a), 8 lb) the real arm's TorqueSensor lags 0.11 s (the
     real logs' figure): with estimator.torque_lag_s declared, the first update (1.5 s) is
     consistent and contains the truth; ignored, the data contradict the declared noise bound."""
-    from helpers import simulate_online
-    from safesysid.online import build_online
-    from safesysid.scenario import SCENARIOS_DIR, load_scenario
-
-    texts = ["payload: {dumbbell: 8lb}", f"plant: {{effects: {{torque_sensor_lag_s: {LAG_S}}}}}"]
+    estimator, history, theta = online_first_update(*([f"estimator: {{torque_lag_s: {LAG_S}}}"] if declared else []))
+    est = estimator.estimate
+    assert est is not None and len(history) == 1
     if declared:
-        texts.append(f"estimator: {{torque_lag_s: {LAG_S}}}")
-    scene = load_scenario(SCENARIOS_DIR / "experiment_a.yaml", overrides=texts)
-    built = build_online(scene, "ours")
-    ctx = simulate_online(built, scene, 1.6)
-    sub = built.estimator.GetMyContextFromRoot(ctx)
-    est = built.estimator.estimator(sub).estimate
-    truth = built.arm.true_theta()[built.estimator.robot.ee_slice]
-    assert est is not None and len(built.estimator.history(sub)) == 1
-    if declared:
-        assert est.consistent and est.contains(truth) and est.upper[0] - est.lower[0] < 1.5
+        assert est.consistent and est.contains(theta[estimator.robot.ee_slice]) and est.upper[0] - est.lower[0] < 1.5
     else:
         assert not est.consistent
 
@@ -134,22 +140,10 @@ def test_the_lag_matches_the_real_arms_sensor_exactly():
     with the lag declared every row of the estimator holds with the true parameters within its
     quadrature term alone (the readings are recovered exactly); declared 10 % off, rows leave it
     by far."""
-    from helpers import simulate_online
-    from safesysid.online import build_online
-    from safesysid.scenario import SCENARIOS_DIR, load_scenario
 
     def worst_row(lag_s):
-        texts = [
-            "payload: {dumbbell: 8lb}",
-            "noise: {distribution: none}",
-            f"plant: {{effects: {{torque_sensor_lag_s: {LAG_S}}}}}",
-            f"estimator: {{torque_lag_s: {lag_s}}}",
-        ]
-        scene = load_scenario(SCENARIOS_DIR / "experiment_a.yaml", overrides=texts)
-        built = build_online(scene, "ours")
-        ctx = simulate_online(built, scene, 1.6)
-        est = built.estimator.estimator(built.estimator.GetMyContextFromRoot(ctx))
-        theta, rows, robot = built.arm.true_theta(), est.rows, est.robot
+        est, _, theta = online_first_update("noise: {distribution: none}", f"estimator: {{torque_lag_s: {lag_s}}}")
+        rows, robot = est.rows, est.robot
         residual = rows.Y @ theta[robot.ee_slice] + rows.D_r @ theta[robot.rest_mask()] - rows.T
         return float(np.max(np.abs(residual) / (rows.quad + 1e-9))), len(rows)
 
