@@ -113,6 +113,12 @@ class ControllerBase(LeafSystem):
         *signals, lo, hi = self._raw_inputs(context)
         return (*signals, Interval(lo, hi))
 
+    def _declare_step_update(self, update):
+        """update(context, state) every self.time_step in the plant's phase: Drake's discrete
+        MultibodyPlant (1.51) steps in an unrestricted update, so a discrete update would read the
+        state after the step (x_k+1 at t_k); this one reads the sample the plant's step used."""
+        self.DeclarePeriodicUnrestrictedUpdateEvent(self.time_step, 0.0, update)
+
     def _declare_step_cache(self, name, calc):
         """A cache entry holding any Python object, recomputed when an input changes."""
         return self.DeclareCacheEntry(
@@ -163,13 +169,14 @@ class ArmourController(ControllerBase):
 
 
 class GravityPidController(ControllerBase):
-    """u = g(q; theta0) + Kp e + Ki int e + Kd edot; the integral is discrete state, stepped every time_step."""
+    """u = g(q; theta0) + Kp e + Ki int e + Kd edot; the integral is discrete state, stepped every
+    time_step in the plant's phase (_declare_step_update)."""
 
     def __init__(self, robot: RobotModel, gains: ControllerGains, time_step: float) -> None:
         super().__init__(robot, gains)
         self.time_step = float(time_step)
         self._integral = self.DeclareDiscreteState(robot.n)
-        self.DeclarePeriodicDiscreteUpdateEvent(self.time_step, 0.0, self._update)
+        self._declare_step_update(self._update)
 
     def _errors(self, q, v, q_d, qd_d):
         return wrap_error(q_d - q, self.robot.joint_params.continuous), qd_d - v
@@ -180,22 +187,22 @@ class GravityPidController(ControllerBase):
         z = context.get_discrete_state(self._integral).get_value()
         return self.dyn.gravity(q, theta0) + g.pid_kp * e + g.pid_ki * z + g.pid_kd * edot
 
-    def _update(self, context, discrete_state):
+    def _update(self, context, state):
         q, v, q_d, qd_d, *_ = self._inputs(context)
         e, _ = self._errors(q, v, q_d, qd_d)
         z = context.get_discrete_state(self._integral).get_value()
-        discrete_state.set_value(self._integral, z + self.time_step * e)
+        state.get_mutable_discrete_state(self._integral).SetFromVector(z + self.time_step * e)
 
 
 class AdaptiveController(ControllerBase):
     """adap-1 (robust=False) or adap-2 (robust=True); the adapted offset theta_hat_e - theta0_e
-    is discrete state, stepped every time_step."""
+    is discrete state, stepped every time_step in the plant's phase (_declare_step_update)."""
 
     def __init__(self, robot: RobotModel, gains: ControllerGains, time_step: float, robust: bool = False) -> None:
         super().__init__(robot, gains)
         self.time_step, self.robust, self.ee = float(time_step), bool(robust), robot.ee_slice
         self._delta = self.DeclareDiscreteState(10)  # theta_hat_e - theta0_e
-        self.DeclarePeriodicDiscreteUpdateEvent(self.time_step, 0.0, self._update)
+        self._declare_step_update(self._update)
         # Errors and regressor depend on the inputs only: shared by output and update.
         self._regressor = self._declare_step_cache("errors_and_regressor", self._calc_regressor)
         self.set_name("adaptive_robust_controller" if robust else "adaptive_controller")
@@ -236,14 +243,14 @@ class AdaptiveController(ControllerBase):
             u = u + w_bar * np.clip(err.r / self.gains.robust_boundary, -1.0, 1.0)
         return u
 
-    def _update(self, context, discrete_state):
+    def _update(self, context, state):
         ee = self.ee
         inputs = self._inputs(context)
         err, wp, theta_hat = self._terms(context, *inputs)
         theta0, box = inputs[-2], inputs[-1]
         step = self.time_step * self.gains.adaptive_gamma * (wp[:, ee].T @ err.r)
         new = np.clip(theta_hat[ee] + step, box.lo[ee], box.hi[ee])
-        discrete_state.set_value(self._delta, new - theta0[ee])
+        state.get_mutable_discrete_state(self._delta).SetFromVector(new - theta0[ee])
 
 
 # kind -> factory (robot, gains, time_step); the kinds of systems/methods.py CONTROLLER_KINDS.

@@ -11,10 +11,10 @@ Certificates: a plan is safe only under the parameters it was verified with, so 
 keeps them with the plan and outputs them (plan_theta0, plan_theta_lower, plan_theta_upper) for
 as long as that plan executes; the controller reads its parameters from these ports, never from
 the estimator. It therefore switches exactly at the start of a plan verified with the new
-parameters, whatever the estimator publishes meanwhile (Drake runs this unrestricted update
-before the estimator's discrete update at the same t_p, so the plan started at t_p uses the
-estimate published at the previous t_p, as in Algorithm 2, where line 7 plans before line 8
-identifies).
+parameters, whatever the estimator publishes meanwhile (this update and the estimator's at the
+same t_p are both unrestricted and read the context before either applies, so the plan started
+at t_p uses the estimate published at the previous t_p, as in Algorithm 2, where line 7 plans
+before line 8 identifies).
 
 Input estimate_consistent (1.0 / 0.0; 1.0 when unconnected): at a planning instant where it
 reads 0 the planner does not plan again (the identified box is no longer trusted); the robot

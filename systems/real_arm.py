@@ -4,7 +4,7 @@ armature, saturation, a noisy torque sensor, encoders and optional unmodelled ef
 Signal path (everything from the scenario and the RobotModel; nothing hard-coded):
 
     commanded torque u -> Saturation(+-torque_limit)  = motor torque tau_m   -> TorqueSensor
-                       -> [DiscreteTimeDelay d]        = applied torque tau_a
+                       -> [StepDelay d]                = applied torque tau_a
                        -> JointFriction: tau_a - (Fc tanh(v/vs) + Fv v + beta)  -> plant actuation
     plant state (q, v) -> [SeriesElasticEncoders]      -> state output
     (dynamic elasticity: JointFriction at the motor's velocity -> ElasticTransmission -> plant)
@@ -68,7 +68,7 @@ from pydrake.geometry import CollisionFilterDeclaration, ProximityProperties
 from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.multibody.tree import SpatialInertia
 from pydrake.systems.framework import BasicVector, Context, DiagramBuilder, LeafSystem
-from pydrake.systems.primitives import DiscreteTimeDelay, RandomSource, Saturation, ZeroOrderHold
+from pydrake.systems.primitives import RandomSource, Saturation
 
 from . import faults
 from .config import Scenario, ScenarioError, robot_from_scenario
@@ -151,7 +151,8 @@ class ElasticTransmission(LeafSystem):
 
     drive = applied torque minus the friction at the motor's velocity (JointFriction fed with
     `motor_state`). Discrete state (theta_m, w_m), symplectic Euler at the plant's step, in step
-    with the plant's own update (both read the state at the start of the step). The damper's
+    with the plant's own update: both are unrestricted updates, so both read the state at the
+    start of the step (a discrete update would run after the plant stepped). The damper's
     -D v on the link is the plant's joint damping (implicit in Drake's discrete solver: a light
     link would make it unstable here), so `link_actuation` = K (theta_m - q) + D w_m."""
 
@@ -162,8 +163,8 @@ class ElasticTransmission(LeafSystem):
         self.h = float(time_step)
         self.drive = self.DeclareVectorInputPort("drive", n)
         self.link_state = self.DeclareVectorInputPort("link_state", 2 * n)
-        motor = self.DeclareDiscreteState(2 * n)
-        self.DeclarePeriodicDiscreteUpdateEvent(self.h, 0.0, self._step)
+        self._motor = motor = self.DeclareDiscreteState(2 * n)
+        self.DeclarePeriodicUnrestrictedUpdateEvent(self.h, 0.0, self._step)
         self.DeclareStateOutputPort("motor_state", motor)
         self.DeclareVectorOutputPort("link_actuation", BasicVector(n), self._calc)
 
@@ -179,7 +180,7 @@ class ElasticTransmission(LeafSystem):
         motor = context.get_discrete_state_vector().value()
         tau_s = self.spring_torque(motor, self.link_state.Eval(context))
         w = motor[self.n :] + self.h * (self.drive.Eval(context) - tau_s) / self.inertia
-        state.get_mutable_vector().SetFromVector(np.concatenate([motor[: self.n] + self.h * w, w]))
+        state.get_mutable_discrete_state(self._motor).SetFromVector(np.concatenate([motor[: self.n] + self.h * w, w]))
 
     def set_equilibrium(self, context: Context, q: np.ndarray, v: np.ndarray, link_torque: np.ndarray) -> None:
         """Motor state that carries `link_torque` (the link's gravity at rest) with the link at (q, v)."""
@@ -201,6 +202,32 @@ class NoisyVelocity(LeafSystem):
         x = self.state.Eval(context).copy()
         x[self.n :] += self.bound * (2.0 * self.unit_noise.Eval(context) - 1.0)
         output.SetFromVector(x)
+
+
+class StepDelay(LeafSystem):
+    """The input `steps` plant steps late, zero before: a FIFO pushed by a periodic unrestricted
+    update. Drake's discrete MultibodyPlant (1.51) steps in the unrestricted phase too, so each
+    entry is the value of the context the plant's own step read (the torque it received, what
+    the estimator and the referee sample). DiscreteTimeDelay and ZeroOrderHold sample in the
+    discrete phase, after the plant has stepped: a state-feedback torque re-evaluated at the
+    next state, never applied (tests/test_plant_friction.py test_late_*)."""
+
+    def __init__(self, time_step: float, steps: int, n: int) -> None:
+        super().__init__()
+        self.n = n
+        self.input = self.DeclareVectorInputPort("input", n)
+        self._fifo = self.DeclareDiscreteState(steps * n)  # oldest first
+        self.DeclareVectorOutputPort("delayed", BasicVector(n), self._calc, {self.xd_ticket()})
+        self.DeclarePeriodicUnrestrictedUpdateEvent(time_step, 0.0, self._push)
+
+    def _calc(self, context, output):
+        output.SetFromVector(context.get_discrete_state(self._fifo).get_value()[: self.n])
+
+    def _push(self, context, state):
+        fifo = context.get_discrete_state(self._fifo).get_value()
+        state.get_mutable_discrete_state(self._fifo).SetFromVector(
+            np.concatenate([fifo[self.n :], self.input.Eval(context)])
+        )
 
 
 class TorqueSensor(LeafSystem):
@@ -409,7 +436,7 @@ def add_real_arm(
     delay_steps = int(round(eff.time_delay_s / h))
     applied_port = sat.get_output_port()
     if delay_steps > 0:
-        delay = station.AddSystem(DiscreteTimeDelay(h, delay_steps, n))
+        delay = station.AddSystem(StepDelay(h, delay_steps, n))
         delay.set_name("actuation_delay")
         station.Connect(sat.get_output_port(), delay.get_input_port())
         applied_port = delay.get_output_port()
@@ -478,13 +505,7 @@ def add_real_arm(
     measured = sensor.get_output_port()
     sensor_delay_steps = int(round(eff.torque_sensor_delay_s / h))
     if sensor_delay_steps > 0:
-        # A sampled element already holds the torque one step (the command is published before the
-        # step's update samples it), so N - 1 buffered steps make a reading N steps late
-        # (tests/test_corrected_model.py: 0.03 s is diagnosed as 0.030 s). The noise draw, a
-        # discrete state of its own, lags one step less; white noise, so no test can tell.
-        late = station.AddSystem(
-            DiscreteTimeDelay(h, sensor_delay_steps - 1, n) if sensor_delay_steps > 1 else ZeroOrderHold(h, n)
-        )
+        late = station.AddSystem(StepDelay(h, sensor_delay_steps, n))
         late.set_name("torque_sensor_delay")
         station.Connect(measured, late.get_input_port())
         measured = late.get_output_port()

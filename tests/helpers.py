@@ -17,6 +17,17 @@ PRIOR = (np.array([1.2, -0.4, -0.4, -1.0] + [-0.2] * 6), np.array([5.2, 0.4, 0.4
 PRIOR_NOMINAL = np.array([3.2, 0.0, 0.0, -0.5] + [0.0] * 6)
 
 
+def leaves(system):
+    """Every leaf system of a Drake diagram (or the system itself)."""
+    from pydrake.systems.framework import Diagram
+
+    if isinstance(system, Diagram):
+        for sub in system.GetSystems():
+            yield from leaves(sub)
+    else:
+        yield system
+
+
 def n_trials(small, full):
     """Monte-Carlo sample size: small in CI, full with SAFESYSID_FULL=1."""
     return full if FULL else small

@@ -38,26 +38,31 @@ def test_the_check_sees_a_function_local_import(tmp_path):
     assert app_imports(probe) == [(2, "safesysid.scenario"), (3, "safesysid.online")]
 
 
-def test_every_system_of_the_online_diagram_is_a_module_level_class():
-    """GetSystemType() names a module-level class (a class made inside a factory is a new class
-    per call: '...<locals>.ArmourController'), for every controller kind."""
-    from pydrake.systems.framework import Diagram
+def test_every_system_of_the_online_diagram_is_a_module_level_class_stepping_with_the_plant():
+    """For a method of every controller kind, with every per-step effect of the real arm on: GetSystemType()
+    names a module-level class (a class made inside a factory is a new class per call:
+    '...<locals>.ArmourController'), and no system has a periodic discrete update: Drake's
+    discrete MultibodyPlant steps in the unrestricted phase, and a discrete update runs after it,
+    reading x_k+1 at t_k (a delay stage would store a torque never applied; test_plant_friction.py
+    test_late_*)."""
+    from helpers import leaves
     from safesysid.online import build_online
     from safesysid.scenario import SCENARIOS_DIR, load_scenario
 
-    def leaves(system):
-        if isinstance(system, Diagram):
-            for sub in system.GetSystems():
-                yield from leaves(sub)
-        yield system
-
-    for kind in ("armour", "pid", "adaptive", "adaptive_robust"):
-        built = build_online(
-            load_scenario(SCENARIOS_DIR / "quickstart.yaml", overrides=f"controller: {{kind: {kind}}}")
-        )
-        types = {s.GetSystemType() for s in leaves(built.diagram)}
+    effects = (
+        "plant: {time_step_s: 0.00025, effects: {joint_elasticity: dynamic, joint_stiffness_Nm_rad: [1.0e+4, "
+        "1.0e+4, 1.0e+4, 1.0e+4, 4.0e+3, 4.0e+3, 4.0e+3], time_delay_s: 0.001, torque_sensor_delay_s: 0.001, "
+        "torque_sensor_lag_s: 0.01, velocity_noise_rad_s: 0.001}}"
+    )
+    scene = load_scenario(SCENARIOS_DIR / "quickstart.yaml", overrides=effects)
+    controllers = {"ours": "ArmourController", "grav-pid": "GravityPidController", "adap-2": "AdaptiveController"}
+    for method, controller in controllers.items():
+        systems = list(leaves(build_online(scene, method).diagram))
+        types = {s.GetSystemType() for s in systems}
         assert not [t for t in types if "<locals>" in t]
-        assert any(t.endswith("real_arm.TorqueSensor") for t in types)
+        stages = {"TorqueSensor", "StepDelay", "ElasticTransmission", controller}
+        assert stages <= {t.rsplit(".", 1)[-1] for t in types}
+        assert [s.get_name() for s in systems if s.GetUniquePeriodicDiscreteUpdateAttribute() is not None] == []
 
 
 def _is_dataclass(node):

@@ -9,8 +9,7 @@ start model "bare" = the robot model file's end effector (no payload), "table2" 
 
 import numpy as np
 import pytest
-from helpers import simulate_online
-from pydrake.systems.framework import Diagram
+from helpers import leaves, simulate_online
 from safesysid.online import build_online, run_online
 from safesysid.scenario import METHODS, SCENARIOS_DIR, load_scenario, robot_from_scenario
 from safesysid.systems import methods
@@ -106,13 +105,6 @@ def test_registry_is_the_paper_table():
     assert methods.METHODS_SPEC["random"].excitation.trajectory == methods.RANDOM
     assert methods.METHODS_SPEC["grav-pid-excit"].excitation.trajectory == methods.FOURIER
     assert methods.METHODS_SPEC["adap-2-excit"].excitation.trajectory == methods.EXCITING
-
-
-def leaves(system):
-    if isinstance(system, Diagram):
-        for sub in system.GetSystems():
-            yield from leaves(sub)
-    yield system
 
 
 @pytest.mark.parametrize("name", list(PAPER_TABLE))

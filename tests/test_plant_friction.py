@@ -69,41 +69,62 @@ def test_load_friction_of_the_simulated_arm_is_diagnosed_blind():
 
 
 def test_late_torque_reading(robot):
-    """torque_sensor_delay_s: the measured torque is the reading of d earlier (zero before);
-    the motion is unchanged."""
+    """torque_sensor_delay_s: the measured torque is the reading of d earlier, noise included
+    (zero before); the motion is unchanged. The command feeds back the state, so a delay stage
+    that sampled after the plant's step would store a torque the arm never received."""
     for delay in (0.001, 0.004):
-        _late_reading(robot, delay)
+        runs = {name: _feedback_run(robot, {"torque_sensor_delay_s": d}) for name, d in (("late", delay), ("plain", 0))}
+        steps = int(round(delay / 0.001))
+        (late, x_late, _), (plain, x_plain, _) = runs["late"], runs["plain"]
+        np.testing.assert_array_equal(late[steps:], plain[:-steps])
+        assert np.all(late[:steps] == 0)
+        np.testing.assert_array_equal(x_late, x_plain)
 
 
-def _late_reading(robot, delay):
+def test_late_actuation(robot):
+    """time_delay_s: the joint receives the motor torque of d earlier (zero before), exactly,
+    under a state-feedback command."""
+    for delay in (0.001, 0.003):
+        steps = int(round(delay / 0.001))
+        _, _, (motor, applied) = _feedback_run(robot, {"time_delay_s": delay})
+        np.testing.assert_array_equal(applied[steps:], motor[:-steps])
+        assert np.all(applied[:steps] == 0)
+
+
+def _feedback_run(robot, effects):
+    """0.03 s of the arm (no payload, noisy sensor, fixed seed) under u = g(q0) - 5 v + 20 (q0 - q)
+    + 3 sin(30 t): logs (measured torque, state, (motor, applied torque)), one row per step."""
     from pydrake.systems.analysis import Simulator
-    from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
+    from pydrake.systems.framework import BasicVector, LeafSystem
+    from pydrake.systems.primitives import VectorLogSink
+    from safesysid.systems.armour import ControllerDynamics
 
-    runs = {}
-    steps = int(round(delay / 0.001))
-    for name, d in (("late", delay), ("plain", 0.0)):
-        # Noise-free: the noise source is a discrete state of its own, one step apart from the
-        # torque path (real_arm.py); the torque path is what a late reading delays.
-        s = load_scenario(
-            overrides={
-                "payload": {"dumbbell": "none"},
-                "noise": {"distribution": "none"},
-                "plant": {"effects": {"torque_sensor_delay_s": d}},
-            }
-        )
-        b = DiagramBuilder()
-        arm = add_real_arm(b, s, robot=robot)
-        src = b.AddSystem(ConstantVectorSource(np.linspace(-3.0, 3.0, 7)))
-        b.Connect(src.get_output_port(), arm.commanded_torque_input)
-        sinks = [b.AddSystem(VectorLogSink(p.size(), 0.001)) for p in (arm.measured_torque_output, arm.state_output)]
-        b.Connect(arm.measured_torque_output, sinks[0].get_input_port())
-        b.Connect(arm.state_output, sinks[1].get_input_port())
-        sim = Simulator(b.Build())
-        arm.set_state(sim.get_mutable_context(), s.q0_rad)
-        arm.seed_noise(sim.get_mutable_context())  # the same noise in both runs
-        sim.AdvanceTo(0.02)
-        runs[name] = [k.FindLog(sim.get_context()).data().T for k in sinks]
-    (late, x_late), (plain, x_plain) = runs["late"], runs["plain"]
-    np.testing.assert_array_equal(late[steps:], plain[:-steps])
-    assert np.all(late[:steps] == 0)
-    np.testing.assert_array_equal(x_late, x_plain)
+    s = load_scenario(overrides={"payload": {"dumbbell": "none"}, "plant": {"effects": effects}})
+    q0 = np.asarray(s.q0_rad, float)
+    hold = ControllerDynamics(robot).gravity(q0, robot.theta)
+
+    class Feedback(LeafSystem):
+        def __init__(self):
+            super().__init__()
+            self.state = self.DeclareVectorInputPort("state", 14)
+            self.DeclareVectorOutputPort("u", BasicVector(7), self._calc)
+
+        def _calc(self, context, out):
+            x = self.state.Eval(context)
+            out.SetFromVector(hold - 5.0 * x[7:] + 20.0 * (q0 - x[:7]) + 3.0 * np.sin(30.0 * context.get_time()))
+
+    b = DiagramBuilder()
+    arm = add_real_arm(b, s, robot=robot)
+    law = b.AddSystem(Feedback())
+    b.Connect(arm.state_output, law.state)
+    b.Connect(law.get_output_port(), arm.commanded_torque_input)
+    ports = (arm.measured_torque_output, arm.state_output, arm.motor_torque_output, arm.applied_torque_output)
+    sinks = [b.AddSystem(VectorLogSink(p.size(), 0.001)) for p in ports]
+    for port, sink in zip(ports, sinks):
+        b.Connect(port, sink.get_input_port())
+    sim = Simulator(b.Build())
+    arm.set_state(sim.get_mutable_context(), q0)
+    arm.seed_noise(sim.get_mutable_context())  # the same noise in every run
+    sim.AdvanceTo(0.03)
+    measured, state, motor, applied = (k.FindLog(sim.get_context()).data().T for k in sinks)
+    return measured, state, (motor, applied)

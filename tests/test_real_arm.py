@@ -283,7 +283,7 @@ def test_dynamic_joint_elasticity_is_a_motor_and_a_spring(robot):
         motor = motor + h * w
         v_model.append(v)
     v_model = np.array(v_model)
-    assert np.abs(v_plant - v_model).max() < 0.002 * np.abs(v_model).max()
+    assert np.abs(v_plant - v_model).max() < 2e-5 * np.abs(v_model).max()  # 5.8e-4 with a one-step-late motor update
     rigid = load_scenario(overrides={"noise": {"distribution": "none"}, "payload": {"dumbbell": "none"}})
     sim, arm, logs = _rig(rigid, robot, hold + step)
     arm.set_state(sim.get_mutable_context(), q0)
