@@ -164,11 +164,12 @@ def _validate(s: Scenario, where):
     need(s.estimator.hold_period_s >= 0, "estimator.hold_period_s", "must be >= 0")
     need(s.estimator.torque_rate_limit_Nm_s > 0, "estimator.torque_rate_limit_Nm_s", "must be > 0")
     need(s.estimator.torque_lag_s >= 0, "estimator.torque_lag_s", "must be >= 0")
-    need(
-        s.estimator.torque_lag_s == 0 or s.estimator.torque_signal == "held",
-        "estimator.torque_lag_s",
-        "needs estimator.torque_signal: held (the lag of a held torque is undone exactly)",
-    )
+    for key in ("torque_lag_s", "torque_delay_s"):
+        need(
+            getattr(s.estimator, key) == 0 or s.estimator.torque_signal == "held",
+            f"estimator.{key}",
+            "needs estimator.torque_signal: held (the time law of a held torque is undone exactly)",
+        )
     vol = s.payload.bounding_volume
     for key in ("centre_m", "half_extent_m", "rpy_rad"):
         need(len(getattr(vol, key)) == 3, f"payload.bounding_volume.{key}", "needs 3 values")
@@ -326,9 +327,9 @@ def _given_keys(layers):
 
 
 def _apply_corrected_model(s: Scenario, given, where):
-    """robot.corrected_model: its plant-side effects fill plant.effects, and a torque-signal lag
-    also estimator.torque_lag_s (one source: a field the scenario also sets is an error, as are
-    robot.model / robot.params beside it)."""
+    """robot.corrected_model: its plant-side effects fill plant.effects, and the torque signal's
+    time law also estimator.torque_lag_s / torque_delay_s (one source: a field the scenario also
+    sets is an error, as are robot.model / robot.params beside it)."""
     if not s.robot.corrected_model:
         return
     from safesysid.systems.model_corrections import CorrectionError, plant_effects, read_correction
@@ -350,10 +351,17 @@ def _apply_corrected_model(s: Scenario, given, where):
         if key in set_by_user:
             raise ScenarioError(f"{where}: plant.effects.{key}: also set by robot.corrected_model ({path.name})")
         setattr(s.plant.effects, key, value)
-    if "torque_sensor_lag_s" in fields:  # the estimator reads the same sensor model
-        if "torque_lag_s" in (given.get("estimator") or {}):
-            raise ScenarioError(f"{where}: estimator.torque_lag_s: also set by robot.corrected_model ({path.name})")
-        s.estimator.torque_lag_s = fields["torque_sensor_lag_s"]
+    # The estimator reads the same torque signal: its lag, and its shift against the motion
+    # (a late reading pairs step k with a later sample, a late torque with an earlier one).
+    sensor = {
+        "torque_lag_s": fields.get("torque_sensor_lag_s", 0.0),
+        "torque_delay_s": fields.get("torque_sensor_delay_s", 0.0) - fields.get("time_delay_s", 0.0),
+    }
+    for key, value in sensor.items():
+        if value and key in (given.get("estimator") or {}):
+            raise ScenarioError(f"{where}: estimator.{key}: also set by robot.corrected_model ({path.name})")
+        if value:
+            setattr(s.estimator, key, value)
 
 
 def check_starting_scenario(corr: "CorrectedModel") -> None:

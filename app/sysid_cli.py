@@ -4,13 +4,14 @@ offline on a joint log (a CSV or a ROS bag, see app/joint_bag.py).
 With --model (a corrected_model.yaml of `safesysid diagnose`) the estimator's robot model is
 the diagnosis' starting model with its corrected friction, armature and torque offset, and a
 diagnosed first-order lag of the torque signal (tau_meas + d dtau_meas/dt = tau) is undone in
-the integral form the estimator works in: over a segment [a, b],
+the integral form the estimator works in (a diagnosed pure delay instead re-pairs each step with
+its reading, estimator.torque_delay_s, exactly): over a segment [a, b],
     int tau dt = int tau_meas dt + d (tau_meas(b) - tau_meas(a)),
 exact for the lag law (the model side equivalent: nothing is differentiated). The noise of the
 two endpoint readings enters multiplied by d, so each row's error term gains d (r_a + r_b), r
 the declared per-sample bound: the interval stays an enclosure under the declared noise bound
 of the signal fed in (the logged one). Effects the estimator's model has no term for (load or
-Stribeck friction, torque scale, base tilt, elasticity, a pure delay) are listed as not applied.
+Stribeck friction, torque scale, base tilt, elasticity) are listed as not applied.
 
 The log is replayed as Algorithm 2 sees it online: the estimator gets the data chunk by chunk
 and updates every planner.replan_period_s (intervals intersected from the scenario's
@@ -169,8 +170,9 @@ def plot_history(path: str | Path, history: list[dict], truth: np.ndarray | None
     plt.close(fig)
 
 
-def corrected_model(path: str | Path) -> tuple[RobotModel, float, dict]:
-    """(robot, torque lag [s], corrections summary) of a corrected_model.yaml for the estimator."""
+def corrected_model(path: str | Path) -> tuple[RobotModel, float, float, dict]:
+    """(robot, torque lag [s], torque shift [s] (estimator.torque_delay_s), corrections summary) of
+    a corrected_model.yaml for the estimator."""
     from safesysid.systems import model_corrections as mc
     from safesysid.systems.config import starting_robot
 
@@ -178,34 +180,40 @@ def corrected_model(path: str | Path) -> tuple[RobotModel, float, dict]:
         corr = mc.read_correction(path)
         check_starting_scenario(corr)
         robot = mc.corrected_robot(starting_robot(corr), corr)
-        lag = mc.torque_lag_s(corr)
+        lag, shift = mc.torque_lag_s(corr), mc.torque_shift_s(corr)
     except mc.CorrectionError as err:
         raise BadInput(f"--model: {err}") from err
-    applied = [e.name for e in corr.effects if e.name in mc.ROBOT_SIDE or (e.name == "time_delay" and lag > 0)]
+    applied = [e.name for e in corr.effects if e.name in mc.ROBOT_SIDE or (e.name == "time_delay" and (lag or shift))]
     summary = {
         "file": str(Path(path).resolve()),
         "starting_model": str(corr.model_path()),
         "applied": applied,
         "torque_lag_s": lag,
+        "torque_delay_s": shift,
         "not_applied": [e.name for e in corr.effects if e.name not in applied],
     }
-    return robot, lag, summary
+    return robot, lag, shift, summary
 
 
 def cmd_sysid(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario, overrides=args.scenario_text)
-    lag, corrections = 0.0, None
+    lag, shift, corrections = 0.0, 0.0, None
     if args.model:
-        robot, lag, corrections = corrected_model(args.model)
+        robot, lag, shift, corrections = corrected_model(args.model)
     else:
         robot = robot_from_scenario(scenario)
     log = read_log(args.log, robot.n, args.topic, args.joints or list(robot.joint_params.names))
     settings = EstimatorSettings.from_scenario(scenario)
-    if lag > 0 and settings.torque_lag_s > 0:
+    if lag > 0 and (settings.torque_lag_s or settings.torque_delay_s):
+        key = "torque_lag_s" if settings.torque_lag_s else "torque_delay_s"
         raise BadInput(
-            f"{args.scenario}: estimator.torque_lag_s: the --model's torque lag is undone on the logged "
-            "signal (its noise after the filter); not both"
+            f"{args.scenario}: estimator.{key}: the --model's torque lag is undone on the logged "
+            "signal (its noise after the filter); not with another time law"
         )
+    if shift:
+        if settings.torque_delay_s:
+            raise BadInput(f"{args.scenario}: estimator.torque_delay_s: also set by the --model's pure delay")
+        settings = dataclasses.replace(settings, torque_delay_s=shift)
     if settings.torque_signal == "held" and not scenario.estimator.hold_period_s:
         # A log's torque is held for the log's own sample period; the scenario's plant step only
         # describes the simulator's logs (a 100 Hz robot log would otherwise be all gaps).

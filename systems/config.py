@@ -246,6 +246,10 @@ class Estimator:
     # held: the torque sensor's first-order lag (time constant; 0 = none), undone exactly
     # (estimation/lag.py); set with plant.effects.torque_sensor_lag_s by robot.corrected_model.
     torque_lag_s: float = 0.0
+    # held: the logged torque of step k is the sample this much later (> 0: a late reading, < 0: a
+    # late torque), re-paired exactly (estimation/delay.py); robot.corrected_model sets it with the
+    # plant's torque_sensor_delay_s / time_delay_s.
+    torque_delay_s: float = 0.0
     quadrature_safety: float = 2.0  # kappa of the quadrature bound (estimation/segments.py), >= 2
     # Prune the published box with physical knowledge: J(theta_e) >= 0 and, with a
     # payload.bounding_volume, its density-realizability LMI (estimation/physical.py).

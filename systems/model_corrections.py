@@ -92,6 +92,14 @@ def torque_lag_s(corr: CorrectedModel) -> float:
     return float(_param(corr, e, "delay_s")) if e is not None and time_law(e) == "lag" else 0.0
 
 
+def torque_shift_s(corr: CorrectedModel) -> float:
+    """A diagnosed pure delay of the torque against the motion, signed as the diagnosis gives it
+    (> 0: the torque lags, a late reading; < 0: it leads, a late torque; 0 when none), which is
+    estimator.torque_delay_s."""
+    e = find_effect(corr, "time_delay")
+    return float(_param(corr, e, "delay_s")) if e is not None and time_law(e) == "shift" else 0.0
+
+
 def corrected_robot(robot: RobotModel, corr: CorrectedModel) -> RobotModel:
     """The RobotModel with the robot-side corrections (increments on `robot`, the starting
     model): joint parameters and the friction part of theta (Fc, Fv, Ia, beta per joint)."""

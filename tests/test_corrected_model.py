@@ -179,6 +179,11 @@ def test_scenario_loads_both_sides(tmp_path):
             "estimator.torque_lag_s: needs estimator.torque_signal: held",
         ),
         (
+            "robot: {corrected_model: c.yaml}\nestimator: {torque_delay_s: 0.02}",
+            [{"name": "time_delay", "joints": [1], "params": {"delay_s": -0.02, "time_law": "shift"}}],
+            "estimator.torque_delay_s: also set by robot.corrected_model",
+        ),
+        (
             "robot: {corrected_model: c.yaml}",
             [{"name": "payload", "joints": [7], "params": {"theta_delta": [0.1] * 10}}],
             "effects[0] payload",
@@ -201,7 +206,8 @@ def test_bad_corrected_models_are_named(tmp_path, scenario, effects, expect):
 
 @pytest.mark.parametrize("delay, field", [(0.03, "torque_sensor_delay_s"), (-0.02, "time_delay_s")])
 def test_pure_delays_map_to_the_sensor_or_the_actuation(tmp_path, delay, field):
-    """Torque lagging the motion (d > 0) is a late sensor reading; leading it, an actuation delay."""
+    """Torque lagging the motion (d > 0) is a late sensor reading; leading it, an actuation delay.
+    The estimator re-pairs each step with its torque by the same signed shift."""
     doc = {
         "model": str(URDF),
         "effects": [
@@ -210,7 +216,8 @@ def test_pure_delays_map_to_the_sensor_or_the_actuation(tmp_path, delay, field):
     }
     (tmp_path / "c.yaml").write_text(yaml.safe_dump(doc))
     (tmp_path / "s.yaml").write_text("robot: {corrected_model: c.yaml}\n")
-    assert getattr(load_scenario(tmp_path / "s.yaml").plant.effects, field) == abs(delay)
+    scene = load_scenario(tmp_path / "s.yaml")
+    assert getattr(scene.plant.effects, field) == abs(delay) and scene.estimator.torque_delay_s == delay
 
 
 def test_joint_count_is_checked(tmp_path):

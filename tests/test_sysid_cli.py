@@ -264,3 +264,46 @@ def test_a_lag_from_the_model_and_the_scenario_is_refused(unmodelled, tmp_path, 
     code = main(["sysid", str(log), "--scenario", str(both), "--model", str(corrected), "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "estimator.torque_lag_s" in err[0] and "both.yaml" in err[0]
+
+
+@pytest.fixture(scope="module")
+def late_reading(robot, tmp_path_factory):
+    """A 6 lb log whose torque reading arrives 20 ms late (the reading of step k logged at step
+    k + 20; noise inside the declared bound), and a corrected_model.yaml naming that pure delay."""
+    rng = np.random.default_rng(9)
+    db = load_dumbbells(MODELS_DIR / "dumbbells.yaml")["6lb"]
+    theta = robot.theta.copy()
+    truth = robot.theta_e + payload_theta_in_end_effector(db, robot.extra["grasp_point"])
+    theta[robot.ee_slice] = truth
+    t, q, v, _, tau = E.simulate_log(rng, robot, theta, 4.5, 1000.0, centre=CENTRE)
+    reading = tau + rng.uniform(-1, 1, tau.shape) * (0.025 * np.abs(tau) + 0.05)
+    late = np.vstack([np.zeros((20, robot.n)), reading[:-20]])
+    folder = tmp_path_factory.mktemp("late_reading")
+    log = write_joint_log(folder / "log.csv", JointLog(t, q, v, late))
+    scenario = folder / "s.yaml"
+    scenario.write_text("name: sysid-late-reading\npayload: {dumbbell: 6lb}\n")
+    corrected = folder / "corrected_model.yaml"
+    effect = {"name": "time_delay", "joints": list(range(1, 8)), "params": {"delay_s": 0.02, "time_law": "shift"}}
+    corrected.write_text(yaml.safe_dump({"model": str(scenario), "effects": [effect]}))
+    return log, scenario, corrected
+
+
+def test_sysid_re_pairs_a_late_reading_from_the_model(late_reading, tmp_path, capsys):
+    """--model's pure delay is applied (estimator.torque_delay_s): the interval contains the truth
+    and the data are consistent; without it they are not."""
+    log, scenario, corrected = late_reading
+    outcome = {}
+    for name, extra in (("plain", []), ("corrected", ["--model", str(corrected)])):
+        out = tmp_path / name
+        assert main(["sysid", str(log), "--scenario", str(scenario), *extra, "--out", str(out)]) == 0
+        outcome[name] = json.loads((out / "estimate.json").read_text())
+    doc, plain = outcome["corrected"], outcome["plain"]
+    assert doc["contains_truth"] is True and doc["consistent"] is True
+    assert doc["model"]["torque_delay_s"] == 0.02 and doc["model"]["applied"] == ["time_delay"]
+    assert plain["consistent"] is False or plain["contains_truth"] is False
+    capsys.readouterr()
+    both = tmp_path / "both.yaml"
+    both.write_text(scenario.read_text() + "estimator: {torque_delay_s: 0.02}\n")
+    code = main(["sysid", str(log), "--scenario", str(both), "--model", str(corrected), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "estimator.torque_delay_s" in err[0] and "both.yaml" in err[0]

@@ -14,6 +14,7 @@ from numpy.typing import ArrayLike
 
 from .. import inertial
 from ..uncertainty import parameter_radius
+from .delay import DelayInverse
 from .enclosure import box_is_consistent, interval_hull, set_membership_bounds, torque_row_radius
 from .lag import LagInverse
 from .log_cholesky import cost_grad_hess, nearest_consistent, solve_log_cholesky
@@ -131,6 +132,9 @@ class IncrementalEstimator:
         if st.torque_lag_s < 0 or (st.torque_lag_s > 0 and st.torque_signal != "held"):
             raise EstimatorError(f"estimator.torque_lag_s: {st.torque_lag_s} needs >= 0 and a held torque signal")
         self._unlag = LagInverse(st.torque_lag_s, st.segment_gap_s()) if st.torque_lag_s > 0 else None
+        if st.torque_delay_s and not (st.torque_signal == "held" and st.hold_period_s):
+            raise EstimatorError(f"estimator.torque_delay_s: {st.torque_delay_s} needs a held torque and its period")
+        self._unshift = DelayInverse(st.torque_delay_s, st.hold_period_s) if st.torque_delay_s else None
         self.n = robot.n
         rest = robot.rest_mask()
         self.theta_r = robot.theta[rest].copy()
@@ -166,6 +170,8 @@ class IncrementalEstimator:
             np.all(np.isfinite(t)) and np.all(np.isfinite(q)) and np.all(np.isfinite(v)) and np.all(np.isfinite(tau))
         ):
             raise EstimatorError("NaN or inf in the estimator input")
+        if self._unshift is not None:  # each step paired with its reading, once it has arrived
+            t, q, v, tau = self._unshift.push(t, q, v, tau)
         if self._unlag is not None:  # the readings of a lagged sensor, one sample late
             t, q, v, tau = self._unlag.push(t, q, v, tau)
         if self._pending is not None:

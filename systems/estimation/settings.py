@@ -47,6 +47,9 @@ class EstimatorSettings:
     # held: the sensor low-passes its reading with this first-order time constant (0: no lag);
     # each step's reading is recovered exactly one sample late (estimation/lag.py).
     torque_lag_s: float = 0.0
+    # held: step k's torque is the sample this much later (> 0: the reading arrives late; < 0: the
+    # torque reaches the joint late), re-paired before the lag is undone (estimation/delay.py).
+    torque_delay_s: float = 0.0
     solver: str = "ipopt"  # ipopt | snopt
     torque_ratio: float = 0.025  # declared |τ_meas − τ| ≤ ratio·|τ| + floor
     torque_floor_Nm: float = 0.05
@@ -90,6 +93,7 @@ class EstimatorSettings:
             hold_period_s=e.hold_period_s or s.plant.time_step_s,
             torque_rate_limit_Nm_s=e.torque_rate_limit_Nm_s,
             torque_lag_s=e.torque_lag_s,
+            torque_delay_s=e.torque_delay_s,
             quadrature_safety=e.quadrature_safety,
             torque_ratio=s.noise.declared_torque_ratio,
             torque_floor_Nm=s.noise.declared_torque_floor_Nm,
