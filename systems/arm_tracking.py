@@ -22,7 +22,10 @@ from .robot_model import RobotModel
 
 class ComputedTorque(LeafSystem):
     """u_k = feed_forward[k] + kp (q_d[k] - q) + kd (v_d[k] - v) at step k = t / h, held every
-    plant step (no direct feedthrough: the loop through motor-side encoders stays causal)."""
+    plant step (no direct feedthrough: the loop through motor-side encoders stays causal). The
+    discrete update runs after the plant's own step (an unrestricted update in Drake 1.51), so
+    at t_k it reads the state of t_k + h: track_trajectory's grid is shifted by h to match, and
+    the command held over the next step uses that step's state and desired values."""
 
     def __init__(
         self, h: float, feed_forward: np.ndarray, q_d: np.ndarray, v_d: np.ndarray, kp: float, kd: float
