@@ -156,7 +156,8 @@ def make_planner_system(
     from safesysid.systems.planner_system import ExcitingPlanner
 
     mode = "random" if trajectory == methods.RANDOM else scenario.planner.cost
-    planner = SafePlanner(robot, scenario.planner, obstacles=scenario.obstacles, payload=dumbbell, tracking=tracking)
+    noise = (scenario.noise.declared_torque_ratio, scenario.noise.declared_torque_floor_Nm)
+    planner = SafePlanner(robot, scenario.planner, scenario.obstacles, dumbbell, tracking, torque_noise=noise)
     theta0, box = theta_prior
     f = scenario.faults
     return ExcitingPlanner(

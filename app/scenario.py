@@ -69,6 +69,7 @@ _CHOICES = {
     "planner.cost": ("exciting", "goal", "random"),
     "planner.exciting_columns": ("all", "inertia"),
     "planner.exciting_criterion": ("cond", "a_optimal"),
+    "planner.exciting_weighting": ("none", "noise"),
     "planner.solver": ("ipopt", "snopt"),
     "planner.budget": ("iterations", "wall_time"),
     "estimator.solver": ("ipopt", "snopt"),

@@ -191,6 +191,12 @@ class Planner:
     # over parameters of the least-squares variance the plan would leave, each relative to its
     # current interval width squared (the widths the estimator publishes, not the ratio of extremes).
     exciting_criterion: str = "cond"  # cond | a_optimal
+    # Rows of W_e the exciting cost sees: none, as they are (the paper); noise, each divided by
+    # the declared torque-noise bound of its joint and instant (noise.declared_*, on the nominal
+    # torque of the plan that keeps k = 0), the scale of the rows the estimator's intervals are
+    # made of: a direction seen only on a noisy joint (joint 2's gravity load, joint 7's
+    # armature) counts for what it is worth there.
+    exciting_weighting: str = "none"  # none | noise
     # true: the exciting cost conditions the motion executed so far stacked with the candidate
     # plan, so each plan excites what the data still lack (cond(Y) well below random plans');
     # false: the plan alone, the paper's cost (its data no better conditioned than random plans'

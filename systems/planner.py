@@ -270,6 +270,12 @@ class PlanningProblem:
         ns = cfg.num_cost_samples
         self.t_cost = np.linspace(0.0, cfg.duration_s, ns)
         self.w_cost = np.stack(QuinticBezier.end_weights(self.t_cost, cfg.duration_s))  # (3, ns)
+        # planner.exciting_weighting noise: the nominal torque of the plan that keeps k = 0, from
+        # which each candidate's row weights follow (_weigh_rows).
+        self.still = None
+        if getattr(cfg, "exciting_weighting", "none") == "noise":
+            q, v, a = self.desired_at(self.t_cost, np.clip(np.zeros(self.n), self.k_lo, self.k_hi))
+            self.still = (a, robot.inverse_dynamics(q, v, a, np.asarray(theta0, float)))
         self._cache = {}
         self._excite_cache = {}
 
@@ -519,7 +525,8 @@ class PlanningProblem:
 
     def exciting_cost(self, k: ArrayLike) -> tuple[float, np.ndarray, np.ndarray]:
         """(log sigma_max - log sigma_min of W_e(k) stacked over the cost samples, below the past
-        motion's rows when given; its exact gradient in k; the plan's own W_e(k)), cached."""
+        motion's rows when given, rows weighted when planner.exciting_weighting says so; its exact
+        gradient in k; the plan's own unweighted W_e(k)), cached."""
         key = np.asarray(k, float).tobytes()
         if key not in self._excite_cache:
             self._excite_cache[key] = self._exciting_cost(np.asarray(k, float))
@@ -542,19 +549,40 @@ class PlanningProblem:
             pl.robot.tree, pl.robot.end_effector, qc.reshape(-1, n), vc.reshape(-1, n), ac.reshape(-1, n)
         ).reshape(n, ns * n, 10)
         cols = _EXCITING_COLUMNS[getattr(pl.config, "exciting_columns", "all")]
-        W = w[0].real[:, cols]
+        plain = W = w[0].real[:, cols]
         dW = w.imag[..., cols] / h  # (n_k, rows, columns)
+        if self.still is not None:
+            W, dW = self._weigh_rows(W, dW, a)
         # With the past motion stacked on top, only the plan's rows depend on k.
         stacked = W if self.past is None else np.vstack([self.past[:, cols], W])
         if getattr(pl.config, "exciting_criterion", "cond") == "a_optimal":
-            return (*self._a_optimal(stacked, W, dW, self.variance_weight[cols]), W)
+            return (*self._a_optimal(stacked, W, dW, self.variance_weight[cols]), plain)
         u, s, vt = np.linalg.svd(stacked, full_matrices=False)
         if s[-1] <= 0:
-            return np.inf, np.zeros(n), W
+            return np.inf, np.zeros(n), plain
         u = u[len(stacked) - len(W) :]
         d_max = np.einsum("r,jrc,c->j", u[:, 0], dW, vt[0])
         d_min = np.einsum("r,jrc,c->j", u[:, -1], dW, vt[-1])
-        return float(np.log(s[0]) - np.log(s[-1])), d_max / s[0] - d_min / s[-1], W
+        return float(np.log(s[0]) - np.log(s[-1])), d_max / s[0] - d_min / s[-1], plain
+
+    def _weigh_rows(self, W, dW, a):
+        """W_e's rows divided by their declared torque-noise bound ratio |tau| + floor (and dW
+        by the product rule). tau: the nominal torque of the plan that keeps k = 0 plus the
+        armature's share of the added acceleration, linear in k (the armature, 8-12 kg m^2, is
+        most of the wrist's inertial torque: without it a fast wrist looked noise-free)."""
+        pl = self.planner
+        ratio, floor = pl.torque_noise
+        a_still, tau_still = self.still
+        armature = pl.robot.joint_params.armature
+        tau = tau_still + armature * (a - a_still)
+        w = 1.0 / (ratio * np.abs(tau) + floor)  # (samples, joints)
+        dw = -(w**2) * ratio * np.sign(tau) * armature * (self.w_cost[2][:, None] * pl.k_range)  # d w[s, j] / d k_j
+        flat = w.ravel()
+        dW = dW * flat[None, :, None]
+        for j in range(self.n):  # row (s, j) also moves through its own weight
+            rows = np.arange(len(w)) * self.n + j
+            dW[j, rows] += W[rows] * dw[:, j, None]
+        return W * flat[:, None], dW
 
     @staticmethod
     def _a_optimal(stacked, W, dW, weight):
@@ -617,6 +645,7 @@ class SafePlanner:
         torque_shrink_steps: int = 4,
         torque_group: int = 2,
         spread_rows: int = 4,
+        torque_noise: tuple[float, float] = (0.025, 0.05),
     ) -> None:
         self.robot = robot
         self.config = config
@@ -632,6 +661,17 @@ class SafePlanner:
         self.torque_shrink_steps = torque_shrink_steps
         self.torque_group = torque_group
         self.spread_rows = spread_rows  # torque boxes per hull on which the M spread mu is bounded
+        self.torque_noise = torque_noise  # the estimator's declared bound (ratio, floor N m) per sample
+
+    def row_weights(self, q: np.ndarray, v: np.ndarray, a: np.ndarray, theta0: ArrayLike) -> np.ndarray | None:
+        """1 / the declared torque-noise bound of each W_e row (samples x joints, flattened) of the
+        nominal model theta0 along (q, v, a) when planner.exciting_weighting is noise, else None
+        (the executed rows'; a candidate plan's: PlanningProblem._weigh_rows)."""
+        if getattr(self.config, "exciting_weighting", "none") != "noise":
+            return None
+        ratio, floor = self.torque_noise
+        tau = self.robot.inverse_dynamics(q, v, a, np.asarray(theta0, float))
+        return (1.0 / (ratio * np.abs(tau) + floor)).ravel()
 
     def problem(
         self,
@@ -655,13 +695,17 @@ class SafePlanner:
             self, q0, v0, a0, theta0, theta_lo, theta_hi, mode, past, k_box, certify_torque, shrink_toward, box_scale
         )
 
-    def executed_rows(self, plan: PlanResult, duration_s: float) -> np.ndarray:
+    def executed_rows(self, plan: PlanResult, duration_s: float, theta0: ArrayLike | None = None) -> np.ndarray:
         """W_e rows (rows, 10) of the first duration_s of an accepted plan, at the exciting cost's
-        sample spacing: the `past` of the next planning call when planner.cumulative_excitation."""
+        sample spacing, weighted as the cost weights its rows (row_weights under theta0, the
+        robot's nominal when None): the `past` of the next planning call when
+        planner.cumulative_excitation."""
         cfg = self.config
         t = np.arange(0.0, duration_s, cfg.duration_s / (cfg.num_cost_samples - 1))
         q, v, a = plan.evaluate(t)
-        return ee_standard_regressor(self.robot.tree, self.robot.end_effector, q, v, a).reshape(-1, 10)
+        rows = ee_standard_regressor(self.robot.tree, self.robot.end_effector, q, v, a).reshape(-1, 10)
+        weight = self.row_weights(q, v, a, self.robot.theta if theta0 is None else theta0)
+        return rows if weight is None else rows * weight[:, None]
 
     def plan(
         self,

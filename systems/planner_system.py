@@ -235,7 +235,7 @@ class ExcitingPlanner(LeafSystem):
         forced = self._forced.get(st.calls)
         past = st.past
         if st.plan is not None and self._planner.config.cumulative_excitation:
-            executed = self._planner.executed_rows(st.plan, t - st.t_start)
+            executed = self._planner.executed_rows(st.plan, t - st.t_start, thetas[0])
             past = executed if past is None else np.vstack([past, executed])
         if forced is None:
             res = self._planner_at(t).plan(q, v, a, *thetas, k_init=k_prev, rng=rng, mode=self._mode, past=past)

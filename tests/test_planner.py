@@ -232,6 +232,44 @@ def test_cumulative_cost_conditions_the_past_motion_with_the_plan(robot, payload
     assert np.max(np.abs(k_alone - k_stacked)) > 1e-3
 
 
+def test_noise_weighted_cost_divides_each_row_by_its_declared_noise_bound(robot, payload):
+    """planner.exciting_weighting noise: the cost is log cond of W_e with each row divided by
+    ratio |tau| + floor, tau the nominal torque of the plan that keeps k = 0 at that instant plus
+    the armature times the added acceleration; the past rows by their own nominal torque; exact
+    gradient (the weights move with k); the reported W_e (and cond) stays unweighted."""
+    planner, thetas = make_planner(robot, payload, [], exciting_weighting="noise")
+    planner.torque_noise = (0.025, 0.05)
+    rng = np.random.default_rng(12)
+    q0, v0, a0 = Q0 + 0.1, rng.uniform(-0.2, 0.2, 7), rng.uniform(-0.2, 0.2, 7)
+    first = planner.plan(Q0, np.zeros(7), np.zeros(7), *thetas)
+    assert first.ok, first.reason
+    past = planner.executed_rows(first, planner.config.replan_period_s, thetas[0])
+    prob = planner.problem(q0, v0, a0, *thetas, past=past)
+    k = rng.uniform(prob.k_lo, prob.k_hi)
+    val, grad, W = prob.exciting_cost(k)
+
+    def weights(q, v, a, added=0.0):
+        tau = np.einsum("snp,p->sn", robot.standard_regressor(q, v, a), thetas[0]) + added
+        return (1.0 / (0.025 * np.abs(tau) + 0.05)).ravel()
+
+    spacing = planner.config.duration_s / (planner.config.num_cost_samples - 1)
+    qp, vp, ap = first.evaluate(np.arange(0.0, planner.config.replan_period_s, spacing))
+    past_plain = P.ee_standard_regressor(robot.tree, robot.end_effector, qp, vp, ap).reshape(-1, 10)
+    assert np.allclose(past, past_plain * weights(qp, vp, ap)[:, None])
+    q, v, a = prob.desired_at(prob.t_cost, k)
+    plain = P.ee_standard_regressor(robot.tree, robot.end_effector, q, v, a).reshape(-1, 10)
+    assert np.allclose(W, plain)
+    still = prob.desired_at(prob.t_cost, np.clip(np.zeros(7), prob.k_lo, prob.k_hi))
+    added = robot.joint_params.armature * (a - still[2])
+    weighted = np.vstack([past, plain * weights(*still, added)[:, None]])
+    assert np.isclose(val, np.log(np.linalg.cond(weighted)))
+    assert not np.isclose(val, np.log(np.linalg.cond(np.vstack([past_plain, plain]))), rtol=1e-3)
+    fd = np.array(
+        [(prob.exciting_cost(k + 1e-6 * e)[0] - prob.exciting_cost(k - 1e-6 * e)[0]) / 2e-6 for e in np.eye(7)]
+    )
+    assert np.allclose(grad, fd, rtol=1e-5, atol=1e-6)
+
+
 def test_a_optimal_cost_is_the_weighted_least_squares_variance(robot, payload):
     """planner.exciting_criterion a_optimal: log sum_j (A^-1)_jj / width_j^2 with A = S^T S of
     [past; W_e(k)] and width the end effector's current interval (floored at 1e-6); exact gradient."""
