@@ -270,12 +270,11 @@ class PlanningProblem:
         ns = cfg.num_cost_samples
         self.t_cost = np.linspace(0.0, cfg.duration_s, ns)
         self.w_cost = np.stack(QuinticBezier.end_weights(self.t_cost, cfg.duration_s))  # (3, ns)
-        # planner.exciting_weighting noise: the nominal torque of the plan that keeps k = 0, from
-        # which each candidate's row weights follow (_weigh_rows).
-        self.still = None
-        if getattr(cfg, "exciting_weighting", "none") == "noise":
-            q, v, a = self.desired_at(self.t_cost, np.clip(np.zeros(self.n), self.k_lo, self.k_hi))
-            self.still = (a, robot.inverse_dynamics(q, v, a, np.asarray(theta0, float)))
+        # planner.exciting_weighting noise: each row's weight, on the plan that keeps k = 0. Fixed:
+        # weights that grew the wrist's noise with the candidate's own acceleration (armature)
+        # held the wrist still, and identified less (README, "Tried and no better").
+        still = self.desired_at(self.t_cost, np.clip(np.zeros(self.n), self.k_lo, self.k_hi))
+        self.row_weight = planner.row_weights(*still, theta0)
         self._cache = {}
         self._excite_cache = {}
 
@@ -551,8 +550,8 @@ class PlanningProblem:
         cols = _EXCITING_COLUMNS[getattr(pl.config, "exciting_columns", "all")]
         plain = W = w[0].real[:, cols]
         dW = w.imag[..., cols] / h  # (n_k, rows, columns)
-        if self.still is not None:
-            W, dW = self._weigh_rows(W, dW, a)
+        if self.row_weight is not None:
+            W, dW = W * self.row_weight[:, None], dW * self.row_weight[None, :, None]
         # With the past motion stacked on top, only the plan's rows depend on k.
         stacked = W if self.past is None else np.vstack([self.past[:, cols], W])
         if getattr(pl.config, "exciting_criterion", "cond") == "a_optimal":
@@ -564,25 +563,6 @@ class PlanningProblem:
         d_max = np.einsum("r,jrc,c->j", u[:, 0], dW, vt[0])
         d_min = np.einsum("r,jrc,c->j", u[:, -1], dW, vt[-1])
         return float(np.log(s[0]) - np.log(s[-1])), d_max / s[0] - d_min / s[-1], plain
-
-    def _weigh_rows(self, W, dW, a):
-        """W_e's rows divided by their declared torque-noise bound ratio |tau| + floor (and dW
-        by the product rule). tau: the nominal torque of the plan that keeps k = 0 plus the
-        armature's share of the added acceleration, linear in k (the armature, 8-12 kg m^2, is
-        most of the wrist's inertial torque: without it a fast wrist looked noise-free)."""
-        pl = self.planner
-        ratio, floor = pl.torque_noise
-        a_still, tau_still = self.still
-        armature = pl.robot.joint_params.armature
-        tau = tau_still + armature * (a - a_still)
-        w = 1.0 / (ratio * np.abs(tau) + floor)  # (samples, joints)
-        dw = -(w**2) * ratio * np.sign(tau) * armature * (self.w_cost[2][:, None] * pl.k_range)  # d w[s, j] / d k_j
-        flat = w.ravel()
-        dW = dW * flat[None, :, None]
-        for j in range(self.n):  # row (s, j) also moves through its own weight
-            rows = np.arange(len(w)) * self.n + j
-            dW[j, rows] += W[rows] * dw[:, j, None]
-        return W * flat[:, None], dW
 
     @staticmethod
     def _a_optimal(stacked, W, dW, weight):
@@ -665,8 +645,7 @@ class SafePlanner:
 
     def row_weights(self, q: np.ndarray, v: np.ndarray, a: np.ndarray, theta0: ArrayLike) -> np.ndarray | None:
         """1 / the declared torque-noise bound of each W_e row (samples x joints, flattened) of the
-        nominal model theta0 along (q, v, a) when planner.exciting_weighting is noise, else None
-        (the executed rows'; a candidate plan's: PlanningProblem._weigh_rows)."""
+        nominal model theta0 along (q, v, a) when planner.exciting_weighting is noise, else None."""
         if getattr(self.config, "exciting_weighting", "none") != "noise":
             return None
         ratio, floor = self.torque_noise

@@ -234,9 +234,9 @@ def test_cumulative_cost_conditions_the_past_motion_with_the_plan(robot, payload
 
 def test_noise_weighted_cost_divides_each_row_by_its_declared_noise_bound(robot, payload):
     """planner.exciting_weighting noise: the cost is log cond of W_e with each row divided by
-    ratio |tau| + floor, tau the nominal torque of the plan that keeps k = 0 at that instant plus
-    the armature times the added acceleration; the past rows by their own nominal torque; exact
-    gradient (the weights move with k); the reported W_e (and cond) stays unweighted."""
+    ratio |tau| + floor, tau the nominal torque of the plan that keeps k = 0 at that instant; the
+    past rows by their own nominal torque; exact gradient; the reported W_e (and cond) stays
+    unweighted."""
     planner, thetas = make_planner(robot, payload, [], exciting_weighting="noise")
     planner.torque_noise = (0.025, 0.05)
     rng = np.random.default_rng(12)
@@ -248,8 +248,8 @@ def test_noise_weighted_cost_divides_each_row_by_its_declared_noise_bound(robot,
     k = rng.uniform(prob.k_lo, prob.k_hi)
     val, grad, W = prob.exciting_cost(k)
 
-    def weights(q, v, a, added=0.0):
-        tau = np.einsum("snp,p->sn", robot.standard_regressor(q, v, a), thetas[0]) + added
+    def weights(q, v, a):
+        tau = np.einsum("snp,p->sn", robot.standard_regressor(q, v, a), thetas[0])
         return (1.0 / (0.025 * np.abs(tau) + 0.05)).ravel()
 
     spacing = planner.config.duration_s / (planner.config.num_cost_samples - 1)
@@ -260,8 +260,7 @@ def test_noise_weighted_cost_divides_each_row_by_its_declared_noise_bound(robot,
     plain = P.ee_standard_regressor(robot.tree, robot.end_effector, q, v, a).reshape(-1, 10)
     assert np.allclose(W, plain)
     still = prob.desired_at(prob.t_cost, np.clip(np.zeros(7), prob.k_lo, prob.k_hi))
-    added = robot.joint_params.armature * (a - still[2])
-    weighted = np.vstack([past, plain * weights(*still, added)[:, None]])
+    weighted = np.vstack([past, plain * weights(*still)[:, None]])
     assert np.isclose(val, np.log(np.linalg.cond(weighted)))
     assert not np.isclose(val, np.log(np.linalg.cond(np.vstack([past_plain, plain]))), rtol=1e-3)
     fd = np.array(
