@@ -62,22 +62,29 @@ def _reference_armour():
 
 
 @contextlib.contextmanager
-def _frozen_law():
-    """The fast law returns its first output at every step: the loop without the law's cost (the
-    source, ports, caches and loggers around it), for the per-step breakdown."""
-    call = FastArmourLaw.__call__
-    first = {}
+def _replayed_law():
+    """The loop around the law, for the per-step breakdown: the first loop run inside records the
+    ARMOUR system's law outputs by (time, state); the later runs return the recorded output
+    instead of computing it, so the plant gets the same torques (the same steps) while the law
+    costs its input reads and a lookup. Freezing the law's first output instead changed what the
+    plant did, and so its cost: the breakdown then gave the law ~0 us."""
+    calc = controller_systems.ArmourController._calc_law
+    recorded = {}
 
-    def frozen(self, *inputs):
-        if self not in first:
-            first[self] = call(self, *inputs)
-        return first[self]
+    def replay(self, context, value):
+        q, v, *_ = self._raw_inputs(context)  # the law's inputs are read as the live law reads them
+        key = (context.get_time(), q.tobytes(), v.tobytes())
+        if key not in recorded:
+            calc(self, context, value)
+            recorded[key] = value.get_value()
+        else:
+            value.set_value(recorded[key])
 
-    FastArmourLaw.__call__ = frozen
+    controller_systems.ArmourController._calc_law = replay
     try:
         yield
     finally:
-        FastArmourLaw.__call__ = call
+        controller_systems.ArmourController._calc_law = calc
 
 
 def _best_rtf(prepare, sim_s, repeat):
@@ -208,12 +215,13 @@ def run(quick: bool = False, out: Path | None = None) -> dict:
     result["plant_cpu_us_per_step"] = 1e6 * s.plant.time_step_s / result["plant_alone_cpu_real_time_factor"]
     result["armour_loop_cpu_us_per_step"] = 1e6 * s.plant.time_step_s / rtf_cpu
     result["armour_reference_loop_cpu_us_per_step"] = 1e6 * s.plant.time_step_s / ref[1]
-    with _frozen_law():
-        frozen = loop_rtf(s, robot, theta0, box, "armour", sim_s, repeat)
+    with _replayed_law():
+        loop_rtf(s, robot, theta0, box, "armour", sim_s, 1)  # records the law's outputs
+        replayed = loop_rtf(s, robot, theta0, box, "armour", sim_s, repeat)
     # Breakdown of the loop's step: plant | law (in the loop, caches cold) | the rest around it.
-    result["armour_loop_law_frozen_cpu_us_per_step"] = 1e6 * s.plant.time_step_s / frozen[1]
+    result["armour_loop_law_replayed_cpu_us_per_step"] = 1e6 * s.plant.time_step_s / replayed[1]
     result["armour_law_in_loop_cpu_us_per_step"] = (
-        result["armour_loop_cpu_us_per_step"] - result["armour_loop_law_frozen_cpu_us_per_step"]
+        result["armour_loop_cpu_us_per_step"] - result["armour_loop_law_replayed_cpu_us_per_step"]
     )
     result["meets_target_wall"] = bool(rtf >= TARGET_RTF)
     result["meets_target_cpu"] = bool(rtf_cpu >= TARGET_RTF)
