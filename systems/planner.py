@@ -273,8 +273,10 @@ class PlanningProblem:
         # planner.exciting_weighting noise: each row's weight, on the plan that keeps k = 0. Fixed:
         # weights that grew the wrist's noise with the candidate's own acceleration (armature)
         # held the wrist still, and identified less (README, "Tried and no better").
-        still = self.desired_at(self.t_cost, np.clip(np.zeros(self.n), self.k_lo, self.k_hi))
-        self.row_weight = planner.row_weights(*still, theta0)
+        self.row_weight = None
+        if planner.weighs_rows:
+            still = self.desired_at(self.t_cost, np.clip(np.zeros(self.n), self.k_lo, self.k_hi))
+            self.row_weight = planner.row_weights(*still, theta0)
         self._cache = {}
         self._excite_cache = {}
 
@@ -643,11 +645,14 @@ class SafePlanner:
         self.spread_rows = spread_rows  # torque boxes per hull on which the M spread mu is bounded
         self.torque_noise = torque_noise  # the estimator's declared bound (ratio, floor N m) per sample
 
-    def row_weights(self, q: np.ndarray, v: np.ndarray, a: np.ndarray, theta0: ArrayLike) -> np.ndarray | None:
+    @property
+    def weighs_rows(self) -> bool:
+        """planner.exciting_weighting noise: the exciting cost divides W_e's rows by row_weights."""
+        return getattr(self.config, "exciting_weighting", "none") == "noise"
+
+    def row_weights(self, q: np.ndarray, v: np.ndarray, a: np.ndarray, theta0: ArrayLike) -> np.ndarray:
         """1 / the declared torque-noise bound of each W_e row (samples x joints, flattened) of the
-        nominal model theta0 along (q, v, a) when planner.exciting_weighting is noise, else None."""
-        if getattr(self.config, "exciting_weighting", "none") != "noise":
-            return None
+        nominal model theta0 along (q, v, a)."""
         ratio, floor = self.torque_noise
         tau = self.robot.inverse_dynamics(q, v, a, np.asarray(theta0, float))
         return (1.0 / (ratio * np.abs(tau) + floor)).ravel()
@@ -683,8 +688,9 @@ class SafePlanner:
         t = np.arange(0.0, duration_s, cfg.duration_s / (cfg.num_cost_samples - 1))
         q, v, a = plan.evaluate(t)
         rows = ee_standard_regressor(self.robot.tree, self.robot.end_effector, q, v, a).reshape(-1, 10)
-        weight = self.row_weights(q, v, a, self.robot.theta if theta0 is None else theta0)
-        return rows if weight is None else rows * weight[:, None]
+        if not self.weighs_rows:
+            return rows
+        return rows * self.row_weights(q, v, a, self.robot.theta if theta0 is None else theta0)[:, None]
 
     def plan(
         self,
