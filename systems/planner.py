@@ -613,7 +613,8 @@ class SafePlanner:
     goal_q_rad, solver, max_solve_time_s, max_iterations, budget, k_center_rad, k_range_rad, floor_z_m).
     obstacles: scenario Obstacle records or a reachability.Boxes. payload: Dumbbell or None.
     tracking: controller.TrackingBounds (the controller's ultimate bound with ITS gains Kr; None
-    means perfect tracking, for tests only).
+    means perfect tracking, for tests only). torque_noise: scenario.noise's declared bound (ratio,
+    floor N m), which planner.exciting_weighting divides the cost's rows by (None: its default).
     """
 
     def __init__(
@@ -627,7 +628,7 @@ class SafePlanner:
         torque_shrink_steps: int = 4,
         torque_group: int = 2,
         spread_rows: int = 4,
-        torque_noise: tuple[float, float] = (0.025, 0.05),
+        torque_noise: tuple[float, float] | None = None,
     ) -> None:
         self.robot = robot
         self.config = config
@@ -643,6 +644,10 @@ class SafePlanner:
         self.torque_shrink_steps = torque_shrink_steps
         self.torque_group = torque_group
         self.spread_rows = spread_rows  # torque boxes per hull on which the M spread mu is bounded
+        if torque_noise is None:  # the scenario's default
+            from .config import Noise
+
+            torque_noise = (Noise.declared_torque_ratio, Noise.declared_torque_floor_Nm)
         self.torque_noise = torque_noise  # the estimator's declared bound (ratio, floor N m) per sample
 
     @property
