@@ -173,3 +173,31 @@ def test_fast_hull_contains_the_exact_one(robot, gains):
         for i in range(robot.n):
             assert Fraction(out.w_bar[i]) >= abs(exact[i] - Fraction(out.tau_nom[i]))
         assert Fraction(2 * out.V_bar) >= exact[robot.n]
+
+
+def test_replayed_law_gives_the_plant_the_same_torques_without_computing_the_law(monkeypatch):
+    """bench_sim's per-step breakdown: inside _replayed_law a second run of the same loop commands
+    the same torques bit for bit while the fast law is never called: what remains is the loop
+    around the law (freezing the law's first output instead changed the plant's work)."""
+    from safesysid.benchmarks import bench_sim
+    from safesysid.closed_loop import build_closed_loop, simulate_closed_loop
+    from safesysid.scenario import load_scenario, robot_from_scenario
+
+    s = load_scenario(overrides={"payload": {"dumbbell": "8lb"}})
+    robot = robot_from_scenario(s)
+    theta0, box = C.parameter_box(robot, s.initial_interval.nominal, s.initial_interval.lower, s.initial_interval.upper)
+    q0, trajectory = bench_sim._trajectory(s, robot)
+    calls = []
+    call = FastArmourLaw.__call__
+    monkeypatch.setattr(FastArmourLaw, "__call__", lambda self, *inputs: calls.append(1) or call(self, *inputs))
+
+    def torques():
+        loop = build_closed_loop(s, trajectory, theta0, box, kind="armour", robot=robot)
+        return simulate_closed_loop(loop, q0, 0.2)["torque"]
+
+    with bench_sim._replayed_law():
+        live = torques()
+        computed = len(calls)
+        replayed = torques()
+    assert computed >= 200 and len(calls) == computed
+    np.testing.assert_array_equal(live[1], replayed[1])
