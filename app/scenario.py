@@ -180,6 +180,11 @@ def _validate(s: Scenario, where):
     need(0 < s.planner.replan_period_s <= s.planner.duration_s, "planner.replan_period_s", "must be in (0, duration_s]")
     need(0 < s.planner.refinement_scale <= 1, "planner.refinement_scale", "must be in (0, 1]")
     need(s.noise.torque_ratio >= 0 and s.noise.declared_torque_ratio >= 0, "noise", "ratios must be >= 0")
+    need(
+        s.planner.exciting_weighting != "noise" or s.noise.declared_torque_floor_Nm > 0,
+        "planner.exciting_weighting",
+        "noise needs noise.declared_torque_floor_Nm > 0 (a row with zero torque would weigh infinitely)",
+    )
     f = s.fourier
     need(f.period_s > 0, "fourier.period_s", "must be > 0")
     need(f.num_harmonics >= 2, "fourier.num_harmonics", "must be >= 2 (rest at both ends uses one harmonic)")
