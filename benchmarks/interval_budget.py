@@ -16,7 +16,9 @@ Swept over the motion amplitude (→ peak joint acceleration) and the data lengt
 [--scenario-text YAML]`: the median width / prior width per parameter over N closed-loop seeds of
 scenarios/identify_all.yaml (ours and random; published, data-driven and the paper's first-order
 interval), the worst data-driven ratio, and where ours' data-driven box is narrower than random's
-on the paired seeds.
+on the paired seeds. `--save FILE` writes the per-run results as JSON; `--methods ours
+--paired-with FILE` runs ours only and pairs it with the other methods' runs of a saved FILE (same
+seeds, checked): an option of ours alone then costs half the time, random is not re-run.
 """
 
 from __future__ import annotations
@@ -279,8 +281,19 @@ def print_closed_loop(result: dict) -> None:
 if __name__ == "__main__":
     if "--closed-loop" in sys.argv:  # --closed-loop N [--workers W] [--scenario-text T]: identify_all seeds 0..N-1
         arg = lambda flag: sys.argv[sys.argv.index(flag) + 1] if flag in sys.argv else None  # noqa: E731
-        seeds = range(int(arg("--closed-loop")))
+        seeds = list(range(int(arg("--closed-loop"))))
         overrides = [arg("--scenario-text")] if arg("--scenario-text") else []
-        print_closed_loop(closed_loop(seeds, workers=int(arg("--workers") or 1), overrides=overrides))
+        methods = tuple((arg("--methods") or "ours,random").split(","))
+        result = closed_loop(seeds, methods=methods, workers=int(arg("--workers") or 1), overrides=overrides)
+        if arg("--save"):
+            with open(arg("--save"), "w") as f:
+                json.dump({"seeds": seeds, "overrides": overrides, "result": result}, f)
+        if arg("--paired-with"):
+            with open(arg("--paired-with")) as f:
+                saved = json.load(f)
+            if saved["seeds"] != seeds:
+                sys.exit(f"{arg('--paired-with')}: seeds {saved['seeds']} differ from this run's {seeds}")
+            result = {**{m: r for m, r in saved["result"].items() if m not in result}, **result}
+        print_closed_loop(result)
     else:
         print_table(run(quick="--quick" in sys.argv))
