@@ -68,7 +68,7 @@ _CHOICES = {
     "method": METHODS,
     "planner.cost": ("exciting", "goal", "random"),
     "planner.exciting_columns": ("all", "inertia"),
-    "planner.exciting_criterion": ("cond", "a_optimal"),
+    "planner.exciting_criterion": ("cond", "a_optimal", "e_optimal", "cond_interval"),
     "planner.exciting_weighting": ("none", "noise"),
     "planner.solver": ("ipopt", "snopt"),
     "planner.budget": ("iterations", "wall_time"),

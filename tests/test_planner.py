@@ -287,6 +287,25 @@ def test_a_optimal_cost_is_the_weighted_least_squares_variance(robot, payload):
     assert np.allclose(grad, fd, rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.parametrize("criterion", ["e_optimal", "cond_interval"])
+def test_interval_scaled_costs(robot, payload, criterion):
+    """planner.exciting_criterion e_optimal: -log sigma_min, cond_interval: log cond, of [past; W_e(k)]
+    with each column multiplied by its parameter's current interval width; exact gradients."""
+    planner, thetas = make_planner(robot, payload, [], exciting_criterion=criterion)
+    rng = np.random.default_rng(13)
+    past = rng.normal(size=(70, 10))
+    prob = planner.problem(Q0 + 0.1, rng.uniform(-0.2, 0.2, 7), rng.uniform(-0.2, 0.2, 7), *thetas, past=past)
+    k = rng.uniform(-1, 1, 7)
+    val, grad, W = prob.exciting_cost(k)
+    width = np.maximum((thetas[2] - thetas[1])[robot.ee_slice], 1e-6)
+    s = np.linalg.svd(np.vstack([past, W]) * width, compute_uv=False)
+    assert np.isclose(val, -np.log(s[-1]) if criterion == "e_optimal" else np.log(s[0] / s[-1]))
+    fd = np.array(
+        [(prob.exciting_cost(k + 1e-6 * e)[0] - prob.exciting_cost(k - 1e-6 * e)[0]) / 2e-6 for e in np.eye(7)]
+    )
+    assert np.allclose(grad, fd, rtol=1e-5, atol=1e-6)
+
+
 def test_planned_and_random_plans_are_safe_in_continuous_time(robot, planned):
     """Monte Carlo: feasible k (optimized, then random feasible ones) checked densely."""
     planner, thetas, scene = planned
