@@ -189,8 +189,10 @@ class Planner:
     exciting_columns: str = "all"  # all | inertia
     # What the exciting cost minimises: cond, the paper's log cond(W_e); a_optimal, log of the sum
     # over parameters of the least-squares variance the plan would leave, each relative to its
-    # current interval width squared (the widths the estimator publishes, not the ratio of extremes).
-    exciting_criterion: str = "cond"  # cond | a_optimal
+    # current interval width squared (the widths the estimator publishes, not the ratio of extremes);
+    # e_optimal, -log sigma_min, and cond_interval, log cond, of W_e with each column times its
+    # parameter's current interval width (README "Tried and no better": both narrow less than cond).
+    exciting_criterion: str = "cond"  # cond | a_optimal | e_optimal | cond_interval
     # Rows of W_e the exciting cost sees: none, as they are (the paper); noise, each divided by
     # the declared torque-noise bound of its joint and instant (noise.declared_*, on the nominal
     # torque of the plan that keeps k = 0), the scale of the rows the estimator's intervals are
@@ -210,6 +212,10 @@ class Planner:
     # searches: its optimum is then scaled toward k = 0 until certified, so an optimum found among
     # motions of about the certifiable size keeps more of its excitation than a scaled-down larger one.
     refinement_scale: float = 1.0
+    # true: refinement adopts a point only if the state its plan reaches at the next call (t_p) has
+    # a certified plan that holds still there (halving the point toward k = 0, up to 3 times): a
+    # most exciting plan no longer leaves the arm where nothing can be certified and it must brake.
+    continuation: bool = False
     goal_q_rad: List[float] = dc.field(default_factory=list)
     solver: str = "ipopt"  # ipopt | snopt
     max_solve_time_s: float = 1.2  # wall cap inside t_p (budget: wall_time only)

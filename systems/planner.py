@@ -337,6 +337,8 @@ class PlanningProblem:
         segment = bool(steps) and np.array_equal(self.k_lo, self.k_hi)  # a point: the segment to the centre
         if segment:  # in eighths (one plan's motion, as large as certifiable), then the finest halving
             scales = [j / 8 for j in range(7, 0, -1)] + scales[3:]
+            if self.planner.config.continuation:  # and the centre itself: the plan that holds still
+                scales.append(0.0)
         nb = len(whole)
         if scales and (whole / limit).max() <= PLAIN_SHRINK_RATIO:
             sup, *_, nb = plain_bound(scales)
@@ -556,9 +558,17 @@ class PlanningProblem:
             W, dW = W * self.row_weight[:, None], dW * self.row_weight[None, :, None]
         # With the past motion stacked on top, only the plan's rows depend on k.
         stacked = W if self.past is None else np.vstack([self.past[:, cols], W])
-        if getattr(pl.config, "exciting_criterion", "cond") == "a_optimal":
+        criterion = getattr(pl.config, "exciting_criterion", "cond")
+        if criterion == "a_optimal":
             return (*self._a_optimal(stacked, W, dW, self.variance_weight[cols]), plain)
+        if criterion in ("e_optimal", "cond_interval"):  # columns in units of their current interval
+            width = 1.0 / np.sqrt(self.variance_weight[cols])
+            stacked, W, dW = stacked * width, W * width, dW * width
         u, s, vt = np.linalg.svd(stacked, full_matrices=False)
+        if criterion == "e_optimal" and s[-1] > 0:
+            u = u[len(stacked) - len(W) :]
+            d_min = np.einsum("r,jrc,c->j", u[:, -1], dW, vt[-1])
+            return float(-np.log(s[-1])), -d_min / s[-1], plain
         if s[-1] <= 0:
             return np.inf, np.zeros(n), plain
         u = u[len(stacked) - len(W) :]
@@ -792,11 +802,27 @@ class SafePlanner:
         if target is None:
             return None
         base = np.clip(np.zeros(self.n), wide.k_lo, wide.k_hi)
-        point = self.problem(*args, k_box=(target, target), shrink_toward=base)
-        if not point.feasible_start:
-            return None
-        k = point.k_lo.copy()
-        return (k, point, status, solver_status) if point.is_feasible(k) else None
+        for _ in range(1 + 3 * self.config.continuation):  # halved toward base while it cannot continue
+            point = self.problem(*args, k_box=(target, target), shrink_toward=base)
+            if not point.feasible_start:
+                return None
+            k = point.k_lo.copy()
+            if not point.is_feasible(k):
+                return None
+            if not self.config.continuation or self._can_continue(point, k, args):
+                return k, point, status, solver_status
+            target = base + 0.5 * (k - base)
+        return None
+
+    def _can_continue(self, point, k, args):
+        """planner.continuation: the plan k's state at the next call (t_p) has a certified plan
+        of its own, the one that holds still (k = 0: it brakes to rest where it is), with this
+        call's parameter box. A liveness check, not a safety one: every plan brakes anyway."""
+        t_p = np.array([self.config.replan_period_s])
+        q, v, a = (x[0] for x in point.desired_at(t_p, k))
+        still = np.divide(-self.k_center, self.k_range, out=np.zeros(self.n), where=self.k_range > 0)
+        nxt = self.problem(q, v, a, *args[3:6], args[6], None, k_box=(still, still))
+        return nxt.feasible_start and nxt.is_feasible(still)
 
     def _initial_guess(self, prob, k_init, rng=None):
         """(start, fallback). Warm start from k_init; a plan that does not move at all makes W_e

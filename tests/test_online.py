@@ -196,3 +196,20 @@ def test_a_command_beyond_the_torque_limit_is_a_failure(quickstart, monkeypatch)
     assert summary["max_torque_ratio"] <= 1.0 + 1e-9  # the saturated torque hides it ...
     assert summary["max_commanded_torque_ratio"] > 1.1  # ... the command does not
     assert summary["failure"] == "torque_limit" and not summary["success"]
+
+
+def test_continuation_keeps_identification_going():
+    """planner.continuation: refinement adopts a point only if the state its plan reaches at the next
+    call has a certified plan that holds still there. identify_all with 1 s plans every 0.5 s, seed 1,
+    5 lb: without it the first, most exciting plan leaves the arm where the next call certifies
+    nothing (joint 6's torque bound) and it brakes; with it every call is certified, safe."""
+    plans = "planner: {duration_s: 1.0, replan_period_s: 0.5, num_plans: 4, continuation: %s}"
+    out = {}
+    for on in ("false", "true"):
+        scene = load_scenario(SCENARIOS_DIR / "identify_all.yaml", overrides=[plans % on, "payload: {dumbbell: 5lb}"])
+        out[on] = run_online(scene, None, method="ours", seed=1, write=False)
+    assert out["false"]["planner"]["status"][-1] == "infeasible_start" and out["false"]["planner"]["brakes"] == 1
+    assert all(s in ("solved", "best_feasible") for s in out["true"]["planner"]["status"])
+    assert out["true"]["planner"]["brakes"] == 0 and len(out["true"]["planner"]["status"]) == 4
+    assert_safe(out["true"])
+    assert out["true"]["contains_truth"] and out["true"]["estimate"]["consistent"]
