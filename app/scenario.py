@@ -179,6 +179,11 @@ def _validate(s: Scenario, where):
         need(value >= 0, f"noise.theta_r_floor.{key}", "must be >= 0")
     need(0 < s.planner.replan_period_s <= s.planner.duration_s, "planner.replan_period_s", "must be in (0, duration_s]")
     need(0 < s.planner.refinement_scale <= 1, "planner.refinement_scale", "must be in (0, 1]")
+    need(
+        not s.planner.continuation or s.planner.point_refinement,
+        "planner.continuation",
+        "needs planner.point_refinement: true (it is a condition on the refined point)",
+    )
     need(s.noise.torque_ratio >= 0 and s.noise.declared_torque_ratio >= 0, "noise", "ratios must be >= 0")
     need(
         s.planner.exciting_weighting != "noise" or s.noise.declared_torque_floor_Nm > 0,

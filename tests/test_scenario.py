@@ -16,6 +16,7 @@ def test_defaults_and_robot():
         ("planner: {duraton_s: 3}", "planner.duraton_s"),
         ("planner: {duration_s: fast}", "planner.duration_s"),
         ("planner: {refinement_scale: 0}", "planner.refinement_scale"),
+        ("planner: {continuation: true}", "planner.continuation"),
         ("planner: {exciting_weighting: noise}\nnoise: {declared_torque_floor_Nm: 0.0}", "planner.exciting_weighting"),
         ("obstacles: [{xyz_m: [1, 2]}]", "obstacles[0].xyz_m"),
         ("method: best", "method"),
