@@ -201,3 +201,30 @@ def test_replayed_law_gives_the_plant_the_same_torques_without_computing_the_law
         replayed = torques()
     assert computed >= 200 and len(calls) == computed
     np.testing.assert_array_equal(live[1], replayed[1])
+
+
+def test_grasp_load_of_a_steady_rotation_about_the_base(tmp_path):
+    """benchmarks/grasp_load.py: joint 1 turning at a constant w, the other joints still, so the grasp
+    point circles the base axis: the dumbbell needs m sqrt(g^2 + (w^2 r)^2), r its distance from the
+    axis; no angular acceleration."""
+    from safesysid.benchmarks.grasp_load import grasp_load
+
+    robot = load_robot()
+    q0 = np.array([0.0, 0.4, 0.0, 1.2, 0.0, 0.6, 0.0])
+    w, t = 0.8, np.arange(0.0, 0.5, 0.001)
+    q = np.tile(q0, (len(t), 1))
+    q[:, 0] = w * t
+    v = np.zeros_like(q)
+    v[:, 0] = w
+    columns = ["t"] + [f"{x}{i}" for x in "qv" for i in range(1, 8)]
+    np.savetxt(tmp_path / "log.csv", np.column_stack([t, q, v]), delimiter=",", header=",".join(columns), comments="")
+    theta_e = robot.theta[robot.ee_slice].copy()
+    theta_e[0] += 3.63
+    (tmp_path / "summary.json").write_text(json.dumps({"method": "test", "payload_true": {"theta": theta_e.tolist()}}))
+    fk = robot.forward_kinematics(q0[None])
+    R, p = fk.R[0, robot.end_effector], fk.p[0, robot.end_effector]
+    r = np.hypot(*(R @ robot.extra["grasp_point"] + p)[:2])
+    load = grasp_load(tmp_path)
+    assert load["dumbbell_kg"] == pytest.approx(3.63)
+    assert load["peak_force_N"] == pytest.approx(3.63 * np.hypot(9.81, w**2 * r), rel=1e-6)
+    assert load["peak_angular_acceleration"] < 1e-6
