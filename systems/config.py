@@ -213,8 +213,9 @@ class Planner:
     # motions of about the certifiable size keeps more of its excitation than a scaled-down larger one.
     refinement_scale: float = 1.0
     # true: refinement adopts a point only if the state its plan reaches at the next call (t_p) has
-    # a certified plan that holds still there (halving the point toward k = 0, up to 3 times): a
-    # most exciting plan no longer leaves the arm where nothing can be certified and it must brake.
+    # a certified plan k = 0 (with k_center 0 it holds still there; halving the point toward k = 0,
+    # up to 3 times), and a point's last shrink level is k = 0 itself: a most exciting plan no longer
+    # leaves the arm where nothing can be certified and it must brake. Needs point_refinement.
     continuation: bool = False
     goal_q_rad: List[float] = dc.field(default_factory=list)
     solver: str = "ipopt"  # ipopt | snopt

@@ -337,7 +337,7 @@ class PlanningProblem:
         segment = bool(steps) and np.array_equal(self.k_lo, self.k_hi)  # a point: the segment to the centre
         if segment:  # in eighths (one plan's motion, as large as certifiable), then the finest halving
             scales = [j / 8 for j in range(7, 0, -1)] + scales[3:]
-            if self.planner.config.continuation:  # and the centre itself: the plan that holds still
+            if self.planner.config.continuation:  # and the centre itself (k = 0 in refinement)
                 scales.append(0.0)
         nb = len(whole)
         if scales and (whole / limit).max() <= PLAIN_SHRINK_RATIO:
@@ -816,13 +816,14 @@ class SafePlanner:
 
     def _can_continue(self, point, k, args):
         """planner.continuation: the plan k's state at the next call (t_p) has a certified plan
-        of its own, the one that holds still (k = 0: it brakes to rest where it is), with this
-        call's parameter box. A liveness check, not a safety one: every plan brakes anyway."""
+        of its own, k = 0, the last level the next call's refinement tries (with k_center 0 it holds
+        still: it brakes to rest where it is), with this call's parameter box. A liveness check, not
+        a safety one: every plan brakes anyway."""
         t_p = np.array([self.config.replan_period_s])
         q, v, a = (x[0] for x in point.desired_at(t_p, k))
-        still = np.divide(-self.k_center, self.k_range, out=np.zeros(self.n), where=self.k_range > 0)
-        nxt = self.problem(q, v, a, *args[3:6], args[6], None, k_box=(still, still))
-        return nxt.feasible_start and nxt.is_feasible(still)
+        zero = np.zeros(self.n)
+        nxt = self.problem(q, v, a, *args[3:6], args[6], None, k_box=(zero, zero))
+        return nxt.feasible_start and nxt.is_feasible(zero)
 
     def _initial_guess(self, prob, k_init, rng=None):
         """(start, fallback). Warm start from k_init; a plan that does not move at all makes W_e
