@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 from pydrake.multibody.tree import JacobianWrtVariable
+from safesysid.joint_log import read_joint_log
 from safesysid.systems.robot_model import load_robot, make_plant
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
@@ -32,19 +33,16 @@ def grasp_load(run_dir: str | Path) -> dict:
         plant.Finalize()
     ctx = plant.CreateDefaultContext()
     ee = plant.GetBodyByName(robot.body_names[robot.end_effector]).body_frame()
-    log = np.genfromtxt(run_dir / "log.csv", delimiter=",", names=True)
-    n = robot.n
-    q = np.stack([log[f"q{i}"] for i in range(1, n + 1)], 1)
-    v = np.stack([log[f"v{i}"] for i in range(1, n + 1)], 1)
-    spatial_velocity = np.empty((len(q), 6))
-    for k, (qk, vk) in enumerate(zip(q, v)):
+    log = read_joint_log(run_dir / "log.csv", robot.n)
+    spatial_velocity = np.empty((len(log.t), 6))
+    for k, (qk, vk) in enumerate(zip(log.q, log.v)):
         plant.SetPositions(ctx, qk)
         plant.SetVelocities(ctx, vk)
         J = plant.CalcJacobianSpatialVelocity(
             ctx, JacobianWrtVariable.kV, ee, robot.extra["grasp_point"], plant.world_frame(), plant.world_frame()
         )
         spatial_velocity[k] = J @ vk
-    accel = np.gradient(spatial_velocity, log["t"], axis=0)
+    accel = np.gradient(spatial_velocity, log.t, axis=0)
     mass = float(summary["payload_true"]["theta"][0]) if "payload_true" in summary else np.nan
     dumbbell_mass = mass - robot.theta[robot.ee_slice][0]  # the true end effector minus the bare one
     linear = accel[:, 3:] - GRAVITY
@@ -53,7 +51,7 @@ def grasp_load(run_dir: str | Path) -> dict:
         "dumbbell_kg": round(dumbbell_mass, 3),
         "peak_force_N": float(dumbbell_mass * np.linalg.norm(linear, axis=1).max()),
         "peak_angular_acceleration": float(np.linalg.norm(accel[:, :3], axis=1).max()),
-        "jerk_p99": float(np.percentile(np.linalg.norm(np.gradient(accel[:, 3:], log["t"], axis=0), axis=1), 99)),
+        "jerk_p99": float(np.percentile(np.linalg.norm(np.gradient(accel[:, 3:], log.t, axis=0), axis=1), 99)),
     }
 
 

@@ -228,10 +228,12 @@ class PlanningProblem:
         # W_e rows of the motion executed before this plan (SafePlanner.executed_rows): the
         # exciting cost then conditions [past; W_e(k)], so a plan excites what is still missing.
         self.past = None if past is None or len(past) == 0 else np.asarray(past, float)
-        # planner.exciting_criterion a_optimal: each parameter's predicted variance relative to
-        # its current interval (theta_lo/hi of the end effector) squared.
+        # The end effector's current interval widths (floored): planner.exciting_criterion a_optimal
+        # weighs each parameter's predicted variance by 1/width^2, e_optimal and cond_interval scale
+        # the columns of W_e by them.
         ee_width = np.subtract(theta_hi, theta_lo, dtype=float)[planner.robot.ee_slice]
-        self.variance_weight = 1.0 / np.maximum(ee_width, 1e-6) ** 2
+        self.interval_width = np.maximum(ee_width, 1e-6)
+        self.variance_weight = 1.0 / self.interval_width**2
         cfg = planner.config
         robot = planner.robot
         self.n = robot.n
@@ -562,7 +564,7 @@ class PlanningProblem:
         if criterion == "a_optimal":
             return (*self._a_optimal(stacked, W, dW, self.variance_weight[cols]), plain)
         if criterion in ("e_optimal", "cond_interval"):  # columns in units of their current interval
-            width = 1.0 / np.sqrt(self.variance_weight[cols])
+            width = self.interval_width[cols]
             stacked, W, dW = stacked * width, W * width, dW * width
         u, s, vt = np.linalg.svd(stacked, full_matrices=False)
         if criterion == "e_optimal" and s[-1] > 0:

@@ -216,8 +216,9 @@ def test_grasp_load_of_a_steady_rotation_about_the_base(tmp_path):
     q[:, 0] = w * t
     v = np.zeros_like(q)
     v[:, 0] = w
-    columns = ["t"] + [f"{x}{i}" for x in "qv" for i in range(1, 8)]
-    np.savetxt(tmp_path / "log.csv", np.column_stack([t, q, v]), delimiter=",", header=",".join(columns), comments="")
+    columns = ["t"] + [f"{x}{i}" for x in ("q", "v", "tau") for i in range(1, 8)]
+    log = np.column_stack([t, q, v, np.zeros_like(q)])
+    np.savetxt(tmp_path / "log.csv", log, delimiter=",", header=",".join(columns), comments="")
     theta_e = robot.theta[robot.ee_slice].copy()
     theta_e[0] += 3.63
     (tmp_path / "summary.json").write_text(json.dumps({"method": "test", "payload_true": {"theta": theta_e.tolist()}}))

@@ -44,6 +44,12 @@ def make_planner(robot, payload, obstacles, **cfg):
     return P.SafePlanner(robot, config, obstacles, payload, bounds), (theta0, lo, hi)
 
 
+def cost_fd_gradient(prob, k, h=1e-6):
+    """Central finite differences of the exciting cost in each k_j."""
+    cost = lambda x: prob.exciting_cost(x)[0]  # noqa: E731
+    return np.array([(cost(k + h * e) - cost(k - h * e)) / (2 * h) for e in np.eye(7)])
+
+
 class DrakeScene:
     """The true geometry, independent of the planner's spheres: the URDF's link shapes, the
     dumbbell's cylinders at the grasp point (not its covering spheres), the boxes and the floor,
@@ -199,9 +205,7 @@ def test_inertia_columns_cost_is_the_log_cond_of_the_six_inertia_columns(robot, 
     q, v, a = prob.desired_at(prob.t_cost, k)
     full = P.ee_standard_regressor(robot.tree, robot.end_effector, q, v, a).reshape(-1, 10)
     assert np.isclose(val, np.log(np.linalg.cond(full[:, 4:10])))
-    fd = np.array(
-        [(prob.exciting_cost(k + 1e-6 * e)[0] - prob.exciting_cost(k - 1e-6 * e)[0]) / 2e-6 for e in np.eye(7)]
-    )
+    fd = cost_fd_gradient(prob, k)
     assert np.allclose(grad, fd, rtol=1e-5, atol=1e-6)
 
 
@@ -222,9 +226,7 @@ def test_cumulative_cost_conditions_the_past_motion_with_the_plan(robot, payload
     val, grad, W = stacked.exciting_cost(k)
     assert np.isclose(val, np.log(np.linalg.cond(np.vstack([past, W]))))
     assert np.allclose(W, alone.exciting_cost(k)[2])  # the plan's own W_e (its cond is reported)
-    fd = np.array(
-        [(stacked.exciting_cost(k + 1e-6 * e)[0] - stacked.exciting_cost(k - 1e-6 * e)[0]) / 2e-6 for e in np.eye(7)]
-    )
+    fd = cost_fd_gradient(stacked, k)
     assert np.allclose(grad, fd, rtol=1e-5, atol=1e-6)
     # The optimum of the plan alone and of the plan after the past motion differ.
     k_alone = planner.plan(q, v, a, *thetas, k_init=first.k).k
@@ -263,9 +265,7 @@ def test_noise_weighted_cost_divides_each_row_by_its_declared_noise_bound(robot,
     weighted = np.vstack([past, plain * weights(*still)[:, None]])
     assert np.isclose(val, np.log(np.linalg.cond(weighted)))
     assert not np.isclose(val, np.log(np.linalg.cond(np.vstack([past_plain, plain]))), rtol=1e-3)
-    fd = np.array(
-        [(prob.exciting_cost(k + 1e-6 * e)[0] - prob.exciting_cost(k - 1e-6 * e)[0]) / 2e-6 for e in np.eye(7)]
-    )
+    fd = cost_fd_gradient(prob, k)
     assert np.allclose(grad, fd, rtol=1e-5, atol=1e-6)
 
 
@@ -281,9 +281,7 @@ def test_a_optimal_cost_is_the_weighted_least_squares_variance(robot, payload):
     S = np.vstack([past, W])
     width = np.maximum((thetas[2] - thetas[1])[robot.ee_slice], 1e-6)  # floored: a zero width stays finite
     assert np.isclose(val, np.log(np.sum(np.diag(np.linalg.inv(S.T @ S)) / width**2)))
-    fd = np.array(
-        [(prob.exciting_cost(k + 1e-6 * e)[0] - prob.exciting_cost(k - 1e-6 * e)[0]) / 2e-6 for e in np.eye(7)]
-    )
+    fd = cost_fd_gradient(prob, k)
     assert np.allclose(grad, fd, rtol=1e-5, atol=1e-6)
 
 
@@ -300,9 +298,7 @@ def test_interval_scaled_costs(robot, payload, criterion):
     width = np.maximum((thetas[2] - thetas[1])[robot.ee_slice], 1e-6)
     s = np.linalg.svd(np.vstack([past, W]) * width, compute_uv=False)
     assert np.isclose(val, -np.log(s[-1]) if criterion == "e_optimal" else np.log(s[0] / s[-1]))
-    fd = np.array(
-        [(prob.exciting_cost(k + 1e-6 * e)[0] - prob.exciting_cost(k - 1e-6 * e)[0]) / 2e-6 for e in np.eye(7)]
-    )
+    fd = cost_fd_gradient(prob, k)
     assert np.allclose(grad, fd, rtol=1e-5, atol=1e-6)
 
 
