@@ -302,6 +302,21 @@ def test_interval_scaled_costs(robot, payload, criterion):
     assert np.allclose(grad, fd, rtol=1e-5, atol=1e-6)
 
 
+def test_d_optimal_cost_is_the_log_determinant(robot, payload):
+    """planner.exciting_criterion d_optimal: -1/2 log det S^T S of S = [past; W_e(k)] (any column
+    scale adds a constant to it); exact gradient."""
+    planner, thetas = make_planner(robot, payload, [], exciting_criterion="d_optimal")
+    rng = np.random.default_rng(14)
+    past = rng.normal(size=(70, 10))
+    prob = planner.problem(Q0 + 0.1, rng.uniform(-0.2, 0.2, 7), rng.uniform(-0.2, 0.2, 7), *thetas, past=past)
+    k = rng.uniform(-1, 1, 7)
+    val, grad, W = prob.exciting_cost(k)
+    S = np.vstack([past, W])
+    assert np.isclose(val, -0.5 * np.linalg.slogdet(S.T @ S)[1])
+    fd = cost_fd_gradient(prob, k)
+    assert np.allclose(grad, fd, rtol=1e-5, atol=1e-6)
+
+
 def test_planned_and_random_plans_are_safe_in_continuous_time(robot, planned):
     """Monte Carlo: feasible k (optimized, then random feasible ones) checked densely."""
     planner, thetas, scene = planned
