@@ -191,7 +191,8 @@ class Planner:
     # over parameters of the least-squares variance the plan would leave, each relative to its
     # current interval width squared (the widths the estimator publishes, not the ratio of extremes);
     # e_optimal, -log sigma_min, and cond_interval, log cond, of W_e with each column times its
-    # parameter's current interval width (README "Tried and no better": both narrow less than cond).
+    # parameter's current interval width; d_optimal, -1/2 log det W_e^T W_e, the classic D-optimal
+    # design, blind to column scales (README "Tried and no better": all four narrow less than cond).
     exciting_criterion: str = "cond"  # cond | a_optimal | e_optimal | cond_interval | d_optimal
     # Rows of W_e the exciting cost sees: none, as they are (the paper); noise, each divided by
     # the declared torque-noise bound of its joint and instant (noise.declared_*, on the nominal
@@ -217,12 +218,6 @@ class Planner:
     # up to 3 times), and a point's last shrink level is k = 0 itself: a most exciting plan no longer
     # leaves the arm where nothing can be certified and it must brake. Needs point_refinement.
     continuation: bool = False
-    # Refinement targets the exciting planner certifies per call: its optimum, then (n - 1) random
-    # points of the same limit box; the certified point of least exciting cost is the plan.
-    refinement_candidates: int = 1
-    # The instants the exciting cost samples: plan, the whole plan (the paper); executed, its first
-    # replan_period_s, the part the arm executes before the next plan replaces it.
-    exciting_horizon: str = "plan"
     goal_q_rad: List[float] = dc.field(default_factory=list)
     solver: str = "ipopt"  # ipopt | snopt
     max_solve_time_s: float = 1.2  # wall cap inside t_p (budget: wall_time only)

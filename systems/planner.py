@@ -62,7 +62,7 @@ class _WallTimeExceeded(Exception):
 
 
 # Columns of W_e (m, m c, I) the exciting cost conditions (scenario planner.exciting_columns).
-_EXCITING_COLUMNS = {"all": slice(0, 10), "inertia": slice(4, 10), "moments": slice(0, 4)}
+_EXCITING_COLUMNS = {"all": slice(0, 10), "inertia": slice(4, 10)}
 
 SOFTMIN_SHARPNESS_PER_M = 2000.0  # soft-min of a group <= its true min (gap <= log(count)/beta)
 
@@ -270,8 +270,7 @@ class PlanningProblem:
         self._collision_pairs()
         # Exciting-cost sample instants and their end weights (dq/dq_end, dqd/dq_end, dqdd/dq_end).
         ns = cfg.num_cost_samples
-        horizon = cfg.duration_s if cfg.exciting_horizon == "plan" else min(cfg.replan_period_s, cfg.duration_s)
-        self.t_cost = np.linspace(0.0, horizon, ns)
+        self.t_cost = np.linspace(0.0, cfg.duration_s, ns)
         self.w_cost = np.stack(QuinticBezier.end_weights(self.t_cost, cfg.duration_s))  # (3, ns)
         # planner.exciting_weighting noise: each row's weight, on the plan that keeps k = 0. Fixed:
         # weights that grew the wrist's noise with the candidate's own acceleration (armature)
@@ -808,21 +807,6 @@ class SafePlanner:
         if target is None:
             return None
         base = np.clip(np.zeros(self.n), wide.k_lo, wide.k_hi)
-        targets = [target]
-        if mode != "random":
-            extra = (
-                self._random(wide, rng, self._deadline(t_start)) for _ in range(self.config.refinement_candidates - 1)
-            )
-            targets += [t for t in extra if t is not None]
-        best = None
-        for target in targets:
-            found = self._certify_point(args, target, base)
-            if found is not None and (best is None or found[1].cost(found[0])[0] < best[1].cost(best[0])[0]):
-                best = found
-        return None if best is None else (*best, status, solver_status)
-
-    def _certify_point(self, args, target, base):
-        """(k, its point problem): the farthest certified point toward target, or None."""
         for _ in range(1 + 3 * self.config.continuation):  # halved toward base while it cannot continue
             point = self.problem(*args, k_box=(target, target), shrink_toward=base)
             if not point.feasible_start:
@@ -831,7 +815,7 @@ class SafePlanner:
             if not point.is_feasible(k):
                 return None
             if not self.config.continuation or self._can_continue(point, k, args):
-                return k, point
+                return k, point, status, solver_status
             target = base + 0.5 * (k - base)
         return None
 
