@@ -67,11 +67,9 @@ List = list
 _CHOICES = {
     "method": METHODS,
     "planner.cost": ("exciting", "goal", "random"),
-    "planner.exciting_columns": ("all", "inertia", "moments"),
+    "planner.exciting_columns": ("all", "inertia"),
     "planner.exciting_criterion": ("cond", "a_optimal", "e_optimal", "cond_interval", "d_optimal"),
     "planner.exciting_weighting": ("none", "noise"),
-    "planner.exciting_horizon": ("plan", "executed"),
-    "planner.refinement_select": ("cost", "lp", "lp_box"),
     "planner.solver": ("ipopt", "snopt"),
     "planner.budget": ("iterations", "wall_time"),
     "estimator.solver": ("ipopt", "snopt"),

@@ -218,16 +218,6 @@ class Planner:
     # up to 3 times), and a point's last shrink level is k = 0 itself: a most exciting plan no longer
     # leaves the arm where nothing can be certified and it must brake. Needs point_refinement.
     continuation: bool = False
-    # Refinement targets the exciting planner certifies per call: its optimum, then (n - 1) random
-    # points of the same limit box; the certified point of least exciting cost is the plan.
-    refinement_candidates: int = 1
-    # ... chosen by: cost, the exciting cost; lp, the predicted data-driven interval (sum of log
-    # width ratios of the LP over all executed rows and the candidate's first t_p, each row within
-    # its declared noise bound); lp_box, the same LP over the candidate's rows in the current box.
-    refinement_select: str = "cost"  # cost | lp | lp_box
-    # The instants the exciting cost samples: plan, the whole plan (the paper); executed, its first
-    # replan_period_s, the part the arm executes before the next plan replaces it.
-    exciting_horizon: str = "plan"
     goal_q_rad: List[float] = dc.field(default_factory=list)
     solver: str = "ipopt"  # ipopt | snopt
     max_solve_time_s: float = 1.2  # wall cap inside t_p (budget: wall_time only)

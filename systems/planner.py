@@ -62,7 +62,7 @@ class _WallTimeExceeded(Exception):
 
 
 # Columns of W_e (m, m c, I) the exciting cost conditions (scenario planner.exciting_columns).
-_EXCITING_COLUMNS = {"all": slice(0, 10), "inertia": slice(4, 10), "moments": slice(0, 4)}
+_EXCITING_COLUMNS = {"all": slice(0, 10), "inertia": slice(4, 10)}
 
 SOFTMIN_SHARPNESS_PER_M = 2000.0  # soft-min of a group <= its true min (gap <= log(count)/beta)
 
@@ -270,8 +270,7 @@ class PlanningProblem:
         self._collision_pairs()
         # Exciting-cost sample instants and their end weights (dq/dq_end, dqd/dq_end, dqdd/dq_end).
         ns = cfg.num_cost_samples
-        horizon = cfg.duration_s if cfg.exciting_horizon == "plan" else min(cfg.replan_period_s, cfg.duration_s)
-        self.t_cost = np.linspace(0.0, horizon, ns)
+        self.t_cost = np.linspace(0.0, cfg.duration_s, ns)
         self.w_cost = np.stack(QuinticBezier.end_weights(self.t_cost, cfg.duration_s))  # (3, ns)
         # planner.exciting_weighting noise: each row's weight, on the plan that keeps k = 0. Fixed:
         # weights that grew the wrist's noise with the candidate's own acceleration (armature)
@@ -665,7 +664,6 @@ class SafePlanner:
 
             torque_noise = (Noise.declared_torque_ratio, Noise.declared_torque_floor_Nm)
         self.torque_noise = torque_noise  # the estimator's declared bound (ratio, floor N m) per sample
-        self._past_normalized = []
 
     @property
     def weighs_rows(self) -> bool:
@@ -710,7 +708,6 @@ class SafePlanner:
         t = np.arange(0.0, duration_s, cfg.duration_s / (cfg.num_cost_samples - 1))
         q, v, a = plan.evaluate(t)
         rows = ee_standard_regressor(self.robot.tree, self.robot.end_effector, q, v, a).reshape(-1, 10)
-        self._past_normalized.append(self.normalized_rows(q, v, a, self.robot.theta if theta0 is None else theta0))
         if not self.weighs_rows:
             return rows
         return rows * self.row_weights(q, v, a, self.robot.theta if theta0 is None else theta0)[:, None]
@@ -810,61 +807,6 @@ class SafePlanner:
         if target is None:
             return None
         base = np.clip(np.zeros(self.n), wide.k_lo, wide.k_hi)
-        targets = [target]
-        if mode != "random":
-            extra = (
-                self._random(wide, rng, self._deadline(t_start)) for _ in range(self.config.refinement_candidates - 1)
-            )
-            targets += [t for t in extra if t is not None]
-        best, best_score = None, np.inf
-        for target in targets:
-            found = self._certify_point(args, target, base)
-            if found is None:
-                continue
-            if self.config.refinement_select in ("lp", "lp_box") and len(targets) > 1:
-                score = self._predicted_width_score(found[1], found[0], args)
-            else:
-                score = found[1].cost(found[0])[0]
-            if score < best_score or best is None:
-                best, best_score = found, score
-        return None if best is None else (*best, status, solver_status)
-
-    def normalized_rows(self, q, v, a, theta0):
-        """W_e rows divided by their declared noise bound under theta0."""
-        rows = ee_standard_regressor(self.robot.tree, self.robot.end_effector, q, v, a).reshape(-1, 10)
-        return rows * self.row_weights(q, v, a, theta0)[:, None]
-
-    def _predicted_width_score(self, point, k, args):
-        """sum_j log(predicted width_j / current width_j): the LP interval over the executed rows
-        so far and this plan's first replan_period_s, each row |W d| <= its noise bound, d in the
-        current box around theta0."""
-        from scipy.optimize import linprog
-
-        theta0, lo, hi = (np.asarray(x, float) for x in args[3:6])
-        ee = self.robot.ee_slice
-        t = np.arange(0.0, self.config.replan_period_s, self.config.duration_s / (self.config.num_cost_samples - 1))
-        q, v, a = point.desired_at(t, k)
-        rows = self.normalized_rows(q, v, a, theta0)
-        if self._past_normalized and self.config.refinement_select == "lp":  # lp_box: the current box alone
-            rows = np.vstack([*self._past_normalized, rows])
-        rows = rows[np.abs(rows).max(axis=1) > 1e-9]
-        A = np.vstack([rows, -rows])
-        b = np.ones(len(A))
-        bounds = list(zip(lo[ee] - theta0[ee], hi[ee] - theta0[ee]))
-        width = np.maximum(hi[ee] - lo[ee], 1e-9)
-        score = 0.0
-        for j in range(10):
-            c = np.zeros(10)
-            c[j] = 1.0
-            ext = []
-            for sign in (1.0, -1.0):
-                r = linprog(sign * c, A_ub=A, b_ub=b, bounds=bounds, method="highs")
-                ext.append(sign * r.fun if r.status == 0 else sign * bounds[j][0 if sign > 0 else 1])
-            score += np.log(max(ext[1] - ext[0], 1e-12) / width[j])
-        return score
-
-    def _certify_point(self, args, target, base):
-        """(k, its point problem): the farthest certified point toward target, or None."""
         for _ in range(1 + 3 * self.config.continuation):  # halved toward base while it cannot continue
             point = self.problem(*args, k_box=(target, target), shrink_toward=base)
             if not point.feasible_start:
@@ -873,7 +815,7 @@ class SafePlanner:
             if not point.is_feasible(k):
                 return None
             if not self.config.continuation or self._can_continue(point, k, args):
-                return k, point
+                return k, point, status, solver_status
             target = base + 0.5 * (k - base)
         return None
 
