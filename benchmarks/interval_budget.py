@@ -273,6 +273,9 @@ def print_closed_loop(result: dict) -> None:
             f"parameters where ours is narrower, per pair: {wins.tolist()}; pairs with >= 8: {int(np.sum(wins >= 8))}"
         )
         print(f"data-driven width ours / random, median over pairs: {np.round(np.median(ours / rand, 0), 2).tolist()}")
+        # The mass's width does not move with the motion (the budget above): were it won or lost in every pair.
+        others = narrower[:, 1:].sum(1)
+        print(f"pairs with >= 8 were m won in every pair: {int(np.sum(others >= 7))}, lost: {int(np.sum(others >= 8))}")
         ours, rand = (np.array(result[m]["cond_Y"]) for m in ("ours", "random"))
         ratio = np.median(ours) / np.median(rand)
         print(f"cond(Y) ours lower in {int(np.sum(ours < rand))}/{len(wins)}, medians ratio {ratio:.2f}")

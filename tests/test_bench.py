@@ -229,3 +229,35 @@ def test_grasp_load_of_a_steady_rotation_about_the_base(tmp_path):
     assert load["dumbbell_kg"] == pytest.approx(3.63)
     assert load["peak_force_N"] == pytest.approx(3.63 * np.hypot(9.81, w**2 * r), rel=1e-6)
     assert load["peak_angular_acceleration"] < 1e-6
+
+
+def test_interval_budget_counts_pairs_with_and_without_the_mass(capsys):
+    """The closed-loop table counts pairs where ours is narrower on >= 8 of 10 parameters, and
+    again were the mass (whose width the motion does not move) won or lost in every pair."""
+    from safesysid.benchmarks.interval_budget import print_closed_loop
+
+    ones = np.ones(10)
+
+    def method(ratios):
+        n = len(ratios)
+        return dict(
+            published_ratio=ones,
+            data_ratio=ones,
+            first_order_ratio=ones,
+            data_ratios=ratios,
+            contains=[True] * n,
+            consistent=[True] * n,
+            cond_Y=[1.0] * n,
+            mass_half_width_kg=[0.1] * n,
+            safety={"success": n},
+            solve_time_s=[0.1] * n,
+        )
+
+    ours = np.full((3, 10), 0.5)
+    ours[:, 0] = 2.0  # the mass lost in every pair
+    ours[1, 1:3] = 2.0  # pair 1: 7 of the other 9 won, pair 2: one more lost
+    ours[2, 1:4] = 2.0
+    print_closed_loop({"ours": method(ours), "random": method(np.ones((3, 10)))})
+    out = capsys.readouterr().out
+    assert "per pair: [9, 7, 6]; pairs with >= 8: 1" in out
+    assert "were m won in every pair: 2, lost: 1" in out

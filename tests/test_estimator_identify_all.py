@@ -72,9 +72,10 @@ def test_the_data_alone_narrow_every_inertia_below_the_prior(runs):
 
 @pytest.mark.xfail(
     strict=True,
-    reason="measured 12/20 pairs (wave 2, sessions 6-12; README lists the variants tried, none better): ours "
-    "narrower than random on 14, 10, 11, 19, 16, 19, 13, 15, 16, 17 of 20 pairs per parameter; m, m cx, m cy "
-    "sit at their noise and robot-box floor for both (a coin flip each), and Izz is seen mostly through joints 1-6",
+    reason="measured 12/20 pairs (wave 2, sessions 6-13; README lists the variants tried, the best 13/20): ours "
+    "narrower than random on 14, 10, 11, 19, 16, 19, 13, 15, 16, 17 of 20 pairs per parameter; the mass's width "
+    "does not move with the motion (a coin flip), m cx and m cy trade against each other, and Izz is seen mostly "
+    "through joints 1-6",
 )
 def test_ours_narrower_than_random_on_eight_of_ten_parameters_in_most_pairs(runs):
     """The paper's Fig. 5 claim on the data-driven intervals: >= 8 of 10 in >= 80 % of the pairs."""
