@@ -269,52 +269,44 @@ def test_noise_weighted_cost_divides_each_row_by_its_declared_noise_bound(robot,
     assert np.allclose(grad, fd, rtol=1e-5, atol=1e-6)
 
 
-def test_a_optimal_cost_is_the_weighted_least_squares_variance(robot, payload):
-    """planner.exciting_criterion a_optimal: log sum_j (A^-1)_jj / width_j^2 with A = S^T S of
-    [past; W_e(k)] and width the end effector's current interval (floored at 1e-6); exact gradient."""
-    planner, thetas = make_planner(robot, payload, [], exciting_criterion="a_optimal")
-    rng = np.random.default_rng(12)
+def checked_criterion_cost(robot, payload, criterion, seed):
+    """(value, W_e(k), past, thetas) of an exciting criterion at a random k below 70 random past
+    rows, after checking its exact gradient against finite differences."""
+    planner, thetas = make_planner(robot, payload, [], exciting_criterion=criterion)
+    rng = np.random.default_rng(seed)
     past = rng.normal(size=(70, 10))
     prob = planner.problem(Q0 + 0.1, rng.uniform(-0.2, 0.2, 7), rng.uniform(-0.2, 0.2, 7), *thetas, past=past)
     k = rng.uniform(-1, 1, 7)
     val, grad, W = prob.exciting_cost(k)
+    assert np.allclose(grad, cost_fd_gradient(prob, k), rtol=1e-5, atol=1e-6)
+    return val, W, past, thetas
+
+
+def test_a_optimal_cost_is_the_weighted_least_squares_variance(robot, payload):
+    """planner.exciting_criterion a_optimal: log sum_j (A^-1)_jj / width_j^2 with A = S^T S of
+    [past; W_e(k)] and width the end effector's current interval (floored at 1e-6); exact gradient."""
+    val, W, past, thetas = checked_criterion_cost(robot, payload, "a_optimal", 12)
     S = np.vstack([past, W])
     width = np.maximum((thetas[2] - thetas[1])[robot.ee_slice], 1e-6)  # floored: a zero width stays finite
     assert np.isclose(val, np.log(np.sum(np.diag(np.linalg.inv(S.T @ S)) / width**2)))
-    fd = cost_fd_gradient(prob, k)
-    assert np.allclose(grad, fd, rtol=1e-5, atol=1e-6)
 
 
 @pytest.mark.parametrize("criterion", ["e_optimal", "cond_interval"])
 def test_interval_scaled_costs(robot, payload, criterion):
     """planner.exciting_criterion e_optimal: -log sigma_min, cond_interval: log cond, of [past; W_e(k)]
     with each column multiplied by its parameter's current interval width; exact gradients."""
-    planner, thetas = make_planner(robot, payload, [], exciting_criterion=criterion)
-    rng = np.random.default_rng(13)
-    past = rng.normal(size=(70, 10))
-    prob = planner.problem(Q0 + 0.1, rng.uniform(-0.2, 0.2, 7), rng.uniform(-0.2, 0.2, 7), *thetas, past=past)
-    k = rng.uniform(-1, 1, 7)
-    val, grad, W = prob.exciting_cost(k)
+    val, W, past, thetas = checked_criterion_cost(robot, payload, criterion, 13)
     width = np.maximum((thetas[2] - thetas[1])[robot.ee_slice], 1e-6)
     s = np.linalg.svd(np.vstack([past, W]) * width, compute_uv=False)
     assert np.isclose(val, -np.log(s[-1]) if criterion == "e_optimal" else np.log(s[0] / s[-1]))
-    fd = cost_fd_gradient(prob, k)
-    assert np.allclose(grad, fd, rtol=1e-5, atol=1e-6)
 
 
 def test_d_optimal_cost_is_the_log_determinant(robot, payload):
     """planner.exciting_criterion d_optimal: -1/2 log det S^T S of S = [past; W_e(k)] (any column
     scale adds a constant to it); exact gradient."""
-    planner, thetas = make_planner(robot, payload, [], exciting_criterion="d_optimal")
-    rng = np.random.default_rng(14)
-    past = rng.normal(size=(70, 10))
-    prob = planner.problem(Q0 + 0.1, rng.uniform(-0.2, 0.2, 7), rng.uniform(-0.2, 0.2, 7), *thetas, past=past)
-    k = rng.uniform(-1, 1, 7)
-    val, grad, W = prob.exciting_cost(k)
+    val, W, past, _ = checked_criterion_cost(robot, payload, "d_optimal", 14)
     S = np.vstack([past, W])
     assert np.isclose(val, -0.5 * np.linalg.slogdet(S.T @ S)[1])
-    fd = cost_fd_gradient(prob, k)
-    assert np.allclose(grad, fd, rtol=1e-5, atol=1e-6)
 
 
 def test_planned_and_random_plans_are_safe_in_continuous_time(robot, planned):
