@@ -172,7 +172,7 @@ class PlanResult:
     """Outcome of one planning call. `ok` is True only for a k verified feasible by our checks."""
 
     ok: bool
-    status: str  # solved | best_feasible | random | infeasible | infeasible_start | solver_failed
+    status: str  # solved | best_feasible | random | infeasible | infeasible_start | solver_failed | planner_error
     reason: str = ""
     k: np.ndarray | None = None
     q_end: np.ndarray | None = None

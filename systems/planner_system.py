@@ -238,7 +238,11 @@ class ExcitingPlanner(LeafSystem):
             executed = self._planner.executed_rows(st.plan, t - st.t_start, thetas[0])
             past = executed if past is None else np.vstack([past, executed])
         if forced is None:
-            res = self._planner_at(t).plan(q, v, a, *thetas, k_init=k_prev, rng=rng, mode=self._mode, past=past)
+            try:
+                res = self._planner_at(t).plan(q, v, a, *thetas, k_init=k_prev, rng=rng, mode=self._mode, past=past)
+            except Exception as err:  # noqa: BLE001 -- any failure of a call is that call's: brake, logged
+                reason = f"{type(err).__name__}: {err}"
+                res = PlanResult(ok=False, status="planner_error", reason=reason, solver=self._planner.config.solver)
         else:  # injected: the solver failed or did not return in time, no verified plan
             res = PlanResult(ok=False, status=forced, reason="injected fault", solver=self._planner.config.solver)
             st = dataclasses.replace(

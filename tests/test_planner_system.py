@@ -100,6 +100,30 @@ def test_failed_plan_keeps_the_previous_one_which_brakes(setup):
     assert st.t_start == 0.0
 
 
+def test_a_planning_call_that_raises_brakes_on_the_previous_plan(setup):
+    """An exception inside a planning call (a bug, a numerical failure) is that call's failure,
+    logged with its text: the verified plan brakes, the simulation goes on."""
+    robot, planner, thetas = setup
+
+    class RaisesSecond:
+        def __init__(self, inner):
+            self.inner, self.config, self.robot, self.calls = inner, inner.config, inner.robot, 0
+
+        def plan(self, *args, **kw):
+            self.calls += 1
+            if self.calls == 2:
+                raise np.linalg.LinAlgError("SVD did not converge")
+            return self.inner.plan(*args, **kw)
+
+    st, logs = simulate(ExcitingPlanner(RaisesSecond(planner), Q0, *thetas), 5.0)
+    assert st.calls == 2 and st.done and st.t_start == 0.0
+    assert st.records[1]["status"] == "planner_error" and st.records[1]["braking"]
+    assert st.records[1]["reason"] == "LinAlgError: SVD did not converge"
+    assert [(e["t"], e["kind"]) for e in st.events] == [(1.5, "plan_failed"), (1.5, "brake")]
+    t, v = logs[0].sample_times(), logs[1].data().T
+    assert np.allclose(v[t >= 3.0], 0, atol=1e-12)  # the first plan ends at rest at 3 s
+
+
 def test_infeasible_first_plan_holds_the_start(setup):
     robot, planner, thetas = setup
 
