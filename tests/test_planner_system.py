@@ -73,55 +73,44 @@ def test_four_plans_continuous_desired_trajectory_ending_at_rest(setup):
     assert np.allclose(q[late], st.plan.q_end)
 
 
-def test_failed_plan_keeps_the_previous_one_which_brakes(setup):
+def _solver_failure():
+    return PlanResult(ok=False, status="solver_failed", reason="test")
+
+
+def _exception():  # a bug or a numerical failure inside the call
+    raise np.linalg.LinAlgError("SVD did not converge")
+
+
+@pytest.mark.parametrize(
+    "second_call, status, reason",
+    [(_solver_failure, "solver_failed", "test"), (_exception, "planner_error", "LinAlgError: SVD did not converge")],
+)
+def test_failed_plan_keeps_the_previous_one_which_brakes(setup, second_call, status, reason):
+    """The second call fails, by its result or by raising (that call's failure, logged with its
+    text): the verified plan brakes, the simulation goes on."""
     robot, planner, thetas = setup
 
     class FailsSecond:
-        """The real planner, except that the second call reports failure (solver failure)."""
+        """The real planner, except for its second call."""
 
         def __init__(self, inner):
             self.inner, self.config, self.robot, self.calls = inner, inner.config, inner.robot, 0
 
         def plan(self, *args, **kw):
             self.calls += 1
-            if self.calls == 2:
-                return PlanResult(ok=False, status="solver_failed", reason="test")
-            return self.inner.plan(*args, **kw)
+            return second_call() if self.calls == 2 else self.inner.plan(*args, **kw)
 
     system = ExcitingPlanner(FailsSecond(planner), Q0, *thetas)
     st, logs = simulate(system, 5.0)  # theta ports unconnected: the constructor's values are used
     assert st.calls == 2 and st.done
     assert st.records[1]["braking"] and not st.records[1]["ok"]
+    assert (st.records[1]["status"], st.records[1]["reason"]) == (status, reason)
     assert [(e["t"], e["kind"]) for e in st.events] == [(1.5, "plan_failed"), (1.5, "brake")]
     t = logs[0].sample_times()
     v = logs[1].data().T
     assert np.max(np.abs(v[t < 2.9])) > 1e-3  # moving along the first plan ...
     assert np.allclose(v[t >= 3.0], 0, atol=1e-12)  # ... which ends at rest at 3 s
     assert st.t_start == 0.0
-
-
-def test_a_planning_call_that_raises_brakes_on_the_previous_plan(setup):
-    """An exception inside a planning call (a bug, a numerical failure) is that call's failure,
-    logged with its text: the verified plan brakes, the simulation goes on."""
-    robot, planner, thetas = setup
-
-    class RaisesSecond:
-        def __init__(self, inner):
-            self.inner, self.config, self.robot, self.calls = inner, inner.config, inner.robot, 0
-
-        def plan(self, *args, **kw):
-            self.calls += 1
-            if self.calls == 2:
-                raise np.linalg.LinAlgError("SVD did not converge")
-            return self.inner.plan(*args, **kw)
-
-    st, logs = simulate(ExcitingPlanner(RaisesSecond(planner), Q0, *thetas), 5.0)
-    assert st.calls == 2 and st.done and st.t_start == 0.0
-    assert st.records[1]["status"] == "planner_error" and st.records[1]["braking"]
-    assert st.records[1]["reason"] == "LinAlgError: SVD did not converge"
-    assert [(e["t"], e["kind"]) for e in st.events] == [(1.5, "plan_failed"), (1.5, "brake")]
-    t, v = logs[0].sample_times(), logs[1].data().T
-    assert np.allclose(v[t >= 3.0], 0, atol=1e-12)  # the first plan ends at rest at 3 s
 
 
 def test_infeasible_first_plan_holds_the_start(setup):
