@@ -68,7 +68,7 @@ class PlannerState:
     records: tuple[dict, ...] = ()  # one dict per planning call
     results: tuple[PlanResult, ...] = ()  # the PlanResult of every planning call (failed ones too)
     rng: np.random.Generator | None = None  # of the random plans and starts; advanced by each call
-    thetas: tuple = ()  # (theta0, lower, upper) `plan` was certified with (before any plan: the last call's)
+    thetas: tuple = ()  # (theta0, lower, upper) `plan` was certified with (before any plan: the constructor's)
     events: tuple[dict, ...] = ()  # {t, kind, detail}: plan_failed, plan_refused, brake
     past: np.ndarray | None = None  # W_e rows of the executed plans (planner.cumulative_excitation)
 
@@ -275,9 +275,9 @@ class ExcitingPlanner(LeafSystem):
         if res.ok:
             new.plan, new.t_start, new.thetas = res, t, thetas
         else:
+            # The parameters stay those of the executing plan (before any plan: the constructor's, the
+            # prior the hold at q0 was set up with): no plan certified the ones this call was asked with.
             new.events = st.events + self._stop_events(st, t, "plan_failed", f"{res.status}: {res.reason}")
-            if st.plan is None:
-                new.thetas = thetas  # holding q0: the parameters of the latest call
         new.done = (not res.ok) or calls >= self._num_plans
         state.get_mutable_abstract_state(int(self._state)).set_value(new)
 

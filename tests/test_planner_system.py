@@ -113,6 +113,52 @@ def test_failed_plan_keeps_the_previous_one_which_brakes(setup, second_call, sta
     assert st.t_start == 0.0
 
 
+def _changing_estimate(theta0, lo, hi, at_s=0.7):
+    """Sources of (theta0, lower, upper): the given box, then from at_s a box half as wide (consistent)."""
+    from pydrake.systems.primitives import TrajectorySource
+    from pydrake.trajectories import PiecewisePolynomial
+
+    tight = (theta0, theta0 - 0.5 * (theta0 - lo), theta0 + 0.5 * (hi - theta0))
+    return [
+        TrajectorySource(PiecewisePolynomial.ZeroOrderHold([min(at_s, 0.0) - 1.0, at_s, 10.0], np.stack([a, b, b], 1)))
+        for a, b in zip((theta0, lo, hi), tight)
+    ]
+
+
+class FailsFrom:
+    """The real planner until call `first_failure` (counted from 1); from then on each call fails."""
+
+    def __init__(self, inner, first_failure):
+        self.inner, self.config, self.robot = inner, inner.config, inner.robot
+        self.first_failure, self.calls = first_failure, []
+
+    def plan(self, q, v, a, theta0, lo, hi, **kw):
+        self.calls.append(np.concatenate([theta0, lo, hi]))
+        if len(self.calls) >= self.first_failure:
+            return _solver_failure()
+        return self.inner.plan(q, v, a, theta0, lo, hi, **kw)
+
+
+@pytest.mark.parametrize("first_failure", [1, 2])
+def test_a_failed_plan_never_switches_the_controller_to_a_new_consistent_estimate(setup, first_failure):
+    """Guarantee 6: a consistent, tighter estimate arrives at 0.7 s and the planning call at 1.5 s
+    fails (2): the braking plan keeps the parameters it was certified with to the end. Before any
+    certified plan (1: the first call, at 0 s, fails and the arm holds q0) the controller keeps the
+    constructor's parameters (the prior) and never takes the estimate no plan certified."""
+    robot, planner, (theta0, lo, hi) = setup
+    defaults = np.concatenate([theta0, lo, hi])
+    failing = FailsFrom(planner, first_failure)
+    system = ExcitingPlanner(failing, Q0, theta0, lo, hi)
+    at_s = 0.7 if first_failure == 2 else -1.0  # (1): the first call already sees the tight box
+    st, logs = simulate(system, 3.5, theta_sources=_changing_estimate(theta0, lo, hi, at_s=at_s))
+    assert len(failing.calls) == first_failure and st.done
+    assert not np.array_equal(failing.calls[-1], defaults)  # the failed call was asked with the new box
+    out = np.hstack([log.data().T for log in logs[3:]])
+    certified = defaults  # what the executing plan (or the hold before any plan) was certified with
+    assert np.array_equal(out, np.broadcast_to(certified, out.shape))
+    assert np.array_equal(np.concatenate(st.thetas), certified)
+
+
 def test_infeasible_first_plan_holds_the_start(setup):
     robot, planner, thetas = setup
 
