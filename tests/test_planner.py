@@ -665,3 +665,41 @@ def test_point_certificate_keeps_a_fast_refined_plan_within_the_torque_limits(ro
         check_plan_densely(robot, planner, thetas, targets[-1], scene, np.random.default_rng(3), 150, gains)
     assert np.max(np.abs(res.k)) < np.max(np.abs(targets[-1]))
     check_plan_densely(robot, planner, thetas, res.k, scene, np.random.default_rng(3), n_trials(150, 1500), gains)
+
+
+@pytest.mark.parametrize(
+    "target, violated",
+    [
+        ([0.0, 1.0, 0.0, 1.0, 0.0, -1.0, 0.0], "floor"),  # the payload reaches 2.9 cm into the floor
+        ([1.5, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], "limit"),  # joint 1 beyond its position/velocity limit box
+    ],
+)
+def test_point_refinement_never_adopts_a_target_that_collides_or_leaves_a_limit(robot, payload, target, violated):
+    """Guarantees 2/4 on the refined point: the wide solve (uncertified, here made to answer a target
+    that reaches into the floor, or one outside the limit box) is only a direction; the adopted point
+    passes the collision and limit checks of any plan, or the certified box's plan is used. Judged on
+    the true geometry (Drake signed distance on the link shapes and the payload's cylinders)."""
+    planner, thetas = make_planner(robot, payload, [], point_refinement=True, k_range_rad=[np.pi / 6] * 7)
+    optimize, answers = planner._optimize, []
+
+    def wide_answers_target(prob, *args):
+        if np.isnan(prob.torque_ratio):  # the wide solve (no torque certificate) of _refine
+            answers.append(np.asarray(target, float))
+            return answers[-1], "solved", "test target"
+        return optimize(prob, *args)
+
+    planner._optimize = wide_answers_target
+    z = np.zeros(7)
+    res = planner.plan(Q0, z, z, *thetas)
+    assert answers and res.ok, res.reason
+    t = np.linspace(0.0, planner.config.duration_s, 121)
+    q, v, _ = res.evaluate(t)
+    jp = robot.joint_params
+    assert np.all(q >= jp.position_lower) and np.all(q <= jp.position_upper)
+    assert np.all(np.abs(v) <= jp.velocity_limit)
+    scene = DrakeScene(robot, payload, [])
+    floor = min(scene.distances(qi)[1] for qi in q)
+    assert floor > 0.0, f"the adopted plan reaches {-floor:.3f} m into the floor"
+    if violated == "floor":  # the target itself does reach into the floor: the check had work to do
+        qt, _, _ = planner.problem(Q0, z, z, *thetas, certify_torque=False).desired_at(t, np.asarray(target))
+        assert min(scene.distances(qi)[1] for qi in qt) < 0.0
