@@ -206,7 +206,7 @@ def write_runs_csv(out: Path, done: list[dict]) -> None:
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
-    from safesysid import figures
+    from safesysid import figures, table_iv
     from safesysid.pool import read_jsonl, run_streamed
     from safesysid.run_cli import scenario_path
     from safesysid.scenario import load_scenario, robot_from_scenario
@@ -251,6 +251,9 @@ def cmd_compare(args: argparse.Namespace) -> int:
         figures.table_figure(out / "table.png", scenario.name, rows, dumbbells)
         limit = robot_from_scenario(scenario).joint_params.torque_limit
         figures.compare_figures(out, [s for s in done if s["method"] in methods and s["dumbbell"] in dumbbells], limit)
+        prior = (scenario.initial_interval.lower, scenario.initial_interval.upper)
+        chosen = [s for s in done if s["method"] in methods and s["trial"] < args.trials]
+        table_iv.write_identification_results(out, scenario.name, chosen, dumbbells=dumbbells, prior=prior)
         print(f"wrote {', '.join(str(out / f) for f in TABLE_FILES)}, runs.csv, figures", file=sys.stderr)
     print((out / "table.md").read_text())
     return 130 if interrupted else 0

@@ -58,13 +58,20 @@ def plot_intervals(
 
 
 def plot_intervals_side_by_side(
-    path: str | Path, estimates: dict[str, tuple], truth: np.ndarray | None = None, title: str = ""
+    path: str | Path,
+    estimates: dict[str, tuple],
+    truth: np.ndarray | None = None,
+    title: str = "",
+    *,
+    prior: tuple | None = None,
 ) -> Path:
     """Fig. 5: per parameter, each estimate's interval and nominal side by side (estimates:
-    {label: (nominal, lower, upper)}), and the truth when known."""
+    {label: (nominal, lower, upper)}), the truth when known and the prior's (lower, upper) as a band."""
     fig, axes = plt.subplots(2, 5, figsize=(13 + len(estimates), 5.5))
     labels = list(estimates)
     for k, ax in enumerate(axes.ravel()):
+        if prior is not None:
+            ax.axhspan(prior[0][k], prior[1][k], color="0.9", label="prior")
         for i, label in enumerate(labels):
             nominal, lo, hi = (np.asarray(x, float) for x in estimates[label])
             mid, half = 0.5 * (lo[k] + hi[k]), 0.5 * (hi[k] - lo[k])
@@ -75,7 +82,7 @@ def plot_intervals_side_by_side(
         ax.set_title(f"{NAMES[k]} [{UNITS[k]}]", fontsize=9)
         ax.set_xticks(range(len(labels)), labels if len(labels) > 1 else [""], fontsize=8)
         ax.set_xlim(-0.6, len(labels) - 0.4)
-    if truth is not None:
+    if truth is not None or prior is not None:
         axes[0, 0].legend(fontsize=8)
     fig.suptitle(title)
     return save_figure(fig, path)

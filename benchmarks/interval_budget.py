@@ -187,10 +187,11 @@ def _closed_loop_run(args):
     from safesysid.online import run_online
     from safesysid.scenario import SCENARIOS_DIR, load_scenario
 
-    scenario, overrides, method, seed = args
-    base = load_scenario(SCENARIOS_DIR / scenario, overrides=overrides)
-    payload = ["4lb", "5lb", "6lb", "7lb", "8lb"][seed % 5]
-    scene = dataclasses.replace(base, payload=dataclasses.replace(base.payload, dumbbell=payload))
+    scenario, overrides, method, seed, *vary = args
+    scene = load_scenario(SCENARIOS_DIR / scenario, overrides=overrides)
+    if not vary or vary[0]:  # payloads 4-8 lb by seed; else the scenario's own payload
+        payload = ["4lb", "5lb", "6lb", "7lb", "8lb"][seed % 5]
+        scene = dataclasses.replace(scene, payload=dataclasses.replace(scene.payload, dumbbell=payload))
     return run_online(scene, None, method=method, seed=seed, write=False)
 
 
@@ -202,14 +203,16 @@ SAFETY_RATIOS = (
 )
 
 
-def closed_loop(seeds, scenario="identify_all.yaml", methods=("ours", "random"), workers=1, overrides=()) -> dict:
+def closed_loop(
+    seeds, scenario="identify_all.yaml", methods=("ours", "random"), workers=1, overrides=(), *, vary_payload=True
+) -> dict:
     """Width / prior width per parameter over closed-loop runs of a scenario (payloads 4-8 lb by
-    seed; overrides: scenario layers, as --scenario-text), medians of the published, data-driven
-    (before pruning) and the paper's first-order interval; the data-driven ratios and cond(Y) of
-    every run."""
+    seed, or the scenario's own with vary_payload False; overrides: scenario layers, as
+    --scenario-text), medians of the published, data-driven (before pruning) and the paper's
+    first-order interval; the published and data-driven ratios and cond(Y) of every run."""
     from concurrent.futures import ProcessPoolExecutor
 
-    jobs = [(scenario, list(overrides), method, seed) for method in methods for seed in seeds]
+    jobs = [(scenario, list(overrides), method, seed, vary_payload) for method in methods for seed in seeds]
     if workers > 1:
         with ProcessPoolExecutor(workers) as pool:
             summaries = list(pool.map(_closed_loop_run, jobs))
@@ -219,13 +222,14 @@ def closed_loop(seeds, scenario="identify_all.yaml", methods=("ours", "random"),
     prior = PRIOR[1] - PRIOR[0]
     out = {}
     for method in methods:
-        runs = [s for (_, _, m, _), s in zip(jobs, summaries) if m == method]
+        runs = [s for job, s in zip(jobs, summaries) if job[2] == method]
         out[method] = {
             "contains": [bool(s["contains_truth"]) for s in runs],
             "consistent": [bool(s["estimate"]["consistent"]) for s in runs],
             "mass_half_width_kg": [float(width(s, "")[0] / 2) for s in runs],
             "cond_Y": [float(s["cond_Y"]) for s in runs],
             "data_ratios": [(width(s, "data_") / prior).tolist() for s in runs],
+            "published_ratios": [(width(s, "") / prior).tolist() for s in runs],
             "safety": {  # the referee's measures over the runs (worst case)
                 "success": sum(bool(s["success"]) for s in runs),
                 "collisions": sum(int(s["collisions"]) for s in runs),
@@ -239,6 +243,16 @@ def closed_loop(seeds, scenario="identify_all.yaml", methods=("ours", "random"),
             },
         }
     return out
+
+
+def print_width_ratios(ours: np.ndarray, rand: np.ndarray) -> None:
+    """The restated identification target on paired runs' published widths (table_iv's measure)."""
+    from safesysid.table_iv import width_ratio_summary
+
+    r = width_ratio_summary(ours, rand)
+    below = sum(x < 1 for x in r["median"])
+    print(f"published width ours / random, median over pairs: {np.round(r['median'], 3).tolist()} ({below}/10 < 1)")
+    print(f"published width, fraction of pairs ours narrower: {np.round(r['won'], 2).tolist()}")
 
 
 def print_closed_loop(result: dict) -> None:
@@ -273,6 +287,9 @@ def print_closed_loop(result: dict) -> None:
             f"parameters where ours is narrower, per pair: {wins.tolist()}; pairs with >= 8: {int(np.sum(wins >= 8))}"
         )
         print(f"data-driven width ours / random, median over pairs: {np.round(np.median(ours / rand, 0), 2).tolist()}")
+        if all("published_ratios" in result[m] for m in ("ours", "random")):  # saved files before it lack it
+            published = (np.array(result[m]["published_ratios"]) for m in ("ours", "random"))
+            print_width_ratios(*published)
         # The mass's width does not move with the motion (the budget above): were it won or lost in every pair.
         others = narrower[:, 1:].sum(1)
         print(f"pairs with >= 8 were m won in every pair: {int(np.sum(others >= 7))}, lost: {int(np.sum(others >= 8))}")
@@ -284,10 +301,19 @@ def print_closed_loop(result: dict) -> None:
 if __name__ == "__main__":
     if "--closed-loop" in sys.argv:  # --closed-loop N [--workers W] [--scenario-text T]: identify_all seeds 0..N-1
         arg = lambda flag: sys.argv[sys.argv.index(flag) + 1] if flag in sys.argv else None  # noqa: E731
-        seeds = list(range(int(arg("--closed-loop"))))
+        # --first-seed S: seeds S..S+N-1; --scenario NAME (of scenarios/); --same-payload: its own payload
+        first = int(arg("--first-seed") or 0)
+        seeds = list(range(first, first + int(arg("--closed-loop"))))
         overrides = [arg("--scenario-text")] if arg("--scenario-text") else []
         methods = tuple((arg("--methods") or "ours,random").split(","))
-        result = closed_loop(seeds, methods=methods, workers=int(arg("--workers") or 1), overrides=overrides)
+        result = closed_loop(
+            seeds,
+            scenario=arg("--scenario") or "identify_all.yaml",
+            methods=methods,
+            workers=int(arg("--workers") or 1),
+            overrides=overrides,
+            vary_payload="--same-payload" not in sys.argv,
+        )
         if arg("--save"):
             with open(arg("--save"), "w") as f:
                 json.dump({"seeds": seeds, "overrides": overrides, "result": result}, f)

@@ -245,6 +245,7 @@ def test_interval_budget_counts_pairs_with_and_without_the_mass(capsys):
             data_ratio=ones,
             first_order_ratio=ones,
             data_ratios=ratios,
+            published_ratios=ratios,
             contains=[True] * n,
             consistent=[True] * n,
             cond_Y=[1.0] * n,
@@ -261,3 +262,6 @@ def test_interval_budget_counts_pairs_with_and_without_the_mass(capsys):
     out = capsys.readouterr().out
     assert "per pair: [9, 7, 6]; pairs with >= 8: 1" in out
     assert "were m won in every pair: 2, lost: 1" in out
+    # the restated target on the published widths: per-parameter medians (m, mcx, mcy lost) and pairs won
+    assert "median over pairs: [2.0, 2.0, 2.0, 0.5, 0.5, 0.5, 0.5, 0.5, 0.5, 0.5] (7/10 < 1)" in out
+    assert "fraction of pairs ours narrower: [0.0, 0.33, 0.33, 0.67, 1.0," in out
