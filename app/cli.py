@@ -1,6 +1,7 @@
 """`safesysid` command line (the verbs of README.md, "Commands").
 
-Exit status: 0 success, 2 bad input (one line naming file and field), 1 otherwise.
+Exit status: 0 success, 1 the run failed, 2 bad input (one line naming file and field);
+compare and sweep exit 0 when they completed (their runs' failures are data).
 """
 
 from __future__ import annotations
@@ -51,8 +52,29 @@ def _add_scenario_text(p):
     )
 
 
+COMPLETED_EXIT = (
+    "Exit status 0 when it completed: a run's failure is data in the table, not an error "
+    "(1: interrupted or could not complete; 2: bad input)."
+)
+LOG_COLUMNS = (
+    "Input joint log (CSV): header row, columns t [s, increasing], q1..qn [rad], v1..vn [rad/s], "
+    "optional a1..an [rad/s^2], tau1..taun [N m]; other columns are ignored; n = the model's joints. "
+    "Or a ROS bag of sensor_msgs/JointState (--topic)."
+)
+
+
+def _installed_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("safesysid")
+    except PackageNotFoundError:  # run from a source tree that was never installed
+        return "unknown"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="safesysid", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_installed_version()}")
     sub = parser.add_subparsers(dest="verb", metavar="VERB")
     sub.required = True
 
@@ -71,7 +93,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_scenario_text(p)
 
-    p = sub.add_parser("compare", help="methods x dumbbells x trials on a process pool; the paper's Table III row")
+    p = sub.add_parser(
+        "compare",
+        help="methods x dumbbells x trials on a process pool; the paper's Table III row",
+        description=f"Methods x dumbbells x trials; the paper's Table III row format. {COMPLETED_EXIT}",
+    )
     p.add_argument("scenario")
     p.add_argument("--methods", default="ours,random", help="all, or comma-separated method names")
     p.add_argument("--dumbbells", help="4lb,6lb or 4lb..8lb (default: the scenario's dumbbell)")
@@ -87,7 +113,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="out/compare")
     _add_scenario_text(p)
 
-    p = sub.add_parser("sweep", help="randomized adversarial closed-loop trials; aggregate safety evidence")
+    p = sub.add_parser(
+        "sweep",
+        help="randomized adversarial closed-loop trials; aggregate safety evidence",
+        description=f"Randomized adversarial closed-loop trials; aggregate.json. {COMPLETED_EXIT}",
+    )
     p.add_argument("scenario")
     p.add_argument("--trials", type=int, default=20)
     p.add_argument("--methods", help="comma-separated methods, or all (default: the scenario's)")
@@ -108,7 +138,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="out/sweep")
     _add_scenario_text(p)
 
-    p = sub.add_parser("sysid", help="Algorithm 1 offline on a joint log")
+    p = sub.add_parser(
+        "sysid",
+        help="Algorithm 1 offline on a joint log",
+        description="Algorithm 1 offline on a joint log; writes estimate.json and the interval plots. "
+        f"{LOG_COLUMNS} Exit status: 0 identified (consistent, truth inside where known), "
+        "1 the data contradict the declared bounds or the truth is outside, 2 bad input.",
+    )
     p.add_argument(
         "log", help="joint log: CSV (t, q1..qn, v1..vn, optional a1..an, tau1..taun) or a ROS bag (see --topic)"
     )
@@ -118,7 +154,12 @@ def build_parser() -> argparse.ArgumentParser:
     _bag_options(p)
     _add_scenario_text(p)
 
-    p = sub.add_parser("diagnose", help="where and why a model and logs disagree")
+    p = sub.add_parser(
+        "diagnose",
+        help="where and why a model and logs disagree",
+        description=f"Where and why a model and logs disagree; diagnosis.json, report.md, corrected_model.yaml. "
+        f"{LOG_COLUMNS} Exit status 0 when the diagnosis completed, 2 on bad input.",
+    )
     p.add_argument("--model", help="URDF/SDF of a fixed-base arm, or a scenario YAML")
     p.add_argument("--fit", nargs="+", default=[], help="logs to fit effects on")
     p.add_argument("--check", nargs="+", default=[], help="held-out logs to score on")
@@ -165,3 +206,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
+def _check_out(out: str | None) -> None:
+    if out is not None and os.path.exists(out) and not os.path.isdir(out):
+        raise BadInput(f"--out: {out} exists and is not a folder")
+
+
+        _check_out(getattr(args, "out", None))

@@ -26,7 +26,7 @@ TABLE_FILES = ("table.md", "table.csv", "table.json", "table.png")
 SUMMARY_COLUMNS = (
     "method trial seed success failure collisions min_clearance_m max_torque_ratio max_tracking_error_rad"
     " tracking_bound_rad contains_truth cond_Y mass_estimate_kg mass_width_kg brakes median_solve_s wall_time_s"
-    " task_certified_torque_ratio task_robust_active_fraction task_max_lambda_Nm"
+    " task_certified_torque_ratio task_robust_active_fraction task_max_lambda_Nm task_duration_s task_time_scale"
 ).split()
 
 
@@ -129,7 +129,33 @@ def table(done: list[dict], methods: list[str], dumbbells: list[str], trials: in
                     failures[s["failure"]] = failures.get(s["failure"], 0) + 1
             per[d] = {"runs": len(mine), "success": sum(bool(s["success"]) for s in mine), "failures": failures}
         rows[m] = {"cell": cell(runs, dumbbells, len(dumbbells) * trials), "per_dumbbell": per}
+        rows[m]["task"] = {d: [task_played(s) for s in sorted(runs, key=_key) if s["dumbbell"] == d] for d in dumbbells}
     return rows
+
+
+def task_played(summary: dict) -> dict:
+    """What the task phase played in one run: its duration and time scale (None: not played),
+    refused (task_uncertified) and the certificate executed (None: no ARMOUR certificate)."""
+    task = summary.get("task") or {}
+    return {
+        "duration_s": task.get("duration_s"),
+        "time_scale": task.get("time_scale"),
+        "refused": bool(task.get("uncertified")),
+        "certified_torque_ratio": task.get("certified_torque_ratio"),
+    }
+
+
+def _task_text(played: list[dict]) -> str:
+    """One table cell: each trial's task duration and scale, `refused` for task_uncertified."""
+    texts = []
+    for p in played:
+        if p["refused"]:
+            texts.append("refused (task_uncertified)")
+        elif p["duration_s"] is None:
+            texts.append("not played")
+        else:
+            texts.append(f"{p['duration_s']:.2f} s ({p['time_scale']:g}x)")
+    return ", ".join(texts) or "-"
 
 
 def _per_dumbbell_text(entry: dict) -> str:
@@ -157,6 +183,16 @@ def write_tables(out: Path, scenario_name: str, rows: dict, dumbbells: list[str]
         per = [_per_dumbbell_text(row["per_dumbbell"][d]) for d in dumbbells]
         lines.append("| " + " | ".join([m, row["cell"], *per]) + " |")
         csv_rows.append([m, row["cell"], *per])
+    lines += [
+        "",
+        "Task phase per dumbbell: the task trajectory's duration as played and its time scale (an ARMOUR",
+        "task is slowed until its torque certificate holds, up to task.max_time_scale; refused: none did).",
+        "",
+        "| " + " | ".join(["method", *dumbbells]) + " |",
+        "|" + "---|" * (len(dumbbells) + 1),
+    ]
+    for m, row in rows.items():
+        lines.append("| " + " | ".join([m, *(_task_text(row.get("task", {}).get(d, [])) for d in dumbbells)]) + " |")
     (out / "table.md").write_text("\n".join(lines) + "\n")
     with (out / "table.csv").open("w", newline="") as fh:
         writer = csv.writer(fh)
@@ -192,6 +228,8 @@ def row_of(summary: dict, trial: int) -> dict:
         # how hard ARMOUR's robust input worked in the task phase (None: another controller)
         "task_robust_active_fraction": task_robust.get("active_fraction"),
         "task_max_lambda_Nm": task_robust.get("max_lambda_Nm"),
+        "task_duration_s": (summary.get("task") or {}).get("duration_s"),  # as played (None: not played)
+        "task_time_scale": (summary.get("task") or {}).get("time_scale"),
     }
 
 

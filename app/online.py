@@ -251,7 +251,14 @@ def build_online(
     if task:
         task_info = task_plan(scenario)
         source = builder.AddSystem(
-            make_task_source(robot, scenario, task_switch_time_s(scenario, spec), *task_info, arm.dumbbell)
+            make_task_source(
+                robot,
+                scenario,
+                task_switch_time_s(scenario, spec),
+                *task_info,
+                arm.dumbbell,
+                certify=spec.controller == "armour",  # ARMOUR runs the task: its certificate must hold
+            )
         )
         source.set_name("task_phase_source")
         # Identification: the parameters the executing plan was certified with; task: the method's.

@@ -203,6 +203,8 @@ def _validate(s: Scenario, where):
     _validate_task(s, need)
     _validate_faults(s, need)
     if s.payload.dumbbell.lower() != "none":
+    need(s.task.max_time_scale >= 1, "task.max_time_scale", "must be >= 1 (1: never slower)")
+    need(s.task.time_scale_step > 0, "task.time_scale_step", "must be > 0")
         from safesysid.systems.payload import load_dumbbells
 
         names = list(load_dumbbells(resolve_path(s.payload.dumbbells_file, scenario_dir(s))))

@@ -280,4 +280,5 @@ def cmd_sysid(args: argparse.Namespace) -> int:
         f"{'consistent' if final.consistent else 'INCONSISTENT with the declared bounds'}; {verdict}; "
         f"wrote {out / 'estimate.json'}"
     )
-    return 0
+    # Exit 1 when identification failed: the data contradict the declared bounds or the truth is outside.
+    return 0 if final.consistent and doc["contains_truth"] is not False else 1

@@ -44,30 +44,67 @@ def make_task_source(
     problem: TaskProblem,
     plan: TaskResult,
     held: Dumbbell | None = None,
+    *,
+    certify: bool = False,
 ) -> TaskPhaseSource:
     """The TaskPhaseSource of a scenario whose task trajectory `plan` (TaskResult) solves `problem`;
-    held: the payload in the gripper (the return move's geometry, systems/task_phase.return_move)."""
+    held: the payload in the gripper (the return move's geometry, systems/task_phase.return_move).
+    certify: the task controller is ARMOUR, whose certificate the phase must carry (certify_task)."""
     from safesysid.systems.task_phase import return_move
     from safesysid.systems.trajectory_source import TaskPhaseSource
 
-    def make_task(q_now):
+    def make_task(q_now, thetas):
         if not plan.ok:
-            return [], [dict(kind="task_infeasible", detail=f"task trajectory {plan.status}: {plan.reason}")]
+            return [], [dict(kind="task_infeasible", detail=f"task trajectory {plan.status}: {plan.reason}")], {}
         back = return_move(problem, q_now, scenario.task.return_duration_s, held)
         curves, events = [], []
         if back is not None:
             solve = f"{back.status} ({back.solver}, {back.solve_time_s:.2f} s)"
             events.append(dict(kind="return_move", detail=f"to q0 in {scenario.task.return_duration_s:.2f} s: {solve}"))
             if not back.ok:
-                return [], events + [dict(kind="task_infeasible", detail=f"no return move: {back.reason}")]
+                return [], events + [dict(kind="task_infeasible", detail=f"no return move: {back.reason}")], {}
             curves.append(back.trajectory)
         curves.append(plan.trajectory)
+        report, certified = {"time_scale": 1.0, "uncertified": False}, ""
+        if certify:
+            curves, report, certified = certify_task(problem, curves, thetas, scenario.task)
+            if not curves:
+                return [], events + [dict(kind="task_uncertified", detail=certified)], report
         cache = plan.details.get("cache", "")
-        detail = f"task trajectory {plan.trajectory.duration:.2f} s ({plan.status}, cache {cache})"
+        detail = f"task trajectory {curves[-1].duration:.2f} s ({plan.status}, cache {cache}){certified}"
         events.append(dict(kind="task_start", detail=detail))
-        return curves, events
+        return curves, events, report
 
     return TaskPhaseSource(robot.n, 14 * robot.n, scenario.q0_rad, switch_time_s, make_task)
+
+
+def certify_task(problem: TaskProblem, curves: list, thetas: tuple, task) -> tuple[list, dict, str]:
+    """ARMOUR's certificate of the task phase's curves (the return move, the task trajectory)
+    with the box latched at the switch (task_check.phase_certificate: sup |u| / limit over the
+    tube and the box): the curves played at the smallest scale of the grid 1 .. task.max_time_scale
+    (step task.time_scale_step) whose certificate is <= 1, or [] (refused: task_uncertified, the
+    arm holds). Returns (curves, report for summary.json's task, text for the event)."""
+    from safesysid.systems.task_check import phase_certificate, smallest_certified_scale, time_scale_grid, time_scaled
+
+    scales = time_scale_grid(task.max_time_scale, task.time_scale_step)
+    found = smallest_certified_scale(lambda scale: phase_certificate(problem, curves, thetas, scale), scales)
+    unscaled = found.tried[0][1]
+    report = {
+        "time_scale": found.time_scale,
+        "uncertified": not found.certified,
+        "certified_torque_ratio": found.ratio,
+        "certified_torque_ratio_unscaled": unscaled,
+        "time_scales_tried": [list(x) for x in found.tried],
+    }
+    if not found.certified:
+        text = (
+            f"torque certificate {unscaled:.3f} at 1x and {found.ratio:.3f} at {scales[-1]:g}x "
+            "(task.max_time_scale) exceeds the limit: the task is refused, the arm holds"
+        )
+        return [], report, text
+    text = f", {found.time_scale:g}x slower" if found.time_scale > 1 else ""
+    text += f", torque certificate {found.ratio:.3f}" + (f" (1x: {unscaled:.3f})" if found.time_scale > 1 else "")
+    return [time_scaled(c, found.time_scale) for c in curves], report, text
 
 
 def judge(
@@ -92,9 +129,10 @@ def judge(
         return times[np.asarray(values, float) > limit]
 
     infeasible = [p["t_s"] for p in plans[:1] if not p["ok"]]
-    placement = []
+    placement, refused = [], []
     if task is not None:
-        infeasible += [] if task["executed"] else [task["switch_time_s"]]
+        refused = [task["switch_time_s"]] if task.get("uncertified") else []
+        infeasible += [] if task["executed"] or refused else [task["switch_time_s"]]
         place = task["placement"]
         if place["error_m"] is not None and not place["error_m"] <= place["tolerance_m"]:
             placement = [task["release_time_s"]]
@@ -104,6 +142,7 @@ def judge(
         ("joint_limit", above(record.joint_ratio, 1.0)),
         ("velocity_limit", above(record.velocity_ratio, 1.0)),
         ("planner_infeasible", infeasible),
+        ("task_uncertified", refused),
         ("tracking", np.asarray(t)[tracking_ratio > 1 + 1e-9]),
         ("simulation", [] if simulation_failed_at is None else [simulation_failed_at]),
         ("placement", placement),
@@ -111,19 +150,19 @@ def judge(
     return first_failure(checks, t_switch)
 
 
-def task_certificate(built: OnlineDiagram, scenario: Scenario, method: str, thetas: tuple) -> float | None:
-    """sup |u| / limit of ARMOUR's command over the task trajectory, every tracking error in the
-    tube and every parameter in the box the controller latched at the switch (task_check.
-    certified_torque_ratio); > 1: the method's own model cannot certify the task's torque (what
-    the paper's `conservative` meets on hardware). None for the other controllers, or without a
-    task trajectory. Information only: the referee judges what the run did."""
-    from safesysid.systems import methods
-    from safesysid.systems.task_check import certified_torque_ratio
-
-    problem, plan = built.task
-    if methods.method_spec(method).controller != "armour" or not plan.ok or len(thetas) != 3:
-        return None
-    return certified_torque_ratio(problem, plan.trajectory, *(np.asarray(x, float) for x in thetas))[0]
+def task_certificate_summary(st, truth: np.ndarray, robot: RobotModel) -> dict:
+    """summary.json task fields of the certificate (certify_task's report, PhaseState st): the
+    scale played and the task trajectory's duration (None when refused or not found), and whether
+    the latched box holds the true payload (else its certificate certifies nothing real: wrong)."""
+    report = dict(st.report)
+    report.setdefault("certified_torque_ratio", None)  # another controller than ARMOUR: no certificate
+    lo, hi = (np.asarray(x, float)[robot.ee_slice] for x in st.thetas[1:])
+    ee = np.asarray(truth, float)[robot.ee_slice]
+    return {
+        **report,
+        "duration_s": float(st.curves[-1].curve.duration) if st.ready else None,
+        "certificate_box_contains_payload": bool(np.all((lo <= ee) & (ee <= hi))),
+    }
 
 
 class GuardedSimulator:
@@ -160,7 +199,7 @@ def run_task_phase(built: OnlineDiagram, sim: Simulator, scenario: Scenario, met
     # The switch fires at switch_time_s; one step later its curves are in the context.
     sim.AdvanceTo(source.switch_time_s + scenario.plant.time_step_s)
     st = source.phase_state(source_ctx)
-    certificate = task_certificate(built, scenario, method, st.thetas)
+    certificate = task_certificate_summary(st, arm.true_theta(), arm.robot)
     t_release = max(st.t_end, ctx.get_time())
     sim.AdvanceTo(t_release)
     release_xyz = None
@@ -190,7 +229,7 @@ def run_task_phase(built: OnlineDiagram, sim: Simulator, scenario: Scenario, met
             "cache": plan.details.get("cache"),
             "payload_model": scenario.task.payload_model,
         },
-        "certified_torque_ratio": certificate,
+        **certificate,
         "placement": {
             "kind": kind or None,
             "target_m": as_list(target),

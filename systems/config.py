@@ -333,6 +333,12 @@ class ScheduledObstacle(Obstacle):
 
     name: str = "appearing"
     t_s: float = 1.0
+    # Certificate (app/task_run.py): ARMOUR's torque bound over the tube and the box latched at the
+    # switch must be <= 1; else the same path is played slower, at the smallest scale on the grid
+    # 1, 1 + step, ... up to max_time_scale (x the planned duration, dimensionless) that certifies;
+    # none: the task is refused (failure task_uncertified, the arm holds).
+    max_time_scale: float = 3.0
+    time_scale_step: float = 0.25
 
 
 @dc.dataclass

@@ -4,6 +4,7 @@ controller's certified torque bound over the tube and a parameter box."""
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -55,6 +56,55 @@ def certified_torque_ratio(
     sup, _, _ = reach.torque_bound(wp, theta0, theta_lo, theta_hi, excess)
     per_joint = sup.max(0)
     return float(np.max(per_joint / problem.robot.joint_params.torque_limit)), per_joint
+
+
+def time_scaled(trajectory: PiecewiseBezier, scale: float) -> PiecewiseBezier:
+    """The same path `scale` times slower: the same control points over pieces `scale` times
+    longer (velocity / scale, acceleration / scale^2; still at rest at both ends)."""
+    return PiecewiseBezier(trajectory.control_points, trajectory.piece_duration * float(scale))
+
+
+def time_scale_grid(max_scale: float, step: float) -> list[float]:
+    """1, 1 + step, 1 + 2 step, ... up to max_scale, max_scale itself always last."""
+    count = int(np.floor((max_scale - 1.0) / step + 1e-9))
+    grid = [1.0 + k * step for k in range(count + 1)]
+    return grid + ([float(max_scale)] if max_scale - grid[-1] > 1e-9 else [])
+
+
+@dataclass
+class ScaledCertificate:
+    """The smallest time scale on a grid whose certificate is <= 1 (None: none up to the cap)."""
+
+    time_scale: float | None
+    ratio: float  # the certificate at time_scale, or at the last scale tried when refused
+    tried: list  # [(scale, certificate)] in the order tried
+
+    @property
+    def certified(self) -> bool:
+        return self.time_scale is not None
+
+
+def smallest_certified_scale(certificate: Callable[[float], float], scales: Sequence[float]) -> ScaledCertificate:
+    """Try `scales` in increasing order and stop at the first whose certificate(scale) <= 1. Each
+    scale is certified on its own, so nothing rests on the certificate decreasing with the scale
+    (it need not: the tube's velocity and acceleration pads do not shrink); the scale returned is
+    the smallest on the grid, not the smallest real number that certifies."""
+    tried = []
+    for scale in sorted(scales):
+        ratio = float(certificate(scale))
+        tried.append((float(scale), ratio))
+        if ratio <= 1.0:
+            return ScaledCertificate(float(scale), ratio, tried)
+    return ScaledCertificate(None, tried[-1][1], tried)
+
+
+def phase_certificate(
+    problem: TaskProblem, curves: Sequence[PiecewiseBezier], thetas: Sequence[np.ndarray], scale: float
+) -> float:
+    """certified_torque_ratio of every curve of the task phase played `scale` times slower, with
+    the parameter box (theta0, lower, upper): the largest."""
+    theta0, lo, hi = (np.asarray(x, float) for x in thetas)
+    return max(certified_torque_ratio(problem, time_scaled(c, scale), theta0, lo, hi)[0] for c in curves)
 
 
 # ---------------------------------------------------------------------------------------------

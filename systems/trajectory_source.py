@@ -171,6 +171,7 @@ class PhaseState:
     ready: bool = False  # the task's curves were found (False: holding at q_switch)
     thetas: tuple = ()  # (theta0, lower, upper) the controller uses in the task phase
     events: tuple = ()  # {t, kind, detail}
+    report: dict = dataclasses.field(default_factory=dict)  # make_task's report (the task's certificate)
 
     def __deepcopy__(self, memo):
         return self  # immutable: Drake's state copies (every step, for the monitor's update) share it
@@ -188,10 +189,12 @@ class TaskPhaseSource(LeafSystem):
     the parameters the executing plan was certified with (plan_theta0, plan_theta_lower,
     plan_theta_upper) through. At `switch_time_s` (at initialization when it is 0: methods
     without an identification phase) it latches the method's task parameters (inputs
-    task_theta0, task_theta_lower, task_theta_upper: the identified box for ours) and asks
-    `make_task(q_now)` for the curves from the desired q at that instant, which must be at rest
-    (the last plan's end; q0 when plan_desired is unconnected). make_task returns (curves
-    [rest-to-rest, played one after the other], events [{kind, detail}]); no curves: the arm holds.
+    task_theta0, task_theta_lower, task_theta_upper: the identified box for ours), frozen for the
+    whole task whatever those inputs do later, and asks `make_task(q_now, thetas)` for the curves
+    from the desired q at that instant, which must be at rest (the last plan's end; q0 when
+    plan_desired is unconnected), to be certified with the latched thetas. make_task returns
+    (curves [rest-to-rest, played one after the other], events [{kind, detail}], report {});
+    no curves: the arm holds.
     Outputs: desired (3n), theta0, theta_lower, theta_upper (p), phase (1: 0 identification,
     1 task). `set_thetas` replaces the task parameters (the payload's release).
     """
@@ -275,10 +278,10 @@ class TaskPhaseSource(LeafSystem):
         q_now = self._q0 if desired is None else np.array(desired[: self._n])
         thetas = tuple(np.array(port.Eval(context), float) for port in self._task_thetas)
         curves, start = [], t
-        made, events = self._make_task(q_now)
+        made, events, report = self._make_task(q_now, thetas)
         for curve in made:
             curves.append(TimedCurve(start, curve))
             start += curve.duration
         found = tuple(dict(t=t, **e) for e in events)
-        new = PhaseState("task", t, q_now, tuple(curves), bool(curves), thetas, found)
+        new = PhaseState("task", t, q_now, tuple(curves), bool(curves), thetas, found, dict(report))
         state.get_mutable_abstract_state(int(self._state)).set_value(new)
