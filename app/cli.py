@@ -195,9 +195,15 @@ def _dispatch(args):
     return getattr(importlib.import_module(module_name), fn_name)(args)
 
 
+def _check_out(out: str | None) -> None:
+    if out is not None and os.path.exists(out) and not os.path.isdir(out):
+        raise BadInput(f"--out: {out} exists and is not a folder")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
+        _check_out(getattr(args, "out", None))
         return int(_dispatch(args) or 0)
     except _bad_input_types() as err:
         print(f"safesysid {args.verb}: error: {err}", file=sys.stderr)
@@ -206,9 +212,3 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
-def _check_out(out: str | None) -> None:
-    if out is not None and os.path.exists(out) and not os.path.isdir(out):
-        raise BadInput(f"--out: {out} exists and is not a folder")
-
-
-        _check_out(getattr(args, "out", None))

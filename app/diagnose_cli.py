@@ -40,6 +40,8 @@ def load_model(path: str | Path) -> RobotModel:
         raise BadInput(f"{path}: --model file not found")
     suffix = p.suffix.lower()
     if suffix in (".yaml", ".yml"):
+        if not p.read_text().strip():  # not silently the built-in robot of the schema's defaults
+            raise BadInput(f"{path}: --model: the file is empty (give a URDF/SDF or a scenario with its robot)")
         return robot_from_scenario(load_scenario(p))
     if suffix in (".urdf", ".sdf", ".xml"):
         return load_robot(p)
@@ -317,7 +319,7 @@ def bag_options(args: argparse.Namespace, model: RobotModel) -> dict:
 
 
 def cmd_diagnose(args: argparse.Namespace) -> int:
-    from safesysid.cli import BadInput
+    from safesysid.cli import BadInput, require_positive
 
     if args.self_check:
         return self_check(args)
@@ -325,6 +327,7 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
         raise BadInput("--model: required (URDF/SDF of a fixed-base arm or a scenario YAML)")
     from safesysid.systems.diagnosis import is_corrected_model_file
 
+        require_positive(cases=args.cases, workers=args.workers)
     if is_corrected_model_file(args.model):
         if args.fit or args.leave_one_out:
             raise BadInput(
@@ -343,9 +346,9 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     fit, check = list(args.fit), list(args.check)
     if not check:
         if len(fit) < 2:
+    model = load_model(args.model)  # a bad model is named before the logs are counted
             raise BadInput("--check: give held-out logs (or at least two --fit logs; the last is then held out)")
         fit, check = fit[:-1], fit[-1:]
-    model = load_model(args.model)
     d = run_diagnosis(model, fit, check, args.out, args.model, bag=bag_options(args, model))
     _print_summary(d, args.out)
     return 0

@@ -36,12 +36,23 @@ def plot_tracking(
     return save_figure(fig, path)
 
 
-def plot_clearance(path: str | Path, t: np.ndarray, clearance: np.ndarray) -> Path:
-    fig, ax = plt.subplots(figsize=(8, 3))
-    ax.plot(t, clearance)
-    ax.axhline(0.0, color="r", ls="--")
+CLEARANCE_TITLE = "least distance between the links' own shapes (+ payload) and the obstacles and floor"
+
+
+def plot_clearance(
+    path: str | Path, t: np.ndarray, clearance: np.ndarray, phases: Sequence[tuple[str, float, float]] = ()
+) -> Path:
+    """The referee's clearance (Drake signed distance on the link shapes), the phases shaded."""
+    from safesysid.figures import shade_phases
+
+    fig, ax = plt.subplots(figsize=(8, 3.2))
+    shade_phases(ax, list(phases))
+    ax.plot(t, clearance, label="clearance")
+    ax.axhline(0.0, color="r", ls="--", label="contact")
     ax.set_xlabel("t [s]")
-    ax.set_ylabel("min signed distance [m]")
+    ax.set_ylabel("signed distance [m]")
+    ax.set_title(CLEARANCE_TITLE, fontsize=9)
+    ax.legend(loc="upper right", fontsize=7)
     return save_figure(fig, path)
 
 
@@ -52,9 +63,12 @@ def plot_intervals(
     upper: np.ndarray,
     truth: np.ndarray | None = None,
     title: str = "",
+    *,
+    prior: tuple | None = None,
 ) -> Path:
-    """The 10 end-effector intervals with nominal (and truth), like the paper's Fig. 5."""
-    return plot_intervals_side_by_side(path, {"estimate": (nominal, lower, upper)}, truth, title)
+    """The 10 end-effector intervals with nominal (and truth), like the paper's Fig. 5; the prior
+    (lower, upper) as a grey band, so a parameter the data did not narrow shows as such."""
+    return plot_intervals_side_by_side(path, {"estimate": (nominal, lower, upper)}, truth, title, prior=prior)
 
 
 def plot_intervals_side_by_side(
@@ -80,7 +94,7 @@ def plot_intervals_side_by_side(
         if truth is not None:
             ax.plot(range(len(labels)), [truth[k]] * len(labels), "r*", ms=11, label="truth")
         ax.set_title(f"{NAMES[k]} [{UNITS[k]}]", fontsize=9)
-        ax.set_xticks(range(len(labels)), labels if len(labels) > 1 else [""], fontsize=8)
+        ax.set_xticks(range(len(labels)), labels, fontsize=8)  # the method stays named when it is alone
         ax.set_xlim(-0.6, len(labels) - 0.4)
     if truth is not None or prior is not None:
         axes[0, 0].legend(fontsize=8)
@@ -96,9 +110,15 @@ def plot_estimate_history(
     upper: np.ndarray,
     truth: np.ndarray | None = None,
     index: int = 0,
+    *,
+    prior: tuple | None = None,
+    title: str = "",
 ) -> Path:
-    """Evolution of one parameter's estimate and interval over the updates (default: mass)."""
-    fig, ax = plt.subplots(figsize=(8, 3))
+    """Evolution of one parameter's estimate and interval over the updates (default: mass), the
+    prior (lower, upper) as a band behind it."""
+    fig, ax = plt.subplots(figsize=(8, 3.4))
+    if prior is not None:
+        ax.axhspan(prior[0][index], prior[1][index], color="0.9", label="prior")
     ax.fill_between(
         times, np.asarray(lower)[:, index], np.asarray(upper)[:, index], step="post", alpha=0.3, label="interval"
     )
@@ -107,8 +127,19 @@ def plot_estimate_history(
         ax.axhline(truth[index], color="r", ls="--", label="truth")
     ax.set_xlabel("t [s]")
     ax.set_ylabel(f"{NAMES[index]} [{UNITS[index]}]")
-    ax.legend()
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=8)
     return save_figure(fig, path)
+
+
+def identified_body_text(truth_mass_kg: float, dumbbell: str | None, dumbbell_kg: float | None) -> str:
+    """What the identified mass is: the end-effector body is the last link + gripper + payload."""
+    if not dumbbell or dumbbell_kg is None:
+        return f"identified body: last link + gripper ({truth_mass_kg:.3f} kg, no payload)"
+    return (
+        f"identified body: last link + gripper {truth_mass_kg - dumbbell_kg:.3f} kg "
+        f"+ {dumbbell} dumbbell {dumbbell_kg:.3f} kg = {truth_mass_kg:.3f} kg"
+    )
 
 
 def markdown_table(rows: Sequence[dict], columns: Sequence[str]) -> str:

@@ -46,10 +46,6 @@ def _headline(s):
     )
 
 
-def _mark_interrupted(out: Path, summary: dict) -> dict:
-    """A run stopped by Ctrl-C did not succeed: say so in its summary.json."""
-    summary.update(interrupted=True, success=False, failure=summary["failure"] or "interrupted")
-    log = out / "log.csv"
 def identified_body(scenario, summary: dict) -> str:
     """The summary's truth mass explained: last link + gripper + the dumbbell (from the scenario's file)."""
     from safesysid.report import identified_body_text
@@ -64,6 +60,10 @@ def identified_body(scenario, summary: dict) -> str:
     return identified_body_text(summary["payload_true"]["theta"][0], name, mass)
 
 
+def _mark_interrupted(out: Path, summary: dict) -> dict:
+    """A run stopped by Ctrl-C did not succeed: say so in its summary.json."""
+    summary.update(interrupted=True, success=False, failure=summary["failure"] or "interrupted")
+    log = out / "log.csv"
     if log.exists():  # the simulated time reached (sim_time_s is the time the run was meant to last)
         summary["interrupted_at_s"] = float(log.read_text().rstrip().rsplit("\n", 1)[-1].split(",", 1)[0])
     path = out / "summary.json"
@@ -72,14 +72,14 @@ def identified_body(scenario, summary: dict) -> str:
     return summary
 
 
-def cmd_run(args: argparse.Namespace) -> int:
-    from safesysid.online import run_online
-    from safesysid.progress import RunDisplay, interruptible, serve_until_interrupt
-
 def run_exit_status(summary: dict) -> int:
     """0 when the run succeeded (and the truth, where known, is inside the interval), else 1."""
     return 0 if summary["success"] and summary.get("contains_truth") is not False else 1
 
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from safesysid.online import run_online
+    from safesysid.progress import RunDisplay, interruptible, serve_until_interrupt
 
     scenario = _scenario(args)
     method = _method(args.method, scenario)
@@ -97,7 +97,7 @@ def run_exit_status(summary: dict) -> int:
     if display.interrupted:
         summary = _mark_interrupted(out, summary)
     print(_headline(summary))
+    print(f"  ({identified_body(scenario, summary)})")
     print(f"wrote {out / 'summary.json'}, log.csv, plots, replay.html", file=sys.stderr)
     serve_until_interrupt(display)
     return 130 if display.interrupted else run_exit_status(summary)
-    print(f"  ({identified_body(scenario, summary)})")

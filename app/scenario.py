@@ -124,6 +124,18 @@ def _check(value, schema, path, errors):
         errors.append(f"{path}: expected true/false, got {value!r}")
 
 
+def _joint_count(s: Scenario) -> int:
+    """The joint count the robot's parameter file names (0 when it cannot tell: a corrected model,
+    or a file the robot loader will reject with its own message)."""
+    if s.robot.corrected_model:
+        return 0
+    try:
+        doc = yaml.safe_load(resolve_path(s.robot.params, scenario_dir(s)).read_text()) or {}
+        return len(doc["joints"]["names"])
+    except (OSError, yaml.YAMLError, KeyError, TypeError):
+        return 0
+
+
 def _validate(s: Scenario, where):
     def need(cond, field, msg):
         if not cond:
@@ -134,7 +146,12 @@ def _validate(s: Scenario, where):
         for part in key.split("."):
             obj = getattr(obj, part)
         need(obj in allowed, key, f"{obj!r} is not one of {', '.join(allowed)}")
-    need(len(s.q0_rad) == 7 or len(s.q0_rad) > 0, "q0_rad", "must list one angle per joint")
+    joints = _joint_count(s)
+    need(
+        len(s.q0_rad) == joints if joints else len(s.q0_rad) > 0,
+        "q0_rad",
+        f"must list one angle per joint of the robot ({joints or 'its joint count'}), got {len(s.q0_rad)}",
+    )
     for k, ob in enumerate(s.obstacles):
         _validate_obstacle(ob, f"obstacles[{k}]", need)
     ii = s.initial_interval
@@ -177,8 +194,11 @@ def _validate(s: Scenario, where):
     need(vol.shape == "none" or min(vol.half_extent_m) > 0, "payload.bounding_volume.half_extent_m", "must be > 0")
     for key, value in dc.asdict(s.noise.theta_r_floor).items():
         need(value >= 0, f"noise.theta_r_floor.{key}", "must be >= 0")
+    need(s.planner.duration_s > 0, "planner.duration_s", "must be > 0")
     need(0 < s.planner.replan_period_s <= s.planner.duration_s, "planner.replan_period_s", "must be in (0, duration_s]")
     need(0 < s.planner.refinement_scale <= 1, "planner.refinement_scale", "must be in (0, 1]")
+    need(s.task.max_time_scale >= 1, "task.max_time_scale", "must be >= 1 (1: never slower)")
+    need(s.task.time_scale_step > 0, "task.time_scale_step", "must be > 0")
     need(
         not s.planner.continuation or s.planner.point_refinement,
         "planner.continuation",
@@ -203,8 +223,6 @@ def _validate(s: Scenario, where):
     _validate_task(s, need)
     _validate_faults(s, need)
     if s.payload.dumbbell.lower() != "none":
-    need(s.task.max_time_scale >= 1, "task.max_time_scale", "must be >= 1 (1: never slower)")
-    need(s.task.time_scale_step > 0, "task.time_scale_step", "must be > 0")
         from safesysid.systems.payload import load_dumbbells
 
         names = list(load_dumbbells(resolve_path(s.payload.dumbbells_file, scenario_dir(s))))

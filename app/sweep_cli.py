@@ -271,10 +271,12 @@ def _methods(text, default):
 
 def cmd_sweep(args: argparse.Namespace) -> int:
     from safesysid.scenario import load_scenario
+    from safesysid.setup_check import check_setup
 
     path = Path(args.scenario)
     texts = list(args.scenario_text)
     scenario = load_scenario(path, overrides=texts)  # validates (exit 2 on bad input) before any worker starts
+    check_setup(scenario)
     methods = _methods(args.methods, scenario.method)
     require_positive(trials=args.trials, workers=args.workers)
     out = Path(args.out)
@@ -335,4 +337,4 @@ def cmd_sweep(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 1
-    return 0 if agg["collisions"] == agg["limit_violations"] == agg["tracking_bound_violations"] == 0 else 1
+    return 0  # completed: the trials' failures are data (aggregate.json, report.md), not the sweep's

@@ -17,7 +17,7 @@ import numpy as np
 
 from .methods import METHODS_SPEC
 from .model_corrections import CorrectionError, corrected_robot, read_correction
-from .robot_model import MODELS_DIR, RobotModel, load_robot
+from .robot_model import MODELS_DIR, ModelError, RobotModel, load_robot
 
 if typing.TYPE_CHECKING:
     from .diagnosis.corrected_model import CorrectedModel
@@ -434,7 +434,11 @@ def _robot_of(robot: Robot, base: Path, where: str) -> RobotModel:
         except CorrectionError as err:
             raise ScenarioError(f"{where}: robot.corrected_model: {err}") from err
     model = resolve_path(robot.model, base) if robot.model else None
-    return load_robot(model, resolve_path(robot.params, base), coulomb_smoothing=robot.coulomb_smoothing_rad_s)
+    try:
+        return load_robot(model, resolve_path(robot.params, base), coulomb_smoothing=robot.coulomb_smoothing_rad_s)
+    except ModelError as err:  # name the scenario and the field, not only the model file
+        field = f"robot.model ({robot.model})" if robot.model else f"robot.params ({robot.params})"
+        raise ScenarioError(f"{where}: {field}: {err}") from err
 
 
 def starting_robot(corr: "CorrectedModel", coulomb_smoothing: float = 0.0) -> RobotModel:

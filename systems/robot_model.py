@@ -278,6 +278,8 @@ def tree_from_plant(
     from pydrake.multibody.tree import BodyIndex, PrismaticJoint, RevoluteJoint
 
     movable = [plant.get_joint(i) for i in plant.GetJointIndices() if plant.get_joint(i).num_velocities() == 1]
+    if not movable:
+        raise ModelError("no movable (revolute or prismatic) joint: nothing to identify")
     if joint_names is not None:
         by_name = {j.name(): j for j in movable}
         missing = [n for n in joint_names if n not in by_name]
@@ -382,7 +384,10 @@ def load_robot(
     names = None
     if doc is not None:
         names = doc["joints"]["names"]
-    tree, theta_bodies, body_names, joint_names = tree_from_plant(plant, context, names)
+    try:
+        tree, theta_bodies, body_names, joint_names = tree_from_plant(plant, context, names)
+    except ModelError as err:  # say which file
+        raise ModelError(f"{model_path}: {err}") from err
     if params_path is not None:
         _, params = load_joint_parameters(params_path, joint_names)
     else:

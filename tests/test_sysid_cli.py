@@ -165,7 +165,7 @@ def test_sysid_with_the_corrected_model_contains_the_truth(unmodelled, tmp_path,
     estimator flags it and keeps the prior, or the truth leaves the interval); with --model the
     interval contains the truth and the data are consistent with the declared bounds."""
     log, scenario, corrected, truth = unmodelled
-    assert main(["sysid", str(log), "--scenario", str(scenario), "--out", str(tmp_path / "plain")]) == 0
+    assert main(["sysid", str(log), "--scenario", str(scenario), "--out", str(tmp_path / "plain")]) == 1  # failed
     plain = json.loads((tmp_path / "plain" / "estimate.json").read_text())
     assert plain["consistent"] is False or plain["contains_truth"] is False
     capsys.readouterr()
@@ -193,7 +193,7 @@ def test_lag_correction_is_needed(unmodelled, tmp_path):
     no_lag.write_text(yaml.safe_dump(doc))
     assert (
         main(["sysid", str(log), "--scenario", str(scenario), "--model", str(no_lag), "--out", str(tmp_path / "o")])
-        == 0
+        == 1  # identification failed: exit 1
     )
     doc = json.loads((tmp_path / "o" / "estimate.json").read_text())
     assert doc["consistent"] is False or doc["contains_truth"] is False
@@ -242,10 +242,11 @@ def test_real_gen3_log_with_the_corrected_model(tmp_path, capsys):
     bare.write_text(yaml.safe_dump({"model": str(urdf), "effects": []}))
     mass = {}
     for name, extra in (("default", []), ("bare", ["--model", str(bare)]), ("corrected", ["--model", str(corrected)])):
-        assert main(["sysid", str(runs[2]), *extra, "--out", str(tmp_path / name)]) == 0
+        code = main(["sysid", str(runs[2]), *extra, "--out", str(tmp_path / name)])
         printed = capsys.readouterr().out
         assert "truth: unknown (no payload given)" in printed and "truth inside" not in printed
         doc = json.loads((tmp_path / name / "estimate.json").read_text())
+        assert code == (0 if doc["consistent"] else 1)  # exit 1: the data contradict the declared bounds
         assert doc["contains_truth"] is None
         consistent_updates = sum(bool(h["consistent"]) for h in doc["history"])
         mass[name] = (doc["nominal"][0], doc["lower"][0], doc["upper"][0], consistent_updates)
@@ -295,8 +296,9 @@ def test_sysid_re_pairs_a_late_reading_from_the_model(late_reading, tmp_path, ca
     outcome = {}
     for name, extra in (("plain", []), ("corrected", ["--model", str(corrected)])):
         out = tmp_path / name
-        assert main(["sysid", str(log), "--scenario", str(scenario), *extra, "--out", str(out)]) == 0
+        code = main(["sysid", str(log), "--scenario", str(scenario), *extra, "--out", str(out)])
         outcome[name] = json.loads((out / "estimate.json").read_text())
+        assert code == (0 if outcome[name]["consistent"] and outcome[name]["contains_truth"] else 1)
     doc, plain = outcome["corrected"], outcome["plain"]
     assert doc["contains_truth"] is True and doc["consistent"] is True
     assert doc["model"]["torque_delay_s"] == 0.02 and doc["model"]["applied"] == ["time_delay"]
