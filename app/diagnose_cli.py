@@ -322,12 +322,12 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
     from safesysid.cli import BadInput, require_positive
 
     if args.self_check:
+        require_positive(cases=args.cases, workers=args.workers)
         return self_check(args)
     if not args.model:
         raise BadInput("--model: required (URDF/SDF of a fixed-base arm or a scenario YAML)")
     from safesysid.systems.diagnosis import is_corrected_model_file
 
-        require_positive(cases=args.cases, workers=args.workers)
     if is_corrected_model_file(args.model):
         if args.fit or args.leave_one_out:
             raise BadInput(
@@ -341,12 +341,12 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
             raise BadInput("--leave-one-out: give at least two logs (--fit A.csv B.csv ...)")
         model = load_model(args.model)
         return leave_one_out(model, paths, args.out, args.model, bag_options(args, model))
+    model = load_model(args.model)  # a bad model is named before the logs are counted
     if not args.fit:
         raise BadInput("--fit: at least one log is required")
     fit, check = list(args.fit), list(args.check)
     if not check:
         if len(fit) < 2:
-    model = load_model(args.model)  # a bad model is named before the logs are counted
             raise BadInput("--check: give held-out logs (or at least two --fit logs; the last is then held out)")
         fit, check = fit[:-1], fit[-1:]
     d = run_diagnosis(model, fit, check, args.out, args.model, bag=bag_options(args, model))

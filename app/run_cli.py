@@ -16,7 +16,11 @@ def scenario_path(args: argparse.Namespace) -> Path:
 
 
 def _scenario(args):
-    return load_scenario(scenario_path(args), overrides=args.scenario_text)
+    from safesysid.setup_check import check_setup
+
+    scenario = load_scenario(scenario_path(args), overrides=args.scenario_text)
+    check_setup(scenario)
+    return scenario
 
 
 def _method(name, scenario):

@@ -319,8 +319,39 @@ def load_scenario(
     _apply_corrected_model(scenario, _given_keys([text, *overrides]), where)
     label = where if path is not None else str(SCENARIOS_DIR / "defaults.yaml")
     _validate(scenario, f"{label} with --scenario-text" if overrides else label)
+    _derive_prior(scenario, _given_keys([text, *overrides]), f"{label} with --scenario-text" if overrides else label)
     _stack_on_platform(scenario)
     return scenario
+
+
+def _derive_prior(s: Scenario, given, where) -> None:
+    """initial_interval.payload_mass_kg set: nominal/lower/upper from the robot's end-effector body
+    and the declared payload range (systems/estimation/prior.py), written into the scenario."""
+    ii = s.initial_interval
+    if not ii.payload_mass_kg:
+        return
+    from safesysid.systems.estimation.prior import payload_range_prior
+
+    stated = [k for k in ("nominal", "lower", "upper") if k in (given.get("initial_interval") or {})]
+    checks = (
+        (not stated, f"{', '.join(stated)}: not with payload_mass_kg (the prior is derived from it)"),
+        (
+            len(ii.payload_mass_kg) == 2 and 0 <= ii.payload_mass_kg[0] <= ii.payload_mass_kg[1],
+            "payload_mass_kg: needs [lo, hi] with 0 <= lo <= hi",
+        ),
+        (len(ii.payload_centre_m) in (0, 3), "payload_centre_m: needs 3 values or none (the grasp point)"),
+        (
+            len(ii.payload_half_extent_m) == 3 and min(ii.payload_half_extent_m) >= 0,
+            "payload_half_extent_m: needs 3 values >= 0",
+        ),
+    )
+    for ok, msg in checks:
+        if not ok:
+            raise ScenarioError(f"{where}: initial_interval.{msg}")
+    robot = robot_from_scenario(s)
+    centre = ii.payload_centre_m or robot.extra["grasp_point"]
+    nominal, lower, upper = payload_range_prior(robot.theta_e, ii.payload_mass_kg, centre, ii.payload_half_extent_m)
+    ii.nominal, ii.lower, ii.upper = ([float(x) for x in v] for v in (nominal, lower, upper))
 
 
 def _stack_on_platform(s: Scenario) -> None:

@@ -272,10 +272,12 @@ def _methods(text, default):
 def cmd_sweep(args: argparse.Namespace) -> int:
     from safesysid.scenario import load_scenario
     from safesysid.setup_check import check_setup
+    from safesysid.setup_check import check_setup
 
     path = Path(args.scenario)
     texts = list(args.scenario_text)
     scenario = load_scenario(path, overrides=texts)  # validates (exit 2 on bad input) before any worker starts
+    check_setup(scenario)
     check_setup(scenario)
     methods = _methods(args.methods, scenario.method)
     require_positive(trials=args.trials, workers=args.workers)

@@ -277,6 +277,13 @@ class InitialInterval:
     nominal: List[float] = dc.field(default_factory=lambda: [3.2, 0.0, 0.0, -0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
     lower: List[float] = dc.field(default_factory=lambda: [1.2, -0.4, -0.4, -1.0] + [-0.2] * 6)
     upper: List[float] = dc.field(default_factory=lambda: [5.2, 0.4, 0.4, -0.1] + [0.2] * 6)
+    # A robot without a declared prior: with payload_mass_kg [lo, hi] set, nominal/lower/upper are
+    # derived at load from the end-effector body plus any payload of such mass lying in the box of
+    # payload_half_extent_m about payload_centre_m (end-effector frame and axes; empty centre: the
+    # robot's grasp point), systems/estimation/prior.py; the three lists must then not be given.
+    payload_mass_kg: List[float] = dc.field(default_factory=list)
+    payload_centre_m: List[float] = dc.field(default_factory=list)
+    payload_half_extent_m: List[float] = dc.field(default_factory=lambda: [0.0, 0.0, 0.0])
 
 
 @dc.dataclass

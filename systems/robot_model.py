@@ -393,14 +393,12 @@ def load_robot(
     else:
         params = joint_parameters_from_plant(plant, joint_names)
     ee_name = end_effector or (doc or {}).get("end_effector_link")
-    if ee_name is None:
-        ee = tree.n - 1
-    elif ee_name in body_names:
-        ee = body_names.index(ee_name)
-    else:
-        raise ModelError(f"{params_path or model_path}: end effector {ee_name!r} is not a moving body of the model")
+    ee, x_carrier_ee = _end_effector(plant, context, body_names, ee_name, params_path or model_path)
     theta = np.concatenate([theta_bodies, params.friction_theta()])
-    extra = {"grasp_point": np.asarray((doc or {}).get("grasp_point_m", [0, 0, 0]), float), "params_doc": doc}
+    grasp = np.asarray((doc or {}).get("grasp_point_m", [0, 0, 0]), float)
+    if x_carrier_ee is not None:  # given in the frame of a link welded to the end-effector body
+        grasp = x_carrier_ee @ grasp
+    extra = {"grasp_point": grasp, "params_doc": doc}
     return RobotModel(
         tree=tree,
         joint_params=params,
@@ -411,3 +409,21 @@ def load_robot(
         coulomb_smoothing=coulomb_smoothing,
         extra=extra,
     )
+
+
+def _end_effector(plant, context, body_names, ee_name, where):
+    """(tree index, RigidTransform of the named link in that body's frame) of the end effector: a
+    moving body, or a link welded to one (a hand on the flange: it is part of that body, and
+    grasp_point_m, given in its frame, is moved into the body's frame; None for a moving body).
+    No name: the last body."""
+    from .reachability import carrier_index
+
+    if ee_name is None:
+        return len(body_names) - 1, None
+    if ee_name in body_names:
+        return body_names.index(ee_name), None
+    index = carrier_index(plant, plant.GetBodyByName(ee_name), body_names) if plant.HasBodyNamed(ee_name) else -1
+    if index < 0:
+        raise ModelError(f"{where}: end_effector_link: {ee_name!r} is not a moving body of the model nor welded to one")
+    carrier = plant.GetBodyByName(body_names[index])
+    return index, plant.CalcRelativeTransform(context, carrier.body_frame(), plant.GetBodyByName(ee_name).body_frame())

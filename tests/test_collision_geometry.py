@@ -66,19 +66,19 @@ def sample_shape(shape, n=24):
     return np.vstack([f * surface for f in (1.0, 0.75, 0.5, 0.25, 0.0)])
 
 
-def real_arm_scene(robot, dumbbell):
+def real_arm_scene(robot, dumbbell, scenario_file="quickstart.yaml"):
     """The simulated arm (with `dumbbell` grasped) as SceneGraph sees it."""
-    scenario = load_scenario(SCENARIOS_DIR / "quickstart.yaml")
+    scenario = load_scenario(SCENARIOS_DIR / scenario_file)
     builder = DiagramBuilder()
     arm = add_real_arm(builder, scenario, robot=robot, dumbbell=dumbbell)
     diagram = builder.Build()
     return arm, diagram, diagram.CreateDefaultContext()
 
 
-def worst_protrusions(robot, dumbbell, configurations):
+def worst_protrusions(robot, dumbbell, configurations, scenario_file="quickstart.yaml"):
     """{'link shape': max over samples and configurations of (distance outside the nearest
     sphere carried by the same body)}; +inf when that body carries no sphere."""
-    arm, diagram, ctx = real_arm_scene(robot, dumbbell)
+    arm, diagram, ctx = real_arm_scene(robot, dumbbell, scenario_file)
     plant, sg = arm.plant, arm.scene_graph
     spheres = reach.arm_spheres(robot).concat(reach.payload_spheres(robot, dumbbell))
     inspector = sg.model_inspector()

@@ -1,0 +1,58 @@
+"""Checks that make a wrong set-up an error before a run starts (exit 2, one line naming the file
+and the field): a prior that does not contain the simulated payload's truth, a start pose outside
+the joint limits, a payload of non-positive mass. `safesysid run` and `sweep` call check_setup
+after loading the scenario; the robot's own files are checked where they are read
+(systems/robot_model.py, systems/reachability.py).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from safesysid.scenario import Scenario, ScenarioError, robot_from_scenario
+from safesysid.systems import inertial
+
+
+def check_setup(s: Scenario) -> None:
+    """ScenarioError naming the scenario file and field when the set-up cannot be run as declared."""
+    from safesysid.systems.real_arm_plant import scenario_dumbbell
+
+    robot = robot_from_scenario(s)
+    _check_start_pose(s, robot)
+    dumbbell = scenario_dumbbell(s)
+    if dumbbell is not None and not dumbbell.mass_kg > 0:
+        raise ScenarioError(
+            f"{s.source}: payload.dumbbell: {dumbbell.name!r} has mass {dumbbell.mass_kg} kg (must be > 0)"
+        )
+    _check_prior_contains_truth(s, robot, dumbbell)
+
+
+def _check_start_pose(s, robot):
+    jp = robot.joint_params
+    q0 = np.asarray(s.q0_rad, float)
+    outside = [
+        f"{name} {q:.4f} not in [{lo:.4f}, {hi:.4f}]"
+        for name, q, lo, hi in zip(jp.names, q0, jp.position_lower, jp.position_upper)
+        if not lo <= q <= hi
+    ]
+    if outside:
+        raise ScenarioError(f"{s.source}: q0_rad: outside the joint limits of {robot.source}: {'; '.join(outside)}")
+
+
+def _check_prior_contains_truth(s, robot, dumbbell):
+    """The end effector's true theta (its nominal body plus the scenario's payload) inside
+    initial_interval: otherwise the interval the run publishes is not a guarantee of anything."""
+    from safesysid.systems.real_arm_plant import true_theta
+
+    truth = true_theta(robot, dumbbell)[robot.ee_slice]
+    lower, upper = (np.asarray(v, float) for v in (s.initial_interval.lower, s.initial_interval.upper))
+    bad = [
+        f"{name} {t:.4g} not in [{lo:.4g}, {hi:.4g}]"
+        for name, t, lo, hi in zip(inertial.NAMES, truth, lower, upper)
+        if not lo <= t <= hi
+    ]
+    if bad:
+        payload = dumbbell.name if dumbbell is not None else "none"
+        raise ScenarioError(
+            f"{s.source}: initial_interval: does not contain the simulated end effector's truth "
+            f"(payload.dumbbell {payload!r}): {'; '.join(bad)}"
+        )
