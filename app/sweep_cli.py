@@ -272,7 +272,6 @@ def _methods(text, default):
 def cmd_sweep(args: argparse.Namespace) -> int:
     from safesysid.scenario import load_scenario
     from safesysid.setup_check import check_setup
-    from safesysid.setup_check import check_setup
 
     path = Path(args.scenario)
     texts = list(args.scenario_text)
