@@ -277,7 +277,6 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     texts = list(args.scenario_text)
     scenario = load_scenario(path, overrides=texts)  # validates (exit 2 on bad input) before any worker starts
     check_setup(scenario)
-    check_setup(scenario)
     methods = _methods(args.methods, scenario.method)
     require_positive(trials=args.trials, workers=args.workers)
     out = Path(args.out)
