@@ -488,6 +488,7 @@ def run_online(
         "placement_error_m": task_summary["placement"]["error_m"] if task_summary else None,
         "task": task_summary,
         "payload_true": {"theta": truth.tolist(), "dumbbell": arm.dumbbell.name if arm.dumbbell else None},
+        "robot_parameters": scenario.plant.robot_parameters,  # the simulated arm's: nominal | drawn | corner (A1)
         "estimate": {
             "nominal": np.asarray(theta_e0).tolist(),
             "lower": np.asarray(lo).tolist(),

@@ -119,6 +119,9 @@ def random_scene(
         if _clearance(points, radii, box) >= min_start_clearance_m + 0.15:  # 0.15: dumbbell reach beyond the spheres
             boxes.append(box)
     scene.obstacles = boxes
+    # A random scene measures the guarantees: the simulated arm's own parameters are drawn in their
+    # declared box (A1), not the model's nominal ones (summary.json robot_parameters says which).
+    scene.plant.robot_parameters = "drawn"
     scene.seed = int(rng.integers(1 << 30)) if seed is None else seed
     scene.name = f"{base.name}_random"
     return scene

@@ -122,6 +122,7 @@ def test_random_scenes_with_a_box_close_to_the_arm_are_safe(quickstart, index):
         summary["events"],
     )
     assert_safe(summary)
+    assert summary["robot_parameters"] == "drawn"  # measured with the arm's parameters drawn in their box (A1)
     assert "solved" in summary["planner"]["status"] or "best_feasible" in summary["planner"]["status"]  # it moved
     assert summary["min_clearance_m"] < 0.1  # the referee sees the box close to the real geometry
 
