@@ -56,3 +56,20 @@ def _check_prior_contains_truth(s, robot, dumbbell):
             f"{s.source}: initial_interval: does not contain the simulated end effector's truth "
             f"(payload.dumbbell {payload!r}): {'; '.join(bad)}"
         )
+
+
+def payloads_inside_prior(s: Scenario, robot, names):
+    """The payloads of `names` (dumbbells, or "none") whose truth the scenario's prior contains:
+    the ones a randomized trial may draw (a sweep tests the guarantees, not a wrong set-up)."""
+    from safesysid.systems.config import resolve_path, scenario_dir
+    from safesysid.systems.payload import load_dumbbells
+    from safesysid.systems.real_arm_plant import true_theta
+
+    bells = load_dumbbells(resolve_path(s.payload.dumbbells_file, scenario_dir(s)))
+    lower, upper = (np.asarray(v, float) for v in (s.initial_interval.lower, s.initial_interval.upper))
+
+    def inside(name):
+        truth = true_theta(robot, None if name == "none" else bells[name])[robot.ee_slice]
+        return bool(np.all(lower <= truth) and np.all(truth <= upper))
+
+    return [name for name in names if inside(name)] or list(names)

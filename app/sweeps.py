@@ -10,6 +10,7 @@ import copy
 
 import numpy as np
 from safesysid.scenario import Obstacle, Scenario, robot_from_scenario
+from safesysid.setup_check import payloads_inside_prior
 
 PAYLOADS = ("none", "4lb", "5lb", "6lb", "7lb", "8lb")
 
@@ -92,7 +93,7 @@ def random_scene(
     q0 = np.asarray(base.q0_rad, float) + rng.uniform(-start_spread_rad, start_spread_rad, robot.n)
     q0 = np.clip(q0, jp.position_lower + 0.3, jp.position_upper - 0.3)
     scene.q0_rad = q0.tolist()
-    scene.payload.dumbbell = str(rng.choice(PAYLOADS))
+    scene.payload.dumbbell = str(rng.choice(payloads_inside_prior(base, robot, PAYLOADS)))
     points, radii = _sphere_centres(robot, q0)
     # Dumbbell clearance is covered by the gripper spheres' margin plus min_start_clearance_m.
     boxes = []
