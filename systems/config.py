@@ -200,11 +200,11 @@ class Planner:
     # made of: a direction seen only on a noisy joint (joint 2's gravity load, joint 7's
     # armature) counts for what it is worth there.
     exciting_weighting: str = "none"  # none | noise
-    # true: the exciting cost conditions the motion executed so far stacked with the candidate
-    # plan, so each plan excites what the data still lack (cond(Y) well below random plans');
-    # false: the plan alone, the paper's cost (its data no better conditioned than random plans'
-    # here, but no wider intervals either: README "Exciting vs random").
-    cumulative_excitation: bool = False
+    # true (default): the exciting cost conditions the motion executed so far stacked with the
+    # candidate plan, so each plan excites what the data still lack (cond(Y) well below random
+    # plans'); false: the plan alone, the paper's cost, whose data are no better conditioned than
+    # random plans' at the hardware V_max 0.02 (docs/identification.md).
+    cumulative_excitation: bool = True
     # true: a plan certified on its own k (each plan only needs its own k safe; a box is certified
     # for every k in it, so it shrinks much more), the certified k box only when no such point is
     # found: SafePlanner._refine. Larger motions, the same checks. false: the box alone.
@@ -251,7 +251,9 @@ class Estimator:
     integration: str = "trapezoid"  # trapezoid | euler (paper)
     solver: str = "ipopt"  # ipopt | snopt
     max_gap_s: float = 0.05  # a segment never spans a time step longer than this
-    set_membership: str = "mass"  # LP refinement of [θ_e]: none | mass | all (estimation/enclosure.py)
+    # LP refinement of [θ_e] (estimation/enclosure.py): none | mass | all; all, the default, bounds
+    # each of the ten parameters as the paper's Fig. 5 does (~2x the update's CPU: docs/identification.md)
+    set_membership: str = "all"
     point_estimate: str = "map"  # θ0: map (θ_r marginalised) | paper (plain least squares)
     # Logged torque: held (zero-order hold, exact left sum) | continuous (trapezoid + rate bound).
     torque_signal: str = "held"

@@ -1,15 +1,18 @@
 """Table IV and Fig. 5 from a compare of ours and random (app/table_iv.py): the numbers against
-hand-computed ones on made-up summaries, and a tiny compare end to end."""
+hand-computed ones on made-up summaries, and a tiny compare end to end; the default estimator
+bounds all ten parameters (the paper's Fig. 5)."""
 
 import csv
+import dataclasses
 import json
 
 import numpy as np
+from helpers import CENTRE, PRIOR, PRIOR_NOMINAL
 from safesysid.cli import main
-from safesysid.scenario import SCENARIOS_DIR
+from safesysid.scenario import SCENARIOS_DIR, load_scenario
+from safesysid.systems import estimation as E
+from safesysid.systems.payload import payload_theta_in_end_effector
 from safesysid.table_iv import PAPER_COND_Y, table_iv, write_identification_results
-
-PRIOR = ([1.2, -0.4, -0.4, -1.0] + [-0.2] * 6, [5.2, 0.4, 0.4, -0.1] + [0.2] * 6)
 
 
 def summary(method, dumbbell, trial, cond_y, widths):
@@ -75,3 +78,21 @@ def test_tiny_compare_of_ours_and_random_writes_table_iv_and_fig5(tmp_path):
     widths = {m: np.subtract(s["estimate"]["upper"], s["estimate"]["lower"]) for m, s in runs.items()}
     assert np.allclose(doc["width_ratio"]["median"], widths["ours"] / widths["random"])
     assert (out / "fig5_4lb.png").stat().st_size > 5000
+
+
+def test_the_default_estimator_bounds_all_ten_parameters(robot, dumbbells):
+    """estimator.set_membership defaults to all: on the same 3 s log every interval lies inside the
+    mass-only LP's and the first moments come out narrower (with mass they keep the Theorem 2 box)."""
+    settings = E.EstimatorSettings.from_scenario(load_scenario(SCENARIOS_DIR / "quickstart.yaml"))
+    rng = np.random.default_rng(3)
+    theta = E.perturbed_robot_theta(rng, robot, 0.05)
+    theta[robot.ee_slice] = robot.theta_e + payload_theta_in_end_effector(dumbbells["4lb"], robot.extra["grasp_point"])
+    log = E.simulate_log(rng, robot, theta, 3.0, 1000.0, centre=CENTRE)[:4]
+    boxes = {}
+    for mode in ("mass", settings.set_membership):
+        est = E.IncrementalEstimator(robot, dataclasses.replace(settings, set_membership=mode), PRIOR, PRIOR_NOMINAL)
+        est.add(*log)
+        boxes[mode] = est.update()
+    default, mass = boxes[settings.set_membership], boxes["mass"]
+    assert np.all(default.lower >= mass.lower - 1e-12) and np.all(default.upper <= mass.upper + 1e-12)
+    assert np.all(default.widths[1:4] < 0.9 * mass.widths[1:4]), (default.widths, mass.widths)
