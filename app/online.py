@@ -542,17 +542,26 @@ def run_online(
         built.tracking.position,
         np.max(np.abs(command) / robot.joint_params.torque_limit, 1),
     )
-    report.plot_clearance(out / "clearance.png", np.array(rec.times), np.array(rec.clearance))
+    phases = figures.phases_of(summary)
+    report.plot_clearance(out / "clearance.png", np.array(rec.times), np.array(rec.clearance), phases)
     figures.write_run_figures(out, summary, history, robot.joint_params.torque_limit)  # joints, conditioning
-    report.plot_intervals(out / "intervals.png", theta_e0, lo, hi, truth, title=f"{scenario.name} / {method}")
+    # The identified body is the last link + gripper + payload: say so, and show the prior behind the intervals.
+    body = report.identified_body_text(
+        truth[0], *((arm.dumbbell.name, arm.dumbbell.mass_kg) if arm.dumbbell else ("", None))
+    )
+    prior = (first[1], first[2])
+    title = f"{scenario.name} / {method}; {body}"
+    report.plot_intervals(out / "intervals.png", theta_e0, lo, hi, truth, title=title, prior=prior)
     if history:
         report.plot_estimate_history(
             out / "mass.png",
-            [h["t"] for h in history],
-            [h["nominal"] for h in history],
-            [h["lower"] for h in history],
-            [h["upper"] for h in history],
+            [0.0] + [h["t"] for h in history],
+            [first[0]] + [h["nominal"] for h in history],
+            [first[1]] + [h["lower"] for h in history],
+            [first[2]] + [h["upper"] for h in history],
             truth,
+            prior=prior,
+            title=body,
         )
     # After the release the welded payload is empty (no mass, no collision) but still drawn: hide it.
     released = [e["t"] for e in summary["events"] if e["kind"] == "release"]
