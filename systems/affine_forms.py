@@ -28,6 +28,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike
 
+from .intervals import dot_rounding
+
 if TYPE_CHECKING:
     from .armour import TrackingBounds
     from .intervals import Interval
@@ -41,7 +43,7 @@ _UP = 1 + 8 * _U
 def _mag(x):
     """An upper bound of |c| + |g|_1 + r, carried along (m) instead of recomputed at every operation."""
     if x.m is None:
-        x.m = (np.abs(x.c) + np.abs(x.g).sum(-1) + x.r) * _UP
+        x.m = (np.abs(x.c) + np.abs(x.g).sum(-1) + x.r) * (1 + dot_rounding(x.g.shape[-1] + 2))
     return x.m
 
 
@@ -183,7 +185,10 @@ class Affine:
         k = self.c.shape[axis]
         gaxis = axis if axis >= 0 else axis - 1
         m = _mag(self).sum(axis)
-        return self._new(self.c.sum(axis), self.g.sum(gaxis), (self.r.sum(axis) + (k + 1) * _U * m) * _UP, m * _UP)
+        rounding = dot_rounding(k)  # of the k-term float sums (c, r, m)
+        return self._new(
+            self.c.sum(axis), self.g.sum(gaxis), (self.r.sum(axis) + rounding * m) * _UP, m * (1 + rounding)
+        )
 
 
 def stack(items: Sequence[Affine], axis: int = -1) -> Affine:

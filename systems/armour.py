@@ -58,7 +58,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from . import regressors
-from .intervals import Interval, matmul
+from .intervals import Interval, dot_rounding, matmul
 from .spatial import cross_rows
 from .uncertainty import ParameterFloors, parameter_radius
 
@@ -256,7 +256,8 @@ def mass_spread(robot: RobotModel, q: ArrayLike, theta_lo: ArrayLike, theta_hi: 
     (reachability.interval_mass_spread: the same over boxes of configurations)."""
     n = robot.n
     columns = robot.momentum_regressor(np.repeat(np.asarray(q, float)[None], n, 0), np.eye(n))  # [j, i, k]
-    spread = np.einsum("jik,k->ij", np.abs(columns), np.asarray(theta_hi, float) - theta_lo) * _UP
+    widths = np.asarray(theta_hi, float) - theta_lo
+    spread = np.einsum("jik,k->ij", np.abs(columns), widths) * (1 + dot_rounding(len(widths)))
     return float(spectral_bound(spread))
 
 

@@ -26,7 +26,7 @@ from .armour import (
     robust_gain_bound,
     spectral_bound,
 )
-from .intervals import Interval, _down, _up
+from .intervals import Interval, _down, _up, dot_rounding
 
 if TYPE_CHECKING:
     from .robot_model import RobotModel
@@ -99,7 +99,7 @@ class _Box(Interval):
 
     def sum(self, axis):
         k = self.lo.shape[axis]
-        err = (k * np.finfo(float).eps) * self.mag.sum(axis)
+        err = dot_rounding(k) * self.mag.sum(axis)
         return _Box(_dn(self.lo.sum(axis) - err), _upr(self.hi.sum(axis) + err))
 
 
@@ -220,7 +220,7 @@ def _affine3(a0, a1, a2, s, c):
         return s * a1 + c * a2 + a0
     mid = a0 + s.mid * a1 + c.mid * a2
     rad = np.abs(a1) * s.rad + np.abs(a2) * c.rad
-    err = 4 * np.finfo(float).eps * (np.abs(a0) + np.abs(a1) * s.mag + np.abs(a2) * c.mag)
+    err = dot_rounding(3) * (np.abs(a0) + np.abs(a1) * s.mag + np.abs(a2) * c.mag)  # mid-radius, 3 terms
     return _Box(_down(mid - rad - err), _up(mid + rad + err))
 
 
@@ -486,9 +486,9 @@ def robust_bound_vertex(
             * np.maximum(np.abs(aa.lo[:, j]), np.abs(aa.hi[:, j]))[:, None, None],
             0,
         )
-    err = 4 * (n + 2) * np.finfo(float).eps * scale  # rounding of the sums above
+    err = 4 * dot_rounding(n) * scale  # rounding of the sums above (lo and hi, each of n products)
     mag = np.maximum(np.abs(lo), np.abs(hi)) + err[None]
-    best = _up((mag @ d[cols]).max(0) * (1 + 32 * np.finfo(float).eps))
+    best = _up((mag @ d[cols]).max(0) * (1 + dot_rounding(int(cols.sum()))))
     full = interval_passivity_regressor(robot, q, v, va, aa) if full is None else full
     rest = full.mag[..., ~cols] @ d[~cols]
     plain = full.mag @ d
@@ -523,7 +523,7 @@ def torque_bound(
     d = np.maximum(d, 0.0)
     mid = wp.mid @ theta0
     rad = wp.rad @ np.abs(theta0)
-    err = 8 * np.finfo(float).eps * (wp.mag @ np.abs(theta0))
+    err = dot_rounding(len(theta0)) * (wp.mag @ np.abs(theta0))  # the mid-radius products over theta
     nominal = _up(np.abs(mid) + rad + err)
     wbar = _up((wp.mag @ d) * (1 + 1e-12))
     robust = robust_term(wbar, excess)
@@ -541,7 +541,7 @@ def affine_torque_bound(
     k = len(theta0)
     centre = wp.c @ theta0
     gen = np.einsum("...ks,k->...s", wp.g, theta0)
-    err = (k + 2) * np.finfo(float).eps * (wp.mag @ np.abs(theta0))  # the sums over k above
+    err = dot_rounding(k) * (wp.mag @ np.abs(theta0))  # the sums over k above
     nominal = _up(np.abs(centre) + wp.spread(gen) + wp.r @ np.abs(theta0) + err)
     # Entries whose sign is fixed on the whole set (|c| >= spread + r) add linearly:
     # sum_k d_k |x_k| = sum_k d_k sgn(c_k) x_k there, so their generators may cancel across k.

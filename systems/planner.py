@@ -39,7 +39,7 @@ from .affine_forms import concat_rows
 from .armour import TrackingBounds
 from .bezier import QuinticBezier, restriction_matrix
 from .blas import single_threaded_blas
-from .intervals import Interval
+from .intervals import Interval, dot_rounding
 from .spatial import cross, to_body
 
 if TYPE_CHECKING:
@@ -488,10 +488,15 @@ class PlanningProblem:
         return soft, np.add.reduceat(weights[:, None] * jac, self.group_start, axis=0)
 
     def collision(self, k: ArrayLike, with_jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
-        """Constraint values (P,) >= 0 means safe, and d/dk (P, n)."""
+        """Constraint values (P,) >= 0 means safe (up to their rounding: `is_feasible`), and d/dk (P, n)."""
+        vals, jac, _ = self._pair_values(k, with_jacobian)
+        return vals, jac
+
+    def _pair_values(self, k, with_jacobian):
+        """(values, d/dk, sphere centres (P, 3)) of the kept pairs at k."""
         k = np.asarray(k, float)
         if len(self.pair_i) == 0:
-            return np.zeros(0), np.zeros((0, self.n))
+            return np.zeros(0), np.zeros((0, self.n)), np.zeros((0, 3))
         pl = self.planner
         r = self.reach
         ints = self.active_intervals
@@ -511,18 +516,32 @@ class PlanningProblem:
         grad[floor] = (0.0, 0.0, 1.0)
         vals = vals - self.pair_need
         if not with_jacobian:
-            return vals, None
+            return vals, None, pts
         dcdq = dc[pos, self.pair_s]  # (P, n, 3)
         dqdk = r.w_mid[self.pair_i][:, None] * r.kr[None, :]  # (P, n)
         jac = (dcdq @ grad[..., None])[..., 0] * dqdk
-        return vals, jac
+        return vals, jac, pts
 
     def is_feasible(self, k: ArrayLike) -> bool:
+        """k in the box and every kept pair's float clearance above what its rounding may add."""
         k = np.asarray(k, float)
         if np.any(k < self.k_lo) or np.any(k > self.k_hi):
             return False
-        vals, _ = self.collision(k, with_jacobian=False)
-        return bool(np.all(vals >= 0))
+        vals, _, pts = self._pair_values(k, with_jacobian=False)
+        return bool(np.all(vals >= self.clearance_rounding(pts)))
+
+    def clearance_rounding(self, pts: np.ndarray) -> np.ndarray:
+        """(P,) bound on how far each float clearance may exceed the exact one: box_signed_distance
+        rounds p - c, a 3-term rotation, |.| - h and a 3-term norm, then the need is subtracted (the
+        floor: z - floor - need), at most 8 roundings of these magnitudes (dot_rounding(8))."""
+        pl = self.planner
+        mag = np.abs(pts).sum(1) + self.pair_need
+        box = self.pair_o >= 0
+        o = self.pair_o[box]
+        mag[box] += np.abs(pl.boxes.centre[o]).sum(1) + np.abs(pl.boxes.half_size[o]).sum(1)
+        if pl.floor_z is not None:
+            mag[~box] += abs(pl.floor_z)
+        return dot_rounding(8) * mag
 
     # -- costs -----------------------------------------------------------------------------------
     def desired_at(self, t: ArrayLike, k: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

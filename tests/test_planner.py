@@ -703,3 +703,22 @@ def test_point_refinement_never_adopts_a_target_that_collides_or_leaves_a_limit(
     if violated == "floor":  # the target itself does reach into the floor: the check had work to do
         qt, _, _ = planner.problem(Q0, z, z, *thetas, certify_torque=False).desired_at(t, np.asarray(target))
         assert min(scene.distances(qi)[1] for qi in qt) < 0.0
+
+
+def test_a_clearance_within_its_rounding_is_not_feasible(robot, payload):
+    """is_feasible rounds outward: a kept pair whose float clearance is >= 0 but below what the
+    rounding of its signed distance may add is refused; twice that margin is accepted."""
+    planner, thetas = make_planner(robot, payload, scene_obstacles())
+    z = np.zeros(7)
+    prob = planner.problem(Q0, z, z, *thetas)
+    k = np.clip(z, prob.k_lo, prob.k_hi)
+    vals, _, pts = prob._pair_values(k, with_jacobian=False)
+    margin = prob.clearance_rounding(pts)
+    assert len(vals) and np.all(margin > 0) and np.all(margin < 1e-12)  # of the order of eps x metres
+    i = int(np.argmin(vals))
+    need = prob.pair_need.copy()
+    for scale, feasible in ((0.5, False), (2.0, True)):
+        prob.pair_need = need.copy()
+        prob.pair_need[i] = need[i] + vals[i] - scale * margin[i]  # pair i's clearance: scale x its margin
+        assert 0.0 <= prob.collision(k, with_jacobian=False)[0][i]
+        assert prob.is_feasible(k) is feasible

@@ -10,6 +10,7 @@ import numpy as np
 from scipy.optimize import linprog  # imported here: its first import costs ~0.3 s
 
 from .. import inertial
+from ..intervals import dot_rounding
 from .log_cholesky import ls_cost_terms
 from .segments import SegmentRows
 from .settings import EPS, EstimatorSettings
@@ -235,8 +236,18 @@ def certified_lp_min(
     y = np.maximum(-res.ineqlin.marginals, 0.0)
     r = c + A_ub.T @ y
     bound = np.sum(np.minimum(r * lo_x, r * hi_x)) - y @ b_ub
-    bound -= 1e-12 * (np.abs(r) @ np.maximum(np.abs(lo_x), np.abs(hi_x)) + np.abs(y) @ np.abs(b_ub)) + 1e-300
+    bound -= _lp_bound_rounding(c, A_ub, b_ub, y, r, np.maximum(np.abs(lo_x), np.abs(hi_x)))
     return "ok", float(np.nextafter(bound, -np.inf))
+
+
+def _lp_bound_rounding(c, A_ub, b_ub, y, r, x_mag):
+    """What the float evaluation of the weak-duality bound may exceed the exact one by: r = c + Aᵀy
+    is a sum of m + 1 terms that can cancel (its error scales with |c| + |A|ᵀ|y|, not |r|), then
+    n + m products are summed (dot_rounding). Never below the former margin, 1e-12 of the terms."""
+    m = len(y)
+    r_error = dot_rounding(m + 1) * (np.abs(c) + np.abs(A_ub).T @ y) @ x_mag
+    terms = np.abs(r) @ x_mag + y @ np.abs(b_ub)
+    return max(1e-12 * terms, dot_rounding(len(r) + m) * terms + r_error) + 1e-300
 
 
 def box_is_consistent(centre: np.ndarray, radius: np.ndarray) -> tuple[bool, float]:
