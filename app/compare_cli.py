@@ -135,27 +135,28 @@ def table(done: list[dict], methods: list[str], dumbbells: list[str], trials: in
 
 def task_played(summary: dict) -> dict:
     """What the task phase played in one run: its duration and time scale (None: not played),
-    refused (task_uncertified) and the certificate executed (None: no ARMOUR certificate)."""
+    refused (task_uncertified), the certificate executed (at the cap when refused; None: no ARMOUR
+    certificate) and whether the box it was computed with holds the payload."""
     task = summary.get("task") or {}
-    return {
-        "duration_s": task.get("duration_s"),
-        "time_scale": task.get("time_scale"),
-        "refused": bool(task.get("uncertified")),
-        "certified_torque_ratio": task.get("certified_torque_ratio"),
-    }
+    keys = ("duration_s", "time_scale", "certified_torque_ratio", "certificate_box_contains_payload")
+    return {"refused": bool(task.get("uncertified")), **{k: task.get(k) for k in keys}}
 
 
 def _task_text(played: list[dict]) -> str:
-    """One table cell: each trial's task duration and scale, `refused` for task_uncertified."""
+    """One table cell: each trial's task duration, scale and certificate, or `refused`."""
     texts = []
     for p in played:
+        ratio = p["certified_torque_ratio"]
+        cert = "" if ratio is None else f"certificate {ratio:.3f}"
+        if p["certificate_box_contains_payload"] is False and ratio is not None:
+            cert += ", box excludes the payload"
         if p["refused"]:
-            texts.append("refused (task_uncertified)")
+            texts.append(f"refused: task_uncertified ({cert} at the cap)")
         elif p["duration_s"] is None:
             texts.append("not played")
         else:
-            texts.append(f"{p['duration_s']:.2f} s ({p['time_scale']:g}x)")
-    return ", ".join(texts) or "-"
+            texts.append(f"{p['duration_s']:.2f} s ({p['time_scale']:g}x{', ' + cert if cert else ''})")
+    return "; ".join(texts) or "-"
 
 
 def _per_dumbbell_text(entry: dict) -> str:
@@ -185,8 +186,9 @@ def write_tables(out: Path, scenario_name: str, rows: dict, dumbbells: list[str]
         csv_rows.append([m, row["cell"], *per])
     lines += [
         "",
-        "Task phase per dumbbell: the task trajectory's duration as played and its time scale (an ARMOUR",
-        "task is slowed until its torque certificate holds, up to task.max_time_scale; refused: none did).",
+        "Task phase per dumbbell: the task trajectory's duration as played, its time scale and ARMOUR's",
+        "torque certificate with the box latched at the switch (slowed until the certificate is <= 1, up",
+        "to task.max_time_scale; refused: no scale did).",
         "",
         "| " + " | ".join(["method", *dumbbells]) + " |",
         "|" + "---|" * (len(dumbbells) + 1),

@@ -11,7 +11,9 @@ Fourier trajectory of grav-pid-excit, or none: the arm holds q0), tracked by its
 Task phase (scenario `task` section; systems/task_phase.py): a TaskPhaseSource sits between the
 planner and the controller. One plant step after the identification horizon (at t = 0 for
 methods that do not identify, which then have no planner) it latches the method's parameters
-(ours: the identified box), and plays the move back to q0 and the cached task trajectory; at its
+(ours: the identified box), frozen for the task, and plays the move back to q0 and the cached
+task trajectory, slower or not at all when ARMOUR's certificate with that box needs it
+(app/task_run.certify_task: task_uncertified, the arm holds); at its
 end run_online releases the payload (RealArm.release), gives the controller the bare end
 effector, lets the payload settle and measures the placement on the simulated pose. The
 SafetyMonitor referees the whole run, both phases.

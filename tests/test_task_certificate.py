@@ -124,3 +124,24 @@ def test_the_box_latched_at_the_switch_stays_frozen_when_its_source_changes_afte
     for name in ("theta0", "theta_lower", "theta_upper"):
         assert np.all(src.GetOutputPort(name).Eval(ctx) == 2.0), name  # the controller keeps the latched box
     assert len(latched) == 1 and all(np.all(x == 2.0) for x in latched[0])  # certified with that same box
+
+
+def test_compare_table_shows_each_tasks_duration_scale_certificate_and_refusal(tmp_path):
+    from safesysid.compare_cli import table, write_tables
+
+    def run(method, task):
+        return dict(
+            method=method, dumbbell="4lb", trial=0, success=task is not None, failure=None, collisions=0, task=task
+        )
+
+    played = dict(duration_s=2.5, time_scale=1.25, certified_torque_ratio=0.958, certificate_box_contains_payload=True)
+    refused = dict(played, duration_s=None, time_scale=None, certified_torque_ratio=1.075, uncertified=True)
+    blind = dict(played, duration_s=2.0, time_scale=1.0, certified_torque_ratio=0.371)
+    blind["certificate_box_contains_payload"] = False
+    done = [run("ours", played), run("conservative", refused), run("wrong", blind), run("grav-pid", None)]
+    write_tables(tmp_path, "a", table(done, ["ours", "conservative", "wrong", "grav-pid"], ["4lb"], 1), ["4lb"], 1)
+    md = (tmp_path / "table.md").read_text()
+    assert "| ours | 2.50 s (1.25x, certificate 0.958) |" in md
+    assert "| conservative | refused: task_uncertified (certificate 1.075 at the cap) |" in md
+    assert "| wrong | 2.00 s (1x, certificate 0.371, box excludes the payload) |" in md
+    assert "| grav-pid | not played |" in md
