@@ -161,8 +161,48 @@ def run(quick: bool = False, out=None) -> dict:
     }
 
 
+def update_cost(log_path: str, scenario_path: str) -> dict:
+    """CPU time (process time: the machine's load does not count) of each update on a run's
+    log.csv, one update per planner.replan_period_s as the run makes them, with
+    estimator.set_membership mass and all (the scenario's other estimator settings and prior;
+    one BLAS thread), and the final widths of each."""
+    from safesysid.joint_log import read_joint_log
+    from safesysid.scenario import load_scenario, robot_from_scenario
+    from safesysid.systems.blas import single_threaded_blas
+
+    scene = load_scenario(scenario_path)
+    robot = robot_from_scenario(scene)
+    log = read_joint_log(log_path, robot.n)
+    prior, period = scene.initial_interval, scene.planner.replan_period_s
+    edges = np.searchsorted(log.t, np.arange(period, log.t[-1] + 1e-9, period), "right")
+    out = {}
+    for mode in ("mass", "all"):
+        settings = replace(est_mod.EstimatorSettings.from_scenario(scene), set_membership=mode)
+        est = est_mod.IncrementalEstimator(
+            robot, settings, (np.array(prior.lower), np.array(prior.upper)), np.array(prior.nominal)
+        )
+        times, start = [], 0
+        with single_threaded_blas():
+            for stop in edges:
+                c0 = time.process_time()
+                est.add(log.t[start:stop], log.q[start:stop], log.v[start:stop], log.tau[start:stop])
+                result = est.update()
+                times.append(time.process_time() - c0)
+                start = stop
+        out[mode] = {"update_cpu_s": times, "median_s": float(np.median(times)), "widths": result.widths.tolist()}
+    return out
+
+
 if __name__ == "__main__":
     import json
     import sys
 
-    print(json.dumps(run(quick="--quick" in sys.argv), indent=2, default=float))
+    if "--update-cost" in sys.argv:  # --update-cost RUN/log.csv [SCENARIO.yaml (default: quickstart)]
+        from safesysid.scenario import SCENARIOS_DIR
+
+        args = sys.argv[sys.argv.index("--update-cost") + 1 :]
+        print(
+            json.dumps(update_cost(args[0], args[1] if len(args) > 1 else SCENARIOS_DIR / "quickstart.yaml"), indent=2)
+        )
+    else:
+        print(json.dumps(run(quick="--quick" in sys.argv), indent=2, default=float))
