@@ -6,11 +6,12 @@ frozen at the switch (systems/trajectory_source.TaskPhaseSource)."""
 
 import numpy as np
 import pytest
+import test_task_phase
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import BasicVector, DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import ConstantVectorSource
 from safesysid.online import run_online
-from safesysid.scenario import SCENARIOS_DIR, load_scenario, robot_from_scenario
+from safesysid.scenario import robot_from_scenario
 from safesysid.systems import methods, task_phase
 from safesysid.systems.task_check import (
     certified_torque_ratio,
@@ -20,26 +21,9 @@ from safesysid.systems.task_check import (
 )
 from safesysid.systems.trajectory_source import TaskPhaseSource
 from safesysid.task_run import certify_task
+from test_task_phase import NARROWED_PRIOR, experiment_a
 
-# Table II's end-effector box narrowed (it still holds the 4 lb and the 8 lb dumbbells): the
-# conservative certificate of experiment (a)'s task is 1.056 at 1x and 0.958 at 1.25x.
-NARROWED_PRIOR = (
-    "initial_interval: {nominal: [2.7, 0, 0, -0.45, 0, 0, 0, 0, 0, 0],"
-    " lower: [1.2, -0.3, -0.3, -0.8, -0.15, -0.15, -0.15, -0.15, -0.15, -0.15],"
-    " upper: [4.2, 0.3, 0.3, -0.15, 0.15, 0.15, 0.15, 0.15, 0.15, 0.15]}"
-)
-
-
-@pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    return str(tmp_path_factory.mktemp("task_cache"))
-
-
-def experiment_a(cache, *texts):
-    return load_scenario(
-        SCENARIOS_DIR / "experiment_a.yaml",
-        overrides=["payload: {dumbbell: 4lb}", f"task: {{cache_dir: {cache}}}", *texts],
-    )
+cache = test_task_phase.cache  # its task-trajectory cache (a session fixture: one solve for both files)
 
 
 def test_the_smallest_certified_scale_of_the_grid_is_taken_whatever_the_certificates_order():
