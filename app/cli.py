@@ -172,6 +172,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--self-check", action="store_true", help="blind test on simulated logs with withheld effects")
     p.add_argument("--cases", type=int, default=40, help="self-check: number of blind cases")
     p.add_argument("--workers", type=int, default=1, help="self-check: parallel processes")
+    p.add_argument(
+        "--hard", action="store_true", help="self-check: two effects per non-null case, 3%% noise, no accelerations"
+    )
     p.add_argument("--seed", type=int, default=0)
     _bag_options(p)
 

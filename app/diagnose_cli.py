@@ -221,8 +221,11 @@ def self_check(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
+    stream = (out / "cases.jsonl").open("w")  # each case as it finishes (a long run can be read early)
 
     def progress(c):
+        stream.write(json.dumps(_clean(c)) + "\n")
+        stream.flush()
         print(
             f"case {c['case']:3d} ({'a' if c['with_acceleration'] else 'no a'}): injected "
             f"{', '.join(c['injected']) or 'none'} -> named {', '.join(c['named']) or 'none'}",
@@ -231,7 +234,9 @@ def self_check(args: argparse.Namespace) -> int:
         )
 
     workers = getattr(args, "workers", 1)
-    cases, summary, table = diagnosis.run_self_check(model, args.cases, args.seed, progress, workers)
+    hard = bool(getattr(args, "hard", False))
+    cases, summary, table = diagnosis.run_self_check(model, args.cases, args.seed, progress, workers, hard=hard)
+    stream.close()
     summary["wall_time_s"] = time.perf_counter() - t0
     summary["targets"] = {
         "injected_named_rate>=0.95": summary["injected_named_rate"] >= 0.95,

@@ -13,6 +13,7 @@ Modules, in the order the data flows:
   report_data       where the gap lies, the contract fields of diagnosis.json
   diagnose          diagnose, frozen_diagnosis, leave_one_out (the entry points)
   corrected_model   corrected_model.yaml: the diagnosis' product, written and read back
+  intervals         statistical intervals of the diagnosed values (block sandwich, block bootstrap)
   simulate, self_check, detection, real_arm_check   the self-check on simulated logs
 """
 
@@ -79,11 +80,13 @@ from .real_arm_check import REAL_ARM_EFFECTS, real_arm_log, run_real_arm_check
 from .report_data import REGIME_QUANTILE, held_out_result, regimes
 from .scoring import corrected_model_of, frozen_designs, held_out_numbers, reduction, rms_table, score, score_designs
 from .selection import (
+    EXCITED_BY,
     MIN_BLOCKS,
     MIN_EFFECT_RATIO,
     MIN_NOISE_FRACTION,
     MIN_RELATIVE,
     P_BLOCKS,
+    Z_AMBIGUOUS,
     Z_BLOCK,
     Selection,
     noise_variance,
@@ -92,6 +95,7 @@ from .selection import (
     significance,
 )
 from .self_check import (
+    HARD_NOISE_LEVEL,
     NEAR_FLOOR_SNR,
     case_plan,
     confusion,
@@ -162,6 +166,8 @@ __all__ = [
     "fit_effects",
     "n_params",
     "Z_BLOCK",
+    "Z_AMBIGUOUS",
+    "EXCITED_BY",
     "P_BLOCKS",
     "MIN_BLOCKS",
     "MIN_RELATIVE",
@@ -217,6 +223,7 @@ __all__ = [
     "true_torque",
     "make_case",
     "NEAR_FLOOR_SNR",
+    "HARD_NOISE_LEVEL",
     "case_plan",
     "parallel_map",
     "run_self_check",

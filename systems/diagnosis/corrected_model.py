@@ -11,6 +11,10 @@ Schema (a stable contract: add keys, never rename or drop):
         joints: [1-based joints where the effect matters]
         params: {...}                # exactly diagnosis.effect_params (units in the key names), plus
                                      # time_delay.time_law: lag | shift (machine-readable law)
+        intervals: {key: [lo, hi]}   # optional: statistical 90 % intervals of params values (per-joint
+                                     # values: [[lo per joint], [hi per joint]]; null: no information),
+                                     # diagnosis/intervals.py; time_delay's key is delay_s. Not
+                                     # Algorithm 1's provable interval.
     scoring:                         # what a frozen scoring needs besides the effects
       residual_form: inverse_dynamics | momentum
       window_s: momentum-form window
@@ -63,6 +67,7 @@ class CorrectedEffect:
     name: str
     joints: list[int]  # 1-based
     params: dict[str, Any]  # diagnosis.effect_params(...) (+ time_law for time_delay)
+    intervals: dict[str, list] = field(default_factory=dict)  # statistical 90 % intervals (diagnosis/intervals.py)
 
 
 @dataclass
@@ -128,9 +133,7 @@ class CorrectedModel:
         doc = {
             "model": self.model,
             "model_resolved": self.model_resolved,
-            "effects": [
-                {"name": e.name, "joints": [int(j) for j in e.joints], "params": _plain(e.params)} for e in self.effects
-            ],
+            "effects": [_effect_doc(e) for e in self.effects],
             "scoring": {"residual_form": self.scoring.residual_form, "window_s": float(self.scoring.window_s)},
         }
         sat = self.scoring.saturation
@@ -144,6 +147,13 @@ class CorrectedModel:
         if self.fitted_on:
             doc["fitted_on"] = [str(p) for p in self.fitted_on]
         return doc
+
+
+def _effect_doc(e: CorrectedEffect) -> dict:
+    doc = {"name": e.name, "joints": [int(j) for j in e.joints], "params": _plain(e.params)}
+    if e.intervals:
+        doc["intervals"] = _plain(e.intervals)
+    return doc
 
 
 def _plain(x):
@@ -249,7 +259,9 @@ def read_corrected_model(path: str | Path) -> CorrectedModel:
                     raise bad(f"{f}.params.{key}", f"expected {kind} values, got {len(val)}")
         if name in [x.name for x in effects]:
             raise bad(f"{f}.name", f"{name} given twice")
-        effects.append(CorrectedEffect(name, list(joints), dict(params)))
+        effects.append(
+            CorrectedEffect(name, list(joints), dict(params), _read_intervals(e.get("intervals", {}), f, bad))
+        )
     scoring = _read_scoring(doc.get("scoring", {}), bad)
     fitted_on = doc.get("fitted_on", [])
     resolved = doc.get("model_resolved", "") or ""
@@ -258,6 +270,19 @@ def read_corrected_model(path: str | Path) -> CorrectedModel:
     return CorrectedModel(
         model, effects, scoring, resolved, list(fitted_on) if isinstance(fitted_on, list) else [], str(path)
     )
+
+
+def _read_intervals(doc, f, bad):
+    """An effect's optional `intervals`: {key: [lo, hi]}, lo/hi numbers, null or lists of them."""
+    if not isinstance(doc, dict):
+        raise bad(f"{f}.intervals", "expected a mapping {key: [lo, hi]}")
+    for key, pair in doc.items():
+        bound = lambda x: x is None or _finite(x)  # noqa: E731 (null: no information)
+        ok = isinstance(pair, list) and len(pair) == 2
+        ok = ok and all(bound(x) or (isinstance(x, list) and all(bound(y) for y in x)) for x in pair)
+        if not ok:
+            raise bad(f"{f}.intervals.{key}", "expected [lo, hi] (numbers, null or per-joint lists)")
+    return dict(doc)
 
 
 def _finite(x):

@@ -27,6 +27,8 @@ from .corrected_model import CorrectedModel, group_params
 from .cross_validation import inner_folds
 from .design import BLOCK_S, Design, choose_form, rms, saturation_rule
 from .effects import EFFECTS, Params, corrected_parameters, effect_params, group_of
+from .intervals import NOTE as INTERVALS_NOTE
+from .intervals import statistical_intervals
 from .problem import Problem, design_residual
 from .report_data import held_out_result
 from .scoring import corrected_model_of, frozen_designs, held_out_numbers, reduction, rms_table, score, score_designs
@@ -72,7 +74,10 @@ def _diagnose(model, fit_logs, check_logs, effects, form, max_effects, model_pat
     check = frozen_designs(model, check_logs, form, rule)
     final = Problem(model, cv.designs, check)
     params, _ = final.fit_effects(sel.effects)
+    intervals = statistical_intervals(model, final, params, sel.effects)
     corrected_model = corrected_model_of(model, sel, params, form, rule, model_path, [l.source for l in fit_logs])
+    for e in corrected_model.effects:
+        e.intervals = intervals[e.name]
     before, after = score_designs(corrected_model, check)
     test = held_out_numbers(check, before, after)
     n = model.n
@@ -94,6 +99,7 @@ def _diagnose(model, fit_logs, check_logs, effects, form, max_effects, model_pat
         }
         if chosen:
             entry["selection_step"] = sel.effects.index(e) + 1
+            entry["intervals"] = intervals[e]
         entries.append(entry)
     entries.sort(key=lambda x: (not x["significant"], x.get("selection_step", 0), -x["test_alone"]["delta_mse"]))
 
@@ -118,6 +124,8 @@ def _diagnose(model, fit_logs, check_logs, effects, form, max_effects, model_pat
                 "no selection step or threshold saw them",
             },
             "cross_validation": cross_validation,
+            "intervals_note": INTERVALS_NOTE,
+            "ambiguous": _ambiguous(final, sel),
             "protocol": {
                 "selection_data": "fit logs only (inner cross-validation: " + cv.scheme + ")",
                 "check_logs": "scored once (test)",
@@ -235,6 +243,31 @@ def pool_held_out(folds: list[Diagnosis]) -> dict:
         "named_in_every_fold": sorted(every, key=order.index),
         "named_in_some_fold": sorted(some - every, key=order.index),
     }
+
+
+def _ambiguous(final: Problem, sel) -> list[dict]:
+    """The sets that explain the validation data as well as the named best pair (selection.
+    equally_good), each beside the best with both scores (validation and check RMS) and the data
+    that would separate them; empty when the choice is clear."""
+    best = [s["effect"] for s in sel.steps if s.get("phase") == "best pair"]
+    check_rms = lambda effects: rms(final.check_residual_all(final.fit_effects(list(effects))[0]))  # noqa: E731
+    out = []
+    for alt in sel.ambiguous:
+        out.append(
+            {
+                "sets": [
+                    {"effects": best, "rms_validation": alt["rms_validation_best"], "rms_check": check_rms(best)},
+                    {
+                        "effects": alt["effects"],
+                        "rms_validation": alt["rms_validation"],
+                        "rms_check": check_rms(alt["effects"]),
+                    },
+                ],
+                "difference_z": alt["difference_z"],
+                "separating_data": alt["separating_data"],
+            }
+        )
+    return out
 
 
 def _json_sig(sig):

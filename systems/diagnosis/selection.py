@@ -22,7 +22,7 @@ it is significant, i.e. all of
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -39,6 +39,21 @@ MIN_BLOCKS = 12  # fewer blocks cannot reach P_BLOCKS reliably: the rank test th
 MIN_RELATIVE = 0.01
 MIN_NOISE_FRACTION = 0.05
 MIN_EFFECT_RATIO = 0.0025  # effect RMS / measured torque RMS on its most affected joint
+Z_AMBIGUOUS = 2.0  # two admissible sets whose held-out difference is under 2 standard errors: ambiguous
+# What excites each effect (and not the others): the data that would tell two effect sets apart.
+EXCITED_BY = {
+    "coulomb_friction": "velocity reversals and slow constant-speed motion",
+    "viscous_friction": "a wide range of constant speeds",
+    "stribeck_friction": "slow motion through and near zero speed",
+    "load_friction": "large transmitted torques at speed, in both directions",
+    "armature": "high accelerations",
+    "torque_offset": "poses that change the sign of the gravity torque",
+    "torque_scale": "large torques of both signs",
+    "payload": "wrist poses and accelerations that change the end effector's gravity and inertia",
+    "time_delay": "fast torque changes (high-frequency motion)",
+    "base_tilt": "first-joint rotations at stretched poses (the gravity direction in the base)",
+    "joint_elasticity": "large load changes at poses where gravity depends on the joint angles",
+}
 
 
 def noise_variance(r: np.ndarray, block: np.ndarray, joint: np.ndarray) -> float:
@@ -146,6 +161,7 @@ class Selection:
     steps: list[dict]
     single: dict[str, dict]  # effect -> {params, sse, r, sig}: each effect alone
     joints: dict[str, list[int]]  # selected effect -> 1-based joints where it matters
+    ambiguous: list[dict] = field(default_factory=list)  # other sets explaining the validation data as well
 
 
 def _drop(params, effect):
@@ -168,7 +184,7 @@ def select_effects(ev: Evaluator, effects: Sequence[str], max_effects: int) -> S
         sig["significant"] &= resolvable(ev, params)
         single[e] = {"params": params, "sse": sse, "r": r1, "sig": sig}
     # The best pair (or single) first, exhaustively, then forward-greedy.
-    selected, cur_params, cur_sse, cur_r, steps = _best_small_set(ev, effects, single, r0, sse0)
+    selected, cur_params, cur_sse, cur_r, steps, ambiguous = _best_small_set(ev, effects, single, r0, sse0)
     while len(selected) < max_effects:
         best = None
         for e in effects:
@@ -205,7 +221,7 @@ def select_effects(ev: Evaluator, effects: Sequence[str], max_effects: int) -> S
             )
             js = [j + 1 for j in range(n) if gain[j] > MIN_RELATIVE * np.mean(r_wo[ev.check_joint == j] ** 2)]
         joints[e] = js or list(range(1, n + 1))
-    return Selection(selected, cur_params, cur_r, steps, single, joints)
+    return Selection(selected, cur_params, cur_r, steps, single, joints, ambiguous)
 
 
 def _best_small_set(ev, effects, single, r0, sse0_fit):
@@ -230,6 +246,7 @@ def _best_small_set(ev, effects, single, r0, sse0_fit):
             if ok:
                 admissible.append((e, f))
     best = min(admissible, key=lambda k: float(np.mean(fits[k][2] ** 2)))
+    ambiguous = equally_good(ev, best, {k: fits[k][2] for k in admissible})
     params, sse, r = fits[best]
     steps = []
     prev = ()
@@ -241,4 +258,36 @@ def _best_small_set(ev, effects, single, r0, sse0_fit):
         sig = significance(ev, rr0, r1, s0, s1, n_params(p1) - n_params(p0))
         steps.append({"effect": e, "rms_after": rms(r1), "phase": "best pair", **sig})
         prev = cur
-    return list(order), params, sse, r, steps
+    return list(order), params, sse, r, steps, ambiguous
+
+
+def difference_z(ev: Evaluator, r_a: np.ndarray, r_b: np.ndarray) -> float:
+    """Held-out difference of two sets' squared residuals in standard errors of its block sums
+    (positive: b explains the validation data better than a)."""
+    diff = np.bincount(ev.check_block, weights=r_a**2 - r_b**2)
+    se = float(np.sqrt(np.sum((diff - diff.mean()) ** 2) * len(diff) / max(len(diff) - 1, 1)))
+    return float(diff.sum() / se) if se > 0 else 0.0
+
+
+def equally_good(ev: Evaluator, best: tuple, residuals: dict[tuple, np.ndarray]) -> list[dict]:
+    """Admissible sets other than `best` (not a subset of it) whose validation residual is within
+    Z_AMBIGUOUS standard errors of best's: each with its score and the data that would separate it
+    from best (what excites the effects the two sets do not share)."""
+    out = []
+    for other, r in residuals.items():
+        if not other or set(other) <= set(best):
+            continue
+        z = difference_z(ev, r, residuals[best])
+        if z < Z_AMBIGUOUS:
+            only_best = [e for e in best if e not in other]
+            only_other = [e for e in other if e not in best]
+            out.append(
+                {
+                    "effects": list(other),
+                    "rms_validation": rms(r),
+                    "rms_validation_best": rms(residuals[best]),
+                    "difference_z": z,
+                    "separating_data": "; ".join(f"{e}: {EXCITED_BY[e]}" for e in only_best + only_other),
+                }
+            )
+    return sorted(out, key=lambda x: x["rms_validation"])

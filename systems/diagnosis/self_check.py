@@ -22,13 +22,20 @@ from .effects import EFFECTS, PER_JOINT
 from .simulate import SNR_RANGE, make_case
 
 NEAR_FLOOR_SNR = (1.0, 1.3)  # "close to the noise floor": effect RMS about the noise RMS
+HARD_NOISE_LEVEL = 0.03  # hard mode: the top of NOISE_LEVEL_RANGE in every case
+BOOTSTRAP_EVERY = 4  # the block bootstrap's calibration check runs on every 4th case
 
 
-def case_plan(n_cases: int, rng: np.random.Generator, effects: Sequence[str] = EFFECTS) -> list[dict]:
+def case_plan(
+    n_cases: int, rng: np.random.Generator, effects: Sequence[str] = EFFECTS, hard: bool = False
+) -> list[dict]:
     """Injected effect sets: every 5th case null, then alternating single and double effects;
     every other double puts two per-joint effects on the same joints; every 3rd non-null case
     is drawn close to the noise floor (NEAR_FLOOR_SNR); accelerations logged in every other
-    case of each kind."""
+    case of each kind. hard: every non-null case has two effects, 3 % noise
+    (HARD_NOISE_LEVEL) and no accelerations."""
+    if hard:
+        return _hard_plan(n_cases, rng, effects)
     plan, count = [], {0: 0, 1: 0, 2: 0}
     per_joint = [e for e in effects if e in PER_JOINT]
     non_null = 0
@@ -49,6 +56,27 @@ def case_plan(n_cases: int, rng: np.random.Generator, effects: Sequence[str] = E
     return plan
 
 
+def _hard_plan(n_cases, rng, effects):
+    """The hard mode of case_plan: every 5th case null, the others two distinct effects (every
+    other pair of per-joint effects on the same joints), 3 % noise, no accelerations."""
+    plan, doubles = [], 0
+    per_joint = [e for e in effects if e in PER_JOINT]
+    for i in range(n_cases):
+        same = i % 5 != 0 and doubles % 2 == 1 and len(per_joint) >= 2
+        inj = [] if i % 5 == 0 else [str(e) for e in rng.choice(per_joint if same else effects, size=2, replace=False)]
+        doubles += bool(inj)
+        plan.append(
+            {
+                "injected": inj,
+                "with_acceleration": False,
+                "same_joints": same,
+                "near_floor": False,
+                "noise_level": HARD_NOISE_LEVEL,
+            }
+        )
+    return plan
+
+
 def _run_case(job):
     """One blind case (a process-pool job): make the logs, diagnose on the fit logs, score the
     check log once, compare names and values with the withheld truth."""
@@ -63,11 +91,13 @@ def _run_case(job):
             spec["with_acceleration"],
             snr_range=NEAR_FLOOR_SNR if spec["near_floor"] else SNR_RANGE,
             same_joints=spec["same_joints"],
+            noise_level=spec.get("noise_level"),
         )
         d = diagnose(model, fit, check)
     named = d.result["cause"]
     inj = spec["injected"]
     fitted = {e["name"]: e["params"] for e in d.result["effects"] if e["significant"]}
+    intervals = {e["name"]: e["intervals"] for e in d.result["effects"] if e["significant"]}
     case = {
         "case": i,
         **spec,
@@ -82,13 +112,38 @@ def _run_case(job):
         "cross_validation_reduction": d.result["cross_validation"]["reduction"],
         "joints_named": {e["name"]: e["joints"] for e in d.result["effects"] if e["significant"]},
         "value_errors": [err for e in inj if e in fitted for err in value_errors(e, truth["effects"][e], fitted[e])],
+        "coverage": [
+            rec
+            for e in inj
+            if e in fitted
+            for rec in interval_coverage(e, truth["effects"][e], intervals[e], fitted[e])
+        ],
     }
+    case["ambiguous"] = [a["sets"][1]["effects"] for a in d.result["ambiguous"]]
+    if i % BOOTSTRAP_EVERY == 0 and named:
+        case["bootstrap_over_sandwich"] = bootstrap_ratio(model, d, np.random.default_rng([seed, i, 1]))
     if "time_delay" in inj and "time_delay" in named:  # the right time law?
         case["time_law"] = {
             "injected": truth["effects"]["time_delay"]["params"].get("law", "shift"),
             "named": fitted["time_delay"]["time_law"],
         }
     return case
+
+
+def bootstrap_ratio(model: RobotModel, d, rng: np.random.Generator) -> float:
+    """Median over the selected parameters of the block bootstrap's 90 % half-width (percentile)
+    over the block sandwich's (intervals.py), on the diagnosis' fit logs: the calibration check
+    of the Jacobian intervals, on a subset of cases (every BOOTSTRAP_EVERY-th)."""
+    from .intervals import LEVEL, block_bootstrap, jacobian_rows, sandwich_covariance
+    from .problem import Problem
+
+    X, r, block = jacobian_rows(Problem(model, d.fit_designs, d.check_designs), d.combined_params)
+    cov, ok = sandwich_covariance(X, r, block)
+    draws = block_bootstrap(X, r, block, rng)
+    boot = 0.5 * (np.quantile(draws, 0.5 + LEVEL / 2, 0) - np.quantile(draws, 0.5 - LEVEL / 2, 0))
+    sand = 1.6449 * np.sqrt(np.maximum(np.diag(cov), 0.0))
+    use = ok & (sand > 0)
+    return float(np.median(boot[use] / sand[use])) if use.any() else 1.0
 
 
 def parallel_map(fn: Callable[[Any], Any], jobs: Sequence, workers: int) -> Iterator:
@@ -103,11 +158,17 @@ def parallel_map(fn: Callable[[Any], Any], jobs: Sequence, workers: int) -> Iter
 
 
 def run_self_check(
-    model: RobotModel, n_cases: int, seed: int, progress: Callable[[dict], None] | None = None, workers: int = 1
+    model: RobotModel,
+    n_cases: int,
+    seed: int,
+    progress: Callable[[dict], None] | None = None,
+    workers: int = 1,
+    *,
+    hard: bool = False,
 ) -> tuple[list[dict], dict, dict]:
     """Blind diagnosis of simulated cases (selection on the fit logs only, the check log scored
-    once); returns (cases, summary, confusion)."""
-    plan = case_plan(n_cases, np.random.default_rng(seed))
+    once; hard: case_plan's hard mode); returns (cases, summary, confusion)."""
+    plan = case_plan(n_cases, np.random.default_rng(seed), hard=hard)
     cases = []
     for case in parallel_map(_run_case, [(model, seed, i, spec) for i, spec in enumerate(plan)], workers):
         cases.append(case)
@@ -194,6 +255,133 @@ def value_errors(name: str, truth: dict, fitted: dict) -> list[dict]:
     return []
 
 
+# Injected truth of each value with an interval: (interval key, truth key, how to read it).
+TRUTH_OF = {
+    "coulomb_friction": ("delta_Fc_Nm", "delta"),
+    "viscous_friction": ("delta_Fv_Nms_rad", "delta"),
+    "stribeck_friction": ("Fs_Nm", "delta"),
+    "load_friction": ("mu", "mu"),
+    "armature": ("delta_Ia_kgm2", "delta"),
+    "torque_offset": ("offset_Nm", "delta"),
+    "torque_scale": ("scale", "scale"),
+    "joint_elasticity": ("compliance_rad_per_Nm", "compliance"),
+}
+
+
+def interval_coverage(name: str, truth: dict, intervals: dict, fitted_values: dict) -> list[dict]:
+    """Does each named injected value's statistical interval hold the withheld truth? A list of
+    {effect, key, index, truth, lo, hi, covered} (per-joint effects: on the joints value_errors
+    scores; payload: mass and each CoM coordinate; tilt: roll and pitch)."""
+    tp = truth["params"]
+    joints = [j - 1 for j in truth["injected_joints"] if j in truth.get("joints", truth["injected_joints"])]
+    if name in TRUTH_OF:
+        key, tkey = TRUTH_OF[name]
+        values = [(key, j, tp[tkey][j]) for j in joints]
+    elif name == "time_delay":
+        values = [("delay_s", None, tp["delay_s"])]
+    elif name == "payload":
+        com = np.asarray(tp["theta"][1:4]) / tp["mass_kg"]
+        values = [("mass_kg", None, tp["mass_kg"])] + [("com_m", k, com[k]) for k in range(3)]
+    elif name == "base_tilt":
+        values = [("roll_rad", None, tp["roll_pitch_rad"][0]), ("pitch_rad", None, tp["roll_pitch_rad"][1])]
+    else:
+        return []
+    out = []
+    for key, k, t in values:
+        lo, hi = intervals[key] if k is None else (intervals[key][0][k], intervals[key][1][k])
+        lo_f, hi_f = -np.inf if lo is None else lo, np.inf if hi is None else hi
+        out.append(
+            {
+                "effect": name,
+                "key": key,
+                "index": k,
+                "truth": float(t),
+                "lo": lo,
+                "hi": hi,
+                "covered": lo_f <= t <= hi_f,
+            }
+        )
+    return out
+
+
+def coverage_table(cases: list[dict]) -> dict:
+    """Share of named injected values whose interval holds the truth: overall and per effect,
+    and the number of cases that contributed."""
+    recs = [r for c in cases for r in c.get("coverage", [])]
+    boot = [c["bootstrap_over_sandwich"] for c in cases if "bootstrap_over_sandwich" in c]
+    per = {}
+    for r in recs:
+        per.setdefault(r["effect"], []).append(r["covered"])
+    return {
+        "values": len(recs),
+        "cases": sum(bool(c.get("coverage")) for c in cases),
+        "covered": sum(r["covered"] for r in recs),
+        "rate": float(np.mean([r["covered"] for r in recs])) if recs else None,
+        "per_effect": {e: {"values": len(v), "rate": float(np.mean(v))} for e, v in per.items()},
+        "bootstrap_over_sandwich_median": float(np.median(boot)) if boot else None,
+        "bootstrap_cases": len(boot),
+    }
+
+
+def _needed_factor(rec: dict) -> float:
+    """Factor by which rec's interval must widen (about its fitted value) to hold the truth."""
+    t, f = rec["truth"], rec["fitted"]
+    end = rec["hi"] if t >= f else rec["lo"]
+    if end is None:  # unbounded on that side
+        return 0.0
+    side = abs(end - f)
+    return abs(t - f) / side if side > 0 else (0.0 if t == f else np.inf)
+
+
+def calibrated_coverage(cases: list[dict], validation: Callable[[dict], bool] | None = None) -> dict:
+    """Per-effect interval factors chosen on the validation cases (default: even case numbers:
+    the 90th percentile of the widening each value needed, at least 1; effects with fewer than
+    5 values take the pooled factor) and the coverage they give on the other (held-out) cases."""
+    validation = validation or (lambda c: c["case"] % 2 == 0)
+    val = [r for c in cases if validation(c) for r in c.get("coverage", [])]
+    held = [c for c in cases if not validation(c)]
+    pooled = max(1.0, float(np.quantile([_needed_factor(r) for r in val], 0.9))) if val else 1.0
+    factors = {}
+    for e in EFFECTS:
+        need = [_needed_factor(r) for r in val if r["effect"] == e]
+        factors[e] = max(1.0, float(np.quantile(need, 0.9))) if len(need) >= 5 else pooled
+    per, hits = {}, []
+    for r in (r for c in held for r in c.get("coverage", [])):
+        ok = _needed_factor(r) <= factors[r["effect"]]
+        hits.append(ok)
+        per.setdefault(r["effect"], []).append(ok)
+    return {
+        "factors": factors,
+        "validation_values": len(val),
+        "held_out_cases": sum(bool(c.get("coverage")) for c in held),
+        "held_out_values": len(hits),
+        "held_out_rate": float(np.mean(hits)) if hits else None,
+        "held_out_per_effect": {e: {"values": len(v), "rate": float(np.mean(v))} for e, v in per.items()},
+    }
+
+
+def spurious_table(cases: list[dict], effects: Sequence[str] = EFFECTS) -> dict:
+    """False naming on the hard set: share of null and of non-null cases with a spurious
+    effect, and per library effect how often it is named in the cases that lack it."""
+    nulls = [c for c in cases if not c["injected"]]
+    rest = [c for c in cases if c["injected"]]
+    rate = lambda cs: sum(bool(c["false"]) for c in cs) / len(cs) if cs else 0.0  # noqa: E731
+    per = {}
+    for e in effects:
+        lacking = [c for c in cases if e not in c["injected"]]
+        per[e] = {"cases_lacking": len(lacking), "named_falsely": sum(e in c["false"] for c in lacking)}
+    return {
+        "cases": len(cases),
+        "null_cases": len(nulls),
+        "null_with_false_effect": rate(nulls),
+        "non_null_cases": len(rest),
+        "non_null_with_false_effect": rate(rest),
+        "all_with_false_effect": rate(cases),
+        "per_effect": per,
+        "cases_reported_ambiguous": sum(bool(c.get("ambiguous")) for c in cases),
+    }
+
+
 def error_table(cases: list[dict]) -> list[dict]:
     """Per effect and quantity: count, median and 90th percentile of the absolute and the
     relative error of the named injected effects."""
@@ -263,6 +451,7 @@ def summarize(cases: list[dict]) -> dict:
         "near_floor": _named_rate([c for c in cases if c.get("near_floor")]),
         "same_joints": _named_rate([c for c in cases if c.get("same_joints")]),
         "parameter_errors": error_table(cases),
+        "interval_coverage": coverage_table(cases),
     }
 
 
