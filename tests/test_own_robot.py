@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from pydrake.geometry import Box, Capsule, Cylinder, Sphere
 from pydrake.math import RigidTransform, RollPitchYaw
-from safesysid.models import cover_spheres, make_panda_urdf
+from safesysid.models import cover_spheres, make_panda_urdf, make_ur5e_urdf
 from safesysid.scenario import SCENARIOS_DIR, ScenarioError, load_scenario
 from safesysid.systems import inertial
 from safesysid.systems.estimation.prior import payload_range_prior
@@ -57,6 +57,21 @@ def test_the_panda_files_are_the_generators_output():
     assert (MODELS_DIR / "panda.urdf").read_text() == make_panda_urdf.urdf()
     spheres = cover_spheres.model_spheres(MODELS_DIR / "panda.urdf", make_panda_urdf.SPHERE_MARGIN_M)
     assert (MODELS_DIR / "panda_spheres.yaml").read_text() == cover_spheres.spheres_yaml(spheres, "make_panda_urdf.py")
+
+
+def test_the_ur5e_files_are_the_generators_output_and_its_spheres_enclose_it():
+    """The third arm (6 joints), brought in by docs/own-robot.md's steps: its files are its
+    generator's output, and its spheres hold every link shape, the tool and the payload."""
+    assert (MODELS_DIR / "ur5e.urdf").read_text() == make_ur5e_urdf.urdf()
+    assert (MODELS_DIR / "ur5e_params.yaml").read_text() == make_ur5e_urdf.params_yaml()
+    spheres = cover_spheres.model_spheres(MODELS_DIR / "ur5e.urdf", make_ur5e_urdf.SPHERE_MARGIN_M)
+    assert (MODELS_DIR / "ur5e_spheres.yaml").read_text() == cover_spheres.spheres_yaml(spheres, "make_ur5e_urdf.py")
+    ur5e = load_robot(params_path=MODELS_DIR / "ur5e_params.yaml")
+    assert ur5e.n == 6 and ur5e.body_names[ur5e.end_effector] == "wrist_3_link"
+    dumbbell = load_dumbbells(MODELS_DIR / "dumbbells.yaml")["4lb"]
+    worst = worst_protrusions(ur5e, dumbbell, configurations(ur5e, 4), "ur5e_quickstart.yaml")
+    assert max(worst.values()) <= TOLERANCE_M, worst
+    assert any(label.startswith("tool") for label in worst)
 
 
 @pytest.mark.parametrize("bell", ["none", "4lb"])
