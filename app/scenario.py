@@ -181,10 +181,15 @@ def _validate(s: Scenario, where):
     need(s.estimator.quadrature_safety >= 2, "estimator.quadrature_safety", "must be >= 2")
     need(s.estimator.hold_period_s >= 0, "estimator.hold_period_s", "must be >= 0")
     need(s.estimator.torque_rate_limit_Nm_s > 0, "estimator.torque_rate_limit_Nm_s", "must be > 0")
-    need(s.estimator.torque_lag_s >= 0, "estimator.torque_lag_s", "must be >= 0")
+    lag = s.estimator.torque_lag_s
+    if isinstance(lag, list):
+        need(len(lag) == 2, "estimator.torque_lag_s", "must be one number or [lo, hi]")
+        need(0 <= lag[0] <= lag[1], "estimator.torque_lag_s", f"[lo, hi] needs 0 <= lo <= hi, got {lag}")
+    else:
+        need(lag >= 0, "estimator.torque_lag_s", "must be >= 0")
     for key in ("torque_lag_s", "torque_delay_s"):
         need(
-            getattr(s.estimator, key) == 0 or s.estimator.torque_signal == "held",
+            not np.any(getattr(s.estimator, key)) or s.estimator.torque_signal == "held",
             f"estimator.{key}",
             "needs estimator.torque_signal: held (the time law of a held torque is undone exactly)",
         )
@@ -394,7 +399,7 @@ def _apply_corrected_model(s: Scenario, given, where):
     sets is an error, as are robot.model / robot.params beside it)."""
     if not s.robot.corrected_model:
         return
-    from safesysid.systems.model_corrections import CorrectionError, plant_effects, read_correction
+    from safesysid.systems.model_corrections import CorrectionError, plant_effects, read_correction, torque_lag_s
 
     for key in ("model", "params"):
         if key in (given.get("robot") or {}):
@@ -405,6 +410,7 @@ def _apply_corrected_model(s: Scenario, given, where):
     try:
         corr = read_correction(path)
         fields = plant_effects(corr)
+        lag = torque_lag_s(corr)  # its interval when the diagnosis gives one
     except CorrectionError as err:
         raise ScenarioError(f"{where}: robot.corrected_model: {err}") from err
     check_starting_scenario(corr)
@@ -416,7 +422,7 @@ def _apply_corrected_model(s: Scenario, given, where):
     # The estimator reads the same torque signal: its lag, and its shift against the motion
     # (a late reading pairs step k with a later sample, a late torque with an earlier one).
     sensor = {
-        "torque_lag_s": fields.get("torque_sensor_lag_s", 0.0),
+        "torque_lag_s": lag,
         "torque_delay_s": fields.get("torque_sensor_delay_s", 0.0) - fields.get("time_delay_s", 0.0),
     }
     for key, value in sensor.items():

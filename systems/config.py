@@ -260,8 +260,10 @@ class Estimator:
     hold_period_s: float = 0.0  # held: the hold period; 0 = plant.time_step_s
     torque_rate_limit_Nm_s: float = 200.0  # continuous: declared |dtau/dt|, checked on the data
     # held: the torque sensor's first-order lag (time constant; 0 = none), undone exactly
-    # (estimation/lag.py); set with plant.effects.torque_sensor_lag_s by robot.corrected_model.
-    torque_lag_s: float = 0.0
+    # (estimation/lag.py), or [lo, hi]: some lag in it, enclosed over the interval (the list
+    # first: yaml_load_typed rejects a list for `float | list[float]`); set with
+    # plant.effects.torque_sensor_lag_s by robot.corrected_model (its interval when it has one).
+    torque_lag_s: list[float] | float = 0.0
     # held: the logged torque of step k is the sample this much later (> 0: a late reading, < 0: a
     # late torque), re-paired exactly (estimation/delay.py); robot.corrected_model sets it with the
     # plant's torque_sensor_delay_s / time_delay_s.

@@ -86,10 +86,22 @@ def time_law(effect: CorrectedEffect) -> str:
     return effect.params["time_law"]  # the reader fills it in from the prose law of older files
 
 
-def torque_lag_s(corr: CorrectedModel) -> float:
-    """Time constant of a diagnosed first-order lag of the torque signal (0 when none)."""
+def torque_lag_s(corr: CorrectedModel) -> float | list[float]:
+    """Time constant of a diagnosed first-order lag of the torque signal (0 when none), for the
+    estimator: [lo, hi] when the effect carries `intervals.delay_s` (the diagnosed lag is an
+    estimate; the estimator encloses over the interval, widened to hold the point value too),
+    else the point value."""
     e = find_effect(corr, "time_delay")
-    return float(_param(corr, e, "delay_s")) if e is not None and time_law(e) == "lag" else 0.0
+    if e is None or time_law(e) != "lag":
+        return 0.0
+    d = float(_param(corr, e, "delay_s"))
+    pair = (getattr(e, "intervals", None) or {}).get("delay_s")
+    if pair is None or any(x is None for x in pair):  # null: the diagnosis has no interval
+        return d
+    lo, hi = (float(x) for x in pair)
+    if not 0 <= lo <= hi:
+        raise CorrectionError(f"{corr.path}: effects[{corr.effects.index(e)}].intervals.delay_s: needs 0 <= lo <= hi")
+    return [min(lo, d), max(hi, d)]
 
 
 def torque_shift_s(corr: CorrectedModel) -> float:

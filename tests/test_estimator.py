@@ -209,15 +209,17 @@ def test_held_torque_with_uneven_steps_and_gaps(robot, dumbbells, integration):
         assert np.max(np.diff(t[a : b + 1])) <= min(settings.max_gap_s, 1.5 * settings.hold_period_s)
 
 
-def test_held_torque_segments_never_span_a_lost_sample(robot, dumbbells):
+@pytest.mark.parametrize("declared", [{"hold_period_s": 1e-3}, {}], ids=["declared", "library_default"])
+def test_held_torque_segments_never_span_a_lost_sample(robot, dumbbells, declared):
     """A held sample that was not logged has an unknown torque: a step longer than 1.5 hold
-    periods ends the segment (here one dropped sample in twenty)."""
+    periods ends the segment (here one dropped sample in twenty), also with the library's
+    default settings (no hold period given: the 1 kHz controller's step, never "no rule")."""
     rng = np.random.default_rng(12)
     theta, _ = true_theta(rng, robot, dumbbells["5lb"])
     t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 3.0, 1000.0, centre=CENTRE)
     keep = np.ones(len(t), bool)
     keep[rng.choice(np.arange(1, len(t)), len(t) // 20, replace=False)] = False
-    ie = E.IncrementalEstimator(robot, E.EstimatorSettings(hold_period_s=1e-3))
+    ie = E.IncrementalEstimator(robot, E.EstimatorSettings(**declared))
     ie.add(t[keep], q[keep], v[keep], tau[keep])
     tk = t[keep]
     assert len(ie.rows) > 0

@@ -31,6 +31,10 @@ def test_defaults_and_robot():
         ("task: {placement_tolerance_m: 0}", "task.placement_tolerance_m"),
         ("task: {torque_margin_ratio: 1.0}", "task.torque_margin_ratio"),
         ("task: {place_xyz_m: [0.3, 0.0, 0.2], payload_model: 9lb}", "task.payload_model"),
+        ("estimator: {torque_lag_s: [0.12, 0.1]}", "estimator.torque_lag_s"),
+        ("estimator: {torque_lag_s: [-0.01, 0.1]}", "estimator.torque_lag_s"),
+        ("estimator: {torque_lag_s: [0.1]}", "estimator.torque_lag_s"),
+        ("estimator: {torque_lag_s: -0.1}", "estimator.torque_lag_s"),
     ],
 )
 def test_bad_keys_are_named_with_the_file(tmp_path, text, field):

@@ -50,7 +50,10 @@ def test_sysid_cli_writes_estimate_and_plots(logged, tmp_path, capsys):
     assert doc["cond_Y"] > 1 and len(doc["widths"]) == 10 and doc["names"][0] == "m"
     for name in ("intervals.png", "history.png"):
         assert (out / name).stat().st_size > 10_000
-    assert "truth inside: True" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "truth inside: True" in printed
+    # A log holds only its samples: the estimate says it rests on A5 (the quadrature) unverified.
+    assert doc["quadrature_assumption"] == "unverified" and "rests on A5 unverified" in printed
 
 
 def _write(tmp_path, log, n_rows=None, mutate=None):

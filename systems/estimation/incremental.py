@@ -51,6 +51,10 @@ class Estimate:
     message: str = ""
     problems: list = field(default_factory=list)  # this update's evidence that an assumption failed
     quadrature_ratio: float = 0.0  # max over rows of quadrature bound / torque radius
+    # A5 (quadrature): "unverified" (assumed: the motion between the samples is unknown, e.g. a log
+    # offline), "checked" (on every segment, `segments.resolved_quadrature`), or "violated" (false
+    # on some segment, whose bound was re-derived on sub-steps).
+    quadrature_assumption: str = "unverified"
     update_time_s: float = 0.0
     # The data-driven box (data ∩ prior ∩ the previous data box) before physical pruning; equals
     # lower/upper when settings.physical_pruning is off.
@@ -94,12 +98,20 @@ class Estimate:
             "message": self.message,
             "problems": list(self.problems),
             "quadrature_ratio": float(self.quadrature_ratio),
+            "quadrature_assumption": self.quadrature_assumption,
             "update_time_s": float(self.update_time_s),
             "data_lower": f(self.lower if self.data_lower is None else self.data_lower),
             "data_upper": f(self.upper if self.data_upper is None else self.data_upper),
             "first_order_lower": None if self.first_order_lower is None else f(self.first_order_lower),
             "first_order_upper": None if self.first_order_upper is None else f(self.first_order_upper),
         }
+
+
+def quadrature_assumption(rows: SegmentRows) -> str:
+    """What A5 rests on for these rows: violated | checked | unverified (see Estimate)."""
+    if rows.a5_violated.any():
+        return "violated"
+    return "checked" if len(rows) and rows.a5_checked.all() else "unverified"
 
 
 def _names(mask):
@@ -129,9 +141,10 @@ class IncrementalEstimator:
             raise EstimatorError(f"estimator.torque_signal: {st.torque_signal!r} is not held or continuous")
         if st.quadrature_safety < 2:
             raise EstimatorError(f"estimator.quadrature_safety: {st.quadrature_safety} must be >= 2")
-        if st.torque_lag_s < 0 or (st.torque_lag_s > 0 and st.torque_signal != "held"):
-            raise EstimatorError(f"estimator.torque_lag_s: {st.torque_lag_s} needs >= 0 and a held torque signal")
-        self._unlag = LagInverse(st.torque_lag_s, st.segment_gap_s()) if st.torque_lag_s > 0 else None
+        lag = st.lag_interval()
+        if lag[1] > 0 and st.torque_signal != "held":
+            raise EstimatorError(f"estimator.torque_lag_s: {st.torque_lag_s} needs a held torque signal")
+        self._unlag = LagInverse(lag, st.segment_gap_s()) if lag[1] > 0 else None
         if st.torque_delay_s and not (st.torque_signal == "held" and st.hold_period_s):
             raise EstimatorError(f"estimator.torque_delay_s: {st.torque_delay_s} needs a held torque and its period")
         self._unshift = DelayInverse(st.torque_delay_s, st.hold_period_s) if st.torque_delay_s else None
@@ -140,7 +153,7 @@ class IncrementalEstimator:
         self.theta_r = robot.theta[rest].copy()
         self.theta_r_radius = parameter_radius(robot, st.theta_r_ratio, st.theta_r_ratio, st.theta_r_floor)[rest]
         self.rows = SegmentRows.empty(self.n, len(self.theta_r))
-        self._pending = None  # (t, q, v, tau) of the unfinished tail
+        self._pending = None  # (t, q, v, tau, reading radius) of the unfinished tail
         self._consumed = 0  # global index of the first pending sample
         self.num_samples = 0
         self.prior = None if prior is None else (np.asarray(prior[0], float), np.asarray(prior[1], float))
@@ -160,8 +173,9 @@ class IncrementalEstimator:
         self.messages = []
 
     # -- data -------------------------------------------------------------------------------
-    def add(self, t: ArrayLike, q: ArrayLike, v: ArrayLike, tau: ArrayLike) -> int:
-        """Append samples (any chunk size); builds the segments that became complete."""
+    def add(self, t: ArrayLike, q: ArrayLike, v: ArrayLike, tau: ArrayLike, reference=None) -> int:
+        """Append samples (any chunk size); builds the segments that became complete. reference:
+        the motion between the samples, times -> (q, v, a), when known (A5 is then checked)."""
         t = np.atleast_1d(np.asarray(t, float))
         q, v, tau = (np.atleast_2d(np.asarray(x, float)) for x in (q, v, tau))
         if q.shape != (len(t), self.n) or v.shape != q.shape or tau.shape != q.shape:
@@ -172,23 +186,37 @@ class IncrementalEstimator:
             raise EstimatorError("NaN or inf in the estimator input")
         if self._unshift is not None:  # each step paired with its reading, once it has arrived
             t, q, v, tau = self._unshift.push(t, q, v, tau)
+        rho = None  # how far each τ is from the sensor's reading (a lag interval)
         if self._unlag is not None:  # the readings of a lagged sensor, one sample late
-            t, q, v, tau = self._unlag.push(t, q, v, tau)
+            t, q, v, tau, rho = self._unlag.push(t, q, v, tau)
+        rho = np.zeros_like(tau) if rho is None else rho
         if self._pending is not None:
             if len(t) and len(self._pending[0]) and t[0] <= self._pending[0][-1]:
                 raise EstimatorError(f"time is not strictly increasing at t={t[0]:.6g}")
-            t, q, v, tau = (np.concatenate([a, b]) for a, b in zip(self._pending, (t, q, v, tau)))
+            t, q, v, tau, rho = (np.concatenate([a, b]) for a, b in zip(self._pending, (t, q, v, tau, rho)))
         if np.any(np.diff(t) <= 0):
             raise EstimatorError("time is not strictly increasing")
         self.num_samples += len(t) - (0 if self._pending is None else len(self._pending[0]))
         bounds, next_start = segment_bounds(t, self.settings.horizon_s, self.settings.segment_gap_s())
         if len(bounds):
-            new = build_segment_rows(self.robot, t, q, v, tau, bounds, self.settings, self.theta_box(), self._consumed)
+            new = build_segment_rows(
+                self.robot,
+                t,
+                q,
+                v,
+                tau,
+                bounds,
+                self.settings,
+                self.theta_box(),
+                self._consumed,
+                rho if rho.any() else None,
+                reference,
+            )
             if len(self.rows) and len(new) and new.start_index[0] == self.rows.end_index[-1]:
                 new.shared_prev[0] = True
             self.rows = self.rows.concat(new)
         self._consumed += next_start
-        self._pending = tuple(x[next_start:] for x in (t, q, v, tau))
+        self._pending = tuple(x[next_start:] for x in (t, q, v, tau, rho))
         return len(bounds)
 
     def predicted_radius(self, t: ArrayLike, q: ArrayLike, v: ArrayLike, tau: ArrayLike) -> np.ndarray | None:
@@ -321,6 +349,12 @@ class IncrementalEstimator:
                 if np.any(new_lo > new_hi):
                     problems.append(f"the pruned interval does not meet the published one in {_names(new_lo > new_hi)}")
         notes = []
+        a5 = quadrature_assumption(self.rows)
+        if a5 == "violated":
+            notes.append(
+                f"A5 (quadrature) false on {int(self.rows.a5_violated.sum())} segment(s): the motion between the "
+                "samples is faster than they show; those rows are bounded on sub-steps"
+            )
         quad_ratio = float(np.max(self.rows.quad / np.maximum(torque_row_radius(self.rows), 1e-300)))
         if quad_ratio > st.quadrature_warn_ratio:
             notes.append(
@@ -382,6 +416,7 @@ class IncrementalEstimator:
             message="; ".join(notes),
             problems=problems,
             quadrature_ratio=quad_ratio,
+            quadrature_assumption=a5,
             data_lower=data_lo,
             data_upper=data_hi,
             first_order_lower=None if first is None else first[0],

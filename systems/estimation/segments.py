@@ -208,12 +208,57 @@ def quadrature_bound(
     h2 = np.diff(t) ** 2
     out = np.zeros((len(bounds), rates.shape[1]))
     for s, (a, b) in enumerate(bounds):
-        r = rates[a:b]  # the steps of this segment only: independent of how data was chunked
-        local = r.copy()
-        local[1:] = np.maximum(local[1:], r[:-1])
-        local[:-1] = np.maximum(local[:-1], r[1:])
-        out[s] = c * safety * (h2[a:b] @ local)
+        out[s] = c * safety * (h2[a:b] @ neighbour_max(rates[a:b]))
     return out
+
+
+def neighbour_max(r: np.ndarray) -> np.ndarray:
+    """max(a_k−1, a_k, a_k+1) over the steps of one segment (independent of how data was chunked)."""
+    local = r.copy()
+    local[1:] = np.maximum(local[1:], r[:-1])
+    local[:-1] = np.maximum(local[:-1], r[1:])
+    return local
+
+
+def _integrand_on(robot, reference, t, bounds, integration, theta_box):
+    """(∫W_c dt per segment by the quadrature on the grid t (S, n, 14 n), the integrand's mean
+    rates per step `integrand_rates` (N − 1, n)) of the motion `reference` sampled at t."""
+    q, v, _ = reference(t)
+    factors = _pair_factors(robot.tree, q, v)
+    fric = regressors.friction_columns(v, kind="rate", smoothing_velocity=robot.coulomb_smoothing)
+    wc = np.concatenate(
+        [
+            integrated_rate_regressor(robot.tree, q, v, t, bounds, integration, factors),
+            segment_sums(fric, t, bounds, integration),
+        ],
+        -1,
+    )
+    return wc, integrand_rates(t, factors, fric, *theta_box)
+
+
+def resolved_quadrature(robot, reference, t, bounds, settings, theta_box, substeps: int = 8):
+    """A5 checked where the motion between the samples is known (`reference(times) -> (q, v, a)`,
+    the motion the samples are of; online the commanded plan): per segment (bound (S, n),
+    violated (S,) bool).
+
+    violated: on some step the largest mean rate of the integrand over one of `substeps` equal
+    sub-steps (each a LOWER bound of sup |ḟ| on the step) exceeds κ·max(a_k−1, a_k, a_k+1), A5's
+    premise: A5 is then false on that step (a proof, no false alarm). bound: the error of the
+    samples' quadrature, the exact difference between it and the sub-step quadrature (over every θ
+    in theta_box) plus the sub-step quadrature's own A5 bound, i.e. A5 needed only on sub-steps
+    `substeps` times shorter."""
+    h = np.diff(t)
+    fine_t = np.append((t[:-1, None] + h[:, None] * (np.arange(substeps) / substeps)).ravel(), t[-1])
+    coarse, rates = _integrand_on(robot, reference, t, bounds, settings.integration, theta_box)
+    fine, fine_rates = _integrand_on(robot, reference, fine_t, bounds * substeps, settings.integration, theta_box)
+    diff = coarse - fine
+    bound = np.abs(diff @ theta_box[0]) + np.abs(diff) @ theta_box[1]
+    bound += quadrature_bound(fine_t, fine_rates, bounds * substeps, settings.integration, settings.quadrature_safety)
+    sub_max = fine_rates.reshape(len(h), substeps, -1).max(1)
+    violated = np.array(
+        [np.any(sub_max[a:b] > settings.quadrature_safety * neighbour_max(rates[a:b])) for a, b in bounds], bool
+    )
+    return bound, violated
 
 
 def torque_rate_bound(
@@ -251,6 +296,14 @@ class SegmentRows:
     violated: np.ndarray  # (S,) bool: the data contradict a declared assumption (torque rate)
     end_index: np.ndarray  # (S,) global index of the last sample (bookkeeping)
     start_index: np.ndarray
+    # (S,) bool: A5 checked on the motion between the samples (`resolved_quadrature`), and found false
+    a5_checked: np.ndarray | None = None
+    a5_violated: np.ndarray | None = None
+
+    def __post_init__(self):
+        for name in ("a5_checked", "a5_violated"):
+            if getattr(self, name) is None:
+                setattr(self, name, np.zeros(len(self.t0), bool))
 
     @classmethod
     def empty(cls, n: int, nr: int) -> SegmentRows:
@@ -282,12 +335,17 @@ class SegmentRows:
         return SegmentRows(**vals)
 
 
-def torque_radius(tau_meas: np.ndarray, settings: EstimatorSettings) -> np.ndarray:
-    """Per-sample bound on |τ_true − τ_meas| from the declared |τ_meas − τ| ≤ ratio|τ| + floor."""
+def torque_radius(tau_meas: np.ndarray, settings: EstimatorSettings, reading_radius=None) -> np.ndarray:
+    """Per-sample bound on |τ_true − τ_meas| from the declared |r − τ| ≤ ratio|τ| + floor of the
+    sensor's reading r. reading_radius ρ: τ_meas is only known to be within ρ of r (a lag
+    interval, estimation/lag.py), so |τ| ≤ (|τ_meas| + ρ + floor)/(1 − ratio) and the bound is
+    (ratio (|τ_meas| + ρ) + floor)/(1 − ratio) + ρ (ρ = 0: the plain bound, bit for bit)."""
     ratio = settings.torque_ratio
     if ratio >= 1:
         raise EstimatorError("noise.declared_torque_ratio must be < 1")
-    return (ratio * np.abs(tau_meas) + settings.torque_floor_Nm) / (1.0 - ratio)
+    if reading_radius is None:
+        return (ratio * np.abs(tau_meas) + settings.torque_floor_Nm) / (1.0 - ratio)
+    return (ratio * (np.abs(tau_meas) + reading_radius) + settings.torque_floor_Nm) / (1.0 - ratio) + reading_radius
 
 
 def build_segment_rows(
@@ -300,11 +358,15 @@ def build_segment_rows(
     settings: EstimatorSettings,
     theta_box: tuple[np.ndarray, np.ndarray] | None = None,
     index_offset: int = 0,
+    reading_radius: np.ndarray | None = None,
+    reference=None,
 ) -> SegmentRows:
     """Y, D_r, ∫τ and interval bookkeeping for the given segments (vectorized over samples).
 
     theta_box: (centre, radius) over all 14 n parameters, the box the true θ lies in, for the
-    quadrature bound (None: the model's θ, zero radius).
+    quadrature bound (None: the model's θ, zero radius). reading_radius (N, n): how far each τ is
+    from the sensor's reading (a lag interval; `torque_radius`). reference: the motion between
+    the samples, times -> (q, v, a), when known: A5 is then checked (`resolved_quadrature`).
     """
     n = robot.n
     ee = robot.ee_slice
@@ -328,7 +390,7 @@ def build_segment_rows(
     D = wm_b - wm_a - np.concatenate([wc_rigid, wc_fric], -1)
     rule = settings.torque_rule()
     T = segment_sums(ta, tt, loc, rule)
-    r = torque_radius(ta, settings)
+    r = torque_radius(ta, settings, None if reading_radius is None else reading_radius[lo : hi + 1])
     w_first = np.empty(S)
     w_last = np.empty(S)
     r_inner = np.empty((S, n))
@@ -344,6 +406,10 @@ def build_segment_rows(
     rates = integrand_rates(tt, factors, rate_fric, centre, radius)
     quad = quadrature_bound(tt, rates, loc, integ, settings.quadrature_safety)
     violated = np.zeros(S, bool)
+    a5_violated = np.zeros(S, bool)
+    if reference is not None:  # never below the samples' own A5 bound
+        resolved, a5_violated = resolved_quadrature(robot, reference, tt, loc, settings, (centre, radius))
+        quad = np.maximum(quad, resolved)
     if settings.torque_signal == "continuous":
         err, violated = torque_rate_bound(tt, ta, r, loc, settings.torque_rate_limit_Nm_s)
         quad = quad + err
@@ -364,4 +430,6 @@ def build_segment_rows(
         violated=violated,
         start_index=bounds[:, 0] + index_offset,
         end_index=bounds[:, 1] + index_offset,
+        a5_checked=np.full(S, reference is not None),
+        a5_violated=a5_violated,
     )

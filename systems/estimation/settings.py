@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -32,6 +33,14 @@ def payload_volume(field: VolumeField) -> BoundingVolume | None:
     )
 
 
+def lag_interval(value: float | Sequence[float]) -> tuple[float, float]:
+    """(lo, hi) of a declared lag: one number d is [d, d]; EstimatorError unless 0 <= lo <= hi."""
+    lo, hi = (value, value) if np.ndim(value) == 0 else tuple(value) if len(value) == 2 else (None, None)
+    if lo is None or not (np.isfinite(lo) and np.isfinite(hi) and 0 <= lo <= hi):
+        raise EstimatorError(f"estimator.torque_lag_s: {value!r} must be a number >= 0 or [lo, hi] with 0 <= lo <= hi")
+    return float(lo), float(hi)
+
+
 @dataclass
 class EstimatorSettings:
     horizon_s: float = 0.1
@@ -42,11 +51,15 @@ class EstimatorSettings:
     # the left sum, exactly. "continuous": a signal sampled at the log instants whose rate is at
     # most torque_rate_limit_Nm_s (checked on the data): trapezoid plus its error bound.
     torque_signal: str = "held"
-    hold_period_s: float | None = None  # held: a step longer than 1.5 hold periods is a gap
+    # held: a step longer than 1.5 hold periods is a gap (samples were lost, their torque is
+    # unknown). The default is the 1 kHz controller's step, so a lost sample is never integrated
+    # as if held; None (no hold rule, only max_gap_s) must be asked for.
+    hold_period_s: float | None = 0.001
     torque_rate_limit_Nm_s: float = 200.0  # continuous: declared |dτ/dt| of the applied torque
-    # held: the sensor low-passes its reading with this first-order time constant (0: no lag);
-    # each step's reading is recovered exactly one sample late (estimation/lag.py).
-    torque_lag_s: float = 0.0
+    # held: the sensor low-passes its reading with this first-order time constant (0: no lag),
+    # or with one somewhere in [lo, hi]; each step's reading is recovered one sample late, exactly
+    # for one value, enclosed over the interval for two (estimation/lag.py).
+    torque_lag_s: float | tuple[float, float] = 0.0
     # held: step k's torque is the sample this much later (> 0: the reading arrives late; < 0: the
     # torque reaches the joint late), re-paired before the lag is undone (estimation/delay.py).
     torque_delay_s: float = 0.0
@@ -111,6 +124,10 @@ class EstimatorSettings:
         if self.torque_signal == "held" and self.hold_period_s:
             return min(self.max_gap_s, 1.5 * self.hold_period_s)
         return self.max_gap_s
+
+    def lag_interval(self) -> tuple[float, float]:
+        """The declared torque lag as (lo, hi) (lo == hi for one value; (0, 0): no lag)."""
+        return lag_interval(self.torque_lag_s)
 
     def torque_rule(self) -> str:
         """Quadrature of ∫τ dt: the exact left sum of a held torque, else the trapezoid."""
