@@ -94,8 +94,10 @@ def write_plots(out: str | Path, diagnosis: Diagnosis) -> dict[str, str]:
     fig.savefig(out / "residual_timeseries.png", dpi=90)
     plt.close(fig)
     files["timeseries"] = "residual_timeseries.png"
-    # Per-joint bars.
     res = d.result
+    if "residual_map_after" in res["combined"]:
+        files["residual_map"] = residual_map_plot(out / "residual_map.png", res["combined"]["residual_map_after"])
+    # Per-joint bars.
     files["bars"] = joint_bars(
         out / "joint_rms.png",
         res["gap"]["rms_check_per_joint"],
@@ -115,6 +117,32 @@ def joint_bars(path: str | Path, before: Sequence[float], after: Sequence[float]
     ax.set_xticks(idx, [f"j{j + 1}" for j in idx])
     ax.set_ylabel("held-out RMS [N·m]")
     ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return Path(path).name
+
+
+def residual_map_plot(path: str | Path, residual_map: dict) -> str:
+    """Heat map of where the residual left after the correction lies: per joint (rows) and per
+    regime and joint-angle bin (columns), its share of that joint's residual² over the share of
+    that joint's samples (1: no concentration), the joint's share of the total on the left."""
+    plt = _plt()
+    joints = residual_map["joints"]
+    regimes = list(joints[0]["regimes"])
+    bins = len(joints[0]["pose_bins"])
+    ratio = lambda c: c["share"] / c["samples"] if c["samples"] > 0 else np.nan  # noqa: E731
+    grid = np.array([[ratio(j["regimes"][k]) for k in regimes] + [ratio(b) for b in j["pose_bins"]] for j in joints])
+    labels = [k.replace("_", " ") for k in regimes] + [f"angle bin {b + 1}" for b in range(bins)]
+    fig, ax = plt.subplots(figsize=(1.0 * len(labels) + 2, 0.45 * len(joints) + 1.6))
+    im = ax.imshow(grid, cmap="magma", vmin=0, vmax=max(3.0, float(np.nanmax(grid, initial=1.0))), aspect="auto")
+    for (r, c), v in np.ndenumerate(grid):
+        if np.isfinite(v):
+            ax.text(c, r, f"{v:.1f}", ha="center", va="center", fontsize=7, color="w" if v < 2 else "k")
+    ax.set_xticks(range(len(labels)), labels, rotation=40, ha="right", fontsize=7)
+    ax.set_yticks(range(len(joints)), [f"j{j['joint']} ({100 * j['share']:.0f} %)" for j in joints], fontsize=7)
+    fig.colorbar(im, ax=ax, label="share of residual² / share of samples")
+    ax.set_title("Residual left after the correction: where it concentrates", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)

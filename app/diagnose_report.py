@@ -6,7 +6,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from .diagnose_plots import joint_bars
+from .diagnose_plots import joint_bars, residual_map_plot
 from .report_html import write_html
 
 if TYPE_CHECKING:
@@ -258,6 +258,7 @@ def write_report(
     ]
     for k, v in comb.get("regimes_after", {}).items():
         lines.append(f"| {k} | {100 * v:.1f}% | {100 * gap['where']['regime_sample_share'][k]:.1f}% |")
+    lines += residual_map_lines(comb.get("residual_map_after"))
     lines += _effects_section(res, frozen)
     lines += [
         "## Combined",
@@ -288,6 +289,31 @@ def write_report(
     text = "\n".join(lines)
     Path(out, "report.md").write_text(text)
     write_html(Path(out, "report.html"), text, out, title)
+
+
+def residual_map_lines(residual_map: dict | None) -> list[str]:
+    """The residual map (report_data.residual_map) as a table: per joint, its share of the
+    residual² left and the regimes and joint-angle bins where it concentrates (ratio >= 1.5)."""
+    if not residual_map:
+        return []
+    lines = [
+        "",
+        "Residual map after the correction (plot `residual_map.png`): per joint, its share of the residual² "
+        "left, and where it concentrates (share of the joint's residual² / share of its samples, >= 1.5):",
+        "",
+        "| joint | RMS after [N·m] | share | concentrates in |",
+        "|---|---|---|---|",
+    ]
+    for j in residual_map["joints"]:
+        spots = [(k, c["share"] / c["samples"]) for k, c in j["regimes"].items() if c["samples"] > 0]
+        spots += [
+            (f"angle {b['q_from_rad']:.2f}..{b['q_to_rad']:.2f} rad", b["share"] / b["samples"])
+            for b in j["pose_bins"]
+            if b["samples"] > 0
+        ]
+        hot = ", ".join(f"{k} ×{r:.1f}" for k, r in sorted(spots, key=lambda x: -x[1]) if r >= 1.5) or "-"
+        lines.append(f"| {j['joint']} | {j['rms']:.3f} | {100 * j['share']:.1f}% | {hot} |")
+    return lines
 
 
 def _effects_section(res, frozen):
@@ -431,7 +457,14 @@ def write_leave_one_out_report(
         p["rms_after_per_joint"],
         "corrected (each log held out once)",
     )
-    lines += ["", "## Plots", "", f"![pooled per joint]({bars})", ""]
+    plots = [f"![pooled per joint]({bars})"]
+    if pooled.get("residual_map_after"):
+        lines += ["", "## Where the held-out residual left lies (pooled over the folds)"]
+        lines += residual_map_lines(pooled["residual_map_after"])
+        plots.append(
+            f"![residual map]({residual_map_plot(Path(out) / 'residual_map.png', pooled['residual_map_after'])})"
+        )
+    lines += ["", "## Plots", "", *plots, ""]
     text = "\n".join(lines)
     Path(out, "report.md").write_text(text)
     write_html(Path(out, "report.html"), text, out, "Gap diagnosis, leave one log out")

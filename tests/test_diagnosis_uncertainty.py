@@ -119,3 +119,19 @@ def test_hard_plan_is_two_effects_at_full_noise_without_accelerations():
     assert len(nulls) == 40 and all(len(p["injected"]) == 2 for p in plan if p["injected"])
     assert all(not p["with_acceleration"] and p["noise_level"] == 0.03 for p in plan)
     assert 70 <= sum(p["same_joints"] for p in plan) <= 90
+
+
+def test_residual_map_shows_where_the_residual_left_lies(two_link, tmp_path):
+    """Stribeck friction on joint 2 left uncorrected (not a candidate): the residual map puts the
+    residual on joint 2, concentrated near zero velocity and at reversals, and draws it."""
+    from safesysid.diagnose_plots import write_plots
+
+    effects = {"stribeck_friction": {"delta": np.array([0.0, 2.0]), "vs": 0.05}}
+    logs = _logs(two_link, 5, effects, noise=0.05)
+    d = dg.diagnose(two_link, logs[:2], logs[2:], effects=("torque_offset",))
+    joints = d.result["combined"]["residual_map_after"]["joints"]
+    assert joints[1]["share"] > 0.9
+    ratio = {k: c["share"] / c["samples"] for k, c in joints[1]["regimes"].items() if c["samples"] > 0}
+    assert ratio["near_zero_velocity"] > 2 and ratio["reversal"] > 2 and ratio["high_speed"] < 0.5
+    assert sum(b["samples"] for b in joints[1]["pose_bins"]) == pytest.approx(1.0)
+    assert (tmp_path / write_plots(tmp_path, d)["residual_map"]).is_file()

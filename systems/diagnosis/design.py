@@ -139,7 +139,7 @@ class Design:
     cols: dict[str, np.ndarray]  # group name -> (R, n, k)
     row_time: np.ndarray  # (R,) time of each row (window middle)
     row_block: np.ndarray  # (R,) block id (BLOCK_S pieces, never across gaps)
-    features: dict[str, np.ndarray]  # v, a, g per row (R, n) for regimes
+    features: dict[str, np.ndarray]  # v, a, g, q per row (R, n) for regimes and pose bins
     tau_hat_nominal: np.ndarray  # (R, n) nominal model torque (row form)
     source: str = ""
     row_segment: np.ndarray | None = None  # (R,) gap-free segment of each row
@@ -260,7 +260,7 @@ def build_design(
             cols["time_delay@shift"] = np.zeros(y.shape + (0,))
         rows = np.arange(len(t))
         row_time = t
-        feat = {"v": v, "a": a, "g": g}
+        feat = {"v": v, "a": a, "g": g, "q": q}
         sample_cols, sample_nominal, win = cols, tau_nom, None
     elif form == "momentum":
         win = _windows(t, segs, window_s)
@@ -287,7 +287,7 @@ def build_design(
         cols = {name: (c[i1] - c[i0]) / s3 for name, c in cum.items()}
         rows = (i0 + i1) // 2
         row_time = 0.5 * (t[i0] + t[i1])
-        feat = {"v": v[rows], "a": a_smooth[rows], "g": g[rows]}
+        feat = {"v": v[rows], "a": a_smooth[rows], "g": g[rows], "q": q[rows]}
         sample_cols, sample_nominal = cum, pm - cc
         del ee
     else:

@@ -30,7 +30,7 @@ from .effects import EFFECTS, Params, corrected_parameters, effect_params, group
 from .intervals import NOTE as INTERVALS_NOTE
 from .intervals import statistical_intervals
 from .problem import Problem, design_residual
-from .report_data import held_out_result
+from .report_data import held_out_result, residual_map
 from .scoring import corrected_model_of, frozen_designs, held_out_numbers, reduction, rms_table, score, score_designs
 from .selection import MIN_BLOCKS, MIN_EFFECT_RATIO, MIN_NOISE_FRACTION, MIN_RELATIVE, P_BLOCKS, Z_BLOCK, select_effects
 
@@ -242,6 +242,9 @@ def pool_held_out(folds: list[Diagnosis]) -> dict:
         "folds": per_fold,
         "named_in_every_fold": sorted(every, key=order.index),
         "named_in_some_fold": sorted(some - every, key=order.index),
+        "residual_map_after": residual_map(
+            [c for d in folds for c in d.check_designs], [r for d in folds for r in d.check_residual_after]
+        ),
     }
 
 
