@@ -5,6 +5,18 @@ import pytest
 from helpers import FULL, n_trials, params_with_spheres, shared_path  # noqa: F401 (test_gap.py still imports them from here)
 
 
+@pytest.fixture(autouse=True)
+def _outputs_match_their_schemas(request):
+    """Every summary.json, diagnosis.json and aggregate.json a test writes under its tmp_path must
+    match its published JSON Schema (docs/schemas)."""
+    yield
+    folder = request.node.funcargs.get("tmp_path") if hasattr(request.node, "funcargs") else None
+    if folder is not None:
+        from helpers import validate_outputs
+
+        validate_outputs(folder)
+
+
 @pytest.fixture(scope="module")
 def robot():
     """The Gen3 model with the scenarios' Coulomb smoothing (0.01 rad/s)."""

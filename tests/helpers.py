@@ -17,6 +17,31 @@ PRIOR = (np.array([1.2, -0.4, -0.4, -1.0] + [-0.2] * 6), np.array([5.2, 0.4, 0.4
 PRIOR_NOMINAL = np.array([3.2, 0.0, 0.0, -0.5] + [0.0] * 6)
 
 
+SCHEMAS = Path(__file__).resolve().parents[1] / "docs" / "schemas"
+SCHEMA_OF = {"summary.json": "summary", "diagnosis.json": "diagnosis", "aggregate.json": "aggregate"}
+
+
+def validate_outputs(folder: Path) -> int:
+    """Validate every summary.json, diagnosis.json and aggregate.json under folder against
+    docs/schemas (a no-op without jsonschema); returns how many files were checked."""
+    try:
+        import jsonschema
+    except ImportError:
+        return 0
+    import json
+
+    checked = 0
+    for name, schema in SCHEMA_OF.items():
+        for path in Path(folder).rglob(name):
+            doc = json.loads((SCHEMAS / f"{schema}.schema.json").read_text())
+            try:
+                jsonschema.validate(json.loads(path.read_text()), doc)
+            except jsonschema.ValidationError as err:
+                raise AssertionError(f"{path} does not match docs/schemas/{schema}.schema.json: {err.message}") from err
+            checked += 1
+    return checked
+
+
 def leaves(system):
     """Every leaf system of a Drake diagram (or the system itself)."""
     from pydrake.systems.framework import Diagram
