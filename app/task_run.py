@@ -65,7 +65,7 @@ def make_task_source(
                 return [], events + [dict(kind="task_infeasible", detail=f"no return move: {back.reason}")], {}
             curves.append(back.trajectory)
         curves.append(plan.trajectory)
-        report, certified = {"time_scale": 1.0, "uncertified": False}, ""
+        report, certified = {"time_scale": 1.0}, ""  # another controller than ARMOUR claims no certificate
         if certify:
             curves, report, certified = certify_task(problem, curves, thetas, scenario.task)
             if not curves:
@@ -154,8 +154,8 @@ def task_certificate_summary(st, truth: np.ndarray, robot: RobotModel) -> dict:
     """summary.json task fields of the certificate (certify_task's report, PhaseState st): the
     scale played and the task trajectory's duration (None when refused or not found), and whether
     the latched box holds the true payload (else its certificate certifies nothing real: wrong)."""
-    report = dict(st.report)
-    report.setdefault("certified_torque_ratio", None)  # another controller than ARMOUR: no certificate
+    keys = ("time_scale", "certified_torque_ratio", "certified_torque_ratio_unscaled")
+    report = {**dict.fromkeys(keys), "uncertified": False, "time_scales_tried": [], **st.report}
     lo, hi = (np.asarray(x, float)[robot.ee_slice] for x in st.thetas[1:])
     ee = np.asarray(truth, float)[robot.ee_slice]
     return {

@@ -129,3 +129,21 @@ def test_compare_table_shows_each_tasks_duration_scale_certificate_and_refusal(t
     assert "| conservative | refused: task_uncertified (certificate 1.075 at the cap) |" in md
     assert "| wrong | 2.00 s (1x, certificate 0.371, box excludes the payload) |" in md
     assert "| grav-pid | not played |" in md
+
+
+def test_a_task_without_a_certificate_reports_every_field_null_or_one(robot):
+    """A PID or adaptive task (no certify_task report beyond its scale) and a task never found:
+    the same summary keys as a certified one, null where there is nothing to say."""
+    from safesysid.systems.trajectory_source import PhaseState, TimedCurve
+    from safesysid.task_run import task_certificate_summary
+
+    truth = robot.theta.copy()
+    box = (truth, truth - 1.0, truth + 1.0)
+    curve = TimedCurve(0.0, test_task_phase.straight(np.zeros(7), np.ones(7), 2.0))
+    pid = PhaseState("task", 0.0, np.zeros(7), (curve,), True, box, (), {"time_scale": 1.0})
+    lost = PhaseState("task", 0.0, np.zeros(7), (), False, box, (), {})
+    for st, scale, duration in ((pid, 1.0, 2.0), (lost, None, None)):
+        s = task_certificate_summary(st, truth, robot)
+        assert s["time_scale"] == scale and s["duration_s"] == duration and not s["uncertified"]
+        assert s["certified_torque_ratio"] is None and s["certified_torque_ratio_unscaled"] is None
+        assert s["time_scales_tried"] == [] and s["certificate_box_contains_payload"]
