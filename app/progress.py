@@ -140,6 +140,8 @@ def watch(
     wall0 = time.perf_counter()
     next_print = [wall0 + display.after_s]
 
+    warned = [False]
+
     def monitor(context):
         if display.interrupted:
             return EventStatus.ReachedTermination(None, "interrupted (Ctrl-C)")
@@ -149,6 +151,10 @@ def watch(
             wall = now - wall0
             phase = phase_at(t, scenario, switch_time_s)
             stream.write(f"run: {phase}; sim {t:.2f} s in {wall:.1f} s wall ({t / wall:.2f}x real time)\n")
+            warning = realtime_shortfall(t, wall, display.realtime_rate)
+            if warning and not warned[0]:
+                stream.write(warning + "\n")
+                warned[0] = True
             stream.flush()
             next_print[0] = now + display.every_s
         return EventStatus.Succeeded()
@@ -156,17 +162,40 @@ def watch(
     simulator.set_monitor(monitor)
 
 
+def realtime_shortfall(sim_s: float, wall_s: float, target_rate: float, tolerance: float = 0.9) -> str | None:
+    """The warning a live run prints when it does not reach its --realtime-rate (None when it does,
+    or when no rate was asked)."""
+    if target_rate <= 0 or wall_s <= 0 or sim_s / wall_s >= tolerance * target_rate:
+        return None
+    return (
+        f"run: warning: --realtime-rate {target_rate:g} not reached ({sim_s / wall_s:.2f}x): "
+        "this machine simulates slower than that; the motion in the viewer is slowed down"
+    )
+
+
+def _stop_on_signals() -> None:
+    """Ctrl-C and SIGTERM end the serve phase even where the shell started the process with SIGINT
+    ignored (a script's `cmd &`), which Python otherwise inherits."""
+
+    def stop(signum, frame):
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, stop)
+    signal.signal(signal.SIGTERM, stop)
+
+
 def serve_until_interrupt(display: RunDisplay) -> None:
     """Keep the Meshcat server (recording loaded) up until Ctrl-C, as Drake's examples do."""
     if not (display.meshcat and display.keep_serving and display.viewer is not None):
         return
-    print(
-        f"Meshcat: the recording is loaded at {display.viewer.web_url()} (Open Controls > Animations > play); "
-        "Ctrl-C to quit",
-        file=sys.stderr,
-        flush=True,
-    )
+    _stop_on_signals()
     try:
+        print(
+            f"Meshcat: the recording is loaded at {display.viewer.web_url()} (Open Controls > Animations > play); "
+            "Ctrl-C to quit",
+            file=sys.stderr,
+            flush=True,
+        )
         while True:
             time.sleep(0.5)
     except KeyboardInterrupt:
