@@ -135,3 +135,27 @@ def test_residual_map_shows_where_the_residual_left_lies(two_link, tmp_path):
     assert ratio["near_zero_velocity"] > 2 and ratio["reversal"] > 2 and ratio["high_speed"] < 0.5
     assert sum(b["samples"] for b in joints[1]["pose_bins"]) == pytest.approx(1.0)
     assert (tmp_path / write_plots(tmp_path, d)["residual_map"]).is_file()
+
+
+def test_interval_factors_are_chosen_on_even_cases_and_scored_on_odd_ones():
+    """calibrated_coverage: each effect's factor is the 90th percentile of the widening its values
+    needed on the even cases; the odd cases are scored with it. spurious_table counts false names
+    per null / non-null case and per effect in the cases that lack it."""
+
+    def case(k, fitted):  # truth 1.0, interval fitted +- 0.05: 0.9 needs 2x widening, 0.95 none
+        rec = {"effect": "time_delay", "key": "delay_s", "index": None, "truth": 1.0}
+        return {
+            "case": k,
+            "injected": ["time_delay"],
+            "false": ["armature"] if k == 3 else [],
+            "fitted": {"time_delay": {"delay_s": fitted}},
+            "coverage": [{**rec, "lo": fitted - 0.05, "hi": fitted + 0.05}],
+        }
+
+    cases = [case(k, 0.95 if k % 4 == 0 else 0.9) for k in range(40)]
+    cov = dg.self_check.calibrated_coverage(cases)
+    assert cov["factors"]["time_delay"] == pytest.approx(2.0)
+    assert cov["held_out_values"] == 20 and cov["held_out_rate"] == 1.0
+    sp = dg.self_check.spurious_table(cases + [{"injected": [], "false": []}])
+    assert sp["non_null_with_false_effect"] == pytest.approx(1 / 40) and sp["null_with_false_effect"] == 0
+    assert sp["per_effect"]["armature"] == {"cases_lacking": 41, "named_falsely": 1}

@@ -14,7 +14,9 @@ of its group's parameters (effects.effect_params); its interval comes from the d
 
 Block bootstrap (block_bootstrap): blocks of the same rows drawn with replacement, the
 linearised fit redone on each draw; on a subset of self-check cases its 90 % percentile
-half-widths against the sandwich's give CALIBRATION.
+half-widths are compared with the sandwich's (self_check.bootstrap_ratio). Both see only the
+noise; the per-effect CALIBRATION widens them by what the self-check shows the linearised
+columns miss.
 """
 
 from __future__ import annotations
@@ -29,7 +31,10 @@ from .effects import TIME_LAWS, Params, effect_params, group_bounds, group_of
 from .problem import Problem, _flat_rows, design_rows
 
 LEVEL = 0.9
-CALIBRATION = 1.0  # bootstrap / sandwich half-width (median over the calibration subset; see docs/diagnosis.md)
+# Per-effect widening of the sandwich interval, chosen on the even cases of the hard self-check
+# (self_check.calibrated_coverage; docs/diagnosis.md gives the command): what the sandwich's
+# noise-only width misses there (the linearised columns' bias against the physical effects).
+CALIBRATION: dict[str, float] = {}  # effect -> factor (absent: 1)
 DELAY_STEP_S = 0.001  # central difference of the time law in d
 # Diagnosed values with an interval, per effect (keys of effect_params).
 INTERVAL_KEYS = {
@@ -176,7 +181,7 @@ def statistical_intervals(
     params: Params,
     effects: Sequence[str],
     *,
-    calibration: float = CALIBRATION,
+    calibration: dict[str, float] | None = None,
 ) -> dict[str, dict[str, list]]:
     """{effect: {value key: [lo, hi]}} (90 %; per-joint values: [lo list, hi list]; None where
     the logs hold no information) for the selected `effects` fitted as `params` on problem.fit."""
@@ -185,7 +190,8 @@ def statistical_intervals(
     X, r, block = jacobian_rows(problem, params)
     cov, ident = sandwich_covariance(X, r, block)
     n_blocks = len(np.unique(block))
-    half_factor = calibration * float(student_t.ppf(0.5 + LEVEL / 2, max(n_blocks - 1, 1)))
+    t_quantile = float(student_t.ppf(0.5 + LEVEL / 2, max(n_blocks - 1, 1)))
+    calibration = CALIBRATION if calibration is None else calibration
     slices = _param_slices(params)
     out = {}
     for e in effects:
@@ -202,7 +208,7 @@ def statistical_intervals(
                 p=params[g],
                 cov_g=cov[sl, sl],
                 ident=ident[sl],
-                half_factor=half_factor,
+                half_factor=t_quantile * calibration.get(e, 1.0),
                 bounds=bounds,
             )
             out[e][key] = _plain_interval(lo, hi, scalar)

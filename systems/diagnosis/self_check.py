@@ -113,10 +113,7 @@ def _run_case(job):
         "joints_named": {e["name"]: e["joints"] for e in d.result["effects"] if e["significant"]},
         "value_errors": [err for e in inj if e in fitted for err in value_errors(e, truth["effects"][e], fitted[e])],
         "coverage": [
-            rec
-            for e in inj
-            if e in fitted
-            for rec in interval_coverage(e, truth["effects"][e], intervals[e], fitted[e])
+            rec for e in inj if e in fitted for rec in interval_coverage(e, truth["effects"][e], intervals[e])
         ],
     }
     case["ambiguous"] = [a["sets"][1]["effects"] for a in d.result["ambiguous"]]
@@ -268,7 +265,7 @@ TRUTH_OF = {
 }
 
 
-def interval_coverage(name: str, truth: dict, intervals: dict, fitted_values: dict) -> list[dict]:
+def interval_coverage(name: str, truth: dict, intervals: dict) -> list[dict]:
     """Does each named injected value's statistical interval hold the withheld truth? A list of
     {effect, key, index, truth, lo, hi, covered} (per-joint effects: on the joints value_errors
     scores; payload: mass and each CoM coordinate; tilt: roll and pitch)."""
@@ -323,9 +320,11 @@ def coverage_table(cases: list[dict]) -> dict:
     }
 
 
-def _needed_factor(rec: dict) -> float:
-    """Factor by which rec's interval must widen (about its fitted value) to hold the truth."""
-    t, f = rec["truth"], rec["fitted"]
+def _needed_factor(rec: dict, fitted: dict) -> float:
+    """Factor by which a coverage record's interval must widen (about the fitted value, from the
+    case's `fitted` params) to hold the truth."""
+    value = fitted[rec["effect"]][rec["key"]]
+    t, f = rec["truth"], value if rec["index"] is None else value[rec["index"]]
     end = rec["hi"] if t >= f else rec["lo"]
     if end is None:  # unbounded on that side
         return 0.0
@@ -338,16 +337,16 @@ def calibrated_coverage(cases: list[dict], validation: Callable[[dict], bool] | 
     the 90th percentile of the widening each value needed, at least 1; effects with fewer than
     5 values take the pooled factor) and the coverage they give on the other (held-out) cases."""
     validation = validation or (lambda c: c["case"] % 2 == 0)
-    val = [r for c in cases if validation(c) for r in c.get("coverage", [])]
+    val = [(r["effect"], _needed_factor(r, c["fitted"])) for c in cases if validation(c) for r in c.get("coverage", [])]
     held = [c for c in cases if not validation(c)]
-    pooled = max(1.0, float(np.quantile([_needed_factor(r) for r in val], 0.9))) if val else 1.0
+    pooled = max(1.0, float(np.quantile([f for _, f in val], 0.9))) if val else 1.0
     factors = {}
     for e in EFFECTS:
-        need = [_needed_factor(r) for r in val if r["effect"] == e]
+        need = [f for name, f in val if name == e]
         factors[e] = max(1.0, float(np.quantile(need, 0.9))) if len(need) >= 5 else pooled
     per, hits = {}, []
-    for r in (r for c in held for r in c.get("coverage", [])):
-        ok = _needed_factor(r) <= factors[r["effect"]]
+    for case, r in ((c, r) for c in held for r in c.get("coverage", [])):
+        ok = _needed_factor(r, case["fitted"]) <= factors[r["effect"]]
         hits.append(ok)
         per.setdefault(r["effect"], []).append(ok)
     return {
