@@ -204,6 +204,31 @@ def test_bad_corrected_models_are_named(tmp_path, scenario, effects, expect):
     assert expect in str(err.value) and "\n" not in str(err.value)
 
 
+def test_a_diagnosed_lag_interval_is_the_estimators_lag_interval(tmp_path):
+    """A lag effect with `intervals.delay_s` (the diagnosis' uncertainty of its lag): the simulated
+    arm's sensor takes the point value, the estimator (robot.corrected_model, and `sysid --model`
+    through model_corrections.torque_lag_s) the interval, widened to hold the point; null (no
+    information) falls back to the point, and lo > hi is named."""
+    from safesysid.sysid_cli import corrected_model
+    from safesysid.systems.model_corrections import CorrectionError, read_correction, torque_lag_s
+
+    def lag_model(pair):
+        effect = {"name": "time_delay", "joints": [1], "params": {"delay_s": 0.1, "time_law": "lag"}}
+        (tmp_path / "c.yaml").write_text(
+            yaml.safe_dump({"model": str(URDF), "effects": [{**effect, "intervals": {"delay_s": pair}}]})
+        )
+        return tmp_path / "c.yaml"
+
+    lag_model([0.09, 0.12])
+    (tmp_path / "s.yaml").write_text("robot: {corrected_model: c.yaml}\n")
+    scene = load_scenario(tmp_path / "s.yaml")
+    assert scene.plant.effects.torque_sensor_lag_s == 0.1 and scene.estimator.torque_lag_s == [0.09, 0.12]
+    assert corrected_model(lag_model([0.105, 0.12]))[1] == [0.1, 0.12]  # the point inside
+    assert torque_lag_s(read_correction(lag_model([None, None]))) == 0.1
+    with pytest.raises(CorrectionError, match=r"c.yaml: effects\[0\].intervals.delay_s"):
+        torque_lag_s(read_correction(lag_model([0.12, 0.09])))
+
+
 @pytest.mark.parametrize("delay, field", [(0.03, "torque_sensor_delay_s"), (-0.02, "time_delay_s")])
 def test_pure_delays_map_to_the_sensor_or_the_actuation(tmp_path, delay, field):
     """Torque lagging the motion (d > 0) is a late sensor reading; leading it, an actuation delay.
