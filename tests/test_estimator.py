@@ -72,7 +72,7 @@ def test_quadrature_bound_covers_the_integration_error(robot, dumbbells, integra
     rng = np.random.default_rng(3)
     theta, theta_e = true_theta(rng, robot, dumbbells["8lb"])
     t, q, v, _, tau = E.simulate_log(rng, robot, theta, 3.0, rate_hz, centre=CENTRE, period_s=period_s)
-    settings = E.EstimatorSettings(integration=integration, horizon_s=max(0.1, 10 / rate_hz))
+    settings = E.EstimatorSettings(integration=integration, horizon_s=max(0.1, 10 / rate_hz), hold_period_s=1 / rate_hz)
     bounds, _ = E.segment_bounds(t, settings.horizon_s, settings.segment_gap_s())
     box = (theta, 0.05 * np.abs(theta))  # the bound holds for every θ of a box around the truth
     rows = E.build_segment_rows(robot, t, q, v, tau, bounds, settings, box)
