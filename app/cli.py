@@ -89,6 +89,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--realtime-rate", type=float, default=0.0, help="target sim/wall rate (1 = real time; 0 = fast)")
     p.add_argument(
+        "--arm",
+        choices=("simulated", "lcm"),
+        help="the arm: simulated in this process, or over LCM in wall-clock time (default: the scenario's arm.driver)",
+    )
+    p.add_argument("--no-fifo", action="store_true", help="--arm lcm: do not ask for SCHED_FIFO real-time scheduling")
+    p.add_argument(
         "--no-serve", action="store_true", help="with Meshcat: exit after the run (default: serve until Ctrl-C)"
     )
     _add_scenario_text(p)
@@ -178,6 +184,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     _bag_options(p)
 
+    p = sub.add_parser("arm-sim", help="the simulated arm behind LCM, in wall-clock time (docs/hardware.md)")
+    p.add_argument("scenario", nargs="?", help="scenario YAML (default: scenarios/quickstart.yaml)")
+    p.add_argument("--out", default="out/arm-sim", help="output folder (arm_summary.json, arm_log.csv)")
+    p.add_argument("--duration", type=float, default=30.0, help="seconds of the arm's clock to serve")
+    p.add_argument("--seed", type=int)
+    p.add_argument("--no-fifo", action="store_true", help="do not ask for SCHED_FIFO real-time scheduling")
+    _add_scenario_text(p)
+
     p = sub.add_parser("bench", help="timing benchmarks")
     p.add_argument("--out", default="out/bench")
     p.add_argument("--quick", action="store_true", help="smaller sizes")
@@ -193,6 +207,7 @@ def _dispatch(args):
         "sysid": ("safesysid.sysid_cli", "cmd_sysid"),
         "diagnose": ("safesysid.diagnose_cli", "cmd_diagnose"),
         "bench": ("safesysid.bench_cli", "cmd_bench"),
+        "arm-sim": ("safesysid.arm_sim", "cmd_arm_sim"),
     }
     module_name, fn_name = handlers[args.verb]
     return getattr(importlib.import_module(module_name), fn_name)(args)

@@ -296,18 +296,8 @@ def leave_one_out(
 ) -> int:
     """Each log held out once (fit on the others): a diagnosis folder per fold, and the pooled
     held-out numbers in DIR/leave_one_out.json and DIR/report.md."""
-    from safesysid.systems import diagnosis
-
-    from .diagnose_report import write_leave_one_out_report
-
     out = Path(out)
-    dirs = [out / f"fold{k + 1}_{Path(p).stem}" for k, p in enumerate(paths)]
-    folds = [
-        run_diagnosis(model, paths[:k] + paths[k + 1 :], [paths[k]], d, model_path, bag=bag) for k, d in enumerate(dirs)
-    ]
-    pooled = diagnosis.pool_held_out(folds)
-    (out / "leave_one_out.json").write_text(json.dumps(_clean(pooled), indent=2))
-    write_leave_one_out_report(out, pooled, model_path, dirs)
+    _, pooled = leave_one_out_folds(model, paths, out, model_path, bag)
     p, m = pooled["pooled"], pooled["mean_over_folds"]
     print(
         f"held-out (test) RMS pooled over {len(paths)} folds {p['rms_before']:.3f} -> {p['rms_after']:.3f} N·m "
@@ -316,6 +306,25 @@ def leave_one_out(
     )
     print(f"wrote {out}/leave_one_out.json, report.md and one folder per fold")
     return 0
+
+
+def leave_one_out_folds(
+    model: RobotModel, paths: Sequence[str | Path], out: Path, model_path: str | Path, bag: dict | None = None
+) -> tuple[list[Diagnosis], dict]:
+    """The folds of leave_one_out (each written to its folder) and the pooled numbers, written to
+    out/leave_one_out.json and out/report.md/.html."""
+    from safesysid.systems import diagnosis
+
+    from .diagnose_report import write_leave_one_out_report
+
+    dirs = [out / f"fold{k + 1}_{Path(p).stem}" for k, p in enumerate(paths)]
+    folds = [
+        run_diagnosis(model, paths[:k] + paths[k + 1 :], [paths[k]], d, model_path, bag=bag) for k, d in enumerate(dirs)
+    ]
+    pooled = diagnosis.pool_held_out(folds)
+    (out / "leave_one_out.json").write_text(json.dumps(_clean(pooled), indent=2))
+    write_leave_one_out_report(out, pooled, model_path, dirs)
+    return folds, pooled
 
 
 def bag_options(args: argparse.Namespace, model: RobotModel) -> dict:

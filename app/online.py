@@ -39,6 +39,7 @@ if TYPE_CHECKING:
     from pydrake.systems.primitives import VectorLogSink
     from safesysid.systems.armour import TrackingBounds
     from safesysid.systems.controller_systems import ControllerBase
+    from safesysid.systems.hardware.background import BackgroundWorker
     from safesysid.systems.intervals import Interval
     from safesysid.systems.payload import Dumbbell
     from safesysid.systems.planner import PlanResult
@@ -63,7 +64,7 @@ class OnlineDiagram:
     controller: ControllerBase
     planner: ExcitingPlanner | None  # None: no planner (Fourier excitation, or none)
     estimator: SysIdEstimator | None
-    monitor: SafetyMonitor
+    monitor: SafetyMonitor | None  # None: the arm is reached over LCM (its referee is the arm side's)
     loggers: dict[str, VectorLogSink]
     visualizer: MeshcatVisualizer | None
     meshcat: Meshcat | None
@@ -99,13 +100,14 @@ def _add_logger(builder, port, period, name):
     return sink
 
 
-def _add_planner(builder, robot, scenario, spec, tracking, arm, theta_prior, seed, estimator):
+def _add_planner(builder, robot, scenario, spec, tracking, arm, theta_prior, seed, estimator, worker=None):
     """Algorithm 2's planner as the method's excitation, fed by the estimator (or the prior when
     the method does not identify with it). Returns (planner, desired-trajectory port)."""
     from pydrake.systems.primitives import Multiplexer
 
+    trajectory = spec.excitation.trajectory
     planner = builder.AddSystem(
-        make_planner_system(robot, scenario, spec.excitation.trajectory, tracking, arm.dumbbell, theta_prior, seed)
+        make_planner_system(robot, scenario, trajectory, tracking, arm.dumbbell, theta_prior, seed, worker=worker)
     )
     planner.set_name("planner")
     desired = builder.AddSystem(Multiplexer([robot.n] * 3))
@@ -152,8 +154,12 @@ def make_planner_system(
     dumbbell: Dumbbell | None,
     theta_prior: tuple[np.ndarray, Interval],
     seed: int,
+    *,
+    worker: BackgroundWorker | None = None,
 ) -> ExcitingPlanner:
-    """trajectory: methods.EXCITING (scenario.planner.cost) or methods.RANDOM."""
+    """trajectory: methods.EXCITING (scenario.planner.cost) or methods.RANDOM. With a worker:
+    the wall-clock planner, whose calls run one period ahead in it (systems/hardware/background.py)."""
+    from safesysid.systems.hardware.background import WallClockPlanner
     from safesysid.systems.planner import SafePlanner
     from safesysid.systems.planner_system import ExcitingPlanner
 
@@ -162,7 +168,8 @@ def make_planner_system(
     planner = SafePlanner(robot, scenario.planner, scenario.obstacles, dumbbell, tracking, torque_noise=noise)
     theta0, box = theta_prior
     f = scenario.faults
-    return ExcitingPlanner(
+    system, extra = (ExcitingPlanner, {}) if worker is None else (WallClockPlanner, {"worker": worker})
+    return system(
         planner,
         np.asarray(scenario.q0_rad, float),
         theta0,
@@ -172,6 +179,7 @@ def make_planner_system(
         seed=seed,
         forced_failures={k: f.planner_failure_kind for k in f.planner_failure_calls},
         appearing=[(ob.t_s, ob) for ob in f.appearing_obstacles],
+        **extra,
     )
 
 
@@ -184,15 +192,23 @@ def task_switch_time_s(scenario: Scenario, spec: methods.MethodSpec) -> float:
 
 
 def make_estimator_system(
-    robot: RobotModel, scenario: Scenario, update_period_s: float | None = None, stop_time_s: float = np.inf
+    robot: RobotModel,
+    scenario: Scenario,
+    update_period_s: float | None = None,
+    stop_time_s: float = np.inf,
+    *,
+    worker: BackgroundWorker | None = None,
 ) -> SysIdEstimator:
     """The SysIdEstimator of a scenario: its estimator settings and initial interval, sampling at
-    the plant step, updating every t_p (planner.replan_period_s unless given), until stop_time_s."""
+    the plant step, updating every t_p (planner.replan_period_s unless given), until stop_time_s.
+    With a worker: the wall-clock estimator, its updates run there (systems/hardware/background.py)."""
     from safesysid.systems.estimation import EstimatorSettings
+    from safesysid.systems.hardware.background import WallClockEstimator
     from safesysid.systems.sysid_system import SysIdEstimator
 
     ii = scenario.initial_interval
-    return SysIdEstimator(
+    system, extra = (SysIdEstimator, {}) if worker is None else (WallClockEstimator, {"worker": worker})
+    return system(
         robot,
         EstimatorSettings.from_scenario(scenario),
         scenario.plant.time_step_s,
@@ -200,17 +216,25 @@ def make_estimator_system(
         (np.array(ii.lower, float), np.array(ii.upper, float)),
         np.array(ii.nominal, float),
         stop_time_s,
+        **extra,
     )
 
 
 def build_online(
-    scenario: Scenario, method: str | None = None, meshcat: Meshcat | None = None, seed: int | None = None
+    scenario: Scenario,
+    method: str | None = None,
+    meshcat: Meshcat | None = None,
+    seed: int | None = None,
+    *,
+    worker: BackgroundWorker | None = None,
 ) -> OnlineDiagram:
+    """worker: the wall-clock run's (app/online_lcm.py): planner and estimator calls run in it.
+    scenario.arm.driver lcm: the arm is reached over LCM (systems/hardware/lcm_arm.py); the
+    referee and the payload's release are the arm's, so no SafetyMonitor and no task phase here."""
     from pydrake.systems.framework import DiagramBuilder
     from safesysid.closed_loop import add_controller, add_phase_switch
     from safesysid.systems.armour import tracking_bounds_for
     from safesysid.systems.real_arm import add_real_arm
-    from safesysid.systems.safety_monitor import SafetyMonitor
     from safesysid.systems.task_phase import task_plan
     from safesysid.task_run import make_task_source
 
@@ -218,9 +242,15 @@ def build_online(
     spec = methods.method_spec(method)
     robot = robot_from_scenario(scenario)
     h = scenario.plant.time_step_s
-    task = task_enabled(scenario)
+    over_lcm = scenario.arm.driver == "lcm"
+    task = task_enabled(scenario) and not over_lcm
     builder = DiagramBuilder()
-    arm = add_real_arm(builder, scenario, robot=robot, seed=seed, releasable=task and not scenario.task.goal_q_rad)
+    if over_lcm:
+        from safesysid.systems.hardware.lcm_arm import add_lcm_arm, make_lcm
+
+        arm = add_lcm_arm(builder, scenario, robot, make_lcm(scenario))
+    else:
+        arm = add_real_arm(builder, scenario, robot=robot, seed=seed, releasable=task and not scenario.task.goal_q_rad)
     theta0, box = prior(robot, scenario, method)
     switches = task and spec.switches_controller  # grav-pid-ours: ARMOUR identifies, the PID runs the task
     controller, gains = add_controller(builder, arm, scenario, kind=spec.first_controller, connect=not switches)
@@ -231,7 +261,7 @@ def build_online(
     if spec.identifies == methods.ESTIMATOR:
         # With a task phase the estimator stops at the switch: the task uses the box latched then.
         stop = task_switch_time_s(scenario, spec) if task else np.inf
-        estimator = builder.AddSystem(make_estimator_system(robot, scenario, stop_time_s=stop))
+        estimator = builder.AddSystem(make_estimator_system(robot, scenario, stop_time_s=stop, worker=worker))
         estimator.set_name("estimator")
         builder.Connect(arm.state_output, estimator.GetInputPort("state"))
         builder.Connect(arm.measured_torque_output, estimator.GetInputPort("measured_torque"))
@@ -242,7 +272,7 @@ def build_online(
     if spec.uses_planner:
         plan_seed = scenario.seed if seed is None else seed
         planner, desired_port = _add_planner(
-            builder, robot, scenario, spec, tracking, arm, (theta0, box), plan_seed, estimator
+            builder, robot, scenario, spec, tracking, arm, (theta0, box), plan_seed, estimator, worker
         )
         excitation_thetas = [planner.GetOutputPort(f"plan_{name}") for name in theta_names]
     else:  # the Fourier excitation (identification after it, on its data), or no identification phase
@@ -292,13 +322,7 @@ def build_online(
     if switches:
         command = add_phase_switch(builder, arm, source, controllers)
 
-    ignore = [arm.released_body] if arm.released_body is not None else []
-    monitor = builder.AddSystem(SafetyMonitor(arm.plant, arm.scene_graph, robot, period_s=h, ignore_bodies=ignore))
-    monitor.set_name("safety_monitor")
-    builder.Connect(arm.query_output, monitor.query_port)
-    builder.Connect(arm.plant_state_output, monitor.state_port)
-    builder.Connect(arm.motor_torque_output, monitor.torque_port)
-    builder.Connect(command, monitor.command_port)
+    monitor = None if over_lcm else _add_monitor(builder, arm, robot, command)
 
     loggers = {
         "state": _add_logger(builder, arm.state_output, h, "state"),
@@ -332,6 +356,21 @@ def build_online(
         source,
         task_info,
     )
+
+
+def _add_monitor(builder, arm, robot, command):
+    """The referee on the simulated station's own plant (links' geometry, torque before saturation)."""
+    from safesysid.systems.safety_monitor import SafetyMonitor
+
+    ignore = [arm.released_body] if arm.released_body is not None else []
+    h = arm.time_step
+    monitor = builder.AddSystem(SafetyMonitor(arm.plant, arm.scene_graph, robot, period_s=h, ignore_bodies=ignore))
+    monitor.set_name("safety_monitor")
+    builder.Connect(arm.query_output, monitor.query_port)
+    builder.Connect(arm.plant_state_output, monitor.state_port)
+    builder.Connect(arm.motor_torque_output, monitor.torque_port)
+    builder.Connect(command, monitor.command_port)
+    return monitor
 
 
 def _log(sink, context):

@@ -87,6 +87,10 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     scenario = _scenario(args)
     method = _method(args.method, scenario)
+    if getattr(args, "arm", None) == "lcm" or scenario.arm.driver == "lcm":
+        from safesysid.online_lcm import cmd_run_lcm
+
+        return cmd_run_lcm(args, scenario, method)
     if args.realtime_rate < 0:
         raise BadInput("--realtime-rate: must be >= 0")
     display = RunDisplay(

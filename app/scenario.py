@@ -83,6 +83,7 @@ _CHOICES = {
     "controller.kind": ("armour", "pid", "adaptive", "adaptive_robust"),
     "task.solver": ("snopt", "ipopt"),
     "faults.planner_failure_kind": ("solver_failed", "timeout"),
+    "arm.driver": ("simulated", "lcm"),
 }
 
 
@@ -227,6 +228,9 @@ def _validate(s: Scenario, where):
         need(resolve_path(s.robot.model, scenario_dir(s)).is_file(), "robot.model", f"file {s.robot.model!r} not found")
     _validate_task(s, need)
     _validate_faults(s, need)
+    for key in ("watchdog_ms", "status_timeout_ms"):
+        need(getattr(s.arm, key) > 0, f"arm.{key}", "must be > 0")
+    need(s.arm.lcm_url.startswith(("udpm://", "memq://")), "arm.lcm_url", "must be an LCM url (udpm://... or memq://)")
     if s.payload.dumbbell.lower() != "none":
         from safesysid.systems.payload import load_dumbbells
 

@@ -393,6 +393,20 @@ class Faults:
 
 
 @dc.dataclass
+class Arm:
+    """Which arm the run drives (docs/hardware.md): the simulated station in this process, or an
+    arm reached over LCM (Drake's lcmt_panda_command / lcmt_panda_status, torque mode), answered by
+    `safesysid arm-sim` or a hardware driver."""
+
+    driver: str = "simulated"  # simulated | lcm
+    lcm_url: str = "udpm://239.241.129.92:20185?ttl=0"  # ttl=0: this machine only
+    command_channel: str = "SAFESYSID_ARM_COMMAND"
+    status_channel: str = "SAFESYSID_ARM_STATUS"
+    watchdog_ms: float = 20.0  # the driver brakes when no new command arrived for this long
+    status_timeout_ms: float = 20.0  # the run brakes when no new status arrived for this long
+
+
+@dc.dataclass
 class Scenario:
     name: str = "scenario"
     robot: Robot = dc.field(default_factory=Robot)
@@ -408,6 +422,7 @@ class Scenario:
     initial_interval: InitialInterval = dc.field(default_factory=InitialInterval)
     task: Task = dc.field(default_factory=Task)
     faults: Faults = dc.field(default_factory=Faults)
+    arm: Arm = dc.field(default_factory=Arm)
     method: str = "ours"  # a name of METHODS (systems/methods.py: the paper's table of comparisons)
     seed: int = 0
     # Where the loader found the file (not a YAML field).

@@ -44,6 +44,19 @@ from .robot_model import RobotModel
 ESTIMATE_EXTRA = ("data_lower", "data_upper", "first_order_lower", "first_order_upper")
 
 
+def estimate_update(estimator: IncrementalEstimator, data: np.ndarray, n: int):
+    """Algorithm 1 on the rows [t, q, v, τ] of `data`, on a copy of `estimator` (the stored one is
+    shared): (the advanced copy, its Estimate or the EstimatorError that skipped the update)."""
+    estimator = copy.deepcopy(
+        estimator, {id(estimator.robot): estimator.robot, id(estimator.settings): estimator.settings}
+    )
+    try:
+        estimator.add(data[:, 0], data[:, 1 : 1 + n], data[:, 1 + n : 1 + 2 * n], data[:, 1 + 2 * n :])
+        return estimator, estimator.update()
+    except EstimatorError as err:
+        return estimator, err
+
+
 @dataclass(frozen=True)
 class SysIdState:
     """The estimator's run data. Immutable once stored: an update replaces it with a new one
@@ -176,25 +189,23 @@ class SysIdEstimator(LeafSystem):
         """Algorithm 1 on the new samples, on a copy of the estimator (the stored one is shared)."""
         if not run.samples:  # every sample of the period was lost or rejected
             return replace(run, history=run.history + ({"t": t, "skipped": "no valid samples"},))
+        run, data = self._take(run)
+        return self._apply(t, run, *estimate_update(run.estimator, data, self.n), state)
+
+    def _take(self, run: SysIdState) -> tuple[SysIdState, np.ndarray]:
+        """The run without its new samples (their gaps noted), and those samples as rows."""
         data = np.array(run.samples)
-        n = self.n
         times = data[:, 0] if np.isinf(run.handed_t) else np.concatenate([[run.handed_t], data[:, 0]])
         gaps = times[1:][np.diff(times) > 1.5 * self.sample_period_s]
         detail = "follow a gap (the estimator's segments never span one)"
-        run = replace(run, input_issues=run.input_issues + tuple((float(g), "sample_gap", detail) for g in gaps))
-        old = run.estimator
-        estimator = copy.deepcopy(old, {id(old.robot): old.robot, id(old.settings): old.settings})
-        try:
-            estimator.add(data[:, 0], data[:, 1 : 1 + n], data[:, 1 + n : 1 + 2 * n], data[:, 1 + 2 * n :])
-            est = estimator.update()
-        except EstimatorError as err:  # not enough data yet (or bad samples): keep the outputs
-            return replace(
-                run,
-                estimator=estimator,
-                samples=(),
-                handed_t=data[-1, 0],
-                history=run.history + ({"t": t, "skipped": str(err)},),
-            )
+        issues = run.input_issues + tuple((float(g), "sample_gap", detail) for g in gaps)
+        return replace(run, samples=(), handed_t=data[-1, 0], input_issues=issues), data
+
+    def _apply(self, t, run: SysIdState, estimator, outcome, state) -> SysIdState:
+        """An update's outcome (an Estimate, or the EstimatorError that skipped it) into the run."""
+        if isinstance(outcome, EstimatorError):  # not enough data yet (or bad samples): keep the outputs
+            return replace(run, estimator=estimator, history=run.history + ({"t": t, "skipped": str(outcome)},))
+        est = outcome
         record = {
             "t": t,
             "update_time_s": est.update_time_s,
@@ -214,7 +225,7 @@ class SysIdEstimator(LeafSystem):
             "problems": list(est.problems),
             "quadrature_ratio": est.quadrature_ratio,
         }
-        new = replace(run, estimator=estimator, samples=(), handed_t=data[-1, 0], history=run.history + (record,))
+        new = replace(run, estimator=estimator, history=run.history + (record,))
         self._write(state, est, len(self.history_of(new)))
         return new
 

@@ -451,6 +451,8 @@ def summarize(cases: list[dict]) -> dict:
         "same_joints": _named_rate([c for c in cases if c.get("same_joints")]),
         "parameter_errors": error_table(cases),
         "interval_coverage": coverage_table(cases),
+        "interval_coverage_calibrated": calibrated_coverage(cases),
+        "false_naming": spurious_table(cases),
     }
 
 

@@ -1,0 +1,199 @@
+"""Planning and estimation that do not stop the clock (Algorithm 2's timing in wall-clock time).
+
+A call started at t_k runs in a worker process while the 1 kHz loop goes on; its result is used
+at t_k + t_p. The planner plans at t_k the plan that starts at t_k + t_p, from the state the
+executing plan reaches then (known exactly: it is the desired trajectory), with the estimate
+published at t_k. A result not back at t_k + t_p is a missed deadline: status deadline_missed,
+the robot brakes on the verified plan (as for any failed call). A worker that dies is that
+call's planner_error. The estimator hands the samples of [t_(k-1), t_k] to a worker at t_k and
+publishes the result at t_(k+1); a late result is an event (estimator_late) and the samples of
+the next period join the same call. The pending call lives in the system, not in the context:
+these systems serve one wall-clock run (the simulated clock keeps the synchronous systems).
+"""
+
+from __future__ import annotations
+
+import copy
+import multiprocessing
+import os
+import time
+from concurrent.futures import Future, ProcessPoolExecutor
+from dataclasses import replace
+
+import numpy as np
+
+from ..estimation import EstimatorError
+from ..planner import PlanResult
+from ..planner_system import ExcitingPlanner
+from ..sysid_system import SysIdEstimator, SysIdState, estimate_update
+from ..trajectory_source import Piece
+from .realtime import lower_realtime
+
+# Test hook (docs/hardware.md, faults): SAFESYSID_WORKER_FAULT="die:K" or "hang:K" makes the
+# worker's K-th job (0-based, planner and estimator jobs counted together) exit or hang.
+WORKER_FAULT_ENV = "SAFESYSID_WORKER_FAULT"
+MAX_DETAIL_SIZE = 1000
+
+
+class BackgroundWorker:
+    """One forked worker process running jobs in order (planner and estimator share it)."""
+
+    def __init__(self) -> None:
+        self._pool = ProcessPoolExecutor(
+            max_workers=1, mp_context=multiprocessing.get_context("fork"), initializer=_worker_init
+        )
+        self._jobs = 0
+        self.fault = os.environ.get(WORKER_FAULT_ENV, "")
+
+    def start(self) -> None:
+        """Fork the worker now, before the clock starts (a fork stalls the loop for tens of ms). It
+        inherits every system registered so far (register): jobs name them instead of shipping them."""
+        if not self._jobs:
+            self._pool.submit(int).result()
+
+    def submit(self, fn, *args) -> Future:
+        job, self._jobs = self._jobs, self._jobs + 1
+        return self._pool.submit(_timed, fn, time.time(), _fault_of(self.fault, job), *args)
+
+    def shutdown(self) -> None:
+        processes = list((getattr(self._pool, "_processes", None) or {}).values())
+        self._pool.shutdown(wait=False, cancel_futures=True)
+        for process in processes:
+            process.kill()  # a hung job must not outlive the run
+
+
+def _worker_init() -> None:
+    """Below the loop's priority (realtime.lower_realtime) and one BLAS thread (2 cores)."""
+    from threadpoolctl import threadpool_limits
+
+    lower_realtime()
+    threadpool_limits(1)
+
+
+def _fault_of(text: str, job: int) -> str:
+    kind, _, index = text.partition(":")
+    return kind if kind in ("die", "hang") and index.isdigit() and int(index) == job else ""
+
+
+def _timed(fn, submitted: float, fault: str, *args):
+    """fn(*args) and its latency from submission (queueing included) [s]."""
+    if fault == "die":
+        os._exit(3)
+    if fault == "hang":
+        time.sleep(3600.0)
+    return fn(*args), time.time() - submitted
+
+
+# Systems a forked worker inherits: a job names one by its key (pickling a planner's precomputed
+# tables on every call would hold this process's interpreter for tens of ms).
+_REGISTRY: dict[int, object] = {}
+
+
+def register(system) -> int:
+    _REGISTRY[id(system)] = system
+    return id(system)
+
+
+def _plan_job(key, t_start, q, v, a, thetas, k_init, rng, mode, past):
+    planner = ExcitingPlanner._planner_at(_REGISTRY[key], t_start)
+    res = planner.plan(q, v, a, *thetas, k_init=k_init, rng=rng, mode=mode, past=past)
+    # Large details (the certified swept spheres, for drawing) stay here: unpickling them in the
+    # run's process would hold its interpreter, and so the 1 kHz loop, for tens of ms.
+    small = {k: v for k, v in res.details.items() if np.size(v) <= MAX_DETAIL_SIZE}
+    return replace(res, details=small), rng
+
+
+class WallClockPlanner(ExcitingPlanner):
+    """ExcitingPlanner whose calls run one period ahead in `worker` (module docstring)."""
+
+    def __init__(self, *args, worker: BackgroundWorker, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.worker = worker
+        self.key = register(self)
+        self.pending = None  # (future, start time of the plan it computes, its start state)
+        self.latencies_s: list[float] = []  # each call's submission-to-result time (vs t_p)
+        self._invocations = 0
+
+    def _planner_at(self, t):
+        return _PlanAhead(self, t)
+
+
+class _PlanAhead:
+    """What ExcitingPlanner._plan_into calls at t: the result of the call started one period ago."""
+
+    def __init__(self, system: WallClockPlanner, t: float) -> None:
+        self.system, self.t = system, t
+
+    def plan(self, q, v, a, *thetas, k_init, rng, mode, past):
+        system, t = self.system, self.t
+        system._invocations += 1
+        if system.pending is None:  # from rest at q0, before the arm moves: in this process
+            res = ExcitingPlanner._planner_at(system, t).plan(
+                q, v, a, *thetas, k_init=k_init, rng=rng, mode=mode, past=past
+            )
+        else:
+            res = self._collect(q, v, a, rng)
+        system.pending = None
+        if res.ok and system._invocations < system._num_plans:
+            self._submit(res, thetas, rng, mode, past)
+        return res
+
+    def _collect(self, q, v, a, rng) -> PlanResult:
+        future, t_start, start = self.system.pending
+        if not future.done():
+            future.cancel()
+            reason = f"the call for the plan starting at {t_start:.3f} s had not returned by then"
+            return PlanResult(ok=False, status="deadline_missed", reason=reason)
+        (res, rng_after), latency = future.result()  # a worker's death raises: that call's planner_error
+        self.system.latencies_s.append(latency)
+        if not all(np.allclose(x, y, atol=1e-9) for x, y in zip(start, (q, v, a))):
+            return PlanResult(ok=False, status="start_mismatch", reason="the plan was computed from another state")
+        rng.bit_generator.state = rng_after.bit_generator.state
+        return res
+
+    def _submit(self, res: PlanResult, thetas, rng, mode, past) -> None:
+        system, t_next = self.system, self.t + self.system._period
+        start = Piece(self.t, res.trajectory, res.q_end).evaluate(t_next)
+        args = (system.key, t_next, *start, tuple(np.array(x) for x in thetas), res.k, copy.deepcopy(rng), mode, past)
+        system.pending = (system.worker.submit(_plan_job, *args), t_next, start)
+
+
+class WallClockEstimator(SysIdEstimator):
+    """SysIdEstimator whose updates run in `worker`, published one period later."""
+
+    def __init__(self, *args, worker: BackgroundWorker, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.worker = worker
+        self.pending = None  # (future, the time its samples end)
+        self.latencies_s: list[float] = []
+        self.events_late: list[dict] = []
+
+    def _update(self, t, run: SysIdState, state) -> SysIdState:
+        if self.pending is not None:
+            future, t_data = self.pending
+            if not future.done():
+                detail = f"the update on the samples up to {t_data:.3f} s has not returned: the box is kept"
+                self.events_late.append(dict(t=t, kind="estimator_late", detail=detail))
+                return run  # its samples and the new ones go to the next call
+            self.pending = None
+            try:
+                (estimator, outcome), latency = future.result()
+                self.latencies_s.append(latency)
+            except Exception as err:  # noqa: BLE001 -- a dead worker: the update is lost, the box kept
+                estimator, outcome = run.estimator, EstimatorError(f"worker failed: {type(err).__name__}: {err}")
+            run = self._apply(t, run, estimator, outcome, state)
+        if not run.samples:
+            return replace(run, history=run.history + ({"t": t, "skipped": "no valid samples"},))
+        try:
+            future = self.worker.submit(estimate_update, run.estimator, data_of(run), self.n)
+        except Exception as err:  # noqa: BLE001 -- the worker is gone: no more updates, the box kept
+            detail = f"no estimator update: {type(err).__name__}: {err}"
+            self.events_late.append(dict(t=t, kind="estimator_worker_failed", detail=detail))
+            return run
+        run, data = self._take(run)
+        self.pending = (future, float(data[-1, 0]))
+        return run
+
+
+def data_of(run: SysIdState) -> np.ndarray:
+    return np.array(run.samples)

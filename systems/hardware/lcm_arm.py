@@ -1,0 +1,147 @@
+"""The arm station over LCM (the Drake hardware idiom: MakeHardwareStation(..., hardware=True)).
+
+add_lcm_arm: the run's side. The same ports as systems/real_arm.py's station (commanded_torque in;
+state, measured_torque, arm-timestamped estimator samples out) implemented by LCM subscriber and
+publisher systems behind one LcmInterfaceSystem; nothing else in the run's diagram changes.
+add_arm_driver: the arm's side (`safesysid arm-sim`, the reference a hardware driver follows):
+commands into the simulated station's commanded_torque, its status out, the watchdog between.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from drake import lcmt_panda_command, lcmt_panda_status
+
+from .lcm_systems import ArmDriver, CommandEncoder, StatusEncoder, StatusReceiver
+
+if TYPE_CHECKING:
+    from pydrake.lcm import DrakeLcm
+    from pydrake.systems.framework import DiagramBuilder, InputPort, OutputPort
+
+    from ..config import Scenario
+    from ..payload import Dumbbell
+    from ..real_arm import RealArm
+    from ..robot_model import RobotModel
+
+# The run waits this long at initialization for the arm's first status (an arm must be answering).
+FIRST_STATUS_TIMEOUT_S = 10.0
+
+
+def make_lcm(scenario: Scenario) -> DrakeLcm:
+    from pydrake.lcm import DrakeLcm
+
+    return DrakeLcm(scenario.arm.lcm_url)
+
+
+def _interface(builder, lcm):
+    from pydrake.systems.lcm import LcmInterfaceSystem
+
+    interface = builder.AddSystem(LcmInterfaceSystem(lcm))
+    interface.set_name("lcm_interface")
+    return interface
+
+
+@dataclass
+class LcmArm:
+    """The run's view of an arm reached over LCM: RealArm's ports, without the plant (the
+    referee, the ground truth and the payload's release live on the arm's side)."""
+
+    robot: RobotModel
+    dumbbell: Dumbbell | None  # the scenario's payload: what the planner assumes it carries
+    commanded_torque_input: InputPort
+    state_output: OutputPort
+    measured_torque_output: OutputPort
+    estimator_samples_output: OutputPort
+    hold_output: OutputPort
+    receiver: StatusReceiver
+    lcm: DrakeLcm
+    command_channel: str
+    time_step: float
+    released_body: None = None
+    plant: None = None
+
+    def fault_events(self, context) -> list[dict]:
+        return list(self.receiver.guard(self.receiver.GetMyContextFromRoot(context)).events)
+
+
+def add_lcm_arm(builder: DiagramBuilder, scenario: Scenario, robot: RobotModel, lcm: DrakeLcm) -> LcmArm:
+    from pydrake.systems.lcm import LcmPublisherSystem, LcmSubscriberSystem
+
+    from ..real_arm import scenario_dumbbell
+
+    n, h, cfg = robot.n, scenario.plant.time_step_s, scenario.arm
+    _interface(builder, lcm)
+    sub = builder.AddSystem(
+        LcmSubscriberSystem.Make(
+            cfg.status_channel,
+            lcmt_panda_status,
+            lcm,
+            wait_for_message_on_initialization_timeout=FIRST_STATUS_TIMEOUT_S,
+        )
+    )
+    sub.set_name("status_subscriber")
+    receiver = builder.AddSystem(StatusReceiver(n, h, cfg.status_timeout_ms * 1e-3, np.asarray(scenario.q0_rad)))
+    receiver.set_name("status_receiver")
+    builder.Connect(sub.get_output_port(), receiver.status)
+    encoder = builder.AddSystem(CommandEncoder(n))
+    encoder.set_name("command_encoder")
+    builder.Connect(receiver.GetOutputPort("hold"), encoder.hold)
+    pub = builder.AddSystem(LcmPublisherSystem.Make(cfg.command_channel, lcmt_panda_command, lcm, publish_period=h))
+    pub.set_name("command_publisher")
+    builder.Connect(encoder.get_output_port(), pub.get_input_port())
+    return LcmArm(
+        robot=robot,
+        dumbbell=scenario_dumbbell(scenario),
+        commanded_torque_input=encoder.torque,
+        state_output=receiver.GetOutputPort("state"),
+        measured_torque_output=receiver.GetOutputPort("measured_torque"),
+        estimator_samples_output=receiver.GetOutputPort("samples"),
+        hold_output=receiver.GetOutputPort("hold"),
+        receiver=receiver,
+        lcm=lcm,
+        command_channel=cfg.command_channel,
+        time_step=h,
+    )
+
+
+def add_arm_driver(builder: DiagramBuilder, arm: RealArm, scenario: Scenario, lcm: DrakeLcm) -> ArmDriver:
+    """Commands -> ArmDriver (watchdog, hold) -> the station's commanded_torque; its status out
+    every plant step. Returns the driver (its torque output is u before saturation: the referee's)."""
+    from pydrake.systems.lcm import LcmPublisherSystem, LcmSubscriberSystem
+
+    cfg, h = scenario.arm, scenario.plant.time_step_s
+    _interface(builder, lcm)
+    sub = builder.AddSystem(LcmSubscriberSystem.Make(cfg.command_channel, lcmt_panda_command, lcm))
+    sub.set_name("command_subscriber")
+    driver = builder.AddSystem(
+        ArmDriver(arm.robot.n, plant_gravity(arm), h, cfg.watchdog_ms * 1e-3, np.asarray(scenario.q0_rad, float))
+    )
+    driver.set_name("arm_driver")
+    builder.Connect(sub.get_output_port(), driver.command)
+    builder.Connect(arm.state_output, driver.state)
+    builder.Connect(driver.get_output_port(), arm.commanded_torque_input)
+    encoder = builder.AddSystem(StatusEncoder(arm.robot.n))
+    encoder.set_name("status_encoder")
+    builder.Connect(arm.state_output, encoder.state)
+    builder.Connect(arm.measured_torque_output, encoder.measured_torque)
+    builder.Connect(driver.get_output_port(), encoder.commanded_torque)
+    pub = builder.AddSystem(LcmPublisherSystem.Make(cfg.status_channel, lcmt_panda_status, lcm, publish_period=h))
+    pub.set_name("status_publisher")
+    builder.Connect(encoder.get_output_port(), pub.get_input_port())
+    return driver
+
+
+def plant_gravity(arm: RealArm):
+    """q -> the torque holding the arm and its payload against gravity, on the station's own plant
+    (the simulated driver's model is exact; a real driver's is not: docs/hardware.md)."""
+    plant = arm.plant
+    context = plant.CreateDefaultContext()
+
+    def gravity(q: np.ndarray) -> np.ndarray:
+        plant.SetPositions(context, arm.instance, q)
+        return -plant.GetVelocitiesFromArray(arm.instance, plant.CalcGravityGeneralizedForces(context))
+
+    return gravity

@@ -1,0 +1,170 @@
+"""LeafSystems of the arm boundary (thin: the rules are in freshness.py and messages.py).
+
+Arm side (`safesysid arm-sim`, or what a driver must do): ArmDriver turns commands into the
+motor torque u and holds the arm when they stop; StatusPublisherInput encodes the arm's status.
+Run side: StatusReceiver decodes the status into the station's outputs; CommandEncoder encodes u.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from drake import lcmt_panda_command, lcmt_panda_status
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import EventStatus, LeafSystem
+
+from ..faults import pack, packet_size
+from .freshness import Freshness
+from .messages import Status, command_message, parse_command, parse_status, status_message
+
+HOLD_KP_NM_RAD = 50.0  # the driver's hold: gravity + a PD to the pose at the trip
+HOLD_KD_NMS_RAD = 5.0
+
+
+class ArmDriver(LeafSystem):
+    """Commands (lcmt_panda_command) -> motor torque u [N m], before the actuators' saturation.
+
+    Holds q at the trip pose (gravity(q) + PD; gravity: the driver's own model, q -> N m) before
+    the first command, after a hold request, when no new command arrived for watchdog_s (the
+    driver's watchdog), or when the commands' clock jumps by more than that; latched, as a real
+    driver stays in its error state."""
+
+    def __init__(self, n: int, gravity, time_step_s: float, watchdog_s: float, q_start: np.ndarray):
+        super().__init__()
+        self.gravity, self.n = gravity, n
+        self.command = self.DeclareAbstractInputPort("command", AbstractValue.Make(lcmt_panda_command()))
+        self.state = self.DeclareVectorInputPort("state", 2 * self.n)
+        initial = (Freshness(watchdog_s), np.asarray(q_start, float))
+        self._memo = self.DeclareAbstractState(AbstractValue.Make(initial))
+        self.DeclarePeriodicUnrestrictedUpdateEvent(time_step_s, 0.0, self._tick)
+        self.DeclareVectorOutputPort("torque", self.n, self._torque)
+
+    def guard(self, context) -> Freshness:
+        return context.get_abstract_state(int(self._memo)).get_value()[0]
+
+    def _tick(self, context, state):
+        guard, q_hold = context.get_abstract_state(int(self._memo)).get_value()
+        t = context.get_time()
+        parsed = parse_command(self.command.Eval(context), self.n)
+        before = guard.tripped
+        if parsed is None:
+            guard = guard.step(t, name="command")
+        else:
+            sent, torque, hold = parsed
+            guard = guard.step(t, sent, torque, name="command")
+            if hold and guard.last_sent_s == sent:
+                guard = guard.trip(t, "hold_requested", "the run asked the driver to brake and hold")
+        if guard.tripped is not None and before is None:
+            q_hold = self.state.Eval(context)[: self.n].copy()
+        state.get_mutable_abstract_state(int(self._memo)).set_value((guard, q_hold))
+        return EventStatus.Succeeded()
+
+    def _torque(self, context, output):
+        guard, q_hold = context.get_abstract_state(int(self._memo)).get_value()
+        if guard.armed and guard.tripped is None:
+            output.SetFromVector(guard.payload)
+            return
+        x = self.state.Eval(context)
+        q, v = x[: self.n], x[self.n :]
+        output.SetFromVector(self.gravity(q) + HOLD_KP_NM_RAD * (q_hold - q) - HOLD_KD_NMS_RAD * v)
+
+
+class StatusEncoder(LeafSystem):
+    """The arm's status (lcmt_panda_status), time-stamped with the arm's own clock."""
+
+    def __init__(self, n: int):
+        super().__init__()
+        self.n = n
+        self.state = self.DeclareVectorInputPort("state", 2 * n)
+        self.measured_torque = self.DeclareVectorInputPort("measured_torque", n)
+        self.commanded_torque = self.DeclareVectorInputPort("commanded_torque", n)
+        self.DeclareAbstractOutputPort("status", lambda: AbstractValue.Make(lcmt_panda_status()), self._calc)
+
+    def _calc(self, context, output):
+        x = self.state.Eval(context)
+        status = Status(
+            context.get_time(),
+            x[: self.n],
+            x[self.n :],
+            self.measured_torque.Eval(context),
+            self.commanded_torque.Eval(context),
+        )
+        output.set_value(status_message(status))
+
+
+class StatusReceiver(LeafSystem):
+    """lcmt_panda_status -> state [q, v], measured_torque, the estimator's arm-timestamped samples
+    (systems/faults.py packets: each new status once, at the arm's time), and hold (1.0 once the
+    status stream stopped, jumped or stalled beyond status_timeout_s: the run must brake)."""
+
+    def __init__(self, n: int, time_step_s: float, status_timeout_s: float, q_start: np.ndarray):
+        super().__init__()
+        self.n = n
+        self.status = self.DeclareAbstractInputPort("status", AbstractValue.Make(lcmt_panda_status()))
+        rest = Status(0.0, np.asarray(q_start, float), np.zeros(n), np.zeros(n), np.zeros(n))
+        self._memo = self.DeclareAbstractState(AbstractValue.Make((Freshness(status_timeout_s, payload=rest), False)))
+        self.DeclarePeriodicUnrestrictedUpdateEvent(time_step_s, 0.0, self._tick)
+        deps = {self.abstract_state_ticket(self._memo)}
+        self.DeclareVectorOutputPort("state", 2 * n, self._state, prerequisites_of_calc=deps)
+        self.DeclareVectorOutputPort("measured_torque", n, self._torque, prerequisites_of_calc=deps)
+        self.DeclareVectorOutputPort("samples", packet_size(n), self._samples, prerequisites_of_calc=deps)
+        self.DeclareVectorOutputPort("hold", 1, self._hold, prerequisites_of_calc=deps)
+
+    def guard(self, context) -> Freshness:
+        return context.get_abstract_state(int(self._memo)).get_value()[0]
+
+    def rearm(self, root_context, grace_s: float = 0.1) -> None:
+        """Forget the stream's timing (keeping the last status): the run's clock starts now, after
+        its set-up (the first plan, the controller's compilation) held this loop; for grace_s the
+        newest status is taken without timing checks (the backlog of the set-up drains)."""
+        context = self.GetMyMutableContextFromRoot(root_context)
+        guard = self.guard(context)
+        fresh = Freshness(guard.limit_s, payload=guard.payload, grace_until_s=context.get_time() + grace_s)
+        context.get_mutable_abstract_state(int(self._memo)).set_value((fresh, False))
+
+    def _tick(self, context, state):
+        guard = self.guard(context)
+        status = parse_status(self.status.Eval(context), self.n)
+        t = context.get_time()
+        new = guard.step(t, name="status") if status is None else guard.step(t, status.t_s, status, name="status")
+        fresh = new.last_sent_s != guard.last_sent_s
+        state.get_mutable_abstract_state(int(self._memo)).set_value((new, fresh))
+        return EventStatus.Succeeded()
+
+    def _status(self, context) -> Status:
+        return self.guard(context).payload
+
+    def _state(self, context, output):
+        status = self._status(context)
+        output.SetFromVector(np.concatenate([status.q, status.v]))
+
+    def _torque(self, context, output):
+        output.SetFromVector(self._status(context).measured_torque)
+
+    def _samples(self, context, output):
+        guard, fresh = context.get_abstract_state(int(self._memo)).get_value()
+        s = guard.payload
+        rows = [np.concatenate([[s.t_s], s.q, s.v, s.measured_torque])] if fresh and guard.tripped is None else []
+        output.SetFromVector(pack(rows, self.n))
+
+    def _hold(self, context, output):
+        output.SetFromVector([0.0 if self.guard(context).tripped is None else 1.0])
+
+
+class CommandEncoder(LeafSystem):
+    """u [N m] -> lcmt_panda_command stamped with the run's clock; input hold > 0.5 asks the
+    driver to brake and hold (control_mode_expected = kNone)."""
+
+    def __init__(self, n: int):
+        super().__init__()
+        self.torque = self.DeclareVectorInputPort("torque", n)
+        self.hold = self.DeclareVectorInputPort("hold", 1)
+        self.DeclareAbstractOutputPort("command", lambda: AbstractValue.Make(lcmt_panda_command()), self._calc)
+
+    def _calc(self, context, output):
+        hold = self.hold.HasValue(context) and self.hold.Eval(context)[0] > 0.5
+        output.set_value(command_message(context.get_time(), self.torque.Eval(context), hold))
+
+
+def with_events(guard: Freshness, **extra) -> dict:
+    """A receiver's record for summary files."""
+    return dict(tripped=guard.tripped, ignored_messages=guard.ignored, events=list(guard.events), **extra)

@@ -1,0 +1,256 @@
+"""The arm boundary over LCM (systems/hardware/, docs/hardware.md).
+
+Pure rules (freshness.py) first; then faults over real LCM between two processes: the test is
+one side, a subprocess (`safesysid arm-sim`, or a status publisher) the other. They skip, saying
+why, where UDP multicast on loopback is unavailable (.ci/run sets it up where it can).
+"""
+
+import json
+import os
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+import pytest
+from safesysid.systems.hardware.freshness import Freshness
+
+SCENARIO = Path(__file__).resolve().parents[1] / "scenarios" / "quickstart.yaml"
+URL = "udpm://239.241.129.92:20185?ttl=0"
+
+
+# -- pure rules -----------------------------------------------------------------------------------
+def _ticks(guard, arrivals, until_s, dt=0.001):
+    """Tick every dt to until_s; arrivals {tick time: sender time}."""
+    t = 0.0
+    sent = None
+    while t <= until_s + 1e-12:
+        key = round(t, 6)
+        sent = arrivals.get(key, sent)
+        guard = guard.step(key, sent, sent, name="status")
+        t += dt
+    return guard
+
+
+def test_a_stream_that_stops_trips_after_the_limit_and_not_before():
+    arrivals = {round(k * 0.001, 6): k * 0.001 for k in range(100)}  # one message a tick to 0.099 s
+    assert _ticks(Freshness(0.02), arrivals, 0.119).tripped is None  # 20 ms of silence: still fresh
+    guard = _ticks(Freshness(0.02), arrivals, 0.1195 + 0.001)
+    assert guard.tripped == "status_lost" and guard.events[0]["kind"] == "status_lost"
+
+
+def test_older_messages_are_ignored_and_counted_and_a_clock_jump_trips():
+    guard = Freshness(0.02).step(0.0, 1.000, "a", name="command").step(0.001, 1.001, "b", name="command")
+    late = guard.step(0.002, 0.990, "old", name="command").step(0.003, 0.990, "old", name="command")
+    assert late.payload == "b" and late.ignored == 1 and late.tripped is None  # counted once
+    jumped = late.step(0.004, 1.001 + 0.021, "far", name="command")
+    assert jumped.tripped == "command_clock_jump" and jumped.payload == "b"
+    assert jumped.step(0.005, 1.023, "next", name="command").payload == "b"  # latched
+
+
+def test_the_grace_takes_the_backlog_without_tripping():
+    guard = Freshness(0.02, grace_until_s=0.1).step(0.0, 5.0, "x", name="status")
+    guard = guard.step(0.05, 5.3, "y", name="status")  # 300 ms of sender time in one message: the backlog
+    assert guard.tripped is None and guard.payload == "y"
+    assert guard.step(0.2, 5.3, "y", name="status").tripped == "status_lost"
+
+
+# -- over LCM between two processes ------------------------------------------------------------------
+def _multicast_reason():
+    """Why UDP multicast on loopback cannot be used here (None: it can)."""
+    from pydrake.lcm import DrakeLcm
+
+    try:
+        lcm = DrakeLcm(URL)
+    except RuntimeError as err:
+        return f"no LCM over UDP multicast ({err}); root: ip link set lo multicast on; ip route add 224.0.0.0/4 dev lo"
+    channel, got = f"PROBE_{uuid.uuid4().hex}", []
+    lcm.Subscribe(channel, got.append)
+    lcm.Publish(channel, b"x")
+    lcm.HandleSubscriptions(200)
+    return None if got else "UDP multicast does not loop back (ip route add 224.0.0.0/4 dev lo, as root)"
+
+
+@pytest.fixture(scope="module")
+def multicast():
+    reason = _multicast_reason()
+    if reason:
+        pytest.skip(reason)
+
+
+def _channels():
+    tag = uuid.uuid4().hex[:8]
+    return f"TEST_CMD_{tag}", f"TEST_STATUS_{tag}"
+
+
+def _arm_overrides(command, status, extra=""):
+    return f"arm: {{command_channel: {command}, status_channel: {status}{extra}}}"
+
+
+def _start_arm_sim(tmp_path, command, status, duration_s):
+    out = tmp_path / "arm"
+    args = ["arm-sim", str(SCENARIO), "--out", str(out), "--duration", str(duration_s), "--no-fifo"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "safesysid.cli", *args, "--scenario-text", _arm_overrides(command, status)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
+    deadline = time.monotonic() + 120
+    while not (out / "ready").exists():
+        assert proc.poll() is None, proc.stdout.read().decode()
+        assert time.monotonic() < deadline, "arm-sim did not start"
+        time.sleep(0.2)
+    return proc, out
+
+
+def _finish(proc, out):
+    proc.wait(timeout=180)
+    return json.loads((out / "arm_summary.json").read_text())
+
+
+class _Link:
+    """This process's end of the channels: the newest status, and commands out."""
+
+    def __init__(self, command, status):
+        from drake import lcmt_panda_status
+        from pydrake.lcm import DrakeLcm
+
+        self.lcm, self.command = DrakeLcm(URL), command
+        self.status = None
+        self.lcm.Subscribe(status, lambda data: setattr(self, "status", lcmt_panda_status.decode(data)))
+
+    def wait_status(self, timeout_s=30.0):
+        deadline = time.monotonic() + timeout_s
+        while self.status is None and time.monotonic() < deadline:
+            self.lcm.HandleSubscriptions(10)
+        assert self.status is not None, "no status from the arm"
+        return self.status
+
+    def send(self, t_s, torque, hold=False):
+        from safesysid.systems.hardware.messages import command_message
+
+        self.lcm.Publish(self.command, command_message(t_s, torque, hold).encode())
+
+    def echo_for(self, seconds, t0_s=0.0):
+        """Command the torque the arm reports holding with, every ms of this clock, for `seconds`;
+        returns the last sender time used."""
+        start = time.monotonic()
+        t = t0_s
+        while time.monotonic() - start < seconds:
+            self.lcm.HandleSubscriptions(0)
+            t = t0_s + (time.monotonic() - start)
+            self.send(t, np.array(self.wait_status().joint_torque_desired))
+            time.sleep(0.001)
+        return t
+
+
+def test_the_driver_holds_when_commands_stop_and_ignores_older_ones(multicast, tmp_path):
+    command, status = _channels()
+    proc, out = _start_arm_sim(tmp_path, command, status, duration_s=6.0)
+    link = _Link(command, status)
+    link.wait_status()
+    t = link.echo_for(1.0)
+    end = time.monotonic() + 0.3
+    while time.monotonic() < end:  # then only late (older) and duplicated messages: zero torque
+        link.send(t - 0.5, np.zeros(7))
+        time.sleep(0.001)
+    summary = _finish(proc, out)
+    driver = summary["driver"]
+    assert driver["commands_received"] and driver["ignored_messages"] >= 1
+    assert driver["holding"] == "command_lost", driver
+    assert summary["safe"], summary["referee"]
+    log = np.genfromtxt(out / "arm_log.csv", delimiter=",", names=True)
+    assert np.ptp(log["q2"]) < 0.05  # held where it was (no fall)
+
+
+def test_the_driver_holds_on_a_clock_jump_of_the_commands(multicast, tmp_path):
+    command, status = _channels()
+    proc, out = _start_arm_sim(tmp_path, command, status, duration_s=4.0)
+    link = _Link(command, status)
+    link.wait_status()
+    t = link.echo_for(0.5)
+    link.echo_for(0.5, t0_s=t + 1.0)  # this side's clock jumps 1 s
+    summary = _finish(proc, out)
+    assert summary["driver"]["holding"] == "command_clock_jump", summary["driver"]
+    assert summary["safe"], summary["referee"]
+
+
+SHORT_RUN = "planner: {num_plans: 2}"  # identification 4.5 s: the run lasts 6 s of wall clock
+
+
+def _run_lcm(tmp_path, command, status, env_extra=None):
+    """`safesysid run --arm lcm` as a process; (return code, lcm_run.json or None, its output)."""
+    out = tmp_path / "run"
+    env = dict(os.environ, **(env_extra or {}))
+    text = _arm_overrides(command, status)
+    proc = subprocess.run(
+        [sys.executable, "-m", "safesysid.cli", "run", str(SCENARIO), "--arm", "lcm", "--no-fifo", "--out", str(out)]
+        + ["--scenario-text", text, "--scenario-text", SHORT_RUN],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
+    path = out / "lcm_run.json"
+    return proc.returncode, json.loads(path.read_text()) if path.exists() else None, proc.stdout + proc.stderr
+
+
+def _kinds(run):
+    return [e["kind"] for e in run["events"]]
+
+
+def test_two_processes_run_algorithm_2_and_the_arm_ends_holding(multicast, tmp_path):
+    command, status = _channels()
+    proc, out = _start_arm_sim(tmp_path, command, status, duration_s=400.0)
+    code, run, text = _run_lcm(tmp_path, command, status)
+    proc.send_signal(subprocess.signal.SIGINT)
+    arm = _finish(proc, out)
+    assert code == 0 and run is not None, text
+    assert arm["safe"], arm["referee"]  # the arm's own referee: links' geometry, torque before saturation
+    assert arm["driver"]["commands_received"] and arm["driver"]["holding"] in ("hold_requested", "command_lost")
+    assert run["planner"]["iterations"] >= 1 and run["planner"]["status"][0] in ("solved", "best_feasible")
+    if run["estimate"] is not None:  # identified: the interval holds the arm's true payload
+        truth = np.array(arm["payload_true"]["theta"])
+        assert np.all(np.array(run["estimate"]["lower"]) <= truth) and np.all(truth <= run["estimate"]["upper"])
+
+
+def test_a_dead_worker_brakes_on_the_verified_plan(multicast, tmp_path):
+    command, status = _channels()
+    proc, out = _start_arm_sim(tmp_path, command, status, duration_s=400.0)
+    code, run, text = _run_lcm(tmp_path, command, status, {"SAFESYSID_WORKER_FAULT": "die:0"})
+    proc.send_signal(subprocess.signal.SIGINT)
+    arm = _finish(proc, out)
+    assert code == 0 and run is not None, text
+    assert run["planner"]["status"][1] == "planner_error" and "brake" in _kinds(run), run["events"]
+    assert arm["safe"], arm["referee"]
+
+
+def _wait_commands(command, seconds, timeout_s=300.0):
+    """Block until commands have flowed on `command` for `seconds`."""
+    from pydrake.lcm import DrakeLcm
+
+    lcm, first = DrakeLcm(URL), []
+    lcm.Subscribe(command, lambda data: first or first.append(time.monotonic()))
+    deadline = time.monotonic() + timeout_s
+    while not first or time.monotonic() - first[0] < seconds:
+        assert time.monotonic() < deadline, "the run never commanded"
+        lcm.HandleSubscriptions(10)
+
+
+def test_the_run_holds_the_arm_when_its_status_stops(multicast, tmp_path):
+    from concurrent.futures import ThreadPoolExecutor
+
+    command, status = _channels()
+    proc, out = _start_arm_sim(tmp_path, command, status, duration_s=400.0)
+    with ThreadPoolExecutor(1) as pool:
+        running = pool.submit(_run_lcm, tmp_path, command, status)
+        _wait_commands(command, 1.0)
+        proc.send_signal(subprocess.signal.SIGSTOP)  # the arm falls silent (its process frozen)
+        code, run, text = running.result()
+    proc.send_signal(subprocess.signal.SIGCONT)
+    proc.send_signal(subprocess.signal.SIGINT)
+    _finish(proc, out)
+    assert code == 0 and run is not None, text
+    assert "status_lost" in _kinds(run), run["events"]
