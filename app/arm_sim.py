@@ -17,13 +17,21 @@ import json
 import signal
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from pydrake.systems.framework import Context
+    from safesysid.scenario import Scenario
+    from safesysid.systems.hardware.lcm_systems import ArmDriver
+    from safesysid.systems.real_arm import RealArm
+    from safesysid.systems.safety_monitor import SafetyMonitor
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
-def build_arm_side(scenario, seed: int | None = None):
+def build_arm_side(scenario: Scenario, seed: int | None = None) -> tuple:
     """The station, its driver and referee and loggers: (diagram, arm, driver, monitor, loggers)."""
     from pydrake.systems.framework import DiagramBuilder
     from pydrake.systems.primitives import LogVectorOutput
@@ -49,7 +57,9 @@ def build_arm_side(scenario, seed: int | None = None):
     return builder.Build(), arm, driver, monitor, loggers
 
 
-def run_arm_sim(scenario, out_dir: str | Path, *, duration_s: float, seed: int | None = None, fifo: bool = True):
+def run_arm_sim(
+    scenario: Scenario, out_dir: str | Path, *, duration_s: float, seed: int | None = None, fifo: bool = True
+) -> dict:
     """Serve the arm for duration_s of its clock (or until SIGINT/SIGTERM); write the judgement."""
     from pydrake.systems.analysis import Simulator
     from safesysid.systems.hardware.realtime import request_realtime
@@ -80,7 +90,9 @@ def run_arm_sim(scenario, out_dir: str | Path, *, duration_s: float, seed: int |
     return summary
 
 
-def arm_summary(ctx, arm, driver, monitor, loggers, out: Path) -> dict:
+def arm_summary(
+    ctx: Context, arm: RealArm, driver: ArmDriver, monitor: SafetyMonitor, loggers: dict, out: Path
+) -> dict:
     """The referee's judgement and the driver's record; the ground truth into out/arm_log.csv."""
     from safesysid.joint_log import JointLog, write_joint_log
 

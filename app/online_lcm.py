@@ -11,16 +11,22 @@ arm_summary.json); lcm_run.json says what the run saw and how well it kept time.
 
 from __future__ import annotations
 
+import argparse
 import gc
 import json
 import resource
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from safesysid.scenario import Scenario
 from safesysid.systems import methods
+
+if TYPE_CHECKING:
+    from pydrake.systems.framework import Context
+    from safesysid.online import OnlineDiagram
 
 SWITCH_INTERVAL_S = 1e-4
 CHUNK_S = 0.05  # the run advances in chunks of this much, measuring its lag behind the wall clock
@@ -115,7 +121,7 @@ def _request_hold(arm, t_s: float) -> None:
         time.sleep(0.002)
 
 
-def wallclock_summary(built, ctx, scenario, method, seed) -> dict:
+def wallclock_summary(built: OnlineDiagram, ctx: Context, scenario: Scenario, method: str, seed: int) -> dict:
     planner, est = built.planner, built.estimator
     records = planner.records(planner.GetMyContextFromRoot(ctx)) if planner is not None else []
     events = list(built.arm.fault_events(ctx))
@@ -152,7 +158,7 @@ def wallclock_summary(built, ctx, scenario, method, seed) -> dict:
     }
 
 
-def cmd_run_lcm(args, scenario: Scenario, method: str) -> int:
+def cmd_run_lcm(args: argparse.Namespace, scenario: Scenario, method: str) -> int:
     """`safesysid run --arm lcm`: one line of what the run saw; exit 1 when no arm answered."""
     import dataclasses
 

@@ -34,7 +34,7 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import BasicVector, Context, EventStatus, LeafSystem
 
-from .estimation import EstimatorError, EstimatorSettings, IncrementalEstimator
+from .estimation import Estimate, EstimatorError, EstimatorSettings, IncrementalEstimator
 from .faults import packet_size, unpack
 from .inertial import NAMES
 from .robot_model import RobotModel
@@ -44,7 +44,9 @@ from .robot_model import RobotModel
 ESTIMATE_EXTRA = ("data_lower", "data_upper", "first_order_lower", "first_order_upper")
 
 
-def estimate_update(estimator: IncrementalEstimator, data: np.ndarray, n: int):
+def estimate_update(
+    estimator: IncrementalEstimator, data: np.ndarray, n: int
+) -> tuple[IncrementalEstimator, Estimate | EstimatorError]:
     """Algorithm 1 on the rows [t, q, v, τ] of `data`, on a copy of `estimator` (the stored one is
     shared): (the advanced copy, its Estimate or the EstimatorError that skipped the update)."""
     estimator = copy.deepcopy(

@@ -17,6 +17,7 @@ import copy
 import multiprocessing
 import os
 import time
+from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import replace
 
@@ -51,7 +52,7 @@ class BackgroundWorker:
         if not self._jobs:
             self._pool.submit(int).result()
 
-    def submit(self, fn, *args) -> Future:
+    def submit(self, fn: Callable, *args: object) -> Future:
         job, self._jobs = self._jobs, self._jobs + 1
         return self._pool.submit(_timed, fn, time.time(), _fault_of(self.fault, job), *args)
 
@@ -89,7 +90,7 @@ def _timed(fn, submitted: float, fault: str, *args):
 _REGISTRY: dict[int, object] = {}
 
 
-def register(system) -> int:
+def register(system: object) -> int:
     _REGISTRY[id(system)] = system
     return id(system)
 

@@ -9,6 +9,7 @@ commands into the simulated station's commanded_torque, its status out, the watc
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -19,7 +20,7 @@ from .lcm_systems import ArmDriver, CommandEncoder, StatusEncoder, StatusReceive
 
 if TYPE_CHECKING:
     from pydrake.lcm import DrakeLcm
-    from pydrake.systems.framework import DiagramBuilder, InputPort, OutputPort
+    from pydrake.systems.framework import Context, DiagramBuilder, InputPort, OutputPort
 
     from ..config import Scenario
     from ..payload import Dumbbell
@@ -63,7 +64,7 @@ class LcmArm:
     released_body: None = None
     plant: None = None
 
-    def fault_events(self, context) -> list[dict]:
+    def fault_events(self, context: Context) -> list[dict]:
         return list(self.receiver.guard(self.receiver.GetMyContextFromRoot(context)).events)
 
 
@@ -134,7 +135,7 @@ def add_arm_driver(builder: DiagramBuilder, arm: RealArm, scenario: Scenario, lc
     return driver
 
 
-def plant_gravity(arm: RealArm):
+def plant_gravity(arm: RealArm) -> Callable[[np.ndarray], np.ndarray]:
     """q -> the torque holding the arm and its payload against gravity, on the station's own plant
     (the simulated driver's model is exact; a real driver's is not: docs/hardware.md)."""
     plant = arm.plant

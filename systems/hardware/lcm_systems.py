@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from drake import lcmt_panda_command, lcmt_panda_status
 from pydrake.common.value import AbstractValue
-from pydrake.systems.framework import EventStatus, LeafSystem
+from pydrake.systems.framework import Context, EventStatus, LeafSystem
 
 from ..faults import pack, packet_size
 from .freshness import Freshness
@@ -38,7 +38,7 @@ class ArmDriver(LeafSystem):
         self.DeclarePeriodicUnrestrictedUpdateEvent(time_step_s, 0.0, self._tick)
         self.DeclareVectorOutputPort("torque", self.n, self._torque)
 
-    def guard(self, context) -> Freshness:
+    def guard(self, context: Context) -> Freshness:
         return context.get_abstract_state(int(self._memo)).get_value()[0]
 
     def _tick(self, context, state):
@@ -109,10 +109,10 @@ class StatusReceiver(LeafSystem):
         self.DeclareVectorOutputPort("samples", packet_size(n), self._samples, prerequisites_of_calc=deps)
         self.DeclareVectorOutputPort("hold", 1, self._hold, prerequisites_of_calc=deps)
 
-    def guard(self, context) -> Freshness:
+    def guard(self, context: Context) -> Freshness:
         return context.get_abstract_state(int(self._memo)).get_value()[0]
 
-    def rearm(self, root_context, grace_s: float = 0.1) -> None:
+    def rearm(self, root_context: Context, grace_s: float = 0.1) -> None:
         """Forget the stream's timing (keeping the last status): the run's clock starts now, after
         its set-up (the first plan, the controller's compilation) held this loop; for grace_s the
         newest status is taken without timing checks (the backlog of the set-up drains)."""
@@ -165,6 +165,6 @@ class CommandEncoder(LeafSystem):
         output.set_value(command_message(context.get_time(), self.torque.Eval(context), hold))
 
 
-def with_events(guard: Freshness, **extra) -> dict:
+def with_events(guard: Freshness, **extra: object) -> dict:
     """A receiver's record for summary files."""
     return dict(tripped=guard.tripped, ignored_messages=guard.ignored, events=list(guard.events), **extra)
