@@ -59,7 +59,7 @@ def test_shipped_scenarios_load():
     files = sorted(SCENARIOS_DIR.glob("*.yaml"))
     for path in files:
         s = load_scenario(path)
-        assert len(s.q0_rad) == 7 and np.all(np.isfinite(s.q0_rad))
+        assert len(s.q0_rad) == robot_from_scenario(s).n and np.all(np.isfinite(s.q0_rad))
 
 
 def test_layers_merge_deeply_the_drake_way(tmp_path):
