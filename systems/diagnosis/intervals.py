@@ -150,13 +150,17 @@ def _value_interval(model, effect, group, key, *, p, cov_g, ident, half_factor, 
         return np.atleast_1d(np.asarray(effect_params(model, effect, {group: x}, group)[key], float))
 
     sd = np.sqrt(np.maximum(np.diag(cov_g), 0.0))
-    h = np.where(ident & (sd > 0), 1e-3 * sd, 0.0)
+    # Steps for the gradient: a thousandth of the standard deviation, or tiny where there is none
+    # (a parameter without information still shows which values depend on it).
+    h = np.where(ident & (sd > 0), 1e-3 * sd, 1e-6 * np.maximum(np.abs(p), 1.0))
     f0 = value(p)
     J = np.zeros((len(f0), len(p)))
-    for i in np.flatnonzero(h > 0):
+    for i in range(len(p)):
         e = np.zeros(len(p))
         e[i] = h[i]
-        J[:, i] = (value(np.clip(p + e, lo_b, hi_b)) - value(np.clip(p - e, lo_b, hi_b))) / (2 * h[i])
+        up, down = np.clip(p + e, lo_b, hi_b), np.clip(p - e, lo_b, hi_b)  # one-sided at a bound
+        if up[i] > down[i]:
+            J[:, i] = (value(up) - value(down)) / (up[i] - down[i])
     half = half_factor * np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", J, cov_g, J), 0.0))
     unknown = np.abs(J[:, ~ident]).sum(1) > 0 if (~ident).any() else np.zeros(len(f0), bool)
     lo = np.where(unknown, -np.inf, f0 - half)

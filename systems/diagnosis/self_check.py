@@ -252,7 +252,7 @@ def value_errors(name: str, truth: dict, fitted: dict) -> list[dict]:
     return []
 
 
-# Injected truth of each value with an interval: (interval key, truth key, how to read it).
+# Per-joint values with an interval: (interval key, key of the injected truth in simulate.make_case).
 TRUTH_OF = {
     "coulomb_friction": ("delta_Fc_Nm", "delta"),
     "viscous_friction": ("delta_Fv_Nms_rad", "delta"),
