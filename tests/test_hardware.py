@@ -85,15 +85,20 @@ def _channels():
     return f"TEST_CMD_{tag}", f"TEST_STATUS_{tag}"
 
 
+# This test process commands at normal priority on a shared machine: a watchdog it cannot trip by
+# being descheduled (the faults below last 300 ms to 1 s).
+LENIENT = ", watchdog_ms: 150"
+
+
 def _arm_overrides(command, status, extra=""):
     return f"arm: {{command_channel: {command}, status_channel: {status}{extra}}}"
 
 
-def _start_arm_sim(tmp_path, command, status, duration_s):
+def _start_arm_sim(tmp_path, command, status, duration_s, extra=""):
     out = tmp_path / "arm"
     args = ["arm-sim", str(SCENARIO), "--out", str(out), "--duration", str(duration_s), "--no-fifo"]
     proc = subprocess.Popen(
-        [sys.executable, "-m", "safesysid.cli", *args, "--scenario-text", _arm_overrides(command, status)],
+        [sys.executable, "-m", "safesysid.cli", *args, "--scenario-text", _arm_overrides(command, status, extra)],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
     )
@@ -148,11 +153,11 @@ class _Link:
 
 def test_the_driver_holds_when_commands_stop_and_ignores_older_ones(multicast, tmp_path):
     command, status = _channels()
-    proc, out = _start_arm_sim(tmp_path, command, status, duration_s=6.0)
+    proc, out = _start_arm_sim(tmp_path, command, status, duration_s=6.0, extra=LENIENT)
     link = _Link(command, status)
     link.wait_status()
     t = link.echo_for(1.0)
-    end = time.monotonic() + 0.3
+    end = time.monotonic() + 0.6
     while time.monotonic() < end:  # then only late (older) and duplicated messages: zero torque
         link.send(t - 0.5, np.zeros(7))
         time.sleep(0.001)
@@ -167,7 +172,7 @@ def test_the_driver_holds_when_commands_stop_and_ignores_older_ones(multicast, t
 
 def test_the_driver_holds_on_a_clock_jump_of_the_commands(multicast, tmp_path):
     command, status = _channels()
-    proc, out = _start_arm_sim(tmp_path, command, status, duration_s=4.0)
+    proc, out = _start_arm_sim(tmp_path, command, status, duration_s=4.0, extra=LENIENT)
     link = _Link(command, status)
     link.wait_status()
     t = link.echo_for(0.5)
