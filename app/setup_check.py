@@ -7,9 +7,15 @@ after loading the scenario; the robot's own files are checked where they are rea
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
 import numpy as np
 from safesysid.scenario import Scenario, ScenarioError, robot_from_scenario
 from safesysid.systems import inertial
+
+if TYPE_CHECKING:
+    from safesysid.systems.robot_model import RobotModel
 
 
 def check_setup(s: Scenario) -> None:
@@ -58,7 +64,7 @@ def _check_prior_contains_truth(s, robot, dumbbell):
         )
 
 
-def payloads_inside_prior(s: Scenario, robot, names):
+def payloads_inside_prior(s: Scenario, robot: RobotModel, names: Sequence[str]) -> list[str]:
     """The payloads of `names` (dumbbells, or "none") whose truth the scenario's prior contains:
     the ones a randomized trial may draw (a sweep tests the guarantees, not a wrong set-up)."""
     from safesysid.systems.config import resolve_path, scenario_dir
