@@ -359,7 +359,9 @@ def _derive_prior(s: Scenario, given, where) -> None:
             raise ScenarioError(f"{where}: initial_interval.{msg}")
     robot = robot_from_scenario(s)
     centre = ii.payload_centre_m or robot.extra["grasp_point"]
-    nominal, lower, upper = payload_range_prior(robot.theta_e, ii.payload_mass_kg, centre, ii.payload_half_extent_m)
+    nominal, lower, upper = payload_range_prior(
+        robot.theta_e, ii.payload_mass_kg, centre_m=centre, half_extent_m=ii.payload_half_extent_m
+    )
     ii.nominal, ii.lower, ii.upper = ([float(x) for x in v] for v in (nominal, lower, upper))
 
 

@@ -124,7 +124,7 @@ def test_a_prior_from_a_payload_range_contains_every_payload_of_the_range(panda)
     the nominal too, and a payload with all its mass at the top corner reaches the m c_z bound."""
     rng = np.random.default_rng(1)
     mass_range, centre, half = (0.5, 2.5), panda.extra["grasp_point"], np.array([0.1, 0.05, 0.05])
-    nominal, lower, upper = payload_range_prior(panda.theta_e, mass_range, centre, half)
+    nominal, lower, upper = payload_range_prior(panda.theta_e, mass_range, centre_m=centre, half_extent_m=half)
     assert np.all(lower <= nominal) and np.all(nominal <= upper)
     for _ in range(500):
         theta = panda.theta_e + _random_payload_theta(rng, mass_range, centre, half)

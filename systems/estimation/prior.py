@@ -57,7 +57,7 @@ def payload_box(
 
 
 def payload_range_prior(
-    body_theta: ArrayLike, mass_range_kg: ArrayLike, centre_m: ArrayLike, half_extent_m: ArrayLike
+    body_theta: ArrayLike, mass_range_kg: ArrayLike, *, centre_m: ArrayLike, half_extent_m: ArrayLike
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(nominal, lower, upper) of the end effector (its body plus any payload in the range)."""
     body = np.asarray(body_theta, float)
