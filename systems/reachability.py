@@ -111,7 +111,7 @@ def arm_spheres(robot: RobotModel) -> Spheres:
         links = yaml.safe_load(path.read_text())["links"]
     except (OSError, yaml.YAMLError, KeyError, TypeError) as err:
         raise ModelError(f"{path}: cannot read the planner spheres ({err})") from err
-    plant, _, _ = make_plant(robot.source)
+    plant, scene_graph, _ = make_plant(robot.source, scene_graph=True)
     plant.Finalize()
     ctx = plant.CreateDefaultContext()
     body, centre, radius, names = [], [], [], []
@@ -133,7 +133,27 @@ def arm_spheres(robot: RobotModel) -> Spheres:
             centre.append(x_cb @ c)
             radius.append(r)
             names.append(f"{link}_sphere_{k}")
+    _require_spheres_for_every_shape(plant, scene_graph, links, path)
     return Spheres(np.array(body, int), np.array(centre, float).reshape(-1, 3), np.array(radius, float), names)
+
+
+def _require_spheres_for_every_shape(plant, scene_graph, links, path):
+    """ModelError naming the sphere file when a link with collision geometry has no spheres (the
+    planner would not see it; the referee would)."""
+    from pydrake.geometry import Role
+
+    from .robot_model import ModelError
+
+    inspector = scene_graph.model_inspector()
+    shaped = {
+        plant.GetBodyFromFrameId(inspector.GetFrameId(g)).name() for g in inspector.GetAllGeometryIds(Role.kProximity)
+    }
+    missing = sorted(shaped - set(links))
+    if missing:
+        raise ModelError(
+            f"{path}: links: no spheres for {', '.join(missing)} (collision geometry in the model); "
+            "python -m safesysid.models.cover_spheres MODEL writes them"
+        )
 
 
 def carrier_index(plant: MultibodyPlant, body: RigidBody, body_names: Sequence[str]) -> int:

@@ -141,3 +141,20 @@ def test_the_scenario_derives_the_prior_from_a_payload_range():
     both = text[:-1] + ", lower: [1.2, -0.4, -0.4, -1.0, -0.2, -0.2, -0.2, -0.2, -0.2, -0.2]}"
     with pytest.raises(ScenarioError, match=r"initial_interval\.lower: not with payload_mass_kg"):
         load_scenario(SCENARIOS_DIR / "panda_quickstart.yaml", overrides=both)
+
+
+def test_a_sphere_file_that_leaves_a_shaped_link_out_is_an_error(tmp_path):
+    """The planner would not see a link the sphere file omits (the referee would): the error names
+    the sphere file, the link and the command that writes the spheres."""
+    import yaml
+    from safesysid.systems.reachability import arm_spheres
+
+    doc = yaml.safe_load((MODELS_DIR / "panda_spheres.yaml").read_text())
+    del doc["links"]["panda_hand"]
+    spheres = tmp_path / "spheres.yaml"
+    spheres.write_text(yaml.safe_dump(doc))
+    params = tmp_path / "params.yaml"
+    text = PANDA_PARAMS.read_text().replace("urdf: panda.urdf", f"urdf: {MODELS_DIR / 'panda.urdf'}")
+    params.write_text(text.replace("planner_spheres: panda_spheres.yaml", f"planner_spheres: {spheres}"))
+    with pytest.raises(ModelError, match=r"spheres.yaml: links: no spheres for panda_hand .*cover_spheres"):
+        arm_spheres(load_robot(params_path=params))
