@@ -252,6 +252,7 @@ def self_check(args: argparse.Namespace) -> int:
         )
     )
     near, same = summary["near_floor"], summary["same_joints"]
+    fn, cov = summary["false_naming"], summary["interval_coverage_calibrated"]
     text = [
         "# Diagnosis self-check (withheld effects, blind)",
         "",
@@ -276,6 +277,12 @@ def self_check(args: argparse.Namespace) -> int:
         f"{summary['time_law_correct']}/{summary['time_law_named']}",
         "- missed (effect, achieved SNR after physical caps): "
         + (", ".join(f"case {m['case']} {m['effect']} {m['snr']:.2f}" for m in summary["missed"]) or "none"),
+        f"- false naming: {100 * fn['null_with_false_effect']:.1f}% of {fn['null_cases']} null and "
+        f"{100 * fn['non_null_with_false_effect']:.1f}% of {fn['non_null_cases']} non-null cases; reported "
+        f"ambiguous: {fn['cases_reported_ambiguous']}",
+        "- 90% statistical intervals (factors chosen on even cases): held-out coverage "
+        + ("-" if cov["held_out_rate"] is None else f"{100 * cov['held_out_rate']:.1f}%")
+        + f" of {cov['held_out_values']} values in {cov['held_out_cases']} odd cases",
         f"- wall time {summary['wall_time_s']:.0f} s",
         "",
         "Parameter errors of the named injected effects against the withheld truth (per injected joint):",
