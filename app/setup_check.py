@@ -24,6 +24,7 @@ def check_setup(s: Scenario) -> None:
 
     robot = robot_from_scenario(s)
     _check_start_pose(s, robot)
+    _check_start_clear(s, robot)
     dumbbell = scenario_dumbbell(s)
     if dumbbell is not None and not dumbbell.mass_kg > 0:
         raise ScenarioError(
@@ -42,6 +43,30 @@ def _check_start_pose(s, robot):
     ]
     if outside:
         raise ScenarioError(f"{s.source}: q0_rad: outside the joint limits of {robot.source}: {'; '.join(outside)}")
+
+
+def _check_start_clear(s, robot):
+    """The arm's link shapes and payload (the referee's geometry, Drake signed distance) clear of
+    every obstacle at q0: a run that starts in contact has failed before it moves."""
+    from pydrake.systems.framework import DiagramBuilder
+    from safesysid.systems.real_arm import add_real_arm
+
+    builder = DiagramBuilder()
+    arm = add_real_arm(builder, s, robot=robot)
+    diagram = builder.Build()
+    ctx = diagram.CreateDefaultContext()
+    arm.plant.SetPositions(arm.plant.GetMyMutableContextFromRoot(ctx), arm.instance, np.asarray(s.q0_rad, float))
+    query = arm.scene_graph.get_query_output_port().Eval(arm.scene_graph.GetMyContextFromRoot(ctx))
+    inspector = query.inspector()
+    touching = sorted(
+        {
+            f"{inspector.GetName(p.id_A)} / {inspector.GetName(p.id_B)}"
+            for p in query.ComputeSignedDistancePairwiseClosestPoints(0.0)
+            if p.distance < 0
+        }
+    )
+    if touching:
+        raise ScenarioError(f"{s.source}: q0_rad: the arm touches an obstacle at the start ({'; '.join(touching)})")
 
 
 def _check_prior_contains_truth(s, robot, dumbbell):

@@ -158,3 +158,27 @@ def test_a_sphere_file_that_leaves_a_shaped_link_out_is_an_error(tmp_path):
     params.write_text(text.replace("planner_spheres: panda_spheres.yaml", f"planner_spheres: {spheres}"))
     with pytest.raises(ModelError, match=r"spheres.yaml: links: no spheres for panda_hand .*cover_spheres"):
         arm_spheres(load_robot(params_path=params))
+
+
+@pytest.mark.parametrize(
+    "layer, message",
+    [
+        ("payload: {dumbbell: 8lb}", r"initial_interval: does not contain .*'8lb'.*m 4\.7"),
+        ("q0_rad: [0.0, -0.785, 0.0, 0.5, 0.0, 1.571, 0.785]", r"q0_rad: outside the joint limits .*panda_joint4"),
+        (
+            "obstacles: [{name: in_the_hand, xyz_m: [0.307, 0.0, 0.45], size_m: [0.05, 0.05, 0.05]}]",
+            r"q0_rad: the arm touches an obstacle at the start .*in_the_hand",
+        ),
+    ],
+)
+def test_a_wrong_set_up_exits_2_naming_the_file_and_the_field(tmp_path, capsys, layer, message):
+    """A payload outside the prior, a start outside the limits or in contact: one line, exit 2,
+    before anything is simulated."""
+    import re
+
+    from safesysid.cli import main
+
+    argv = ["run", str(SCENARIOS_DIR / "panda_quickstart.yaml"), "--scenario-text", layer, "--out", str(tmp_path)]
+    assert main(argv) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and "panda_quickstart.yaml" in lines[0] and re.search(message, lines[0]), lines
