@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from safesysid.models.urdf_parts import inertial_xml, shape_xml
 
 HERE = Path(__file__).parent
 PARAMS = yaml.safe_load((HERE / "panda_params.yaml").read_text())["joints"]
@@ -141,20 +142,13 @@ def physically_valid(inertia):
 
 
 def _inertial(mass, com, inertia):
-    i = physically_valid(inertia if isinstance(inertia, np.ndarray) else _inertia_matrix(inertia))
-    return (
-        f'    <inertial><origin xyz="{com[0]:.9g} {com[1]:.9g} {com[2]:.9g}"/><mass value="{mass:.9g}"/>'
-        f'<inertia ixx="{i[0, 0]:.9g}" iyy="{i[1, 1]:.9g}" izz="{i[2, 2]:.9g}" '
-        f'ixy="{i[0, 1]:.9g}" ixz="{i[0, 2]:.9g}" iyz="{i[1, 2]:.9g}"/></inertial>\n'
+    return inertial_xml(
+        mass, com, physically_valid(inertia if isinstance(inertia, np.ndarray) else _inertia_matrix(inertia))
     )
 
 
 def _shape(name, xyz, rpy, geometry, color):
-    """The same shape as visual and collision geometry (the referee measures what is shown)."""
-    origin = f'<origin xyz="{xyz[0]:.9g} {xyz[1]:.9g} {xyz[2]:.9g}" rpy="{rpy[0]:.17g} {rpy[1]:.17g} {rpy[2]:.17g}"/>'
-    material = f'<material name="c{color}"><color rgba="{COLORS[color]}"/></material>'
-    visual = f"    <visual>{origin}<geometry>{geometry}</geometry>{material}</visual>\n"
-    return visual + f'    <collision name="{name}">{origin}<geometry>{geometry}</geometry></collision>\n'
+    return shape_xml(name, (xyz, rpy), geometry, material=f"c{color}", rgba=COLORS[color])
 
 
 def _capsules(link, color):

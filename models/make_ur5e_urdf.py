@@ -16,6 +16,7 @@ Run `python models/make_ur5e_urdf.py` after editing the figures.
 from pathlib import Path
 
 import numpy as np
+from safesysid.models.urdf_parts import inertial_xml, shape_xml
 
 HERE = Path(__file__).parent
 HALF_PI = np.pi / 2
@@ -68,19 +69,8 @@ def _rot_y(pitch):
     return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
 
 
-def _inertial(mass, com, i):
-    return (
-        f'    <inertial><origin xyz="{com[0]:.9g} {com[1]:.9g} {com[2]:.9g}"/><mass value="{mass:.9g}"/>'
-        f'<inertia ixx="{i[0, 0]:.9g}" iyy="{i[1, 1]:.9g}" izz="{i[2, 2]:.9g}" '
-        f'ixy="{i[0, 1]:.9g}" ixz="{i[0, 2]:.9g}" iyz="{i[1, 2]:.9g}"/></inertial>\n'
-    )
-
-
 def _shape(name, xyz, rpy, geometry, color):
-    origin = f'<origin xyz="{xyz[0]:.9g} {xyz[1]:.9g} {xyz[2]:.9g}" rpy="{rpy[0]:.17g} {rpy[1]:.17g} {rpy[2]:.17g}"/>'
-    material = f'<material name="u{color}"><color rgba="{COLORS[color]}"/></material>'
-    visual = f"    <visual>{origin}<geometry>{geometry}</geometry>{material}</visual>\n"
-    return visual + f'    <collision name="{name}">{origin}<geometry>{geometry}</geometry></collision>\n'
+    return shape_xml(name, (xyz, rpy), geometry, material=f"u{color}", rgba=COLORS[color])
 
 
 def _capsule(name, start, end, radius, color):
@@ -94,11 +84,11 @@ def _capsule(name, start, end, radius, color):
 
 def _link(k, name):
     if k == 0:
-        inertial = _inertial(BASE[0], BASE[1], np.diag(BASE[2]))
+        inertial = inertial_xml(BASE[0], BASE[1], np.diag(BASE[2]))
     else:
         mass, com, pitch, moments = INERTIALS[k - 1]
         rot = _rot_y(pitch)
-        inertial = _inertial(mass, com, rot @ np.diag(moments) @ rot.T)
+        inertial = inertial_xml(mass, com, rot @ np.diag(moments) @ rot.T)
     shapes = "".join(_capsule(f"{name}_capsule_{j}", *c, k % 2) for j, c in enumerate(CAPSULES[name]))
     return f'  <link name="{name}">\n{inertial}{shapes}  </link>\n'
 
@@ -107,7 +97,7 @@ def _tool():
     a, b, h = TOOL_BOX
     inertia = np.diag([b * b + h * h, a * a + h * h, a * a + b * b]) * TOOL_MASS / 12
     box = _shape("tool_box", (0, 0, h / 2), (0, 0, 0), f'<box size="{a} {b} {h}"/>', 1)
-    return f'  <link name="tool">\n{_inertial(TOOL_MASS, (0, 0, h / 2), inertia)}{box}  </link>\n'
+    return f'  <link name="tool">\n{inertial_xml(TOOL_MASS, (0, 0, h / 2), inertia)}{box}  </link>\n'
 
 
 def urdf():
