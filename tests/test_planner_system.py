@@ -73,6 +73,17 @@ def test_four_plans_continuous_desired_trajectory_ending_at_rest(setup):
     assert np.allclose(q[late], st.plan.q_end)
 
 
+class Wrapped:
+    """The real planner `inner` seen through a wrapper: what the wrapper does not define is inner's
+    (config, robot, executed_rows of planner.cumulative_excitation, ...)."""
+
+    def __init__(self, inner):
+        self.inner = inner
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+
 def _solver_failure():
     return PlanResult(ok=False, status="solver_failed", reason="test")
 
@@ -90,11 +101,12 @@ def test_failed_plan_keeps_the_previous_one_which_brakes(setup, second_call, sta
     text): the verified plan brakes, the simulation goes on."""
     robot, planner, thetas = setup
 
-    class FailsSecond:
+    class FailsSecond(Wrapped):
         """The real planner, except for its second call."""
 
         def __init__(self, inner):
-            self.inner, self.config, self.robot, self.calls = inner, inner.config, inner.robot, 0
+            super().__init__(inner)
+            self.calls = 0
 
         def plan(self, *args, **kw):
             self.calls += 1
@@ -125,11 +137,11 @@ def _changing_estimate(theta0, lo, hi, at_s=0.7):
     ]
 
 
-class FailsFrom:
+class FailsFrom(Wrapped):
     """The real planner until call `first_failure` (counted from 1); from then on each call fails."""
 
     def __init__(self, inner, first_failure):
-        self.inner, self.config, self.robot = inner, inner.config, inner.robot
+        super().__init__(inner)
         self.first_failure, self.calls = first_failure, []
 
     def plan(self, q, v, a, theta0, lo, hi, **kw):
@@ -176,11 +188,12 @@ def test_infeasible_first_plan_holds_the_start(setup):
     assert np.allclose(logs[0].data().T, Q0) and np.allclose(logs[1].data(), 0)
 
 
-class Recording:
+class Recording(Wrapped):
     """The real planner, keeping the parameters each call was asked to certify."""
 
     def __init__(self, inner):
-        self.inner, self.config, self.robot, self.calls = inner, inner.config, inner.robot, []
+        super().__init__(inner)
+        self.calls = []
 
     def plan(self, q, v, a, theta0, lo, hi, **kw):
         res = self.inner.plan(q, v, a, theta0, lo, hi, **kw)
@@ -269,5 +282,8 @@ def test_cumulative_excitation_hands_each_call_the_executed_motion(setup):
     assert st.calls == 3 and all(r["ok"] for r in st.records)
     executed = [cumulative.executed_rows(res, 1.5) for res in st.results[:2]]
     np.testing.assert_array_equal(st.past, np.vstack(executed))
-    st_off, _ = simulate(ExcitingPlanner(planner, Q0, *thetas, num_plans=3), 4.6, connect_thetas=thetas)
+    off = SafePlanner(
+        robot, dataclasses.replace(planner.config, cumulative_excitation=False), [], None, planner.tracking
+    )  # the default is on (planner.cumulative_excitation: true)
+    st_off, _ = simulate(ExcitingPlanner(off, Q0, *thetas, num_plans=3), 4.6, connect_thetas=thetas)
     assert st_off.past is None
