@@ -151,11 +151,17 @@ class _Link:
         return t
 
 
-def test_the_driver_holds_when_commands_stop_and_ignores_older_ones(multicast, tmp_path):
+def _arm_and_link(tmp_path, duration_s):
+    """arm-sim in its own process, and this process's end of its channels (a status received)."""
     command, status = _channels()
-    proc, out = _start_arm_sim(tmp_path, command, status, duration_s=6.0, extra=LENIENT)
+    proc, out = _start_arm_sim(tmp_path, command, status, duration_s=duration_s, extra=LENIENT)
     link = _Link(command, status)
     link.wait_status()
+    return proc, out, link
+
+
+def test_the_driver_holds_when_commands_stop_and_ignores_older_ones(multicast, tmp_path):
+    proc, out, link = _arm_and_link(tmp_path, 6.0)
     t = link.echo_for(1.0)
     end = time.monotonic() + 0.6
     while time.monotonic() < end:  # then only late (older) and duplicated messages: zero torque
@@ -171,10 +177,7 @@ def test_the_driver_holds_when_commands_stop_and_ignores_older_ones(multicast, t
 
 
 def test_the_driver_holds_on_a_clock_jump_of_the_commands(multicast, tmp_path):
-    command, status = _channels()
-    proc, out = _start_arm_sim(tmp_path, command, status, duration_s=4.0, extra=LENIENT)
-    link = _Link(command, status)
-    link.wait_status()
+    proc, out, link = _arm_and_link(tmp_path, 4.0)
     t = link.echo_for(0.5)
     link.echo_for(0.5, t0_s=t + 1.0)  # this side's clock jumps 1 s
     summary = _finish(proc, out)

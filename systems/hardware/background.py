@@ -6,8 +6,9 @@ executing plan reaches then (known exactly: it is the desired trajectory), with 
 published at t_k. A result not back at t_k + t_p is a missed deadline: status deadline_missed,
 the robot brakes on the verified plan (as for any failed call). A worker that dies is that
 call's planner_error. The estimator hands the samples of [t_(k-1), t_k] to a worker at t_k and
-publishes the result at t_(k+1); a late result is an event (estimator_late) and the samples of
-the next period join the same call. The pending call lives in the system, not in the context:
+publishes the result at t_(k+1) (the estimator itself advances in the worker: only the Estimate
+comes back); a late result is an event (estimator_late) and the samples of the next period join
+the next call. The pending call lives in the system, not in the context:
 these systems serve one wall-clock run (the simulated clock keeps the synchronous systems).
 """
 
@@ -178,15 +179,15 @@ class WallClockEstimator(SysIdEstimator):
                 return run  # its samples and the new ones go to the next call
             self.pending = None
             try:
-                (estimator, outcome), latency = future.result()
+                outcome, latency = future.result()
                 self.latencies_s.append(latency)
             except Exception as err:  # noqa: BLE001 -- a dead worker: the update is lost, the box kept
-                estimator, outcome = run.estimator, EstimatorError(f"worker failed: {type(err).__name__}: {err}")
-            run = self._apply(t, run, estimator, outcome, state)
+                outcome = EstimatorError(f"worker failed: {type(err).__name__}: {err}")
+            run = self._apply(t, run, run.estimator, outcome, state)
         if not run.samples:
             return replace(run, history=run.history + ({"t": t, "skipped": "no valid samples"},))
         try:
-            future = self.worker.submit(estimate_update, run.estimator, data_of(run), self.n)
+            future = self.worker.submit(_estimate_job, id(self), run.estimator, data_of(run), self.n)
         except Exception as err:  # noqa: BLE001 -- the worker is gone: no more updates, the box kept
             detail = f"no estimator update: {type(err).__name__}: {err}"
             self.events_late.append(dict(t=t, kind="estimator_worker_failed", detail=detail))
@@ -194,6 +195,18 @@ class WallClockEstimator(SysIdEstimator):
         run, data = self._take(run)
         self.pending = (future, float(data[-1, 0]))
         return run
+
+
+# In the worker: each wall-clock estimator's IncrementalEstimator, advanced by its jobs. Only the
+# Estimate comes back: unpickling the whole estimator (its segments grow with the data) would hold
+# the run's interpreter, and so the 1 kHz loop, for tens of ms. The run's context keeps the initial one.
+_ADVANCED: dict[int, object] = {}
+
+
+def _estimate_job(key: int, initial: object, data: np.ndarray, n: int) -> object:
+    estimator, outcome = estimate_update(_ADVANCED.get(key, initial), data, n)
+    _ADVANCED[key] = estimator
+    return outcome
 
 
 def data_of(run: SysIdState) -> np.ndarray:
