@@ -165,8 +165,10 @@ def _value_interval(model, effect, group, key, *, p, cov_g, ident, half_factor, 
     unknown = np.abs(J[:, ~ident]).sum(1) > 0 if (~ident).any() else np.zeros(len(f0), bool)
     lo = np.where(unknown, -np.inf, f0 - half)
     hi = np.where(unknown, np.inf, f0 + half)
-    if key in ("delta_Fc_Nm", "delta_Fv_Nms_rad", "delta_Ia_kgm2", "Fs_Nm", "mu", "compliance_rad_per_Nm"):
+    if key in ("delta_Fc_Nm", "delta_Fv_Nms_rad", "delta_Ia_kgm2", "Fs_Nm", "mu", "compliance_rad_per_Nm", "delay_s"):
         lo, hi = np.maximum(lo, lo_b), np.minimum(hi, hi_b)  # the value is the parameter: its bounds hold
+        if group == "time_delay@lag":
+            lo = np.maximum(lo, 0.0)  # a lag's time constant is positive
     elif key in ("Fc_Nm", "Fv_Nms_rad", "Ia_kgm2", "mass_kg"):
         lo = np.maximum(lo, 0.0)
     return lo, hi, not isinstance(effect_params(model, effect, {group: p}, group)[key], list)
