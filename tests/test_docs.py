@@ -115,14 +115,16 @@ def test_the_docs_python_examples_are_readmes(api_example):
 @pytest.mark.parametrize(
     "change, status", [({}, 0), ({"success": False, "failure": "collision"}, 1), ({"contains_truth": False}, 1)]
 )
-def test_run_exits_1_when_the_run_failed(api_example, monkeypatch, tmp_path, change, status):
-    """`safesysid run`: 0 only on success, 1 when the run failed (a real run's summary, altered)."""
+def test_run_exits_1_when_the_run_failed(api_example, monkeypatch, tmp_path, capsys, change, status):
+    """`safesysid run`: 0 only on success, 1 when the run failed (a real run's summary, altered);
+    the printout explains the identified mass (last link + gripper + dumbbell)."""
     import safesysid.online
 
     folder, _ = api_example
     summary = {**json.loads((folder / "out" / "api" / "summary.json").read_text()), **change}
     monkeypatch.setattr(safesysid.online, "run_online", lambda *args, **kwargs: summary)
     assert main(["run", "--out", str(tmp_path / "run"), "--no-serve"]) == status
+    assert "identified body: last link + gripper 1.280 kg + 4lb dumbbell 1.814 kg = 3.094 kg" in capsys.readouterr().out
 
 
 def test_compare_and_sweep_say_their_exit_status_in_help(capsys):

@@ -61,6 +61,8 @@ def test_every_block_of_getting_started_runs_on_a_fresh_clone(tmp_path):
     (clone / "run_page.sh").write_text(script((clone / "docs" / "getting-started.md").read_text()))
     env = {k: v for k, v in os.environ.items() if k not in ("VIRTUAL_ENV", "PYTHONPATH")}
     env["PATH"] = os.pathsep.join(p for p in env["PATH"].split(os.pathsep) if ".venv" not in p)
-    done = subprocess.run(["bash", "run_page.sh"], cwd=clone, env=env, capture_output=True, text=True)
-    assert done.returncode == 0, (done.stdout[-3000:], done.stderr[-3000:])
+    done = subprocess.run(["bash", "-x", "run_page.sh"], cwd=clone, env=env, capture_output=True, text=True)
+    (tmp_path / "page.log").write_text(done.stdout + "\n--- stderr ---\n" + done.stderr)
+    if done.returncode != 0:
+        pytest.fail(f"a getting-started block failed (log: {tmp_path / 'page.log'}):\n{done.stderr[-4000:]}")
     assert (clone / "out" / "quickstart" / "summary.json").exists()
