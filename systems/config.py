@@ -335,6 +335,12 @@ class Task:
     solver: str = "snopt"  # snopt (Ipopt as fallback) | ipopt
     max_iterations: int = 500
     max_solve_time_s: float = 120.0  # wall-time cap per solver (offline; the result is cached)
+    # Certificate (app/task_run.py): ARMOUR's torque bound over the tube and the box latched at the
+    # switch must be <= 1; else the same path is played slower, at the smallest scale on the grid
+    # 1, 1 + step, ... up to max_time_scale (x the planned duration, dimensionless) that certifies;
+    # none: the task is refused (failure task_uncertified, the arm holds).
+    max_time_scale: float = 3.0  # slowest play allowed, x the planned duration (1: never slower)
+    time_scale_step: float = 0.25  # step of the grid of scales tried (x the planned duration)
 
 
 @dc.dataclass
@@ -344,12 +350,6 @@ class ScheduledObstacle(Obstacle):
 
     name: str = "appearing"
     t_s: float = 1.0
-    # Certificate (app/task_run.py): ARMOUR's torque bound over the tube and the box latched at the
-    # switch must be <= 1; else the same path is played slower, at the smallest scale on the grid
-    # 1, 1 + step, ... up to max_time_scale (x the planned duration, dimensionless) that certifies;
-    # none: the task is refused (failure task_uncertified, the arm holds).
-    max_time_scale: float = 3.0
-    time_scale_step: float = 0.25
 
 
 @dc.dataclass
