@@ -76,10 +76,8 @@ def run_wallclock(
         sim = Simulator(built.diagram)
         sim.set_target_realtime_rate(1.0)
         ctx = sim.get_mutable_context()
-        try:
-            sim.Initialize()  # waits for the arm's first status (lcm_arm.FIRST_STATUS_TIMEOUT_S)
-        except RuntimeError as err:
-            raise ArmNotAnswering(f"arm.status_channel {scenario.arm.status_channel!r}: no status ({err})") from err
+        _wait_for_arm(built.arm, scenario)
+        sim.Initialize()
         worker.start()  # forks here if the first plan did not (a method without a planner)
         _warm_up(built, ctx)
         built.arm.receiver.rearm(ctx)
@@ -99,6 +97,18 @@ def run_wallclock(
     summary["events"] = merge_events(summary["events"])
     (out / "lcm_run.json").write_text(json.dumps(summary, indent=2, default=float))
     return summary
+
+
+def _wait_for_arm(arm, scenario: Scenario) -> None:
+    """The arm's first status, or ArmNotAnswering after lcm_arm.FIRST_STATUS_TIMEOUT_S."""
+    from safesysid.systems.hardware.lcm_arm import FIRST_STATUS_TIMEOUT_S
+
+    deadline = time.monotonic() + FIRST_STATUS_TIMEOUT_S
+    while not arm.statuses.count:
+        if time.monotonic() > deadline:
+            channel = scenario.arm.status_channel
+            raise ArmNotAnswering(f"arm.status_channel {channel!r}: no status in {FIRST_STATUS_TIMEOUT_S:g} s")
+        arm.lcm.HandleSubscriptions(100)
 
 
 def _warm_up(built, ctx) -> None:

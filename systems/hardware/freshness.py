@@ -25,6 +25,9 @@ class Freshness:
     grace_until_s: float = -1.0  # receiver time before which no timing check trips (the loop's start)
     events: tuple[dict, ...] = ()
 
+    def __deepcopy__(self, memo: dict) -> Freshness:
+        return self  # immutable: Drake copies the state at every step's unrestricted update
+
     @property
     def armed(self) -> bool:
         return self.last_sent_s is not None

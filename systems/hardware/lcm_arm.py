@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from drake import lcmt_panda_command, lcmt_panda_status
 
-from .lcm_systems import ArmDriver, CommandEncoder, StatusEncoder, StatusReceiver
+from .lcm_systems import ArmDriver, CommandEncoder, LatestMessage, StatusEncoder, StatusReceiver
 
 if TYPE_CHECKING:
     from pydrake.lcm import DrakeLcm
@@ -58,6 +58,7 @@ class LcmArm:
     estimator_samples_output: OutputPort
     hold_output: OutputPort
     receiver: StatusReceiver
+    statuses: LatestMessage
     lcm: DrakeLcm
     command_channel: str
     time_step: float
@@ -69,24 +70,17 @@ class LcmArm:
 
 
 def add_lcm_arm(builder: DiagramBuilder, scenario: Scenario, robot: RobotModel, lcm: DrakeLcm) -> LcmArm:
-    from pydrake.systems.lcm import LcmPublisherSystem, LcmSubscriberSystem
+    from pydrake.systems.lcm import LcmPublisherSystem
 
     from ..real_arm import scenario_dumbbell
 
     n, h, cfg = robot.n, scenario.plant.time_step_s, scenario.arm
     _interface(builder, lcm)
-    sub = builder.AddSystem(
-        LcmSubscriberSystem.Make(
-            cfg.status_channel,
-            lcmt_panda_status,
-            lcm,
-            wait_for_message_on_initialization_timeout=FIRST_STATUS_TIMEOUT_S,
-        )
+    statuses = LatestMessage(lcm, cfg.status_channel, lcmt_panda_status)
+    receiver = builder.AddSystem(
+        StatusReceiver(n, statuses, h, cfg.status_timeout_ms * 1e-3, np.asarray(scenario.q0_rad))
     )
-    sub.set_name("status_subscriber")
-    receiver = builder.AddSystem(StatusReceiver(n, h, cfg.status_timeout_ms * 1e-3, np.asarray(scenario.q0_rad)))
     receiver.set_name("status_receiver")
-    builder.Connect(sub.get_output_port(), receiver.status)
     encoder = builder.AddSystem(CommandEncoder(n))
     encoder.set_name("command_encoder")
     builder.Connect(receiver.GetOutputPort("hold"), encoder.hold)
@@ -102,6 +96,7 @@ def add_lcm_arm(builder: DiagramBuilder, scenario: Scenario, robot: RobotModel, 
         estimator_samples_output=receiver.GetOutputPort("samples"),
         hold_output=receiver.GetOutputPort("hold"),
         receiver=receiver,
+        statuses=statuses,
         lcm=lcm,
         command_channel=cfg.command_channel,
         time_step=h,
@@ -111,17 +106,14 @@ def add_lcm_arm(builder: DiagramBuilder, scenario: Scenario, robot: RobotModel, 
 def add_arm_driver(builder: DiagramBuilder, arm: RealArm, scenario: Scenario, lcm: DrakeLcm) -> ArmDriver:
     """Commands -> ArmDriver (watchdog, hold) -> the station's commanded_torque; its status out
     every plant step. Returns the driver (its torque output is u before saturation: the referee's)."""
-    from pydrake.systems.lcm import LcmPublisherSystem, LcmSubscriberSystem
+    from pydrake.systems.lcm import LcmPublisherSystem
 
     cfg, h = scenario.arm, scenario.plant.time_step_s
     _interface(builder, lcm)
-    sub = builder.AddSystem(LcmSubscriberSystem.Make(cfg.command_channel, lcmt_panda_command, lcm))
-    sub.set_name("command_subscriber")
-    driver = builder.AddSystem(
-        ArmDriver(arm.robot.n, plant_gravity(arm), h, cfg.watchdog_ms * 1e-3, np.asarray(scenario.q0_rad, float))
-    )
+    commands = LatestMessage(lcm, cfg.command_channel, lcmt_panda_command)
+    q_start = np.asarray(scenario.q0_rad, float)
+    driver = builder.AddSystem(ArmDriver(arm.robot.n, plant_gravity(arm), commands, h, cfg.watchdog_ms * 1e-3, q_start))
     driver.set_name("arm_driver")
-    builder.Connect(sub.get_output_port(), driver.command)
     builder.Connect(arm.state_output, driver.state)
     builder.Connect(driver.get_output_port(), arm.commanded_torque_input)
     encoder = builder.AddSystem(StatusEncoder(arm.robot.n))

@@ -10,11 +10,31 @@ from __future__ import annotations
 import numpy as np
 from drake import lcmt_panda_command, lcmt_panda_status
 from pydrake.common.value import AbstractValue
+from pydrake.lcm import DrakeLcm
 from pydrake.systems.framework import Context, EventStatus, LeafSystem
 
 from ..faults import pack, packet_size
 from .freshness import Freshness
 from .messages import Status, command_message, parse_command, parse_status, status_message
+
+
+class LatestMessage:
+    """The newest message on an LCM channel, kept outside the Context (LcmInterfaceSystem pumps it
+    before each step's events). A subscriber system's abstract state, a Python lcmtype, is deep-
+    copied at every step's unrestricted update (measured: most of the 1 kHz loop's time)."""
+
+    def __init__(self, lcm: DrakeLcm, channel: str, lcm_type: type) -> None:
+        self.lcm_type, self.count, self._data, self._decoded = lcm_type, 0, None, (0, lcm_type())
+        lcm.Subscribe(channel, self._on_message)
+
+    def _on_message(self, data: bytes) -> None:
+        self._data, self.count = data, self.count + 1
+
+    def message(self) -> object:
+        if self._decoded[0] != self.count:  # decode once per new message
+            self._decoded = (self.count, self.lcm_type.decode(self._data))
+        return self._decoded[1]
+
 
 HOLD_KP_NM_RAD = 50.0  # the driver's hold: gravity + a PD to the pose at the trip
 HOLD_KD_NMS_RAD = 5.0
@@ -28,10 +48,11 @@ class ArmDriver(LeafSystem):
     driver's watchdog), or when the commands' clock jumps by more than that; latched, as a real
     driver stays in its error state."""
 
-    def __init__(self, n: int, gravity, time_step_s: float, watchdog_s: float, q_start: np.ndarray):
+    def __init__(
+        self, n: int, gravity, commands: LatestMessage, time_step_s: float, watchdog_s: float, q_start: np.ndarray
+    ):
         super().__init__()
-        self.gravity, self.n = gravity, n
-        self.command = self.DeclareAbstractInputPort("command", AbstractValue.Make(lcmt_panda_command()))
+        self.gravity, self.n, self.commands = gravity, n, commands
         self.state = self.DeclareVectorInputPort("state", 2 * self.n)
         initial = (Freshness(watchdog_s), np.asarray(q_start, float))
         self._memo = self.DeclareAbstractState(AbstractValue.Make(initial))
@@ -44,7 +65,7 @@ class ArmDriver(LeafSystem):
     def _tick(self, context, state):
         guard, q_hold = context.get_abstract_state(int(self._memo)).get_value()
         t = context.get_time()
-        parsed = parse_command(self.command.Eval(context), self.n)
+        parsed = parse_command(self.commands.message(), self.n)
         before = guard.tripped
         if parsed is None:
             guard = guard.step(t, name="command")
@@ -96,10 +117,11 @@ class StatusReceiver(LeafSystem):
     (systems/faults.py packets: each new status once, at the arm's time), and hold (1.0 once the
     status stream stopped, jumped or stalled beyond status_timeout_s: the run must brake)."""
 
-    def __init__(self, n: int, time_step_s: float, status_timeout_s: float, q_start: np.ndarray):
+    def __init__(
+        self, n: int, statuses: LatestMessage, time_step_s: float, status_timeout_s: float, q_start: np.ndarray
+    ):
         super().__init__()
-        self.n = n
-        self.status = self.DeclareAbstractInputPort("status", AbstractValue.Make(lcmt_panda_status()))
+        self.n, self.statuses = n, statuses
         rest = Status(0.0, np.asarray(q_start, float), np.zeros(n), np.zeros(n), np.zeros(n))
         self._memo = self.DeclareAbstractState(AbstractValue.Make((Freshness(status_timeout_s, payload=rest), False)))
         self.DeclarePeriodicUnrestrictedUpdateEvent(time_step_s, 0.0, self._tick)
@@ -123,7 +145,7 @@ class StatusReceiver(LeafSystem):
 
     def _tick(self, context, state):
         guard = self.guard(context)
-        status = parse_status(self.status.Eval(context), self.n)
+        status = parse_status(self.statuses.message(), self.n)
         t = context.get_time()
         new = guard.step(t, name="status") if status is None else guard.step(t, status.t_s, status, name="status")
         fresh = new.last_sent_s != guard.last_sent_s

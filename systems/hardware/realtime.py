@@ -17,17 +17,16 @@ def request_realtime(priority: int = FIFO_PRIORITY) -> dict:
         return {"scheduler": "normal", "warning": warning}
 
 
-WORKER_NICE = -20  # a forked worker of a real-time loop: the strongest normal priority
+WORKER_PRIORITY = 10  # a forked worker of a real-time loop: real-time, below the loops (50)
 
 
 def lower_realtime() -> None:
-    """A forked worker of a SCHED_FIFO loop: back to normal scheduling at nice WORKER_NICE. Not
-    real-time: the kernel caps all real-time tasks together at sched_rt_runtime_us (95 %) of the
-    CPUs, and a CPU-bound real-time worker beside two real-time loops on 2 cores hits the cap,
-    which then stalls the loops for up to 50 ms of each second (measured: status_lost events)."""
+    """A forked worker of a SCHED_FIFO loop: SCHED_FIFO WORKER_PRIORITY, so the loops preempt it and
+    the machine's other processes do not (at nice -20 it got ~12 % of a core under load 35: its
+    calls missed t_p). The kernel caps all real-time tasks together at sched_rt_runtime_us (95 %)
+    of the CPUs: the loops and the worker must fit in it (docs/hardware.md)."""
     try:
         if os.sched_getscheduler(0) == os.SCHED_FIFO:
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-            os.setpriority(os.PRIO_PROCESS, 0, WORKER_NICE)
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(WORKER_PRIORITY))
     except (PermissionError, OSError, AttributeError):
         pass
