@@ -243,11 +243,24 @@ def self_check(args: argparse.Namespace) -> int:
         "cases_with_false_effect_rate<=0.05": summary["cases_with_false_effect_rate"] <= 0.05,
         "null_cases_all_none": summary["null_correct"] == summary["null_cases"],
     }
+    if hard:  # issue targets of the hard set: false naming <= 1 % of cases, calibrated coverage >= 85 %
+        cov = summary["interval_coverage_calibrated"]["held_out_rate"]
+        summary["targets"]["hard_cases_with_false_effect<=0.01"] = summary["cases_with_false_effect_rate"] <= 0.01
+        summary["targets"]["interval_coverage_held_out>=0.85"] = cov is not None and cov >= 0.85
     md = diagnosis.confusion_markdown(table)
     errors = diagnosis.error_markdown(summary["parameter_errors"])
     (out / "self_check.json").write_text(
         json.dumps(
-            _clean({"summary": summary, "confusion": table, "cases": cases, "seed": args.seed, "model": model.source}),
+            _clean(
+                {
+                    "summary": summary,
+                    "confusion": table,
+                    "cases": cases,
+                    "seed": args.seed,
+                    "hard": hard,
+                    "model": model.source,
+                }
+            ),
             indent=2,
         )
     )

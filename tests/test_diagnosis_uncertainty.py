@@ -179,3 +179,17 @@ def test_gear_ripple_candidate_explains_a_torque_periodic_in_the_angle(two_link)
     assert g["rms_after_per_joint"][1] < 0.3 * g["rms_before_per_joint"][1]
     g0 = gain(0.0)
     assert g0["rms_after"] > 0.95 * g0["rms_before"]
+
+
+def test_hard_self_check_cli_writes_each_case_as_it_finishes(tmp_path):
+    import json
+
+    from safesysid.cli import main
+
+    out = tmp_path / "hard"
+    assert main(["diagnose", "--self-check", "--hard", "--cases", "1", "--seed", "3", "--out", str(out)]) == 0
+    res = json.loads((out / "self_check.json").read_text())
+    assert res["hard"] and res["cases"][0]["injected"] == [] and res["cases"][0]["named"] == []
+    assert res["summary"]["targets"]["hard_cases_with_false_effect<=0.01"]
+    assert len((out / "cases.jsonl").read_text().splitlines()) == 1
+    assert "false naming: 0.0% of 1 null" in (out / "confusion.md").read_text()
