@@ -160,35 +160,57 @@ def test_state_boxes_contain_every_k_time_and_tracking_error(robot):
             assert np.all(box.lo[idx] <= x) and np.all(x <= box.hi[idx])
 
 
-def test_limit_box_keeps_position_and_velocity_limits_and_is_not_vacuous(robot):
+@pytest.mark.parametrize("side", [1.0, -1.0])
+def test_limit_box_keeps_position_and_velocity_limits_and_is_not_vacuous(robot, side):
+    """Joint 2 close to its upper (side +1) or lower (-1) limit and moving toward it, joint 5 fast
+    toward its velocity limit: every k of the box keeps both limits with the tube's margins, and the
+    edge of the box comes within 2 mrad of the limit."""
     rng = np.random.default_rng(6)
     jp = robot.joint_params
     b = reach.TrackingBounds.from_ultimate_bound(0.02, 8.0, 5.0, robot.n, 20.0)
+    limit = jp.position_upper if side > 0 else jp.position_lower
     q0 = np.zeros(robot.n)
-    q0[1] = jp.position_upper[1] - 0.05  # joint 2 close to its upper limit, moving up
+    q0[1] = limit[1] - side * 0.05  # joint 2 close to its limit, moving toward it
     v0 = np.zeros(robot.n)
-    v0[1] = 0.05
-    v0[4] = jp.velocity_limit[4] - 0.3  # joint 5 fast
+    v0[1] = side * 0.05
+    v0[4] = side * (jp.velocity_limit[4] - 0.3)  # joint 5 fast
     kr = np.array([np.pi / 48] * 4 + [np.pi / 20] * 3)
     r = reach.PlanReach(q0, v0, np.zeros(robot.n), 3.0, np.zeros(robot.n), kr, 128, b)
     k_lo, k_hi, why = r.limit_box(jp)
     assert why == ""
-    assert k_hi[1] < 1.0  # the limit binds
+    assert (k_hi if side > 0 else -k_lo)[1] < 1.0  # the limit binds
     t = np.linspace(0, 3.0, 30001)
     worst_q = -np.inf
     for k in [k_lo, k_hi] + [rng.uniform(k_lo, k_hi) for _ in range(20)]:
         q, v, _ = r.bezier.evaluate(t, r.q_end(k))
         assert np.all(q + b.position <= jp.position_upper) and np.all(q - b.position >= jp.position_lower)
         assert np.all(np.abs(v) + b.velocity <= jp.velocity_limit)
-        worst_q = max(worst_q, (q[:, 1] + b.position[1]).max())
+        worst_q = max(worst_q, (side * q[:, 1] + b.position[1]).max())
     # At the edge of the box the trajectory comes within 2 mrad of the limit: not vacuous.
-    assert jp.position_upper[1] - worst_q < 2e-3
+    assert side * limit[1] - worst_q < 2e-3
     # A start already past the shrunk limit is reported, not planned.
     q_bad = q0.copy()
-    q_bad[1] = jp.position_upper[1] - 0.5 * b.position[1]
+    q_bad[1] = limit[1] - side * 0.5 * b.position[1]
     r_bad = reach.PlanReach(q_bad, np.zeros(robot.n), np.zeros(robot.n), 3.0, np.zeros(robot.n), kr, 128, b)
     k_lo, _, why = r_bad.limit_box(jp)
     assert k_lo is None and "joint 2" in why
+
+
+def test_limit_box_keeps_the_velocity_margin_on_both_sides(robot):
+    """A 1 s plan from rest whose wide k range for joint 5 would exceed its velocity limit: the box
+    stops both ends exactly where the speed plus the tube's velocity bound reaches the limit."""
+    jp = robot.joint_params
+    b = reach.TrackingBounds.from_ultimate_bound(0.02, 8.0, 5.0, robot.n, 20.0)
+    kr = np.array([np.pi / 48] * 4 + [1.0] + [np.pi / 20] * 2)
+    z = np.zeros(robot.n)
+    r = reach.PlanReach(z, z, z, 1.0, z, kr, 128, b)
+    k_lo, k_hi, why = r.limit_box(jp)
+    assert why == "" and -1.0 < k_lo[4] < 0.0 < k_hi[4] < 1.0  # the velocity limit binds both ways
+    t = np.linspace(0, 1.0, 20001)
+    for k in (k_lo, k_hi):
+        _, v, _ = r.bezier.evaluate(t, r.q_end(k))
+        excess = np.abs(v).max(0) + b.velocity - jp.velocity_limit
+        assert np.all(excess <= 0) and excess[4] > -1e-6
 
 
 def tube_boundary_states(robot, rng, desired, bounds, gains, box, count):
