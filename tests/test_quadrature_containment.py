@@ -69,3 +69,18 @@ def test_without_the_quadrature_term_every_case_is_a_false_alarm(robot, dumbbell
     finally:
         mp.undo()
     assert not any(consistent)
+
+
+def test_the_bound_is_attained_by_an_integrand_monotone_on_each_step():
+    """The trapezoid bound ¼κh²·max(a) with κ = 2 is tight: an integrand that rises by Δ in the first
+    1e-6 of every step (monotone there, mean rate a = Δ/h) errs by hΔ/2 (1 − 1e-6) per step, the
+    bound's hΔ/2. A κ below 2 would not cover it."""
+    h, steps, delta, ramp = 0.01, 50, 0.3, 1e-6
+    t = h * np.arange(steps + 1)
+    f = delta * np.arange(steps + 1)  # the samples: +Δ per step
+    exact = np.sum(h * f[:-1] + delta * h * (1 - ramp / 2))  # f_k + Δ on each step but its first ramp·h
+    trapezoid = np.sum(0.5 * h * (f[:-1] + f[1:]))
+    rates = np.full((steps, 1), delta / h)
+    bound = segments.quadrature_bound(t, rates, np.array([[0, steps]]), "trapezoid", 2.0)[0, 0]
+    error = abs(exact - trapezoid)
+    assert error <= bound and error > 0.99 * bound
