@@ -25,8 +25,8 @@ if TYPE_CHECKING:
     from pydrake.systems.framework import Context
     from safesysid.scenario import Scenario
     from safesysid.systems.hardware.lcm_systems import ArmDriver
-    from safesysid.systems.real_arm import RealArm
-    from safesysid.systems.safety_monitor import SafetyMonitor
+    from safesysid.systems.plant.safety_monitor import SafetyMonitor
+    from safesysid.systems.plant.station import RealArm
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
@@ -36,8 +36,8 @@ def build_arm_side(scenario: Scenario, seed: int | None = None) -> tuple:
     from pydrake.systems.framework import DiagramBuilder
     from pydrake.systems.primitives import LogVectorOutput
     from safesysid.systems.hardware.lcm_arm import add_arm_driver, make_lcm
-    from safesysid.systems.real_arm import add_real_arm
-    from safesysid.systems.safety_monitor import SafetyMonitor
+    from safesysid.systems.plant.safety_monitor import SafetyMonitor
+    from safesysid.systems.plant.station import add_real_arm
 
     builder = DiagramBuilder()
     arm = add_real_arm(builder, scenario, seed=seed)

@@ -1,5 +1,5 @@
 """Closed loop for tests, benchmarks and the run command: the real arm station <- a controller
-(systems/controller_systems.py) <- one fixed trajectory, with fixed theta0 / [theta] (the online
+(systems/controller/systems.py) <- one fixed trajectory, with fixed theta0 / [theta] (the online
 diagram, with planner and estimator, is app/online.py)."""
 
 from __future__ import annotations
@@ -12,18 +12,18 @@ from numpy.typing import ArrayLike
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import Diagram, DiagramBuilder, LeafSystem, OutputPort
 from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput, VectorLogSink
-from safesysid.systems import controller_systems
-from safesysid.systems.intervals import Interval
-from safesysid.systems.real_arm import RealArm, add_real_arm
-from safesysid.systems.trajectory_source import Piece, make_trajectory_source
+from safesysid.systems.controller import systems as controller_systems
+from safesysid.systems.math.intervals import Interval
+from safesysid.systems.planner.trajectory_source import Piece, make_trajectory_source
+from safesysid.systems.plant.station import RealArm, add_real_arm
 
 if TYPE_CHECKING:
-    from safesysid.systems.bezier import QuinticBezier
     from safesysid.systems.config import Scenario
-    from safesysid.systems.controller_systems import ControllerBase, ControllerGains
-    from safesysid.systems.payload import Dumbbell
-    from safesysid.systems.robot_model import RobotModel
-    from safesysid.systems.trajectory_source import TaskPhaseSource
+    from safesysid.systems.controller.systems import ControllerBase, ControllerGains
+    from safesysid.systems.math.bezier import QuinticBezier
+    from safesysid.systems.model.payload import Dumbbell
+    from safesysid.systems.model.robot_model import RobotModel
+    from safesysid.systems.planner.trajectory_source import TaskPhaseSource
 
 
 def add_controller(

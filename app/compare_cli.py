@@ -32,8 +32,8 @@ SUMMARY_COLUMNS = (
 
 def dumbbell_catalogue(scenario: Scenario) -> dict[str, float]:
     """{name: mass_kg} of the scenario's dumbbells file, lightest first."""
-    from safesysid.systems.config import resolve_path, scenario_dir
-    from safesysid.systems.payload import load_dumbbells
+    from safesysid.systems.model.loading import resolve_path, scenario_dir
+    from safesysid.systems.model.payload import load_dumbbells
 
     bells = load_dumbbells(resolve_path(scenario.payload.dumbbells_file, scenario_dir(scenario)))
     return dict(sorted(((name, b.mass_kg) for name, b in bells.items()), key=lambda kv: kv[1]))

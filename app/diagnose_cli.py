@@ -25,7 +25,7 @@ import numpy as np
 
 if TYPE_CHECKING:  # the CLI imports the math only when a verb runs
     from safesysid.systems.diagnosis import Diagnosis
-    from safesysid.systems.robot_model import RobotModel
+    from safesysid.systems.model.robot_model import RobotModel
 
 
 def load_model(path: str | Path) -> RobotModel:
@@ -33,7 +33,7 @@ def load_model(path: str | Path) -> RobotModel:
     scenario YAML (its robot section)."""
     from safesysid.cli import BadInput
     from safesysid.scenario import load_scenario, robot_from_scenario
-    from safesysid.systems.robot_model import load_robot
+    from safesysid.systems.model.robot_model import load_robot
 
     p = Path(path)
     if not p.is_file():
@@ -215,7 +215,7 @@ def _print_summary(d, out):
 
 def self_check(args: argparse.Namespace) -> int:
     from safesysid.systems import diagnosis
-    from safesysid.systems.robot_model import load_robot
+    from safesysid.systems.model.robot_model import load_robot
 
     model = load_model(args.model) if args.model else load_robot()
     out = Path(args.out)

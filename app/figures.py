@@ -8,8 +8,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-from safesysid.report import plot_intervals_side_by_side, plt, save_figure
-from safesysid.viz import PHASE_COLOURS
+from safesysid.report import plot_intervals_side_by_side, plt, save_figure, shade_phases
 
 FIG6_METHODS = ("ours", "random", "adap-1", "adap-1-excit")
 OUTCOME_COLOURS = {"success": "#9fd89f", "fail": "#f6c36b", "collide": "#ef7d7d", "missing": "#e0e0e0"}
@@ -25,15 +24,6 @@ def phases_of(summary: dict) -> list[tuple[str, float, float]]:
     switch, release, end = (float(task[k]) for k in ("switch_time_s", "release_time_s", "end_time_s"))
     phases = [("identification", 0.0, switch)] if switch > 0 else []
     return phases + [("task", switch, release), ("settle", release, end)]
-
-
-def shade_phases(ax: plt.Axes, phases: list[tuple[str, float, float]], label: bool = True) -> None:
-    for name, t0, t1 in phases:
-        ax.axvspan(t0, t1, color=PHASE_COLOURS.get(name, "#999"), alpha=0.08, lw=0)
-        if label:
-            ax.text(
-                0.5 * (t0 + t1), 1.0, name, transform=ax.get_xaxis_transform(), ha="center", va="bottom", fontsize=7
-            )
 
 
 def run_log(folder: Path) -> tuple:

@@ -1,5 +1,5 @@
 """Joint log CSV: t, q1..qn, v1..vn, optional a1..an, tau1..taun, extra columns (read into the
-JointLog of systems/joint_log.py, re-exported here)."""
+JointLog of systems/model/joint_data.py, re-exported here)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import csv
 from pathlib import Path
 
 import numpy as np
-from safesysid.systems.joint_log import JointLog
+from safesysid.systems.model.joint_data import JointLog
 
 __all__ = ["JointLog", "LogError", "read_joint_log", "write_joint_log"]
 

@@ -2,13 +2,13 @@
 <- ExcitingPlanner, with the SysIdEstimator feeding (theta0, [theta]) back to the planner,
 refereed by the SafetyMonitor.
 The controller takes its (theta0, [theta]) from the planner: those the executing plan was
-certified with (systems/planner_system.py), never the estimator's latest.
+certified with (systems/planner/system.py), never the estimator's latest.
 
 Methods: the paper's table of comparisons, as data in systems/methods.py (METHODS_SPEC): the
 identification phase is the method's excitation (the planner's exciting or random plans, the
 Fourier trajectory of grav-pid-excit, or none: the arm holds q0), tracked by its controller.
 
-Task phase (scenario `task` section; systems/task_phase.py): a TaskPhaseSource sits between the
+Task phase (scenario `task` section; systems/task/phase.py): a TaskPhaseSource sits between the
 planner and the controller. One plant step after the identification horizon (at t = 0 for
 methods that do not identify, which then have no planner) it latches the method's parameters
 (ours: the identified box), frozen for the task, and plays the move back to q0 and the cached
@@ -31,30 +31,31 @@ from typing import TYPE_CHECKING
 import numpy as np
 from safesysid.scenario import Scenario, robot_from_scenario, task_enabled
 from safesysid.systems import methods
-from safesysid.systems.sysid_system import ESTIMATE_EXTRA
+from safesysid.systems.estimation.system import ESTIMATE_EXTRA
+from safesysid.systems.model import parameter_sources
 
 if TYPE_CHECKING:
     from pydrake.geometry import Meshcat, MeshcatVisualizer
     from pydrake.systems.framework import Diagram
     from pydrake.systems.primitives import VectorLogSink
-    from safesysid.systems.armour import TrackingBounds
-    from safesysid.systems.controller_systems import ControllerBase
+    from safesysid.systems.controller.armour import TrackingBounds
+    from safesysid.systems.controller.systems import ControllerBase
+    from safesysid.systems.estimation.system import SysIdEstimator
     from safesysid.systems.hardware.background import BackgroundWorker
-    from safesysid.systems.intervals import Interval
-    from safesysid.systems.payload import Dumbbell
-    from safesysid.systems.planner import PlanResult
-    from safesysid.systems.planner_system import ExcitingPlanner
-    from safesysid.systems.real_arm import RealArm
-    from safesysid.systems.robot_model import RobotModel
-    from safesysid.systems.safety_monitor import SafetyMonitor
-    from safesysid.systems.sysid_system import SysIdEstimator
-    from safesysid.systems.trajectory_source import TaskPhaseSource
+    from safesysid.systems.math.intervals import Interval
+    from safesysid.systems.model.payload import Dumbbell
+    from safesysid.systems.model.robot_model import RobotModel
+    from safesysid.systems.planner.safe_planner import PlanResult
+    from safesysid.systems.planner.system import ExcitingPlanner
+    from safesysid.systems.planner.trajectory_source import TaskPhaseSource
+    from safesysid.systems.plant.safety_monitor import SafetyMonitor
+    from safesysid.systems.plant.station import RealArm
 
 
 def prior(robot: RobotModel, scenario: Scenario, method: str) -> tuple[np.ndarray, Interval]:
-    """(theta0, [theta]) the controller and planner start from (methods.initial_parameters:
+    """(theta0, [theta]) the controller and planner start from (parameter_sources.initial_parameters:
     Table II before an identification phase; "wrong", "grav-pid": the bare end effector, zero width)."""
-    return methods.initial_parameters(methods.method_spec(method), robot, scenario)
+    return parameter_sources.initial_parameters(methods.method_spec(method), robot, scenario)
 
 
 @dataclass
@@ -129,9 +130,10 @@ def _excitation_without_planner(builder, spec, robot, scenario):
     """The desired-trajectory port of a method without a planner: the Fourier trajectory, or
     holding q0 (no identification phase)."""
     if spec.excitation is not None and spec.excitation.trajectory == methods.FOURIER:
-        from safesysid.systems.fourier_source import FourierSource
+        from safesysid.systems.excitation.fourier import fourier_excitation
+        from safesysid.systems.excitation.source import FourierSource
 
-        source = builder.AddSystem(FourierSource(methods.fourier_excitation(robot, scenario).trajectory))
+        source = builder.AddSystem(FourierSource(fourier_excitation(robot, scenario).trajectory))
         source.set_name("fourier_excitation")
         return source.get_output_port()
     q0 = np.asarray(scenario.q0_rad, float)
@@ -160,8 +162,8 @@ def make_planner_system(
     """trajectory: methods.EXCITING (scenario.planner.cost) or methods.RANDOM. With a worker:
     the wall-clock planner, whose calls run one period ahead in it (systems/hardware/background.py)."""
     from safesysid.systems.hardware.background import WallClockPlanner
-    from safesysid.systems.planner import SafePlanner
-    from safesysid.systems.planner_system import ExcitingPlanner
+    from safesysid.systems.planner.safe_planner import SafePlanner
+    from safesysid.systems.planner.system import ExcitingPlanner
 
     mode = "random" if trajectory == methods.RANDOM else scenario.planner.cost
     noise = (scenario.noise.declared_torque_ratio, scenario.noise.declared_torque_floor_Nm)
@@ -203,8 +205,8 @@ def make_estimator_system(
     the plant step, updating every t_p (planner.replan_period_s unless given), until stop_time_s.
     With a worker: the wall-clock estimator, its updates run there (systems/hardware/background.py)."""
     from safesysid.systems.estimation import EstimatorSettings
+    from safesysid.systems.estimation.system import SysIdEstimator
     from safesysid.systems.hardware.background import WallClockEstimator
-    from safesysid.systems.sysid_system import SysIdEstimator
 
     ii = scenario.initial_interval
     system, extra = (SysIdEstimator, {}) if worker is None else (WallClockEstimator, {"worker": worker})
@@ -233,9 +235,9 @@ def build_online(
     referee and the payload's release are the arm's, so no SafetyMonitor and no task phase here."""
     from pydrake.systems.framework import DiagramBuilder
     from safesysid.closed_loop import add_controller, add_phase_switch
-    from safesysid.systems.armour import tracking_bounds_for
-    from safesysid.systems.real_arm import add_real_arm
-    from safesysid.systems.task_phase import task_plan
+    from safesysid.systems.controller.armour import tracking_bounds_for
+    from safesysid.systems.plant.station import add_real_arm
+    from safesysid.systems.task.phase import task_plan
     from safesysid.task_run import make_task_source
 
     method = method or scenario.method
@@ -297,7 +299,7 @@ def build_online(
         if spec.model == methods.IDENTIFIED:
             task_thetas = [estimator.GetOutputPort(name) for name in theta_names]
         else:
-            t0, tbox = methods.task_parameters(spec, robot, scenario)
+            t0, tbox = parameter_sources.task_parameters(spec, robot, scenario)
             task_thetas = [_constant(builder, v, f"task_{k}") for k, v in enumerate((t0, tbox.lo, tbox.hi))]
         for name, excitation_port, task_port in zip(theta_names, excitation_thetas, task_thetas):
             if desired_port is not None:
@@ -360,7 +362,7 @@ def build_online(
 
 def _add_monitor(builder, arm, robot, command):
     """The referee on the simulated station's own plant (links' geometry, torque before saturation)."""
-    from safesysid.systems.safety_monitor import SafetyMonitor
+    from safesysid.systems.plant.safety_monitor import SafetyMonitor
 
     ignore = [arm.released_body] if arm.released_body is not None else []
     h = arm.time_step
@@ -396,7 +398,7 @@ def run_online(
     from pydrake.systems.analysis import Simulator
     from safesysid import figures, progress, report, viz
     from safesysid.joint_log import JointLog, write_joint_log
-    from safesysid.systems.inertial import NAMES
+    from safesysid.systems.model.inertial import NAMES
     from safesysid.task_run import GuardedSimulator, judge, run_task_phase
 
     method = method or scenario.method
@@ -476,7 +478,7 @@ def run_online(
         planner_context = built.planner.GetMyContextFromRoot(ctx)
         plans, planner_events = built.planner.records(planner_context), built.planner.events(planner_context)
     task_events = task_summary.pop("events") if task_summary else []
-    from safesysid.systems.faults import scenario_events
+    from safesysid.systems.plant.faults import scenario_events
 
     events = merge_events(  # every system's, in time order
         estimator_events,

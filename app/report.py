@@ -10,7 +10,8 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from safesysid.systems.inertial import NAMES, UNITS  # noqa: E402
+from safesysid.systems.model.inertial import NAMES, UNITS  # noqa: E402
+from safesysid.viz import PHASE_COLOURS  # noqa: E402
 
 
 def save_figure(fig: plt.Figure, path: str | Path) -> Path:
@@ -43,8 +44,6 @@ def plot_clearance(
     path: str | Path, t: np.ndarray, clearance: np.ndarray, phases: Sequence[tuple[str, float, float]] = ()
 ) -> Path:
     """The referee's clearance (Drake signed distance on the link shapes), the phases shaded."""
-    from safesysid.figures import shade_phases
-
     fig, ax = plt.subplots(figsize=(8, 3.2))
     shade_phases(ax, list(phases))
     ax.plot(t, clearance, label="clearance")
@@ -146,3 +145,12 @@ def markdown_table(rows: Sequence[dict], columns: Sequence[str]) -> str:
     head = "| " + " | ".join(columns) + " |\n|" + "---|" * len(columns) + "\n"
     fmt = lambda x: f"{x:.4g}" if isinstance(x, float) else str(x)  # noqa: E731
     return head + "".join("| " + " | ".join(fmt(r.get(c, "")) for c in columns) + " |\n" for r in rows)
+
+
+def shade_phases(ax: plt.Axes, phases: list[tuple[str, float, float]], label: bool = True) -> None:
+    for name, t0, t1 in phases:
+        ax.axvspan(t0, t1, color=PHASE_COLOURS.get(name, "#999"), alpha=0.08, lw=0)
+        if label:
+            ax.text(
+                0.5 * (t0 + t1), 1.0, name, transform=ax.get_xaxis_transform(), ha="center", va="bottom", fontsize=7
+            )

@@ -53,8 +53,8 @@ def _headline(s):
 def identified_body(scenario, summary: dict) -> str:
     """The summary's truth mass explained: last link + gripper + the dumbbell (from the scenario's file)."""
     from safesysid.report import identified_body_text
-    from safesysid.systems.config import resolve_path, scenario_dir
-    from safesysid.systems.payload import load_dumbbells
+    from safesysid.systems.model.loading import resolve_path, scenario_dir
+    from safesysid.systems.model.payload import load_dumbbells
 
     name = summary["payload_true"].get("dumbbell")
     mass = None

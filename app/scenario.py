@@ -26,14 +26,12 @@ from safesysid.systems.config import (
     Scenario,
     ScenarioError,
     Task,
-    resolve_path,
-    robot_from_scenario,
-    scenario_dir,
     task_enabled,
 )
+from safesysid.systems.model.loading import resolve_path, robot_from_scenario, scenario_dir
 
 if typing.TYPE_CHECKING:
-    from safesysid.systems.diagnosis.corrected_model import CorrectedModel
+    from safesysid.systems.model.corrected_model import CorrectedModel
 
 SCENARIOS_DIR = Path(__file__).resolve().parent.parent / "scenarios"
 __all__ = [  # the loader, and the schema of systems/config.py re-exported
@@ -164,7 +162,7 @@ def _validate(s: Scenario, where):
         "needs lower <= nominal <= upper",
     )
     # The tube's invariance is argued and measured for a controller step of at most 1 ms
-    # (systems/armour.py "Sampling"; docs/guarantees.md).
+    # (systems/controller/armour.py "Sampling"; docs/guarantees.md).
     need(
         0 < s.plant.time_step_s <= MAX_CONTROL_STEP_S,
         "plant.time_step_s",
@@ -232,7 +230,7 @@ def _validate(s: Scenario, where):
         need(getattr(s.arm, key) > 0, f"arm.{key}", "must be > 0")
     need(s.arm.lcm_url.startswith(("udpm://", "memq://")), "arm.lcm_url", "must be an LCM url (udpm://... or memq://)")
     if s.payload.dumbbell.lower() != "none":
-        from safesysid.systems.payload import load_dumbbells
+        from safesysid.systems.model.payload import load_dumbbells
 
         names = list(load_dumbbells(resolve_path(s.payload.dumbbells_file, scenario_dir(s))))
         need(
@@ -265,7 +263,7 @@ def _validate_task(s: Scenario, need):
     need(t.max_iterations >= 1, "task.max_iterations", "must be >= 1")
     need(t.max_solve_time_s > 0, "task.max_solve_time_s", "must be > 0")
     if task_enabled(s):
-        from safesysid.systems.payload import load_dumbbells
+        from safesysid.systems.model.payload import load_dumbbells
 
         names = list(load_dumbbells(resolve_path(s.payload.dumbbells_file, scenario_dir(s))))
         need(t.payload_model in names, "task.payload_model", f"{t.payload_model!r} is not one of {', '.join(names)}")
@@ -370,8 +368,8 @@ def _stack_on_platform(s: Scenario) -> None:
     and the payload's platform is the top one; stack_on is cleared so the result loads as is."""
     if not s.task.stack_on:
         return
-    from safesysid.systems.payload import load_dumbbells
-    from safesysid.systems.task_phase import stack_boxes
+    from safesysid.systems.model.payload import load_dumbbells
+    from safesysid.systems.task.phase import stack_boxes
 
     bells = load_dumbbells(resolve_path(s.payload.dumbbells_file, scenario_dir(s)))
     platform = next(ob for ob in s.obstacles if ob.name == s.task.platform)
@@ -405,7 +403,7 @@ def _apply_corrected_model(s: Scenario, given, where):
     sets is an error, as are robot.model / robot.params beside it)."""
     if not s.robot.corrected_model:
         return
-    from safesysid.systems.model_corrections import CorrectionError, plant_effects, read_correction, torque_lag_s
+    from safesysid.systems.model.corrections import CorrectionError, plant_effects, read_correction, torque_lag_s
 
     for key in ("model", "params"):
         if key in (given.get("robot") or {}):

@@ -2,7 +2,7 @@
 and the field): a prior that does not contain the simulated payload's truth, a start pose outside
 the joint limits, a payload of non-positive mass. `safesysid run` and `sweep` call check_setup
 after loading the scenario; the robot's own files are checked where they are read
-(systems/robot_model.py, systems/reachability.py).
+(systems/model/robot_model.py, systems/planner/reachability.py).
 """
 
 from __future__ import annotations
@@ -12,15 +12,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from safesysid.scenario import Scenario, ScenarioError, robot_from_scenario
-from safesysid.systems import inertial
+from safesysid.systems.model import inertial
 
 if TYPE_CHECKING:
-    from safesysid.systems.robot_model import RobotModel
+    from safesysid.systems.model.robot_model import RobotModel
 
 
 def check_setup(s: Scenario) -> None:
     """ScenarioError naming the scenario file and field when the set-up cannot be run as declared."""
-    from safesysid.systems.real_arm_plant import scenario_dumbbell
+    from safesysid.systems.plant.arm_plant import scenario_dumbbell
 
     robot = robot_from_scenario(s)
     _check_start_pose(s, robot)
@@ -49,7 +49,7 @@ def _check_start_clear(s, robot):
     """The arm's link shapes and payload (the referee's geometry, Drake signed distance) clear of
     every obstacle at q0: a run that starts in contact has failed before it moves."""
     from pydrake.systems.framework import DiagramBuilder
-    from safesysid.systems.real_arm import add_real_arm
+    from safesysid.systems.plant.station import add_real_arm
 
     builder = DiagramBuilder()
     arm = add_real_arm(builder, s, robot=robot)
@@ -72,7 +72,7 @@ def _check_start_clear(s, robot):
 def _check_prior_contains_truth(s, robot, dumbbell):
     """The end effector's true theta (its nominal body plus the scenario's payload) inside
     initial_interval: otherwise the interval the run publishes is not a guarantee of anything."""
-    from safesysid.systems.real_arm_plant import true_theta
+    from safesysid.systems.plant.arm_plant import true_theta
 
     truth = true_theta(robot, dumbbell)[robot.ee_slice]
     lower, upper = (np.asarray(v, float) for v in (s.initial_interval.lower, s.initial_interval.upper))
@@ -92,9 +92,9 @@ def _check_prior_contains_truth(s, robot, dumbbell):
 def payloads_inside_prior(s: Scenario, robot: RobotModel, names: Sequence[str]) -> list[str]:
     """The payloads of `names` (dumbbells, or "none") whose truth the scenario's prior contains:
     the ones a randomized trial may draw (a sweep tests the guarantees, not a wrong set-up)."""
-    from safesysid.systems.config import resolve_path, scenario_dir
-    from safesysid.systems.payload import load_dumbbells
-    from safesysid.systems.real_arm_plant import true_theta
+    from safesysid.systems.model.loading import resolve_path, scenario_dir
+    from safesysid.systems.model.payload import load_dumbbells
+    from safesysid.systems.plant.arm_plant import true_theta
 
     bells = load_dumbbells(resolve_path(s.payload.dumbbells_file, scenario_dir(s)))
     lower, upper = (np.asarray(v, float) for v in (s.initial_interval.lower, s.initial_interval.upper))

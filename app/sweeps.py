@@ -17,7 +17,7 @@ PAYLOADS = ("none", "4lb", "5lb", "6lb", "7lb", "8lb")
 
 def _sphere_centres(robot, q, dumbbell=None):
     """Planner sphere centres and radii at q: the arm's, and the payload's when given."""
-    from safesysid.systems.reachability import arm_spheres, payload_spheres, sphere_centres
+    from safesysid.systems.planner.reachability import arm_spheres, payload_spheres, sphere_centres
 
     spheres = arm_spheres(robot)
     if dumbbell is not None:
@@ -98,7 +98,7 @@ def random_scene(
     # Dumbbell clearance is covered by the gripper spheres' margin plus min_start_clearance_m.
     boxes = []
     if near_clearance_m is not None:
-        from safesysid.systems.real_arm import scenario_dumbbell
+        from safesysid.systems.plant.station import scenario_dumbbell
 
         near = near_box(*_sphere_centres(robot, q0, scenario_dumbbell(scene)), rng, rng.uniform(*near_clearance_m))
         boxes += [] if near is None else [near]

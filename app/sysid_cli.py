@@ -39,7 +39,6 @@ from safesysid.scenario import (
     robot_from_scenario,
     scenario_dir,
 )
-from safesysid.systems import inertial
 from safesysid.systems.estimation import (
     EstimatorError,
     EstimatorSettings,
@@ -48,13 +47,14 @@ from safesysid.systems.estimation import (
     torque_radius,
 )
 from safesysid.systems.estimation.settings import EPS, lag_interval
-from safesysid.systems.joint_log import JointLog
-from safesysid.systems.robot_model import RobotModel
+from safesysid.systems.model import inertial
+from safesysid.systems.model.joint_data import JointLog
+from safesysid.systems.model.robot_model import RobotModel
 
 
 def payload_truth(scenario: Scenario, robot: RobotModel) -> np.ndarray | None:
     """θ_e of the end effector + the scenario's dumbbell, or None when it names none."""
-    from safesysid.systems.payload import load_dumbbells, payload_theta_in_end_effector
+    from safesysid.systems.model.payload import load_dumbbells, payload_theta_in_end_effector
 
     name = scenario.payload.dumbbell
     if name == "none":
@@ -179,8 +179,8 @@ def plot_history(path: str | Path, history: list[dict], truth: np.ndarray | None
 def corrected_model(path: str | Path) -> tuple[RobotModel, float, float, dict]:
     """(robot, torque lag [s], torque shift [s] (estimator.torque_delay_s), corrections summary) of
     a corrected_model.yaml for the estimator."""
-    from safesysid.systems import model_corrections as mc
-    from safesysid.systems.config import starting_robot
+    from safesysid.systems.model import corrections as mc
+    from safesysid.systems.model.loading import starting_robot
 
     try:
         corr = mc.read_correction(path)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 from safesysid.report import plot_intervals_side_by_side
-from safesysid.systems.inertial import NAMES
+from safesysid.systems.model.inertial import NAMES
 
 # The paper's Table IV: 2-norm cond(Y) over the 7.5 s identification phase (one run per dumbbell).
 PAPER_COND_Y = {

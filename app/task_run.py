@@ -1,6 +1,6 @@
 """The task phase of a run (app/online.py): the TaskPhaseSource of a scenario, the driver that
 advances a built run through the task, the release and the settling, and the judgement of a run
-(its first failure and the phase it happened in). The math is in systems/task_phase.py."""
+(its first failure and the phase it happened in). The math is in systems/task/phase.py."""
 
 from __future__ import annotations
 
@@ -12,11 +12,11 @@ if TYPE_CHECKING:
     from pydrake.systems.analysis import Simulator
     from safesysid.online import OnlineDiagram
     from safesysid.systems.config import Scenario
-    from safesysid.systems.payload import Dumbbell
-    from safesysid.systems.robot_model import RobotModel
-    from safesysid.systems.safety_monitor import SafetyRecord
-    from safesysid.systems.task_trajectory import TaskProblem, TaskResult
-    from safesysid.systems.trajectory_source import TaskPhaseSource
+    from safesysid.systems.model.payload import Dumbbell
+    from safesysid.systems.model.robot_model import RobotModel
+    from safesysid.systems.planner.trajectory_source import TaskPhaseSource
+    from safesysid.systems.plant.safety_monitor import SafetyRecord
+    from safesysid.systems.task.trajectory import TaskProblem, TaskResult
 
 
 def released_parameters(
@@ -25,7 +25,7 @@ def released_parameters(
     """(theta0, lower, upper) after the release: the bare end effector (the model's own) with
     the rest of the robot as in the method's prior box."""
     from safesysid.systems import methods
-    from safesysid.systems.armour import parameter_box
+    from safesysid.systems.model.uncertainty import parameter_box
 
     if methods.method_spec(method).theta0_source == methods.NO_PAYLOAD:  # exact: bare, no uncertainty
         theta0 = robot.theta.copy()
@@ -50,8 +50,8 @@ def make_task_source(
     """The TaskPhaseSource of a scenario whose task trajectory `plan` (TaskResult) solves `problem`;
     held: the payload in the gripper (the return move's geometry, systems/task_phase.return_move).
     certify: the task controller is ARMOUR, whose certificate the phase must carry (certify_task)."""
-    from safesysid.systems.task_phase import return_move
-    from safesysid.systems.trajectory_source import TaskPhaseSource
+    from safesysid.systems.planner.trajectory_source import TaskPhaseSource
+    from safesysid.systems.task.phase import return_move
 
     def make_task(q_now, thetas):
         if not plan.ok:
@@ -84,7 +84,7 @@ def certify_task(problem: TaskProblem, curves: list, thetas: tuple, task) -> tup
     tube and the box): the curves played at the smallest scale of the grid 1 .. task.max_time_scale
     (step task.time_scale_step) whose certificate is <= 1, or [] (refused: task_uncertified, the
     arm holds). Returns (curves, report for summary.json's task, text for the event)."""
-    from safesysid.systems.task_check import phase_certificate, smallest_certified_scale, time_scale_grid, time_scaled
+    from safesysid.systems.task.check import phase_certificate, smallest_certified_scale, time_scale_grid, time_scaled
 
     scales = time_scale_grid(task.max_time_scale, task.time_scale_step)
     found = smallest_certified_scale(lambda scale: phase_certificate(problem, curves, thetas, scale), scales)
@@ -121,7 +121,7 @@ def judge(
     saturated torque can never exceed the limit). record: the SafetyMonitor's; tracking_ratio:
     max over joints of |error| / tube bound at the logger's times t; task: _run_task_phase's
     summary (None: no task phase); simulation_failed_at: when the plant's solver failed (GuardedSimulator)."""
-    from safesysid.systems.task_phase import first_failure
+    from safesysid.systems.task.phase import first_failure
 
     times = np.asarray(record.times, float)
 
@@ -191,7 +191,7 @@ class GuardedSimulator:
 def run_task_phase(built: OnlineDiagram, sim: Simulator, scenario: Scenario, method: str) -> dict:
     """Advance a built run through identification, the task phase, the release and the settling;
     returns the task's summary (placement measured on the simulated payload pose)."""
-    from safesysid.systems.task_phase import placement_target
+    from safesysid.systems.task.phase import placement_target
 
     ctx = sim.get_mutable_context()
     arm, source = built.arm, built.source

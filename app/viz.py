@@ -95,7 +95,7 @@ if TYPE_CHECKING:  # what a replay is framed on
     from collections.abc import Sequence
 
     from safesysid.systems.config import Obstacle
-    from safesysid.systems.robot_model import RobotModel
+    from safesysid.systems.model.robot_model import RobotModel
 
 
 @dataclass

@@ -16,7 +16,7 @@ import numpy as np
 from safesysid.benchmarks.scaling import load_average, plot, png, timed
 from safesysid.joint_log import JointLog, read_joint_log
 from safesysid.systems import diagnosis as dg
-from safesysid.systems.robot_model import load_robot
+from safesysid.systems.model.robot_model import load_robot
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 REAL = SHARED / "data" / "kinova_gen3_real"

@@ -14,8 +14,8 @@ from dataclasses import replace
 import numpy as np
 from safesysid.benchmarks.scaling import load_average, plot, png, timed
 from safesysid.systems import estimation as est_mod
-from safesysid.systems.payload import load_dumbbells, payload_theta_in_end_effector
-from safesysid.systems.robot_model import MODELS_DIR, load_robot
+from safesysid.systems.model.payload import load_dumbbells, payload_theta_in_end_effector
+from safesysid.systems.model.robot_model import MODELS_DIR, load_robot
 
 TARGET_FULL_S = 0.25
 TARGET_INCREMENTAL_S = 0.1
@@ -168,7 +168,7 @@ def update_cost(log_path: str, scenario_path: str) -> dict:
     one BLAS thread), and the final widths of each."""
     from safesysid.joint_log import read_joint_log
     from safesysid.scenario import load_scenario, robot_from_scenario
-    from safesysid.systems.blas import single_threaded_blas
+    from safesysid.systems.math.blas import single_threaded_blas
 
     scene = load_scenario(scenario_path)
     robot = robot_from_scenario(scene)

@@ -21,10 +21,10 @@ import time
 import numpy as np
 from safesysid.benchmarks.scaling import load_average, plot, png, stats
 from safesysid.scenario import Obstacle, Planner
-from safesysid.systems import reachability as reach
-from safesysid.systems.payload import load_dumbbells
-from safesysid.systems.planner import SafePlanner
-from safesysid.systems.robot_model import MODELS_DIR, load_robot
+from safesysid.systems.model.payload import load_dumbbells
+from safesysid.systems.model.robot_model import MODELS_DIR, load_robot
+from safesysid.systems.planner import reachability as reach
+from safesysid.systems.planner.safe_planner import SafePlanner
 
 Q0 = np.array([0.0, 0.26, 0.0, 2.0, 0.0, 0.9, 1.57])
 
@@ -32,7 +32,7 @@ Q0 = np.array([0.0, 0.26, 0.0, 2.0, 0.0, 0.9, 1.57])
 def parameter_box(robot, payload, ee_ratio=0.2):
     """theta0 and [theta]: links 1-6 and friction +-5 %, end effector + payload +-20 % (the
     reference's hardware setting before identification)."""
-    from safesysid.systems.payload import payload_theta_in_end_effector
+    from safesysid.systems.model.payload import payload_theta_in_end_effector
 
     theta0 = robot.theta.copy()
     sl = robot.ee_slice
@@ -45,7 +45,7 @@ def parameter_box(robot, payload, ee_ratio=0.2):
 def table_ii_box(robot):
     """The paper's Table II end-effector interval (what `safesysid run` starts from), rest +-5 %."""
     from safesysid.scenario import InitialInterval
-    from safesysid.systems.armour import parameter_box as box_of
+    from safesysid.systems.model.uncertainty import parameter_box as box_of
 
     ii = InitialInterval()
     theta0, box = box_of(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper))

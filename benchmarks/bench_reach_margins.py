@@ -8,7 +8,7 @@ worst, the bound's terms, and the total of the interval-box bound used before (p
     nominal   sup |W_p theta0| over the interval's state box (desired states + tracking tube)
     w_bar     ||w_bar||_2, the parameter interval's disturbance bound (best of plain / aa-vertex)
     excess    (alpha/2) eps mu_j, lambda's excess over ||w_bar|| as joint j sees it (|v_j| = lambda |r_j|/|r|)
-and, next to each, the largest value the actual ARMOUR law (systems/armour.py) produces on
+and, next to each, the largest value the actual ARMOUR law (systems/controller/armour.py) produces on
 states ON the tube boundary inside that interval (t and k in the box, e reachable: the output of
 the error filter under |r| = eps, r along the joint (where |v_j| = lambda) or random, theta_true
 at the box vertex that makes h most negative). Also the collision spread (certified vs sampled centre motion) and the
@@ -26,7 +26,7 @@ import numpy as np
 def sampled_command(robot, dyn, gains, desired, bounds, theta0, box, joint, rng, count):
     """Largest |tau_nom_j|, ||w_bar||, lambda - ||w_bar||, |v_j|, |u_j| of the ARMOUR law over
     `count` tube-boundary states around each desired state (rows of `desired`)."""
-    from safesysid.systems import armour as ctl
+    from safesysid.systems.controller import armour as ctl
 
     n = robot.n
     worst = np.zeros(5)
@@ -69,12 +69,12 @@ def filtered_error(rng, kr, eps, steady=None):
 def margins(V_max: float, starts: int = 10, samples: int = 40) -> dict:
     from safesysid.benchmarks.bench_planner import Q0, near_boxes, table_ii_box
     from safesysid.scenario import Planner
-    from safesysid.systems import armour as ctl
-    from safesysid.systems import reachability as reach
-    from safesysid.systems.intervals import Interval
-    from safesysid.systems.payload import load_dumbbells
-    from safesysid.systems.planner import SafePlanner
-    from safesysid.systems.robot_model import MODELS_DIR, load_robot
+    from safesysid.systems.controller import armour as ctl
+    from safesysid.systems.math.intervals import Interval
+    from safesysid.systems.model.payload import load_dumbbells
+    from safesysid.systems.model.robot_model import MODELS_DIR, load_robot
+    from safesysid.systems.planner import reachability as reach
+    from safesysid.systems.planner.safe_planner import SafePlanner
 
     robot = load_robot(coulomb_smoothing=0.01)
     payload = load_dumbbells(MODELS_DIR / "dumbbells.yaml")["4lb"]

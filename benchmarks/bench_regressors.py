@@ -12,9 +12,9 @@ import time
 
 import numpy as np
 from safesysid.benchmarks.scaling import load_average, plot, png
-from safesysid.systems import regressors
-from safesysid.systems.armour_fast import FastControllerDynamics
-from safesysid.systems.robot_model import load_robot, make_plant
+from safesysid.systems.controller.armour_fast import FastControllerDynamics
+from safesysid.systems.model import regressors
+from safesysid.systems.model.robot_model import load_robot, make_plant
 
 
 def _per_sample(fn, count, repeat=3):

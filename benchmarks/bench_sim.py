@@ -5,7 +5,7 @@ bounds over all 14 n parameters) + Bezier source, loggers included.
 Target (issue 16): the closed loop of ours >= 4x real time on one core. The machine is shared,
 so each factor is given on the wall clock AND on this process's CPU time (what the loop costs
 with a core to itself), with the load average. Also in the same run: the law alone per step
-(fast path systems/armour_fast.py and the reference armour.armour_control, i.e. after/before),
+(fast path systems/controller/armour_fast.py and the reference armour.armour_control, i.e. after/before),
 the closed loop with the reference law, the baseline controllers' loops, and the whole online
 diagram (planner, estimator, safety monitor) per method of safesysid.systems.config.METHODS.
 """
@@ -20,12 +20,13 @@ import numpy as np
 from safesysid.benchmarks.scaling import load_average, png
 from safesysid.closed_loop import build_closed_loop
 from safesysid.scenario import load_scenario, robot_from_scenario
-from safesysid.systems import armour as C
-from safesysid.systems import controller_systems
-from safesysid.systems.armour_fast import FastArmourLaw, FastControllerDynamics
-from safesysid.systems.bezier import QuinticBezier
 from safesysid.systems.config import METHODS
-from safesysid.systems.intervals import Interval
+from safesysid.systems.controller import armour as C
+from safesysid.systems.controller import systems as controller_systems
+from safesysid.systems.controller.armour_fast import FastArmourLaw, FastControllerDynamics
+from safesysid.systems.math.bezier import QuinticBezier
+from safesysid.systems.math.intervals import Interval
+from safesysid.systems.model import uncertainty
 
 TARGET_RTF = 4.0
 
@@ -143,7 +144,7 @@ def plant_rtf(s, robot, sim_s, repeat, command=None):
     from pydrake.systems.framework import DiagramBuilder
     from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput, TrajectorySource
     from pydrake.trajectories import PiecewisePolynomial
-    from safesysid.systems.real_arm import add_real_arm
+    from safesysid.systems.plant.station import add_real_arm
 
     def prepare():
         builder = DiagramBuilder()
@@ -197,7 +198,7 @@ def run(quick: bool = False, out: Path | None = None) -> dict:
     s = load_scenario(overrides={"payload": {"dumbbell": "8lb"}})
     robot = robot_from_scenario(s)
     ii = s.initial_interval
-    theta0, box = C.parameter_box(robot, ii.nominal, ii.lower, ii.upper)
+    theta0, box = uncertainty.parameter_box(robot, ii.nominal, ii.lower, ii.upper)
     sim_s = 1.0 if quick else 3.0
     repeat = 1 if quick else 3
     result = {"sim_time_s": sim_s, "time_step_s": s.plant.time_step_s, "target_real_time_factor": TARGET_RTF}
@@ -296,7 +297,7 @@ def advance_loop(sim_s: float) -> None:
     s = load_scenario(overrides={"payload": {"dumbbell": "8lb"}})
     robot = robot_from_scenario(s)
     ii = s.initial_interval
-    theta0, box = C.parameter_box(robot, ii.nominal, ii.lower, ii.upper)
+    theta0, box = uncertainty.parameter_box(robot, ii.nominal, ii.lower, ii.upper)
     q0, trajectory = _trajectory(s, robot)
     loop = build_closed_loop(s, trajectory, theta0, box, kind="armour", robot=robot)
     _simulator(loop.diagram, loop.arm, q0).AdvanceTo(sim_s)

@@ -18,21 +18,22 @@ import time
 
 def _certified(prob, scenario, trajectory):
     from safesysid.online import prior
-    from safesysid.systems import task_trajectory as tt
-    from safesysid.systems.armour import parameter_box
+    from safesysid.systems.model.uncertainty import parameter_box
+    from safesysid.systems.task import check as task_check
 
     ee = prob.theta[prob.robot.ee_slice]
     exact0, exact = parameter_box(prob.robot, ee, ee, ee, rest_ratio=0.05, friction_ratio=0.05)
     table0, table = prior(prob.robot, scenario, "conservative")
     return {
-        "exact_payload": tt.certified_torque_ratio(prob, trajectory, exact0, exact.lo, exact.hi)[0],
-        "table_ii_prior": tt.certified_torque_ratio(prob, trajectory, table0, table.lo, table.hi)[0],
+        "exact_payload": task_check.certified_torque_ratio(prob, trajectory, exact0, exact.lo, exact.hi)[0],
+        "table_ii_prior": task_check.certified_torque_ratio(prob, trajectory, table0, table.lo, table.hi)[0],
     }
 
 
 def run(quick: bool = False) -> dict:
     from safesysid.scenario import SCENARIOS_DIR, load_scenario
-    from safesysid.systems import task_trajectory as tt
+    from safesysid.systems.task import check as task_check
+    from safesysid.systems.task import trajectory as tt
 
     out = {"load_average_at_start": os.getloadavg()[0], "cpus": os.cpu_count()}
     for name in ("experiment_a", "experiment_b", "experiment_c"):
@@ -53,7 +54,7 @@ def run(quick: bool = False) -> dict:
                 "sampled_torque_ratio": res.max_torque_ratio,
             }
             if res.ok:
-                check = tt.verify_task_trajectory(prob, res.trajectory)
+                check = task_check.verify_task_trajectory(prob, res.trajectory)
                 row.update(
                     verified=check.ok,
                     min_clearance_m=check.min_clearance_m,

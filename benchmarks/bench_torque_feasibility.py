@@ -19,10 +19,10 @@ def run(quick: bool = False) -> dict:
     import numpy as np
     from safesysid.benchmarks.bench_planner import Q0, near_boxes, table_ii_box
     from safesysid.scenario import Planner
-    from safesysid.systems import armour as ctl
-    from safesysid.systems.payload import load_dumbbells
-    from safesysid.systems.planner import SafePlanner
-    from safesysid.systems.robot_model import MODELS_DIR, load_robot
+    from safesysid.systems.controller import armour as ctl
+    from safesysid.systems.model.payload import load_dumbbells
+    from safesysid.systems.model.robot_model import MODELS_DIR, load_robot
+    from safesysid.systems.planner.safe_planner import SafePlanner
 
     robot = load_robot(coulomb_smoothing=0.01)
     payload = load_dumbbells(MODELS_DIR / "dumbbells.yaml")["4lb"]

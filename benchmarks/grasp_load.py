@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 from pydrake.multibody.tree import JacobianWrtVariable
 from safesysid.joint_log import read_joint_log
-from safesysid.systems.robot_model import load_robot, make_plant
+from safesysid.systems.model.robot_model import load_robot, make_plant
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 

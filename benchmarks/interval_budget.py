@@ -30,10 +30,11 @@ import sys
 import numpy as np
 from safesysid.systems import estimation as E
 from safesysid.systems.estimation.enclosure import interval_hull, set_membership_bounds
-from safesysid.systems.estimation.physical import BoundingVolume, prune_box
-from safesysid.systems.inertial import NAMES
-from safesysid.systems.payload import load_dumbbells, payload_theta_in_end_effector
-from safesysid.systems.robot_model import MODELS_DIR, load_robot
+from safesysid.systems.estimation.physical import prune_box
+from safesysid.systems.estimation.settings import BoundingVolume
+from safesysid.systems.model.inertial import NAMES
+from safesysid.systems.model.payload import load_dumbbells, payload_theta_in_end_effector
+from safesysid.systems.model.robot_model import MODELS_DIR, load_robot
 
 CENTRE = [0.0, 0.3, 0.0, 1.5, 0.0, 0.8, 0.0]
 PRIOR = (np.array([1.2, -0.4, -0.4, -1.0] + [-0.2] * 6), np.array([5.2, 0.4, 0.4, -0.1] + [0.2] * 6))

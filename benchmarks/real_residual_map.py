@@ -30,7 +30,7 @@ def main(argv: list[str] | None = None) -> int:
     from safesysid.diagnose_report import residual_map_lines
     from safesysid.systems.diagnosis.candidates import CANDIDATES, candidate_gain
     from safesysid.systems.diagnosis.problem import design_residual
-    from safesysid.systems.robot_model import load_robot
+    from safesysid.systems.model.robot_model import load_robot
 
     out = Path(args.out)
     folds, pooled = leave_one_out_folds(load_robot(URDF), RUNS, out, URDF)

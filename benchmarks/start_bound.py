@@ -17,9 +17,10 @@ import numpy as np
 
 def start_reason(scenario) -> str:
     from safesysid.scenario import robot_from_scenario
-    from safesysid.systems.armour import ArmourGains, prior_box, tracking_bounds_for
-    from safesysid.systems.planner import SafePlanner
-    from safesysid.systems.real_arm_plant import scenario_dumbbell
+    from safesysid.systems.controller.armour import ArmourGains, tracking_bounds_for
+    from safesysid.systems.model.uncertainty import prior_box
+    from safesysid.systems.planner.safe_planner import SafePlanner
+    from safesysid.systems.plant.arm_plant import scenario_dumbbell
 
     robot = robot_from_scenario(scenario)
     theta0, box = prior_box(robot, scenario.initial_interval, scenario.noise)

@@ -16,8 +16,8 @@ import time
 
 import numpy as np
 from safesysid.systems import estimation as est_mod
-from safesysid.systems import regressors
-from safesysid.systems.robot_model import load_robot
+from safesysid.systems.model import regressors
+from safesysid.systems.model.robot_model import load_robot
 
 HORIZONS = (1, 5, 10, 20, 50, 100, 200, 500)
 PAPER = {1: 1.0000, 5: 1.0000, 10: 0.9994, 20: 0.9934, 50: 0.9540, 100: 0.6709, 200: 0.3537, 500: 0.2789}

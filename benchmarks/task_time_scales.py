@@ -18,12 +18,15 @@ def certificates(name: str, method: str, scales=None) -> tuple[float, list[tuple
     scenario's whole grid) of experiment `name` with `method`'s task box."""
     from safesysid.scenario import SCENARIOS_DIR, load_scenario, robot_from_scenario
     from safesysid.systems import methods
-    from safesysid.systems.task_check import phase_certificate, time_scale_grid
-    from safesysid.systems.task_phase import task_plan
+    from safesysid.systems.model import parameter_sources
+    from safesysid.systems.task.check import phase_certificate, time_scale_grid
+    from safesysid.systems.task.phase import task_plan
 
     scenario = load_scenario(SCENARIOS_DIR / f"{name}.yaml")
     problem, plan = task_plan(scenario)
-    theta0, box = methods.task_parameters(methods.method_spec(method), robot_from_scenario(scenario), scenario)
+    theta0, box = parameter_sources.task_parameters(
+        methods.method_spec(method), robot_from_scenario(scenario), scenario
+    )
     grid = scales or time_scale_grid(scenario.task.max_time_scale, scenario.task.time_scale_step)
     thetas = (theta0, box.lo, box.hi)
     return plan.trajectory.duration, [(s, phase_certificate(problem, [plan.trajectory], thetas, s)) for s in grid]

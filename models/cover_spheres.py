@@ -68,7 +68,7 @@ def shape_spheres(shape, pose, margin_m):
 def model_spheres(model_path, margin_m):
     """{link: [(centre, radius), ...]} covering every collision shape of the model's bodies."""
     from pydrake.geometry import Role
-    from safesysid.systems.robot_model import make_plant
+    from safesysid.systems.model.robot_model import make_plant
 
     plant, scene_graph, _ = make_plant(model_path, scene_graph=True)
     plant.Finalize()

@@ -11,16 +11,10 @@ cannot resolve string annotations.
 
 import dataclasses as dc
 import typing
-from pathlib import Path
 
 import numpy as np
 
 from .methods import METHODS_SPEC
-from .model_corrections import CorrectionError, corrected_robot, read_correction
-from .robot_model import MODELS_DIR, ModelError, RobotModel, load_robot
-
-if typing.TYPE_CHECKING:
-    from .diagnosis.corrected_model import CorrectedModel
 
 List = list
 Optional = typing.Optional
@@ -63,7 +57,7 @@ class Robot:
     coulomb_smoothing_rad_s: float = 0.01  # Coulomb law Fc*tanh(v/vs); 0 = sign(v)
     # corrected_model.yaml of `safesysid diagnose`: its starting model with the diagnosed
     # friction/armature/offset is the robot model, its other effects fill plant.effects
-    # (systems/model_corrections.py); robot.model and robot.params stay unset.
+    # (systems/model/corrections.py); robot.model and robot.params stay unset.
     corrected_model: str = ""
 
 
@@ -152,7 +146,7 @@ class Plant:
 
 @dc.dataclass
 class Controller:
-    """ARMOUR robust passivity controller (systems/armour.py) and the baselines."""
+    """ARMOUR robust passivity controller (systems/controller/armour.py) and the baselines."""
 
     Kr: List[float] = dc.field(default_factory=lambda: [5.0, 5.0, 5.0, 5.0, 7.0, 7.0, 7.0])
     alpha: float = 20.0
@@ -163,7 +157,7 @@ class Controller:
     # armour | pid | adaptive | adaptive_robust: closed_loop.build_closed_loop's controller; an
     # online run's controllers are its method's (systems/methods.py).
     kind: str = "armour"
-    # Baselines (systems/controller_systems.py), per joint; Gen3 inertia with armature is ~9-14 kg m^2,
+    # Baselines (systems/controller/systems.py), per joint; Gen3 inertia with armature is ~9-14 kg m^2,
     # so Kp ~ M (10 rad/s)^2 and Kd ~ 2 M 10 rad/s.
     pid_kp_Nm_rad: List[float] = dc.field(default_factory=lambda: [1000.0] * 7)
     pid_ki_Nm_rad_s: List[float] = dc.field(default_factory=lambda: [1000.0] * 7)
@@ -232,7 +226,7 @@ class Planner:
 
 @dc.dataclass
 class FourierExcitation:
-    """The classical exciting trajectory of method grav-pid-excit (systems/fourier_excitation.py):
+    """The classical exciting trajectory of method grav-pid-excit (systems/excitation/fourier.py):
     one period of a finite Fourier series from rest at q0 back to rest at q0, optimized for
     cond(W_e) inside the joint velocity limits (robot params) and these acceleration limits only."""
 
@@ -276,7 +270,7 @@ class Estimator:
 
 @dc.dataclass
 class InitialInterval:
-    """End-effector prior (paper Table II): nominal and box, theta order of systems/inertial.py NAMES."""
+    """End-effector prior (paper Table II): nominal and box, theta order of systems/model/inertial.py NAMES."""
 
     nominal: List[float] = dc.field(default_factory=lambda: [3.2, 0.0, 0.0, -0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
     lower: List[float] = dc.field(default_factory=lambda: [1.2, -0.4, -0.4, -1.0] + [-0.2] * 6)
@@ -293,7 +287,7 @@ class InitialInterval:
 @dc.dataclass
 class Task:
     """Task phase (paper §VII): after identification the arm follows a trajectory computed
-    offline (systems/task_trajectory.py) from q0_rad to a goal, then releases the payload.
+    offline (systems/task/trajectory.py) from q0_rad to a goal, then releases the payload.
 
     Goal: `goal_q_rad` (a joint configuration) or a placement: the payload (dumbbell) centre at
     `place_xyz_m`, handle horizontal, gripper vertical (Drake InverseKinematics, then free in the
@@ -345,7 +339,7 @@ class Task:
 
 @dc.dataclass
 class ScheduledObstacle(Obstacle):
-    """An obstacle that appears at t_s (systems/faults.py): the planner learns of it then; the
+    """An obstacle that appears at t_s (systems/plant/faults.py): the planner learns of it then; the
     referee's world holds it from the start (stricter: a contact at any time counts)."""
 
     name: str = "appearing"
@@ -354,7 +348,7 @@ class ScheduledObstacle(Obstacle):
 
 @dc.dataclass
 class Faults:
-    """Injected faults (systems/faults.py; all off by default), each logged in summary.json events.
+    """Injected faults (systems/plant/faults.py; all off by default), each logged in summary.json events.
     Random faults draw from the run's seeded noise (Drake RandomSource), a rate r per second
     firing at a step with probability r * plant.time_step_s."""
 
@@ -429,60 +423,6 @@ class Scenario:
     source: str = ""
 
 
-def resolve_path(text: str, base_dir: str | Path) -> Path:
-    """`builtin:NAME` -> models/NAME; relative paths against the scenario's folder."""
-    if text.startswith("builtin:"):
-        return MODELS_DIR / text[len("builtin:") :]
-    p = Path(text).expanduser()
-    return p if p.is_absolute() else Path(base_dir) / p
-
-
-def scenario_dir(s: Scenario) -> Path:
-    return Path(s.source).parent
-
-
 def task_enabled(s: Scenario) -> bool:
     """The scenario has a task phase (a goal or a platform)."""
     return bool(s.task.goal_q_rad or s.task.place_xyz_m or s.task.platform)
-
-
-def robot_from_scenario(s: Scenario) -> RobotModel:
-    """The RobotModel a scenario names (one source of truth for every system)."""
-    return _robot_of(s.robot, scenario_dir(s), s.source)
-
-
-def _robot_of(robot: Robot, base: Path, where: str) -> RobotModel:
-    """The RobotModel of a scenario's `robot` section (paths relative to `base`)."""
-    if robot.corrected_model:
-        try:
-            corr = read_correction(resolve_path(robot.corrected_model, base))
-            return corrected_robot(starting_robot(corr, robot.coulomb_smoothing_rad_s), corr)
-        except CorrectionError as err:
-            raise ScenarioError(f"{where}: robot.corrected_model: {err}") from err
-    model = resolve_path(robot.model, base) if robot.model else None
-    try:
-        return load_robot(model, resolve_path(robot.params, base), coulomb_smoothing=robot.coulomb_smoothing_rad_s)
-    except ModelError as err:  # name the scenario and the field, not only the model file
-        field = f"robot.model ({robot.model})" if robot.model else f"robot.params ({robot.params})"
-        raise ScenarioError(f"{where}: {field}: {err}") from err
-
-
-def starting_robot(corr: "CorrectedModel", coulomb_smoothing: float = 0.0) -> RobotModel:
-    """The model a diagnosis started from (a corrected model's `model`): a URDF/SDF (root welded,
-    friction zero) or the robot of a scenario YAML, read from its `robot` section (the rest of
-    that scenario does not change the robot; app/scenario.py validates the whole file)."""
-    from pydrake.common.yaml import yaml_load_typed
-
-    path = corr.model_path()
-    if not path.is_file():
-        raise CorrectionError(f"{corr.path}: model: file {corr.model!r} not found")
-    if path.suffix.lower() not in (".yaml", ".yml"):
-        return load_robot(path, coulomb_smoothing=coulomb_smoothing)
-    import yaml
-
-    try:
-        section = (yaml.safe_load(path.read_text()) or {}).get("robot") or {}
-        robot = yaml_load_typed(schema=Robot, data=yaml.safe_dump(section), defaults=Robot())
-    except (yaml.YAMLError, RuntimeError, AttributeError) as err:
-        raise CorrectionError(f"{path}: robot: not a scenario robot section ({err})") from err
-    return _robot_of(robot, path.parent, str(path))

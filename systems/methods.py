@@ -8,7 +8,7 @@ an identification phase goes straight to the task ("N/A" in the table's last col
 Parameter sources (what the controller's theta0 / [theta] inputs carry):
   NO_PAYLOAD  the robot model file's bare end effector with zero width: "assume no payload"
   PRIOR       Table II: scenario.initial_interval on the end effector, the rest of the robot
-              nominal +- noise.theta_r_ratio (systems/armour.py prior_box)
+              nominal +- noise.theta_r_ratio (systems/controller/armour.py prior_box)
   IDENTIFIED  theta0 / [theta] of Algorithm 1 (the SysIdEstimator) at the end of the excitation
   ADAPTED     the adaptive controller's own estimate: it starts at the PRIOR nominal and adapts
               inside the PRIOR box (its projection set; adap-2's robust term too), so its inputs
@@ -20,18 +20,11 @@ carries the model's source.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-import numpy as np
-from numpy.typing import ArrayLike
-
 if TYPE_CHECKING:
     from .config import Scenario
-    from .fourier_excitation import FourierResult, FourierSettings
-    from .intervals import Interval
-    from .robot_model import RobotModel
 
 NO_PAYLOAD, PRIOR, IDENTIFIED, ADAPTED = "no_payload", "prior", "identified", "adapted"
 # Trajectories of the identification phase.
@@ -48,7 +41,7 @@ class Excitation:
     exciting / random: Algorithm 2's receding-horizon planner (its exciting cost, or random
     feasible k as the paper's "random"); the controller takes the parameters each plan was
     certified with (the estimator's, through the planner, when the method identifies with it; the
-    PRIOR otherwise). fourier: the classical Fourier trajectory (systems/fourier_excitation.py),
+    PRIOR otherwise). fourier: the classical Fourier trajectory (systems/excitation/fourier.py),
     no planner; the controller takes the PRIOR (identification comes after the excitation)."""
 
     trajectory: str
@@ -139,41 +132,6 @@ def method_spec(name: str) -> MethodSpec:
         raise ValueError(f"method {name!r} is not one of {', '.join(METHODS_SPEC)}") from None
 
 
-def parameters_from(
-    source: str, robot: RobotModel, scenario: Scenario, identified: Sequence[ArrayLike] | None = None
-) -> tuple[np.ndarray, Interval]:
-    """(theta0 (14 n), Interval) of a parameter source; IDENTIFIED needs `identified` =
-    (theta0, lower, upper) of the estimator."""
-    from .armour import prior_box
-    from .intervals import Interval
-
-    if source == IDENTIFIED:
-        if identified is None:
-            raise ValueError("the identified parameters are needed (the estimator's theta0, lower, upper)")
-        theta0, lo, hi = (np.asarray(x, float) for x in identified)
-        return theta0, Interval(lo, hi)
-    return prior_box(robot, scenario.initial_interval, scenario.noise, exact=source == NO_PAYLOAD)
-
-
-def initial_parameters(spec: MethodSpec, robot: RobotModel, scenario: Scenario) -> tuple[np.ndarray, Interval]:
-    """(theta0, [theta]) the run starts with: Table II when there is an identification phase
-    (paper: "assigned to the planner and the controller at the beginning of the identification
-    phase"), else the task's own (which then never identifies from data)."""
-    source = PRIOR if spec.excitation is not None else spec.theta0_source
-    return parameters_from(source, robot, scenario)
-
-
-def task_parameters(
-    spec: MethodSpec, robot: RobotModel, scenario: Scenario, identified: Sequence[ArrayLike] | None = None
-) -> tuple[np.ndarray, Interval]:
-    """(theta0, [theta]) the task-phase controller takes (identified: the estimator's final
-    (theta0, lower, upper), for the IDENTIFIED methods). Where the model and box sources differ
-    (none today) the box's source wins only for the box."""
-    theta0, _ = parameters_from(spec.theta0_source, robot, scenario, identified)
-    _, box = parameters_from(spec.box_source, robot, scenario, identified)
-    return theta0, box
-
-
 def excitation_duration_s(spec: MethodSpec, scenario: Scenario) -> float:
     """Length of the identification phase: planner (N - 1) t_p + t_f, Fourier one period, else 0."""
     if spec.excitation is None:
@@ -187,36 +145,3 @@ def planner_horizon_s(scenario: Scenario) -> float:
     """Algorithm 2's identification phase: plans start every t_p, the last runs t_f to rest."""
     p = scenario.planner
     return (p.num_plans - 1) * p.replan_period_s + p.duration_s
-
-
-def fourier_settings(robot: RobotModel, scenario: Scenario) -> FourierSettings:
-    from .fourier_excitation import FourierSettings
-
-    f = scenario.fourier
-    return FourierSettings(
-        period_s=float(f.period_s),
-        num_harmonics=int(f.num_harmonics),
-        velocity_limit=np.asarray(robot.joint_params.velocity_limit, float),
-        acceleration_limit=np.asarray(f.acceleration_limit_rad_s2, float),
-        num_cost_samples=int(f.num_cost_samples),
-        max_iterations=int(f.max_iterations),
-        seed=int(scenario.seed),
-    )
-
-
-_FOURIER_CACHE: dict = {}  # (id(robot), q0, settings) -> (robot, FourierResult); the robot kept alive
-
-
-def fourier_excitation(robot: RobotModel, scenario: Scenario) -> FourierResult:
-    """The grav-pid-excit trajectory of a scenario (FourierResult), optimized once per process
-    and robot model."""
-    from .fourier_excitation import optimize_fourier
-
-    s = fourier_settings(robot, scenario)
-    q0 = np.asarray(scenario.q0_rad, float)
-    arrays = (q0, s.velocity_limit, s.acceleration_limit)
-    key = (id(robot), *(a.tobytes() for a in arrays), s.period_s, s.num_harmonics, s.num_cost_samples)
-    key += (s.max_iterations, s.seed)
-    if key not in _FOURIER_CACHE:
-        _FOURIER_CACHE[key] = (robot, optimize_fourier(robot, q0, s))
-    return _FOURIER_CACHE[key][1]

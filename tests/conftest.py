@@ -20,14 +20,14 @@ def _outputs_match_their_schemas(request):
 @pytest.fixture(scope="module")
 def robot():
     """The Gen3 model with the scenarios' Coulomb smoothing (0.01 rad/s)."""
-    from safesysid.systems.robot_model import load_robot
+    from safesysid.systems.model.robot_model import load_robot
 
     return load_robot(coulomb_smoothing=0.01)
 
 
 @pytest.fixture(scope="module")
 def dumbbells():
-    from safesysid.systems.payload import load_dumbbells
-    from safesysid.systems.robot_model import MODELS_DIR
+    from safesysid.systems.model.payload import load_dumbbells
+    from safesysid.systems.model.robot_model import MODELS_DIR
 
     return load_dumbbells(MODELS_DIR / "dumbbells.yaml")

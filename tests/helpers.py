@@ -74,7 +74,7 @@ def shared_path(*parts):
 
 def params_with_spheres(tmp_path, spheres_path):
     """A copy of the Gen3 parameter file whose planner_spheres is `spheres_path` (same URDF)."""
-    from safesysid.systems.robot_model import MODELS_DIR
+    from safesysid.systems.model.robot_model import MODELS_DIR
 
     params = tmp_path / "params.yaml"
     params.write_text(
@@ -98,3 +98,26 @@ def simulate_online(built, scenario, duration_s):
     sim.Initialize()
     sim.AdvanceTo(duration_s)
     return ctx
+
+
+def event_kinds(summary: dict) -> list[str]:
+    return [e["kind"] for e in summary.get("events", [])]
+
+
+def assert_safe(summary: dict, *, complete: bool = True) -> None:
+    """The referee's verdict on a run summary, every guarantee on its own line so a failure names
+    it. complete: the run also stayed in its tube, contains the truth and succeeded; without it
+    (a run with injected faults) the estimator need only be honest: consistent => contains the
+    truth, inconsistent => an `inconsistent_estimate` event."""
+    assert summary["collisions"] == 0 and summary["min_clearance_m"] >= 0.0, "collision"
+    assert summary["max_commanded_torque_ratio"] <= 1.0 + 1e-9, "torque limit (command before saturation)"
+    assert summary["max_joint_limit_ratio"] <= 1.0, "joint limit"
+    assert summary["max_velocity_ratio"] <= 1.0, "velocity limit"
+    if complete:
+        assert summary["max_tracking_error_ratio"] <= 1.0 + 1e-9, "tracking tube"
+        assert summary["contains_truth"], "containment"
+        assert summary["success"] and summary["failure"] is None
+    elif summary["estimate"]["consistent"]:
+        assert summary["contains_truth"], "a consistent interval excludes the truth"
+    else:
+        assert "inconsistent_estimate" in event_kinds(summary)

@@ -1,4 +1,4 @@
-"""The fast controller path (systems/armour_fast.py) gives the reference law's results (armour.py)
+"""The fast controller path (systems/controller/armour_fast.py) gives the reference law's results (armour.py)
 to 1e-12 on fixed states, including the edges (|r| = 0, wrap at +-pi, zero-width box, invalid
 theta inputs), as a LeafSystem too; and the scaling benchmarks run at CI size."""
 
@@ -6,18 +6,14 @@ import json
 
 import numpy as np
 import pytest
-from safesysid.systems import armour as C
-from safesysid.systems.armour_fast import FastArmourLaw, FastControllerDynamics
-from safesysid.systems.intervals import Interval
-from safesysid.systems.robot_model import load_robot
+from safesysid.systems.controller import armour as C
+from safesysid.systems.controller.armour_fast import FastArmourLaw, FastControllerDynamics
+from safesysid.systems.math.intervals import Interval
+from safesysid.systems.model import uncertainty
+from safesysid.systems.model.robot_model import load_robot
 
 TOL = 1e-12  # relative to 1 + |x|
 FIELDS = ("u", "tau_nom", "v", "w_bar", "V_bar", "h", "lam")
-
-
-@pytest.fixture(scope="module")
-def robot():
-    return load_robot(coulomb_smoothing=0.01)
 
 
 @pytest.fixture(scope="module")
@@ -42,7 +38,7 @@ def _states(n):
 
 
 def _boxes(robot):
-    theta0, box = C.parameter_box(robot, robot.theta_e, robot.theta_e - 0.3, robot.theta_e + 0.3, 0.05, 0.05)
+    theta0, box = uncertainty.parameter_box(robot, robot.theta_e, robot.theta_e - 0.3, robot.theta_e + 0.3, 0.05, 0.05)
     yield theta0, box
     yield theta0, Interval(theta0, theta0)  # zero width: w_bar = 0 up to rounding
     # Adversarial: theta0 on the box's edge (the estimator's theta0 need not be the centre).
@@ -99,7 +95,7 @@ def test_controller_system_matches_reference_system(robot, gains):
     """The ArmourController LeafSystem (fast path) and the reference one, same fixed inputs:
     torque and diagnostics outputs equal to 1e-12."""
     from safesysid.benchmarks.bench_sim import ReferenceArmourController
-    from safesysid.systems import controller_systems as cs
+    from safesysid.systems.controller import systems as cs
 
     g = cs.ControllerGains(gains, *(np.ones(robot.n),) * 4, np.ones(10), 0.1)
     systems = [cs.ArmourController(robot, g), ReferenceArmourController(robot, g)]
@@ -185,7 +181,9 @@ def test_replayed_law_gives_the_plant_the_same_torques_without_computing_the_law
 
     s = load_scenario(overrides={"payload": {"dumbbell": "8lb"}})
     robot = robot_from_scenario(s)
-    theta0, box = C.parameter_box(robot, s.initial_interval.nominal, s.initial_interval.lower, s.initial_interval.upper)
+    theta0, box = uncertainty.parameter_box(
+        robot, s.initial_interval.nominal, s.initial_interval.lower, s.initial_interval.upper
+    )
     q0, trajectory = bench_sim._trajectory(s, robot)
     calls = []
     call = FastArmourLaw.__call__

@@ -1,5 +1,5 @@
 import numpy as np
-from safesysid.systems.bezier import QuinticBezier
+from safesysid.systems.math.bezier import QuinticBezier
 
 
 def make(seed=0):

@@ -14,10 +14,10 @@ from helpers import params_with_spheres
 from pydrake.geometry import Box, Capsule, Cylinder, Role, Sphere
 from pydrake.systems.framework import DiagramBuilder
 from safesysid.scenario import SCENARIOS_DIR, load_scenario
-from safesysid.systems import reachability as reach
-from safesysid.systems.payload import load_dumbbells
-from safesysid.systems.real_arm import add_real_arm
-from safesysid.systems.robot_model import MODELS_DIR, load_robot
+from safesysid.systems.model.payload import load_dumbbells
+from safesysid.systems.model.robot_model import MODELS_DIR, carrier_index, load_robot
+from safesysid.systems.planner import reachability as reach
+from safesysid.systems.plant.station import add_real_arm
 
 TOLERANCE_M = 1e-9
 
@@ -90,7 +90,7 @@ def worst_protrusions(robot, dumbbell, configurations, scenario_file="quickstart
             if frame == world:
                 continue  # obstacles and the floor
             body = plant.GetBodyFromFrameId(frame)
-            carrier = reach.carrier_index(plant, body, robot.body_names)
+            carrier = carrier_index(plant, body, robot.body_names)
             kind = "collision" if role == Role.kProximity else "visual"
             label = f"{body.name()} {type(inspector.GetShape(gid)).__name__} ({kind})"
             shapes.append((gid, label, sample_shape(inspector.GetShape(gid)), spheres.body == carrier))
@@ -158,7 +158,7 @@ def test_the_planner_checks_obstacles_against_the_fixed_base(robot):
     capsule, inside those spheres and clear of every moving one, makes the planner refuse to
     start, naming the base; 5 cm away (outside them) it plans."""
     from safesysid.scenario import Obstacle, Planner
-    from safesysid.systems.planner import SafePlanner
+    from safesysid.systems.planner.safe_planner import SafePlanner
 
     q0 = np.array([0.0, 0.26, 0.0, 2.0, 0.0, 0.9, 1.57])
     theta = robot.theta

@@ -3,15 +3,11 @@ the certified sigma_min and the per-joint tracking bounds."""
 
 import numpy as np
 import pytest
-from safesysid.systems import armour as C
-from safesysid.systems.intervals import Interval
-from safesysid.systems.payload import load_dumbbells, payload_theta_in_end_effector
-from safesysid.systems.robot_model import MODELS_DIR, load_robot
-
-
-@pytest.fixture(scope="module")
-def robot():
-    return load_robot(coulomb_smoothing=0.01)
+from safesysid.systems.controller import armour as C
+from safesysid.systems.math.intervals import Interval
+from safesysid.systems.model import uncertainty
+from safesysid.systems.model.payload import load_dumbbells, payload_theta_in_end_effector
+from safesysid.systems.model.robot_model import MODELS_DIR
 
 
 @pytest.fixture(scope="module")
@@ -24,7 +20,7 @@ def _box(robot, rng, ee_ratio=0.2):
         load_dumbbells(MODELS_DIR / "dumbbells.yaml")["6lb"], robot.extra["grasp_point"]
     )
     rad = ee_ratio * np.abs(theta_e) + 1e-3
-    return C.parameter_box(robot, theta_e + rng.uniform(-0.5, 0.5, 10) * rad, theta_e - rad, theta_e + rad)
+    return uncertainty.parameter_box(robot, theta_e + rng.uniform(-0.5, 0.5, 10) * rad, theta_e - rad, theta_e + rad)
 
 
 def test_fast_regressors_equal_robot_model(robot, dyn):
@@ -88,11 +84,11 @@ def test_robust_input_hand_cases():
 def _quickstart_prior(robot):
     """theta0, [theta] of the quickstart (paper Table II end effector, the rest +-5 %) and the true theta."""
     from safesysid.scenario import load_scenario
-    from safesysid.systems.real_arm import scenario_dumbbell, true_theta
+    from safesysid.systems.plant.station import scenario_dumbbell, true_theta
 
     s = load_scenario(MODELS_DIR.parent / "scenarios" / "quickstart.yaml")
     ii = s.initial_interval
-    theta0, box = C.parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper))
+    theta0, box = uncertainty.parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper))
     return s, theta0, box, true_theta(robot, scenario_dumbbell(s))
 
 
@@ -302,14 +298,14 @@ def test_tracking_bounds_formulas_and_tightness():
 
 
 def test_parameter_box_contains_model(robot):
-    theta0, box = C.parameter_box(robot, robot.theta_e, robot.theta_e - 0.1, robot.theta_e + 0.1)
+    theta0, box = uncertainty.parameter_box(robot, robot.theta_e, robot.theta_e - 0.1, robot.theta_e + 0.1)
     assert np.all(box.contains(robot.theta)) and np.all(box.contains(theta0))
     assert isinstance(box, Interval) and np.any(box.hi[10:] > box.lo[10:])
 
 
 def test_all_controllers_share_ports(robot):
     from safesysid.scenario import load_scenario
-    from safesysid.systems.controller_systems import gains_from_scenario, make_controller
+    from safesysid.systems.controller.systems import gains_from_scenario, make_controller
 
     gains = gains_from_scenario(load_scenario(), robot.n)
     n, p = robot.n, 14 * robot.n
@@ -340,7 +336,7 @@ def test_all_controllers_share_ports(robot):
 
 def test_armour_controller_never_commands_nan(robot, caplog):
     from safesysid.scenario import load_scenario
-    from safesysid.systems.controller_systems import gains_from_scenario, make_controller
+    from safesysid.systems.controller.systems import gains_from_scenario, make_controller
 
     system = make_controller("armour", robot, gains_from_scenario(load_scenario(), robot.n), 0.001)
     ctx = system.CreateDefaultContext()

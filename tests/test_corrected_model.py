@@ -8,8 +8,8 @@ import pytest
 import yaml
 from safesysid.scenario import ScenarioError, load_scenario, robot_from_scenario
 from safesysid.systems import diagnosis as dg
-from safesysid.systems.arm_tracking import track_trajectory
-from safesysid.systems.robot_model import MODELS_DIR, load_robot
+from safesysid.systems.model.robot_model import MODELS_DIR, load_robot
+from safesysid.systems.plant.arm_tracking import track_trajectory
 
 URDF = MODELS_DIR / "kinova_gen3.urdf"
 NOISE = {"torque_ratio": 0.01, "torque_floor_Nm": 0.05}
@@ -17,7 +17,7 @@ DURATION_S = 5.0
 
 
 def write_corrected_model(path, model, diagnosis):
-    """corrected_model.yaml (systems/diagnosis/corrected_model.py) of a diagnosis' significant effects."""
+    """corrected_model.yaml (systems/model/corrected_model.py) of a diagnosis' significant effects."""
     effects = [
         {"name": e["name"], "joints": e["joints"], "params": e["params"]}
         for e in diagnosis.result["effects"]
@@ -210,7 +210,7 @@ def test_a_diagnosed_lag_interval_is_the_estimators_lag_interval(tmp_path):
     through model_corrections.torque_lag_s) the interval, widened to hold the point; null (no
     information) falls back to the point, and lo > hi is named."""
     from safesysid.sysid_cli import corrected_model
-    from safesysid.systems.model_corrections import CorrectionError, read_correction, torque_lag_s
+    from safesysid.systems.model.corrections import CorrectionError, read_correction, torque_lag_s
 
     def lag_model(pair):
         effect = {"name": "time_delay", "joints": [1], "params": {"delay_s": 0.1, "time_law": "lag"}}

@@ -14,8 +14,8 @@ import sys
 import numpy as np
 from safesysid.cli import main
 from safesysid.scenario import SCENARIOS_DIR, Obstacle, Planner
-from safesysid.systems import armour as ctl
-from safesysid.systems.planner import SafePlanner
+from safesysid.systems.controller import armour as ctl
+from safesysid.systems.planner.safe_planner import SafePlanner
 
 # Measured, not results: they may differ between two runs of the same seed.
 WALL_TIME_FIELDS = ("wall_time_s", "planner.solve_time_s", "planner.missed_deadlines", "sysid.update_time_s")

@@ -8,7 +8,7 @@ import pytest
 from safesysid.cli import main
 from safesysid.joint_log import JointLog, write_joint_log
 from safesysid.systems import diagnosis as dg
-from safesysid.systems.robot_model import load_robot
+from safesysid.systems.model.robot_model import load_robot
 from test_gap import TWO_LINK
 
 

@@ -7,7 +7,7 @@ import yaml
 from safesysid.joint_log import JointLog
 from safesysid.systems import diagnosis as dg
 from safesysid.systems.diagnosis import intervals as iv
-from safesysid.systems.robot_model import load_robot
+from safesysid.systems.model.robot_model import load_robot
 from test_gap import TWO_LINK
 
 

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from helpers import CENTRE, PAYLOADS, PRIOR, PRIOR_NOMINAL, n_trials
 from safesysid.systems import estimation as E
-from safesysid.systems import inertial
-from safesysid.systems.payload import load_dumbbells, payload_theta_in_end_effector
-from safesysid.systems.robot_model import MODELS_DIR
+from safesysid.systems.model import inertial
+from safesysid.systems.model.payload import load_dumbbells, payload_theta_in_end_effector
+from safesysid.systems.model.robot_model import MODELS_DIR
 
 
 def true_theta(rng, robot, dumbbell, ratio=0.05):
@@ -414,7 +414,7 @@ def test_bad_input_is_rejected(robot):
 def test_table_v_observation_matrix_tends_to_dt_times_w(robot):
     """Table V's construction: with h = 1 sample, Y ≈ Δt·W (end-effector columns)."""
     from safesysid.benchmarks.table_v import observation_matrix
-    from safesysid.systems import regressors
+    from safesysid.systems.model import regressors
 
     rng = np.random.default_rng(81)
     t, q, v, a = E.fourier_trajectory(rng, robot, 0.5, 1000.0, period_s=1.0, centre=CENTRE)

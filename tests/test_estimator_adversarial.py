@@ -22,7 +22,7 @@ import pytest
 from helpers import CENTRE, PAYLOADS, PRIOR, PRIOR_NOMINAL, n_trials
 from safesysid.systems import estimation as E
 from safesysid.systems.estimation.enclosure import _left_inverse
-from safesysid.systems.payload import payload_theta_in_end_effector
+from safesysid.systems.model.payload import payload_theta_in_end_effector
 
 PATTERNS = ["uniform", "plus", "alternating", "worst_map", "worst_bound", "worst_map", "worst_bound", "uniform"]
 

@@ -10,9 +10,10 @@ parameters anywhere in its box, and the data box touches the truth on a random s
 import numpy as np
 import pytest
 from helpers import n_trials
-from safesysid.systems import inertial
-from safesysid.systems.estimation.physical import BoundingVolume, prune_box, rpy_matrix
-from safesysid.systems.uncertainty import parameter_radius
+from safesysid.systems.estimation.physical import prune_box
+from safesysid.systems.estimation.settings import BoundingVolume, rpy_matrix
+from safesysid.systems.model import inertial
+from safesysid.systems.model.uncertainty import parameter_radius
 
 PRIOR_HALF = np.array([2.0, 0.4, 0.4, 0.45] + [0.2] * 6)  # Table II half-widths
 
@@ -86,7 +87,7 @@ def test_pruning_cuts_a_payload_outside_the_volume_and_shrinks_the_inertias(robo
 
 
 def test_consistency_alone_prunes_and_keeps_the_truth(robot, dumbbells):
-    from safesysid.systems.payload import payload_theta_in_end_effector
+    from safesysid.systems.model.payload import payload_theta_in_end_effector
 
     truth = robot.theta_e + payload_theta_in_end_effector(dumbbells["8lb"], robot.extra["grasp_point"])
     lo, hi = truth - PRIOR_HALF / 4, truth + PRIOR_HALF / 4
@@ -144,7 +145,7 @@ def test_scenario_volumes_contain_their_dumbbells(robot, dumbbells, scenario, pa
     ellipsoid its 5 lb one (every cylinder's rim points), so their LMI holds for the simulated payload."""
     from safesysid.scenario import SCENARIOS_DIR, load_scenario
     from safesysid.systems.estimation.settings import payload_volume
-    from safesysid.systems.payload import payload_theta_in_end_effector
+    from safesysid.systems.model.payload import payload_theta_in_end_effector
 
     vol = payload_volume(load_scenario(SCENARIOS_DIR / scenario).payload.bounding_volume)
     grasp = robot.extra["grasp_point"]

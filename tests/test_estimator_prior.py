@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from helpers import CENTRE, PRIOR, PRIOR_NOMINAL
 from safesysid.systems import estimation as E
-from safesysid.systems.inertial import NAMES
-from safesysid.systems.payload import payload_theta_in_end_effector
+from safesysid.systems.model.inertial import NAMES
+from safesysid.systems.model.payload import payload_theta_in_end_effector
 
 
 def published_intervals(est: E.Estimate, robot):

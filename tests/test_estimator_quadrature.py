@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from helpers import CENTRE, PRIOR, PRIOR_NOMINAL
 from safesysid.systems import estimation as E
-from safesysid.systems.payload import payload_theta_in_end_effector
+from safesysid.systems.model.payload import payload_theta_in_end_effector
 
 RATE_HZ = 1000.0
 GAUSS = np.polynomial.legendre.leggauss(24)  # per step: exact enough for one oscillation period

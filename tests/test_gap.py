@@ -6,8 +6,8 @@ import pytest
 from helpers import n_trials, shared_path
 from safesysid.joint_log import JointLog
 from safesysid.systems import diagnosis as dg
-from safesysid.systems import inertial
-from safesysid.systems.robot_model import load_robot
+from safesysid.systems.model import inertial
+from safesysid.systems.model.robot_model import load_robot
 
 TWO_LINK = """<robot name="two"><link name="base"/>
   <link name="l1"><inertial>
@@ -212,7 +212,7 @@ def test_reference_gen3_urdf_and_real_logs_leave_one_run_out():
 
 
 def test_real_arm_logs_cross_check():
-    """Logs of the Drake-simulated real arm (systems/real_arm.py: discrete plant, its own
+    """Logs of the Drake-simulated real arm (systems/plant/station.py: discrete plant, its own
     friction, sensor and effect laws): no effect -> no cause; a torque-sensor offset -> named
     first. Slow (Drake simulation): only with SAFESYSID_FULL=1."""
     if n_trials(0, 1) == 0:

@@ -1,6 +1,6 @@
 import numpy as np
 import pytest
-from safesysid.systems import inertial
+from safesysid.systems.model import inertial
 
 
 def test_identity_parameters():

@@ -1,6 +1,6 @@
 import numpy as np
-from safesysid.systems import intervals
-from safesysid.systems.intervals import Interval
+from safesysid.systems.math import intervals
+from safesysid.systems.math.intervals import Interval
 
 
 def random_box(rng, shape, scale=3.0):
@@ -59,7 +59,7 @@ def test_sums_and_products_contain_the_exact_value_in_rational_arithmetic():
     random rows of length 98 (the controller's) and 2000."""
     from fractions import Fraction
 
-    from safesysid.systems.intervals import matmul
+    from safesysid.systems.math.intervals import matmul
 
     third = Interval(np.full(100, 1 / 3))
     exact = 100 * Fraction(1 / 3)

@@ -11,7 +11,7 @@ import pytest
 from safesysid.cli import main
 from safesysid.joint_bag import read_joint_bag
 from safesysid.joint_log import JointLog, LogError, read_joint_log, write_joint_log
-from safesysid.systems.robot_model import load_robot
+from safesysid.systems.model.robot_model import load_robot
 from test_gap import TWO_LINK, _logs
 
 FORMATS = ("ros2_sqlite3", "ros2_mcap", "ros1")

@@ -128,3 +128,137 @@ def test_public_functions_and_dataclass_fields_are_annotated():
     files = [p for folder in ("app", "systems") for p in sorted((ROOT / folder).rglob("*.py"))]
     offenders = {str(p.relative_to(ROOT)): untyped(p) for p in files}
     assert {k: v for k, v in offenders.items() if v} == {}
+
+
+# The roles of safesysid.systems, lowest first: a role imports only the roles listed for it (and
+# itself). config.py and methods.py are the schema (the scenario's fields and the paper's methods
+# as data); app/ may import anything.
+ROLE_IMPORTS = {
+    "schema": set(),
+    "math": set(),
+    "model": {"schema", "math"},
+    "controller": {"schema", "math", "model"},
+    "estimation": {"schema", "math", "model"},
+    "planner": {"schema", "math", "model", "controller"},
+    "hardware": {"schema", "math", "model", "controller", "estimation", "planner", "plant"},
+    "plant": {"schema", "math", "model", "controller", "estimation", "planner"},
+    "excitation": {"schema", "math", "model", "controller", "planner"},
+    "task": {"schema", "math", "model", "controller", "estimation", "planner", "plant", "excitation"},
+    "diagnosis": {"schema", "math", "model", "controller", "estimation", "planner", "plant"},
+}
+SCHEMA = {"config", "methods"}
+
+
+def module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    top = {"app": ["safesysid"], "systems": ["safesysid", "systems"]}[parts[0]]
+    rest = parts[1:-1] if parts[-1] == "__init__" else parts[1:]
+    return ".".join(top + rest)
+
+
+def role_of(module: str) -> str | None:
+    """The role of a safesysid.systems module (None outside systems/)."""
+    parts = module.split(".")
+    if parts[:2] != ["safesysid", "systems"] or len(parts) < 3:
+        return None
+    return "schema" if parts[2] in SCHEMA else parts[2]
+
+
+def imports_of(path: Path, *, runtime_only: bool = False) -> set[str]:
+    """Every project module `path` imports (function-local ones included; TYPE_CHECKING blocks
+    left out with runtime_only)."""
+    tree = ast.parse(path.read_text())
+    skip = set()
+    if runtime_only:
+        for node in ast.walk(tree):
+            if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+                skip |= {id(n) for n in ast.walk(node)}
+    here = module_name(path)
+    package = here if path.name == "__init__.py" else here.rpartition(".")[0]
+    found = set()
+    for node in ast.walk(tree):
+        if id(node) in skip:
+            continue
+        if isinstance(node, ast.ImportFrom):
+            base = package.split(".")[: len(package.split(".")) - (node.level - 1)] if node.level else []
+            target = ".".join(base + ([node.module] if node.module else []))
+            found |= {target} | {f"{target}.{a.name}" for a in node.names}
+        elif isinstance(node, ast.Import):
+            found |= {a.name for a in node.names}
+    return {m for m in found if m.startswith("safesysid")}
+
+
+def project_graph(*, runtime_only: bool) -> dict[str, set[str]]:
+    files = sorted((ROOT / "systems").rglob("*.py")) + sorted((ROOT / "app").rglob("*.py"))
+    modules = {module_name(p): p for p in files}
+    return {
+        m: {t for t in imports_of(p, runtime_only=runtime_only) if t in modules and t != m} for m, p in modules.items()
+    }
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components of more than one module (Tarjan)."""
+    index, low, stack, on, found = {}, {}, [], set(), []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in graph.get(v, ()):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for v in graph:
+        if v not in index:
+            visit(v)
+    return found
+
+
+# Cycles made only of annotations (TYPE_CHECKING imports; nothing runs them), each with its reason.
+TYPE_ONLY_CYCLES = [
+    ["safesysid.systems.config", "safesysid.systems.methods"],  # methods' durations annotate Scenario
+    ["safesysid.systems.plant.arm_plant", "safesysid.systems.plant.station"],  # ArmPlant holds a TorqueSensor
+    ["safesysid.systems.task.constraints", "safesysid.systems.task.trajectory"],  # constraints of a TaskProblem
+    ["safesysid.online", "safesysid.task_run"],  # the task phase runs on an OnlineDiagram
+]
+
+
+def test_no_import_cycles():
+    assert cycles(project_graph(runtime_only=True)) == []
+    assert sorted(cycles(project_graph(runtime_only=False))) == sorted(TYPE_ONLY_CYCLES)
+
+
+def test_each_role_imports_only_the_roles_below_it():
+    offenders = []
+    for module, targets in project_graph(runtime_only=False).items():
+        role = role_of(module)
+        if role is None:
+            continue
+        for target in targets:
+            other = role_of(target)
+            if other is None and target.startswith("safesysid.systems"):
+                continue  # the package itself
+            if other != role and other not in ROLE_IMPORTS.get(role, set()):
+                offenders.append(f"{module} ({role}) imports {target} ({other})")
+    assert offenders == []
+
+
+def test_the_layout_checks_see_a_cycle_and_a_role_violation():
+    graph = {"a": {"b"}, "b": {"a"}, "c": {"a"}}
+    assert cycles(graph) == [["a", "b"]]
+    assert role_of("safesysid.systems.planner.safe_planner") == "planner"
+    assert role_of("safesysid.systems.config") == "schema"
+    assert "planner" not in ROLE_IMPORTS["model"]

@@ -13,21 +13,23 @@ from helpers import leaves, simulate_online
 from safesysid.online import build_online, run_online
 from safesysid.scenario import METHODS, SCENARIOS_DIR, load_scenario, robot_from_scenario
 from safesysid.systems import methods
-from safesysid.systems.armour import ControllerDynamics
-from safesysid.systems.controller_systems import (
+from safesysid.systems.controller.armour import ControllerDynamics
+from safesysid.systems.controller.systems import (
     AdaptiveController,
     ArmourController,
     GravityPidController,
     gains_from_scenario,
     make_controller,
 )
-from safesysid.systems.fourier_excitation import (
+from safesysid.systems.excitation import fourier
+from safesysid.systems.excitation.fourier import (
     FourierSettings,
     FourierTrajectory,
     basis,
     elimination,
     optimize_fourier,
 )
+from safesysid.systems.model import parameter_sources
 
 PAPER_TABLE = {
     # method: (first controller, task controller, start model, task model, identification)
@@ -142,7 +144,7 @@ def test_method_closed_loop_under_the_referee(name, scenario, robot):
     ratio = np.max(np.abs(command.data()[:, seen]) / robot.joint_params.torque_limit[:, None])
     assert record.summary()["max_commanded_torque_ratio"] == pytest.approx(ratio, rel=1e-12)
     if name == "grav-pid-excit":  # it tracks the Fourier trajectory
-        traj = methods.fourier_excitation(robot, scenario).trajectory
+        traj = fourier.fourier_excitation(robot, scenario).trajectory
         desired = built.loggers["desired"].FindLog(ctx)
         q_d, _, _ = traj.evaluate(desired.sample_times())
         np.testing.assert_allclose(desired.data()[: robot.n].T, q_d, atol=1e-12)
@@ -151,7 +153,7 @@ def test_method_closed_loop_under_the_referee(name, scenario, robot):
 
 @pytest.mark.parametrize("name", list(PAPER_TABLE))
 def test_task_phase_controller_takes_the_table_model(name, scenario, robot):
-    """The task-phase controller and its parameters (methods.task_parameters): grav-pid-ours and
+    """The task-phase controller and its parameters (parameter_sources.task_parameters): grav-pid-ours and
     grav-pid-excit use the estimate, wrong and grav-pid the bare end effector, conservative and the
     adaptive ones Table II; the ARMOUR methods' box is the estimator's, zero, or Table II."""
     spec = methods.METHODS_SPEC[name]
@@ -159,7 +161,7 @@ def test_task_phase_controller_takes_the_table_model(name, scenario, robot):
     identified = robot.theta.copy()
     identified[robot.ee_slice] = [3.05, 0.01, -0.02, -0.35, 0.03, 0.02, 0.01, 0.0, 0.0, 0.0]
     box = (identified - 0.01, identified + 0.01)
-    theta0, interval = methods.task_parameters(spec, robot, scenario, identified=(identified, *box))
+    theta0, interval = parameter_sources.task_parameters(spec, robot, scenario, identified=(identified, *box))
     np.testing.assert_array_equal(theta0, model(robot, scenario, task_model, identified))
     u, ctrl = torque_at_rest(task, robot, scenario, theta0, interval.lo, interval.hi)
     cls, robust = CLASSES[task]
@@ -232,7 +234,7 @@ def test_fourier_excitation_bounds_hold_on_a_dense_grid(scenario, robot):
     """The optimized trajectory: inside the joint velocity and acceleration limits at every
     instant of a 0.1 ms grid, touching at least one of them (the solver pushes to the bound),
     from rest at q0 back to rest at q0, and more exciting than its seeded start."""
-    settings = methods.fourier_settings(robot, scenario)
+    settings = fourier.fourier_settings(robot, scenario)
     res = optimize_fourier(robot, scenario.q0_rad, settings)
     traj = res.trajectory
     t = np.linspace(0.0, traj.duration, int(traj.duration / 1e-4) + 1)

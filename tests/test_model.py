@@ -4,9 +4,9 @@ planner's separate spheres, payloads."""
 import numpy as np
 import pytest
 from helpers import params_with_spheres
-from safesysid.systems import inertial
-from safesysid.systems.payload import load_dumbbells, payload_theta_in_end_effector
-from safesysid.systems.robot_model import MODELS_DIR, ModelError, load_joint_parameters, load_robot, make_plant
+from safesysid.systems.model import inertial
+from safesysid.systems.model.payload import load_dumbbells, payload_theta_in_end_effector
+from safesysid.systems.model.robot_model import MODELS_DIR, ModelError, load_joint_parameters, load_robot, make_plant
 
 
 def test_gen3_loads_with_one_parameter_set():
@@ -37,7 +37,7 @@ def test_collision_geometry_is_the_link_shapes_and_the_planner_spheres_are_separ
     """The URDF collides with what it shows (capsules, gripper box); no sphere of the planner's
     set is in it. The planner's spheres come from the sphere file, some on every link."""
     from pydrake.geometry import Role
-    from safesysid.systems.reachability import arm_spheres
+    from safesysid.systems.planner.reachability import arm_spheres
 
     plant, sg, _ = make_plant(MODELS_DIR / "kinova_gen3.urdf", scene_graph=True)
     plant.Finalize()
@@ -60,7 +60,7 @@ def test_collision_geometry_is_the_link_shapes_and_the_planner_spheres_are_separ
 
 
 def test_a_bad_sphere_file_names_the_file_and_the_field(tmp_path):
-    from safesysid.systems.reachability import arm_spheres
+    from safesysid.systems.planner.reachability import arm_spheres
 
     spheres = tmp_path / "spheres.yaml"
     robot = load_robot(params_path=params_with_spheres(tmp_path, spheres))

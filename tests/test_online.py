@@ -8,7 +8,7 @@ import json
 
 import numpy as np
 import pytest
-from helpers import FULL, n_trials, simulate_online
+from helpers import FULL, assert_safe, n_trials, simulate_online
 from safesysid.online import run_online
 from safesysid.scenario import SCENARIOS_DIR, load_scenario
 from safesysid.sweeps import random_scene
@@ -17,17 +17,6 @@ from safesysid.sweeps import random_scene
 @pytest.fixture(scope="module")
 def quickstart():
     return load_scenario(SCENARIOS_DIR / "quickstart.yaml")
-
-
-def assert_safe(summary):
-    """Every guarantee on its own line, so a failure names it."""
-    assert summary["collisions"] == 0 and summary["min_clearance_m"] >= 0.0, "collision"
-    assert summary["max_commanded_torque_ratio"] <= 1.0 + 1e-9, "torque limit (command before saturation)"
-    assert summary["max_joint_limit_ratio"] <= 1.0, "joint limit"
-    assert summary["max_velocity_ratio"] <= 1.0, "velocity limit"
-    assert summary["max_tracking_error_ratio"] <= 1.0 + 1e-9, "tracking tube"
-    assert summary["contains_truth"], "containment"
-    assert summary["success"] and summary["failure"] is None
 
 
 def test_quickstart_outputs(quickstart, tmp_path):
@@ -172,7 +161,7 @@ def test_a_command_beyond_the_torque_limit_is_a_failure(quickstart, monkeypatch)
     """The referee reads the controller's command BEFORE the actuator saturation: a controller
     that commands 1.2x the limit on joint 7 for 20 ms fails on torque_limit, although the torque
     that reaches the joint (saturated) never exceeds the limit."""
-    from safesysid.systems import controller_systems
+    from safesysid.systems.controller import systems as controller_systems
 
     make = controller_systems.make_controller
 

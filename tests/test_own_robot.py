@@ -12,10 +12,10 @@ from pydrake.geometry import Box, Capsule, Cylinder, Sphere
 from pydrake.math import RigidTransform, RollPitchYaw
 from safesysid.models import cover_spheres, make_panda_urdf, make_ur5e_urdf
 from safesysid.scenario import SCENARIOS_DIR, ScenarioError, load_scenario
-from safesysid.systems import inertial
 from safesysid.systems.estimation.prior import payload_range_prior
-from safesysid.systems.payload import load_dumbbells
-from safesysid.systems.robot_model import MODELS_DIR, ModelError, load_robot
+from safesysid.systems.model import inertial
+from safesysid.systems.model.payload import load_dumbbells
+from safesysid.systems.model.robot_model import MODELS_DIR, ModelError, load_robot
 from test_collision_geometry import TOLERANCE_M, configurations, sample_shape, worst_protrusions
 
 PANDA_PARAMS = MODELS_DIR / "panda_params.yaml"
@@ -147,7 +147,7 @@ def test_a_sphere_file_that_leaves_a_shaped_link_out_is_an_error(tmp_path):
     """The planner would not see a link the sphere file omits (the referee would): the error names
     the sphere file, the link and the command that writes the spheres."""
     import yaml
-    from safesysid.systems.reachability import arm_spheres
+    from safesysid.systems.planner.reachability import arm_spheres
 
     doc = yaml.safe_load((MODELS_DIR / "panda_spheres.yaml").read_text())
     del doc["links"]["panda_hand"]

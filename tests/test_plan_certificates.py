@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from pydrake.systems.framework import BasicVector, LeafSystem
 from safesysid.scenario import SCENARIOS_DIR, load_scenario
-from safesysid.systems.real_arm import scenario_dumbbell, true_theta
+from safesysid.systems.plant.station import scenario_dumbbell, true_theta
 
 
 class StubEstimator(LeafSystem):
@@ -82,7 +82,8 @@ def run(tmp_path_factory):
     """One closed-loop run (4 plans, 7.5 s) with the stub estimator; what the planner was asked to
     certify at each call and what the controller used at each step."""
     from safesysid import online
-    from safesysid.systems import controller_systems, planner
+    from safesysid.systems.controller import systems as controller_systems
+    from safesysid.systems.planner import safe_planner as planner
 
     mp = pytest.MonkeyPatch()
     scenario = load_scenario(SCENARIOS_DIR / "quickstart.yaml")

@@ -7,20 +7,15 @@ import pytest
 from helpers import n_trials
 from safesysid.benchmarks.bench_planner import parameter_box as theta_box  # one definition of the test prior
 from safesysid.scenario import Obstacle, Planner
-from safesysid.systems import armour as ctl
-from safesysid.systems import planner as P
-from safesysid.systems import reachability as reach
-from safesysid.systems.intervals import Interval
-from safesysid.systems.payload import load_dumbbells
-from safesysid.systems.robot_model import MODELS_DIR, load_robot
+from safesysid.systems.controller import armour as ctl
+from safesysid.systems.math.intervals import Interval
+from safesysid.systems.model.payload import load_dumbbells
+from safesysid.systems.model.robot_model import MODELS_DIR
+from safesysid.systems.planner import reachability as reach
+from safesysid.systems.planner import safe_planner as P
 
 Q0 = np.array([0.0, 0.26, 0.0, 2.0, 0.0, 0.9, 1.57])
 GAINS = ctl.ArmourGains(Kr=np.array([5.0] * 4 + [7.0] * 3), alpha=20.0, V_max=0.02)
-
-
-@pytest.fixture(scope="module")
-def robot():
-    return load_robot(coulomb_smoothing=0.01)
 
 
 @pytest.fixture(scope="module")
@@ -60,7 +55,7 @@ class DrakeScene:
         from pydrake.math import RigidTransform, RollPitchYaw
         from pydrake.multibody.plant import CoulombFriction
         from pydrake.systems.framework import DiagramBuilder
-        from safesysid.systems.robot_model import make_plant
+        from safesysid.systems.model.robot_model import make_plant
 
         builder = DiagramBuilder()
         self.plant, self.sg, _ = make_plant(robot.source, builder=builder)

@@ -6,10 +6,10 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
 from safesysid.scenario import Planner
-from safesysid.systems import armour as ctl
-from safesysid.systems.planner import PlanResult, SafePlanner
-from safesysid.systems.planner_system import ExcitingPlanner
-from safesysid.systems.robot_model import load_robot
+from safesysid.systems.controller import armour as ctl
+from safesysid.systems.model.robot_model import load_robot
+from safesysid.systems.planner.safe_planner import PlanResult, SafePlanner
+from safesysid.systems.planner.system import ExcitingPlanner
 
 Q0 = np.array([0.0, 0.26, 0.0, 2.0, 0.0, 0.9, 1.57])
 

@@ -8,8 +8,8 @@ from helpers import FULL
 from pydrake.systems.framework import DiagramBuilder
 from safesysid.scenario import ScenarioError, load_scenario, robot_from_scenario
 from safesysid.systems import diagnosis as dg
-from safesysid.systems.real_arm import add_real_arm
-from safesysid.systems.regressors import coulomb_shape, friction_columns
+from safesysid.systems.model.regressors import coulomb_shape, friction_columns
+from safesysid.systems.plant.station import add_real_arm
 
 MU = [0.0, 0.12, 0.0, 0.1, 0.0, 0.0, 0.0]
 
@@ -97,7 +97,7 @@ def _feedback_run(robot, effects):
     from pydrake.systems.analysis import Simulator
     from pydrake.systems.framework import BasicVector, LeafSystem
     from pydrake.systems.primitives import VectorLogSink
-    from safesysid.systems.armour import ControllerDynamics
+    from safesysid.systems.controller.armour import ControllerDynamics
 
     s = load_scenario(overrides={"payload": {"dumbbell": "none"}, "plant": {"effects": effects}})
     q0 = np.asarray(s.q0_rad, float)

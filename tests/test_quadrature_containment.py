@@ -15,7 +15,7 @@ from helpers import CENTRE, PAYLOADS, PRIOR, PRIOR_NOMINAL
 from safesysid.systems import estimation as E
 from safesysid.systems.config import ParameterFloors
 from safesysid.systems.estimation import segments
-from safesysid.systems.payload import payload_theta_in_end_effector
+from safesysid.systems.model.payload import payload_theta_in_end_effector
 
 RATE_HZ = 50.0
 SETTINGS = dict(

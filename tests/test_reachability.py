@@ -1,16 +1,11 @@
-"""Every over-approximation of systems/reachability.py contains what it claims to contain."""
+"""Every over-approximation of systems/planner/reachability.py contains what it claims to contain."""
 
 import numpy as np
 import pytest
-from safesysid.systems import reachability as reach
-from safesysid.systems.intervals import Interval
-from safesysid.systems.payload import load_dumbbells
-from safesysid.systems.robot_model import MODELS_DIR, load_robot
-
-
-@pytest.fixture(scope="module")
-def robot():
-    return load_robot(coulomb_smoothing=0.01)
+from safesysid.systems.math.intervals import Interval
+from safesysid.systems.model.payload import load_dumbbells
+from safesysid.systems.model.robot_model import MODELS_DIR
+from safesysid.systems.planner import reachability as reach
 
 
 @pytest.fixture(scope="module")
@@ -47,7 +42,7 @@ def test_spheres_come_from_the_sphere_file_and_ride_on_drake_body_poses(robot, s
     """Each sphere of the planner's file, placed on its link by Drake, is where sphere_centres
     puts it (the enclosure of the link shapes is tests/test_collision_geometry.py)."""
     import yaml
-    from safesysid.systems.robot_model import make_plant
+    from safesysid.systems.model.robot_model import make_plant
 
     plant, _, _ = make_plant(robot.source)
     plant.Finalize()
@@ -258,7 +253,7 @@ def table_ii_setup(robot, V_max):
     """(scenario, theta0, [theta], gains, tracking bounds): the default scenario's controller at
     V_max with the Table II prior (rest of the robot +-5 %)."""
     from safesysid.scenario import load_scenario
-    from safesysid.systems import armour as ctl
+    from safesysid.systems.controller import armour as ctl
 
     s = load_scenario()
     ii = s.initial_interval
@@ -278,11 +273,11 @@ def random_plan(s, rng, bounds, intervals=8):
 @pytest.mark.parametrize("V_max", [0.005, 0.02])
 def test_torque_bound_covers_the_controller_command_on_the_whole_tube(robot, V_max):
     """The planner's robust term and sup|u| >= |v_j|, |u_j| of the actual ARMOUR law
-    (systems/armour.py) on the BOUNDARY of the tube (true V = V_max), where the box bound
+    (systems/controller/armour.py) on the BOUNDARY of the tube (true V = V_max), where the box bound
     V_bar exceeds V_max (h < 0) and lambda exceeds |w_bar|. Quickstart Table II prior, desired
     states of random plans; the planner's bound evaluated on two boxes that contain each state:
     the tube alone around its desired state, and the state itself (a degenerate box: no slack)."""
-    from safesysid.systems import armour as ctl
+    from safesysid.systems.controller import armour as ctl
 
     rng = np.random.default_rng(7)
     n = robot.n
@@ -355,7 +350,7 @@ def test_interval_mass_spread_encloses_the_point_spread(robot):
     """interval_mass_spread over a configuration box >= controller.mass_spread at every sampled
     configuration of it (corners included); equal to it on degenerate boxes; tight on small boxes."""
     from safesysid.scenario import InitialInterval
-    from safesysid.systems import armour as ctl
+    from safesysid.systems.controller import armour as ctl
 
     rng = np.random.default_rng(11)
     n = robot.n

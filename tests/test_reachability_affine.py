@@ -1,4 +1,4 @@
-"""The affine (zonotope) torque certificate of the planner (systems/affine_forms.py,
+"""The affine (zonotope) torque certificate of the planner (systems/planner/affine_forms.py,
 interval_dynamics.affine_passivity_regressor / affine_torque_bound) contains what the ARMOUR law
 does on every REACHABLE tube state, with the states ON the boundary (true V = V_max, h < 0) and
 the tracking error produced by the error filter itself (de/dt = r - Kr e, e(0) = 0, |r| <= eps),
@@ -6,15 +6,9 @@ so |Kr e|_2 <= kappa eps as the certificate assumes; certified >= sampled everyw
 
 import numpy as np
 import pytest
-from safesysid.systems import affine_forms as aff
-from safesysid.systems import reachability as reach
-from safesysid.systems.intervals import Interval
-from safesysid.systems.robot_model import load_robot
-
-
-@pytest.fixture(scope="module")
-def robot():
-    return load_robot(coulomb_smoothing=0.01)
+from safesysid.systems.math.intervals import Interval
+from safesysid.systems.planner import affine_forms as aff
+from safesysid.systems.planner import reachability as reach
 
 
 def test_filter_gain_is_the_integral_of_the_envelope():
@@ -73,7 +67,7 @@ def tube_samples(robot, rng, plan, k_lo, k_hi, gains, bounds, box, count):
 
 @pytest.mark.parametrize("V_max", [0.005, 0.02])
 def test_affine_torque_bound_covers_the_controller_on_reachable_tube_states(robot, V_max):
-    from safesysid.systems import armour as ctl
+    from safesysid.systems.controller import armour as ctl
     from test_reachability import random_plan, table_ii_setup
 
     rng = np.random.default_rng(31)
@@ -115,7 +109,7 @@ def test_affine_torque_bound_covers_the_controller_on_reachable_tube_states(robo
 def test_the_error_cap_is_used_and_needed(robot):
     """A tracking error at every corner of its per-joint bound at once is NOT reachable (|Kr e| =
     sqrt(7) eps > kappa eps) and the affine forms exclude it: the cap carries real information."""
-    from safesysid.systems import armour as ctl
+    from safesysid.systems.controller import armour as ctl
 
     n = robot.n
     gains = ctl.ArmourGains(np.array([5.0] * 4 + [7.0] * 3), 20.0, 0.02)

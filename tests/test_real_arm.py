@@ -7,9 +7,9 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
 from safesysid.scenario import load_scenario, robot_from_scenario
-from safesysid.systems.armour import ControllerDynamics
-from safesysid.systems.real_arm import add_real_arm, scenario_dumbbell, true_theta
-from safesysid.systems.regressors import friction_columns
+from safesysid.systems.controller.armour import ControllerDynamics
+from safesysid.systems.model.regressors import friction_columns
+from safesysid.systems.plant.station import add_real_arm, scenario_dumbbell, true_theta
 
 
 @pytest.fixture(scope="module")
@@ -415,8 +415,8 @@ def test_drawn_robot_parameters_stay_in_the_box_and_are_what_the_plant_uses(mode
     controller, planner and estimator assume (nominal +- max(ratio |nominal|, floor)), keeps every
     link physically consistent, and the Drake plant's mass matrix, gravity and friction are those
     of the drawn theta. (HEAD: the plant used the nominal parameters exactly.)"""
-    from safesysid.systems import inertial
-    from safesysid.systems.uncertainty import parameter_radius
+    from safesysid.systems.model import inertial
+    from safesysid.systems.model.uncertainty import parameter_radius
 
     s, robot, arm, diagram = _drawn_arm(mode, seed=3)
     radius = parameter_radius(robot, s.noise.theta_r_ratio, s.noise.theta_r_ratio, s.noise.theta_r_floor)

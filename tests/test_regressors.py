@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 from pydrake.multibody.tree import MultibodyForces
-from safesysid.systems import inertial, regressors
-from safesysid.systems.robot_model import load_robot, make_plant
+from safesysid.systems.model import inertial, regressors
+from safesysid.systems.model.robot_model import load_robot, make_plant
 
 RTOL = 1e-9
 

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from safesysid.systems.robot_model import MODELS_DIR, load_robot
+from safesysid.systems.model.robot_model import MODELS_DIR, load_robot
 
 ROOT = Path(__file__).resolve().parents[1]
 PARAMS = ["kinova_gen3_params.yaml", "panda_params.yaml", "ur5e_params.yaml"]

@@ -18,14 +18,22 @@ EPS_TOKEN = re.compile(r"finfo\([^)]*\)\.eps|\bEPS\b|\b_U\b|\b_UP\b")
 SUM_OR_DOT = re.compile(r"@|\bsum\(|einsum\(|\bdot\(|matmul\(")
 # (file, a fragment of the line): why its eps factor is not a k-term sum's rounding bound.
 KEPT = {
-    ("systems/affine_forms.py", "(self.r.sum(axis) + rounding * m) * _UP"): "the sum's error is dot_rounding(k); "
-    "_UP rounds the one addition of that error to r",
-    ("systems/armour.py", "np.sqrt(w_bar @ w_bar)) * _UP"): "the control law (bit for bit with the compiled "
-    "kernel): a 7-term norm, its rounding 2.3 eps < 8 eps",
-    ("systems/estimation/enclosure.py", "4 * EPS * (S * n) * (np.abs(L) @ np.abs(Y2))"): "4 k eps >= 2 "
-    "dot_rounding(k) for k >= 2: the product L Y2 and the rounding of |L| |Y2| itself",
-    ("systems/estimation/enclosure.py", "64 * EPS * (S * n + Dr2.shape[1])"): "64 k eps >= dot_rounding(k) for "
-    "every product in the hull's centre and radii (one pad for all of them)",
+    (
+        "systems/planner/affine_forms.py",
+        "(self.r.sum(axis) + rounding * m) * _UP",
+    ): "the sum's error is dot_rounding(k); _UP rounds the one addition of that error to r",
+    (
+        "systems/controller/armour.py",
+        "np.sqrt(w_bar @ w_bar)) * _UP",
+    ): "the control law (bit for bit with the compiled kernel): a 7-term norm, its rounding 2.3 eps < 8 eps",
+    (
+        "systems/estimation/enclosure.py",
+        "4 * EPS * (S * n) * (np.abs(L) @ np.abs(Y2))",
+    ): "4 k eps >= 2 dot_rounding(k) for k >= 2: the product L Y2 and the rounding of |L| |Y2| itself",
+    (
+        "systems/estimation/enclosure.py",
+        "64 * EPS * (S * n + Dr2.shape[1])",
+    ): "64 k eps >= dot_rounding(k) for every product in the hull's centre and radii (one pad for all of them)",
 }
 
 
@@ -33,7 +41,7 @@ def eps_factors_next_to_sums(root=ROOT):
     """(file, line number, line) of every eps factor on a line with a sum or a dot product."""
     for path in sorted([*root.glob("systems/**/*.py"), *root.glob("app/**/*.py")]):
         rel = path.relative_to(root).as_posix()
-        if rel == "systems/intervals.py":  # the helper itself
+        if rel == "systems/math/intervals.py":  # the helper itself
             continue
         for number, line in enumerate(path.read_text().splitlines(), 1):
             code = line.split("#")[0]

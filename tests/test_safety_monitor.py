@@ -5,9 +5,9 @@ from pydrake.multibody.plant import CoulombFriction
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource
-from safesysid.systems import reachability as reach
-from safesysid.systems.robot_model import load_robot, make_plant
-from safesysid.systems.safety_monitor import SafetyMonitor, limit_ratio
+from safesysid.systems.model.robot_model import load_robot, make_plant
+from safesysid.systems.planner import reachability as reach
+from safesysid.systems.plant.safety_monitor import SafetyMonitor, limit_ratio
 
 
 def run_with_box(box_center, command=None, size=(0.1, 0.1, 0.1), name="box", q=None):

@@ -9,15 +9,10 @@ from helpers import shared_path
 from safesysid.cli import main
 from safesysid.joint_log import JointLog, read_joint_log, write_joint_log
 from safesysid.systems import estimation as E
-from safesysid.systems.payload import load_dumbbells, payload_theta_in_end_effector
-from safesysid.systems.robot_model import MODELS_DIR, load_robot
+from safesysid.systems.model.payload import load_dumbbells, payload_theta_in_end_effector
+from safesysid.systems.model.robot_model import MODELS_DIR, load_robot
 
 CENTRE = [0.0, 0.3, 0.0, 1.5, 0.0, 0.8, 0.0]
-
-
-@pytest.fixture(scope="module")
-def robot():
-    return load_robot(coulomb_smoothing=0.01)  # the scenario default smoothing
 
 
 @pytest.fixture(scope="module")
@@ -229,7 +224,6 @@ def test_real_gen3_log_with_the_corrected_model(tmp_path, capsys):
     'inconsistent' and keeps the prior), the corrected one only later (the speed-saturated spans
     of run3 violate any torque-noise bound)."""
     from safesysid.systems import diagnosis as dg
-    from safesysid.systems.robot_model import load_robot
 
     urdf = shared_path("models", "reference", "kinova_gen3_raptor_nomesh.urdf")
     runs = [shared_path("data", "kinova_gen3_real", f"run{k}.csv") for k in (1, 2, 3)]

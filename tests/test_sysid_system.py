@@ -8,8 +8,8 @@ from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import Adder, ConstantVectorSource, MatrixGain, ZeroOrderHold
 from safesysid.scenario import load_scenario
 from safesysid.systems.estimation import EstimatorSettings
-from safesysid.systems.robot_model import load_robot, make_plant
-from safesysid.systems.sysid_system import SysIdEstimator
+from safesysid.systems.estimation.system import SysIdEstimator
+from safesysid.systems.model.robot_model import load_robot, make_plant
 
 
 class ComputedTorque(LeafSystem):
@@ -194,8 +194,8 @@ def test_samples_are_what_the_discrete_arm_applies():
     from pydrake.systems.primitives import VectorLogSink
     from safesysid.online import make_estimator_system
     from safesysid.scenario import robot_from_scenario
-    from safesysid.systems.armour import ControllerDynamics
-    from safesysid.systems.real_arm import add_real_arm
+    from safesysid.systems.controller.armour import ControllerDynamics
+    from safesysid.systems.plant.station import add_real_arm
 
     s = load_scenario(overrides={"payload": {"dumbbell": "none"}})
     robot = robot_from_scenario(s)

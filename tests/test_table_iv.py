@@ -11,7 +11,7 @@ from helpers import CENTRE, PRIOR, PRIOR_NOMINAL
 from safesysid.cli import main
 from safesysid.scenario import SCENARIOS_DIR, load_scenario
 from safesysid.systems import estimation as E
-from safesysid.systems.payload import payload_theta_in_end_effector
+from safesysid.systems.model.payload import payload_theta_in_end_effector
 from safesysid.table_iv import PAPER_COND_Y, table_iv, write_identification_results
 
 

@@ -12,14 +12,16 @@ from pydrake.systems.framework import BasicVector, DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import ConstantVectorSource
 from safesysid.online import run_online
 from safesysid.scenario import robot_from_scenario
-from safesysid.systems import methods, task_phase
-from safesysid.systems.task_check import (
+from safesysid.systems import methods
+from safesysid.systems.model import parameter_sources
+from safesysid.systems.planner.trajectory_source import TaskPhaseSource
+from safesysid.systems.task import phase as task_phase
+from safesysid.systems.task.check import (
     certified_torque_ratio,
     phase_certificate,
     smallest_certified_scale,
     time_scale_grid,
 )
-from safesysid.systems.trajectory_source import TaskPhaseSource
 from safesysid.task_run import certify_task
 from test_task_phase import NARROWED_PRIOR, experiment_a
 
@@ -42,7 +44,9 @@ def test_the_smallest_certified_scale_of_the_grid_is_taken_whatever_the_certific
 def test_a_certificate_above_one_is_played_slower_on_the_same_path_until_it_holds(cache):
     scene = experiment_a(cache, NARROWED_PRIOR)
     problem, plan = task_phase.task_plan(scene)
-    theta0, box = methods.task_parameters(methods.method_spec("conservative"), robot_from_scenario(scene), scene)
+    theta0, box = parameter_sources.task_parameters(
+        methods.method_spec("conservative"), robot_from_scenario(scene), scene
+    )
     thetas = (theta0, box.lo, box.hi)
     curves, report, text = certify_task(problem, [plan.trajectory], thetas, scene.task)
     (played,) = curves
@@ -134,7 +138,7 @@ def test_compare_table_shows_each_tasks_duration_scale_certificate_and_refusal(t
 def test_a_task_without_a_certificate_reports_every_field_null_or_one(robot):
     """A PID or adaptive task (no certify_task report beyond its scale) and a task never found:
     the same summary keys as a certified one, null where there is nothing to say."""
-    from safesysid.systems.trajectory_source import PhaseState, TimedCurve
+    from safesysid.systems.planner.trajectory_source import PhaseState, TimedCurve
     from safesysid.task_run import task_certificate_summary
 
     truth = robot.theta.copy()

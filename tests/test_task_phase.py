@@ -1,5 +1,5 @@
 """Task phase of `safesysid run` (app/online.py, systems/trajectory_source.TaskPhaseSource,
-systems/task_phase.py, RealArm.release): the phase switch in a diagram, and closed-loop runs of
+systems/task/phase.py, RealArm.release): the phase switch in a diagram, and closed-loop runs of
 experiment (a) that succeed, miss the placement, or collide in the task phase."""
 
 import dataclasses as dc
@@ -11,9 +11,9 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource
 from safesysid.online import run_online
 from safesysid.scenario import SCENARIOS_DIR, Obstacle, load_scenario
-from safesysid.systems import task_phase
-from safesysid.systems import task_trajectory as tt
-from safesysid.systems.trajectory_source import TaskPhaseSource
+from safesysid.systems.planner.trajectory_source import TaskPhaseSource
+from safesysid.systems.task import phase as task_phase
+from safesysid.systems.task import trajectory as tt
 
 N, P = 7, 14 * 7
 
@@ -212,8 +212,8 @@ def test_stacking_puts_the_placed_dumbbells_on_the_platform_and_the_payload_on_t
     high, wide enough for any yaw), the payload's platform is the top box and its target rests on
     it; a name outside the dumbbell set or a stack without a platform is a one-line error."""
     from safesysid.scenario import ScenarioError
-    from safesysid.systems.payload import load_dumbbells
-    from safesysid.systems.robot_model import MODELS_DIR
+    from safesysid.systems.model.payload import load_dumbbells
+    from safesysid.systems.model.robot_model import MODELS_DIR
 
     bells = load_dumbbells(MODELS_DIR / "dumbbells.yaml")
     base = load_scenario(SCENARIOS_DIR / "experiment_a.yaml")

@@ -1,4 +1,4 @@
-"""Task trajectory (systems/task_trajectory.py): the math, the optimizer on the paper's three
+"""Task trajectory (systems/task/trajectory.py): the math, the optimizer on the paper's three
 experiment scenarios (verified independently on the link shapes and Drake's inverse dynamics),
 the cache and the failure statuses."""
 
@@ -7,9 +7,12 @@ import dataclasses as dc
 import numpy as np
 import pytest
 from safesysid.scenario import SCENARIOS_DIR, ScenarioError, load_scenario
-from safesysid.systems import reachability as reach
-from safesysid.systems import task_trajectory as tt
-from safesysid.systems.armour import TrackingBounds, parameter_box
+from safesysid.systems.controller.armour import TrackingBounds
+from safesysid.systems.model.uncertainty import parameter_box
+from safesysid.systems.planner import reachability as reach
+from safesysid.systems.task import cache as task_cache
+from safesysid.systems.task import check as task_check
+from safesysid.systems.task import trajectory as tt
 
 EXPERIMENTS = ("experiment_a", "experiment_b", "experiment_c")
 
@@ -28,7 +31,7 @@ def solved(tmp_path_factory):
     out = {}
     for name in EXPERIMENTS:
         prob = problem_of(name)
-        out[name] = (prob, tt.task_trajectory_cached(prob, cache))
+        out[name] = (prob, task_cache.task_trajectory_cached(prob, cache))
     return out
 
 
@@ -85,7 +88,7 @@ def test_constraint_jacobians_match_finite_differences():
 def test_experiment_task_trajectory_is_found_and_verified_independently(solved, name):
     prob, res = solved[name]
     assert res.ok and res.status == "solved" and res.max_violation <= tt.FEASIBILITY_TOL, res.reason
-    check = tt.verify_task_trajectory(prob, res.trajectory)
+    check = task_check.verify_task_trajectory(prob, res.trajectory)
     print(
         f"{name}: cost {res.cost:.1f}, sphere clearance {res.min_sphere_clearance_m:.4f} m, link-shape clearance "
         f"{check.min_clearance_m:.4f} m ({check.closest_pair}), torque {check.max_torque_ratio:.3f}, "
@@ -105,7 +108,7 @@ def test_experiment_task_trajectory_is_found_and_verified_independently(solved, 
     # exactly (rest of the robot +-5 %): the margin left for the tube is enough.
     ee = prob.theta[prob.robot.ee_slice]
     theta0, box = parameter_box(prob.robot, ee, ee, ee, rest_ratio=0.05, friction_ratio=0.05)
-    certified, _ = tt.certified_torque_ratio(prob, res.trajectory, theta0, box.lo, box.hi)
+    certified, _ = task_check.certified_torque_ratio(prob, res.trajectory, theta0, box.lo, box.hi)
     assert check.max_torque_ratio <= certified <= 1.0, certified
     if prob.place_xyz is not None:
         assert check.placement_error_m < load_scenario(SCENARIOS_DIR / f"{name}.yaml").task.placement_tolerance_m
@@ -121,7 +124,7 @@ def test_the_obstacle_is_in_the_way(solved, name):
     prob, res = solved[name]
     con = tt.TaskConstraints(prob)
     q_goal = res.details.get("q_goal_ik_rad", res.q_goal)
-    naive = tt.verify_task_trajectory(prob, con.trajectory(con.initial_guess(np.asarray(q_goal))), rate_hz=250)
+    naive = task_check.verify_task_trajectory(prob, con.trajectory(con.initial_guess(np.asarray(q_goal))), rate_hz=250)
     assert not naive.ok and naive.min_clearance_m < 0, naive
     assert "obstacle" in " ".join(naive.closest_pair)
 
@@ -132,7 +135,7 @@ def test_drake_inverse_dynamics_of_the_verifier_agrees_with_the_regressor_model(
     t = con.t_tau
     q, v, a = res.trajectory.evaluate(t, orders=2)
     mine = prob.robot.inverse_dynamics(q, v, a, prob.theta)
-    check = tt.verify_task_trajectory(prob, res.trajectory, rate_hz=(len(t) - 1) / res.trajectory.duration)
+    check = task_check.verify_task_trajectory(prob, res.trajectory, rate_hz=(len(t) - 1) / res.trajectory.duration)
     assert check.num_samples == len(t)
     assert abs(check.max_torque_ratio - np.max(np.abs(mine) / prob.robot.joint_params.torque_limit)) < 1e-9
 
@@ -179,7 +182,7 @@ def test_torque_rows_are_added_when_the_torque_limit_binds():
     assert res.ok, res.reason
     assert res.details["attempts"][0]["rounds"] >= 2
     assert res.max_torque_ratio <= 0.5 + 1e-9
-    check = tt.verify_task_trajectory(prob, res.trajectory)
+    check = task_check.verify_task_trajectory(prob, res.trajectory)
     assert check.ok and check.max_torque_ratio <= 0.5 + 0.01, check.max_torque_ratio
 
 
@@ -195,16 +198,16 @@ def small_problem(**changes):
 
 
 def test_cache_loads_without_solving_and_any_input_change_recomputes(tmp_path, monkeypatch):
-    first = tt.task_trajectory_cached(small_problem(), tmp_path)
+    first = task_cache.task_trajectory_cached(small_problem(), tmp_path)
     assert first.ok and first.details["cache"] == "miss"
     calls = []
     real_solve = tt.solve_task_trajectory
     monkeypatch.setattr(tt, "solve_task_trajectory", lambda *a, **k: calls.append(1) or real_solve(*a, **k))
-    again = tt.task_trajectory_cached(small_problem(), tmp_path)
+    again = task_cache.task_trajectory_cached(small_problem(), tmp_path)
     assert again.details["cache"] == "hit" and not calls
     assert np.array_equal(again.trajectory.control_points, first.trajectory.control_points)
     assert again.cost == first.cost and np.array_equal(again.q_goal, first.q_goal)
-    base = tt.cache_key(small_problem())
+    base = task_cache.cache_key(small_problem())
     obstacle = load_scenario(SCENARIOS_DIR / "experiment_c.yaml").obstacles[0]
     variants = {
         "q_start": dict(q_start=small_problem().q_start + 1e-9),
@@ -215,10 +218,10 @@ def test_cache_loads_without_solving_and_any_input_change_recomputes(tmp_path, m
         "tube": dict(tracking=TrackingBounds.zero(7)),
         "settings": dict(settings=dc.replace(small_problem().settings, torque_margin_ratio=0.3)),
     }
-    keys = {name: tt.cache_key(small_problem(**change)) for name, change in variants.items()}
-    keys["solver"] = tt.cache_key(small_problem(), solver="ipopt")
+    keys = {name: task_cache.cache_key(small_problem(**change)) for name, change in variants.items()}
+    keys["solver"] = task_cache.cache_key(small_problem(), solver="ipopt")
     assert all(k != base for k in keys.values()) and len(set(keys.values())) == len(keys)
-    changed = tt.task_trajectory_cached(small_problem(**variants["goal"]), tmp_path)
+    changed = task_cache.task_trajectory_cached(small_problem(**variants["goal"]), tmp_path)
     assert changed.details["cache"] == "miss" and len(calls) == 1
     assert np.allclose(changed.q_goal, variants["goal"]["goal_q"])
 
@@ -226,7 +229,7 @@ def test_cache_loads_without_solving_and_any_input_change_recomputes(tmp_path, m
 def test_cache_key_hashes_the_model_files(tmp_path):
     """A sphere file with the same numbers but one more comment is another input."""
     from helpers import params_with_spheres
-    from safesysid.systems.robot_model import MODELS_DIR, load_robot
+    from safesysid.systems.model.robot_model import MODELS_DIR, load_robot
 
     spheres = tmp_path / "spheres.yaml"
     spheres.write_text((MODELS_DIR / "kinova_gen3_spheres.yaml").read_text() + "# edited\n")
@@ -236,7 +239,7 @@ def test_cache_key_hashes_the_model_files(tmp_path):
             params_path=params_with_spheres(tmp_path, spheres), coulomb_smoothing=prob.robot.coulomb_smoothing
         )
     )
-    assert tt.cache_key(other) != tt.cache_key(prob)
+    assert task_cache.cache_key(other) != task_cache.cache_key(prob)
 
 
 # ---- failures are statuses, not crashes ---------------------------------------------------------

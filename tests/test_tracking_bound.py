@@ -13,10 +13,11 @@ import pytest
 from helpers import n_trials
 from safesysid.closed_loop import build_closed_loop, simulate_closed_loop
 from safesysid.scenario import load_scenario, robot_from_scenario
-from safesysid.systems import armour as C
-from safesysid.systems.bezier import QuinticBezier
-from safesysid.systems.intervals import Interval
-from safesysid.systems.real_arm import scenario_dumbbell, true_theta
+from safesysid.systems.controller import armour as C
+from safesysid.systems.math.bezier import QuinticBezier
+from safesysid.systems.math.intervals import Interval
+from safesysid.systems.model import uncertainty
+from safesysid.systems.plant.station import scenario_dumbbell, true_theta
 
 PAYLOADS = ["none", "4lb", "5lb", "6lb", "7lb", "8lb"]
 HARDWARE_V_MAX = 0.02  # J, the ARMOUR authors' value on the Gen3 hardware
@@ -165,7 +166,7 @@ COARSE_STEP_S = 0.04  # s; the same adversarial starts break the tube here (meas
 
 def test_coarse_control_step_breaks_the_tube():
     """The invariance argument is continuous-time; sampled with a zero-order hold it needs a short
-    step (systems/armour.py, 'Sampling'). The same adversarial starts at a 40 ms step leave
+    step (systems/controller/armour.py, 'Sampling'). The same adversarial starts at a 40 ms step leave
     the tube: the check above can fail, and it is the step that it guards."""
     runs = [
         run_from_boundary("8lb", TIGHT_V_MAX, seed=trial, time_step=COARSE_STEP_S, duration=1.5) for trial in range(4)
@@ -205,7 +206,7 @@ def test_step_size_margin():
 def test_conservative_interval_with_8lb_holds(robot):
     s = scenario_for("8lb")
     ii = s.initial_interval
-    theta0, box = C.parameter_box(robot, ii.nominal, ii.lower, ii.upper)
+    theta0, box = uncertainty.parameter_box(robot, ii.nominal, ii.lower, ii.upper)
     assert np.all(box.contains(true_theta(robot, scenario_dumbbell(s))))
     rng = np.random.default_rng(8)
     for _ in range(n_trials(1, 20)):
@@ -243,7 +244,7 @@ def test_baselines_track(robot, kind):
     """The baselines run behind the same ports and follow the trajectory (loosely: no bound)."""
     s = scenario_for("8lb")
     ii = s.initial_interval
-    theta0, box = C.parameter_box(robot, ii.nominal, ii.lower, ii.upper)
+    theta0, box = uncertainty.parameter_box(robot, ii.nominal, ii.lower, ii.upper)
     trajectory = random_trajectory(s, np.random.default_rng(10))
     out = run(s, robot, theta0, box, trajectory[0].q0, trajectory, kind=kind)
     print(f"{kind}: max |e| {out['error'].max():.4f} rad")
@@ -255,7 +256,7 @@ def test_adaptive_estimate_moves_toward_the_payload(robot):
     """adap-1's end-effector mass estimate, started at the model without payload, grows."""
     s = scenario_for("8lb")
     ii = s.initial_interval
-    theta0, box = C.parameter_box(robot, robot.theta_e, ii.lower, ii.upper)
+    theta0, box = uncertainty.parameter_box(robot, robot.theta_e, ii.lower, ii.upper)
     trajectory = random_trajectory(s, np.random.default_rng(11))
     loop = build_closed_loop(s, trajectory, theta0, box, kind="adaptive", robot=robot, log=False)
     from pydrake.systems.analysis import Simulator
@@ -270,7 +271,7 @@ def test_adaptive_estimate_moves_toward_the_payload(robot):
 
 
 def test_trajectory_source_matches_bezier_and_switches_pieces():
-    from safesysid.systems.trajectory_source import Piece, make_trajectory_source
+    from safesysid.systems.planner.trajectory_source import Piece, make_trajectory_source
 
     rng = np.random.default_rng(12)
     q0, v0, a0 = rng.normal(size=(3, 7))
@@ -297,7 +298,7 @@ def test_trajectory_source_matches_bezier_and_switches_pieces():
 def test_fixed_trajectory_source_in_cpp_equals_the_piece_source():
     """One (QuinticBezier, q_end) becomes Drake's TrajectorySource (a BezierCurve, C++): the same
     [q, qd, qdd] as the Python source of that piece, during the curve and at rest after its end."""
-    from safesysid.systems.trajectory_source import Piece, TrajectorySource, make_trajectory_source
+    from safesysid.systems.planner.trajectory_source import Piece, TrajectorySource, make_trajectory_source
 
     rng = np.random.default_rng(3)
     q0, v0, a0 = rng.normal(size=(3, 7))

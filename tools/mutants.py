@@ -50,11 +50,11 @@ def m(what, path, where, original, mutated, *tests, equivalent=""):
     return Mutant(what, path, where, original, mutated, tuple(tests), equivalent)
 
 
-PLANNER_SYSTEM = "systems/planner_system.py"
-PLANNER = "systems/planner.py"
-ARMOUR = "systems/armour.py"
-DYN = "systems/interval_dynamics.py"
-REACH = "systems/reachability.py"
+PLANNER_SYSTEM = "systems/planner/system.py"
+PLANNER = "systems/planner/safe_planner.py"
+ARMOUR = "systems/controller/armour.py"
+DYN = "systems/planner/interval_dynamics.py"
+REACH = "systems/planner/reachability.py"
 SEGMENTS = "systems/estimation/segments.py"
 ENCLOSURE = "systems/estimation/enclosure.py"
 INCREMENTAL = "systems/estimation/incremental.py"
@@ -100,7 +100,7 @@ MUTANTS = [
     # -- floating point --------------------------------------------------------------------------
     m(
         "dot_rounding 0 (only the one-ulp outward rounding left)",
-        "systems/intervals.py",
+        "systems/math/intervals.py",
         "dot_rounding",
         "    return (k + 2) * np.finfo(float).eps",
         "    return 0 * np.finfo(float).eps",
@@ -161,7 +161,7 @@ MUTANTS = [
     ),
     m(
         "error-filter gain κ 30 % too small",
-        "systems/affine_forms.py",
+        "systems/planner/affine_forms.py",
         "filter_gain",
         "            return float(total * (1 + 1e-12))",
         "            return float(0.7 * total)",
@@ -194,7 +194,7 @@ MUTANTS = [
     ),
     m(
         "the referee judges the torque after saturation",
-        "systems/safety_monitor.py",
+        "systems/plant/safety_monitor.py",
         "SafetyMonitor (commanded ratio)",
         "float(np.max(np.abs(self.command_port.Eval(context)) / jp.torque_limit)),",
         "float(np.max(np.abs(u) / jp.torque_limit)),",

@@ -17,8 +17,8 @@ Modules, in the order the data flows:
   simulate, self_check, detection, real_arm_check   the self-check on simulated logs
 """
 
-from ..blas import single_threaded_blas
-from .corrected_model import (  # its TIME_LAWS (law names) is not effects.TIME_LAWS
+from safesysid.systems.math.blas import single_threaded_blas
+from safesysid.systems.model.corrected_model import (  # its TIME_LAWS (law names) is not effects.TIME_LAWS
     EFFECT_NAMES,
     REQUIRED,
     SCORING_FORMS,
@@ -32,6 +32,7 @@ from .corrected_model import (  # its TIME_LAWS (law names) is not effects.TIME_
     read_corrected_model,
     write_corrected_model,
 )
+
 from .cross_validation import TIME_FOLDS, CrossValidated, inner_folds, time_pieces
 from .design import (
     BLOCK_S,

@@ -7,10 +7,10 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from safesysid.systems.model.corrected_model import Saturation
+from safesysid.systems.model.joint_data import JointLog
+from safesysid.systems.model.robot_model import RobotModel
 
-from ..joint_log import JointLog
-from ..robot_model import RobotModel
-from .corrected_model import Saturation
 from .design import WINDOW_S, Design, build_design, velocity_saturation
 from .problem import FoldParams, Problem, fit_effects
 

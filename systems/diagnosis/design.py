@@ -17,11 +17,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from safesysid.systems.model import regressors
+from safesysid.systems.model.corrected_model import Saturation
+from safesysid.systems.model.joint_data import JointLog
+from safesysid.systems.model.robot_model import RobotModel
 
-from .. import regressors
-from ..joint_log import JointLog
-from ..robot_model import RobotModel
-from .corrected_model import Saturation
 from .effects import STRIBECK_VELOCITIES
 
 BLOCK_S = 0.5

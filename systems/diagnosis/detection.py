@@ -7,9 +7,9 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 
 import numpy as np
+from safesysid.systems.math.blas import single_threaded_blas
+from safesysid.systems.model.robot_model import RobotModel
 
-from ..blas import single_threaded_blas
-from ..robot_model import RobotModel
 from .diagnose import diagnose
 from .self_check import parallel_map
 from .simulate import STRIBECK_VS, make_case, payload_theta

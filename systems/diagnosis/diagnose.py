@@ -19,11 +19,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from safesysid.systems.math.blas import single_threaded_blas
+from safesysid.systems.model.corrected_model import CorrectedModel, group_params
+from safesysid.systems.model.joint_data import JointLog
+from safesysid.systems.model.robot_model import RobotModel
 
-from ..blas import single_threaded_blas
-from ..joint_log import JointLog
-from ..robot_model import RobotModel
-from .corrected_model import CorrectedModel, group_params
 from .cross_validation import inner_folds
 from .design import BLOCK_S, Design, choose_form, rms, saturation_rule
 from .effects import EFFECTS, Params, corrected_parameters, effect_params, group_of

@@ -42,22 +42,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+from safesysid.systems.model.corrected_model import EFFECT_NAMES as EFFECTS
+from safesysid.systems.model.robot_model import RobotModel
 
-from ..robot_model import RobotModel
-
-EFFECTS = (
-    "coulomb_friction",
-    "viscous_friction",
-    "stribeck_friction",
-    "load_friction",
-    "armature",
-    "torque_offset",
-    "torque_scale",
-    "payload",
-    "time_delay",
-    "base_tilt",
-    "joint_elasticity",
-)
 WHOLE_ARM = ("payload", "time_delay", "base_tilt")  # one set of parameters for the arm
 PER_JOINT = tuple(e for e in EFFECTS if e not in WHOLE_ARM)  # one parameter (or more) per joint
 STRIBECK_VELOCITIES = tuple(round(0.02 * 1.5**k, 4) for k in range(7))  # rad/s grid for vs (0.02..0.23)

@@ -24,9 +24,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+from safesysid.systems.model.robot_model import RobotModel
 from scipy.stats import t as student_t
 
-from ..robot_model import RobotModel
 from .effects import TIME_LAWS, Params, effect_params, group_bounds, group_of
 from .problem import Problem, _flat_rows, design_rows
 

@@ -9,9 +9,9 @@ equations, so each fit costs microseconds); the payload uses a log-Cholesky Gaus
 from __future__ import annotations
 
 import numpy as np
+from safesysid.systems.model import inertial
+from safesysid.systems.model.robot_model import RobotModel
 
-from .. import inertial
-from ..robot_model import RobotModel
 from .design import Design
 from .effects import MAX_DELAY_S, TIME_LAWS, Params, effect_groups, group_bounds
 from .time_laws import model_side_rows

@@ -1,4 +1,4 @@
-"""Blind diagnosis of logs of the Drake-simulated real arm (systems/real_arm.py): each effect
+"""Blind diagnosis of logs of the Drake-simulated real arm (systems/plant/station.py): each effect
 real_arm implements, in its own law, named back by the diagnosis.
 """
 
@@ -7,15 +7,15 @@ from __future__ import annotations
 from collections.abc import Callable, Container
 
 import numpy as np
+from safesysid.systems.math.blas import single_threaded_blas
+from safesysid.systems.model.joint_data import JointLog
+from safesysid.systems.model.robot_model import RobotModel
 
-from ..blas import single_threaded_blas
 from ..config import PlantEffects, Scenario
-from ..joint_log import JointLog
-from ..robot_model import RobotModel
 from .diagnose import diagnose
 from .simulate import GAP_S, RATE_HZ, random_trajectory
 
-# ---- logs from the simulated real arm (systems/real_arm.py, Drake) ---------------------------
+# ---- logs from the simulated real arm (systems/plant/station.py, Drake) ---------------------------
 REAL_ARM_EFFECTS = {  # diagnosis vocabulary -> scenario.plant.effects field (real_arm's law)
     "torque_offset": "torque_sensor_offset_Nm",
     "torque_scale": "torque_sensor_scale",
@@ -38,8 +38,8 @@ def real_arm_log(
     sensor and effect laws) tracking a random smooth trajectory with computed torque + PD on the
     nominal model. `effects`: {scenario.plant.effects field: value}. No acceleration column
     (the real arm has no acceleration sensor): the diagnosis uses the momentum form."""
-    from ..arm_tracking import track_trajectory
-    from ..robot_model import load_robot
+    from safesysid.systems.model.robot_model import load_robot
+    from safesysid.systems.plant.arm_tracking import track_trajectory
 
     # The default scenario (its schema's defaults) with these fields set.
     scenario = Scenario(seed=int(seed))

@@ -8,10 +8,17 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+from safesysid.systems.model.corrected_model import (
+    CorrectedEffect,
+    CorrectedModel,
+    CorrectedModelError,
+    Saturation,
+    Scoring,
+    group_params,
+)
+from safesysid.systems.model.joint_data import JointLog
+from safesysid.systems.model.robot_model import RobotModel
 
-from ..joint_log import JointLog
-from ..robot_model import RobotModel
-from .corrected_model import CorrectedEffect, CorrectedModel, CorrectedModelError, Saturation, Scoring, group_params
 from .design import WINDOW_S, Design, build_design, rms, velocity_saturation
 from .effects import STRIBECK_VELOCITIES, Params, effect_params, group_of
 from .problem import design_residual

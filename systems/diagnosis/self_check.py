@@ -14,9 +14,9 @@ from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import numpy as np
+from safesysid.systems.math.blas import single_threaded_blas
+from safesysid.systems.model.robot_model import RobotModel
 
-from ..blas import single_threaded_blas
-from ..robot_model import RobotModel
 from .diagnose import diagnose
 from .effects import EFFECTS, PER_JOINT
 from .simulate import SNR_RANGE, make_case

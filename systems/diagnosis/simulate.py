@@ -31,10 +31,10 @@ import dataclasses
 from collections.abc import Sequence
 
 import numpy as np
+from safesysid.systems.model import inertial
+from safesysid.systems.model.joint_data import JointLog
+from safesysid.systems.model.robot_model import RobotModel
 
-from .. import inertial
-from ..joint_log import JointLog
-from ..robot_model import RobotModel
 from .design import segments
 from .effects import PER_JOINT
 from .time_laws import first_order_lag

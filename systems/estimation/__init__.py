@@ -84,7 +84,7 @@ from .log_cholesky import (
     nearest_consistent,
     solve_log_cholesky,
 )
-from .physical import BoundingVolume, prune_box
+from .physical import prune_box
 from .segments import (
     SegmentRows,
     build_segment_rows,
@@ -98,7 +98,7 @@ from .segments import (
     torque_radius,
     torque_rate_bound,
 )
-from .settings import EPS, EstimatorError, EstimatorSettings
+from .settings import EPS, BoundingVolume, EstimatorError, EstimatorSettings
 from .synthetic import fourier_motion, fourier_trajectory, held_torque, perturbed_robot_theta, simulate_log
 
 __all__ = [

@@ -3,7 +3,7 @@
 A late reading (s > 0: the sensor's reading of the torque held over [t_k, t_k+1] is logged at
 t_k + s, the simulated arm's `torque_sensor_delay_s`) or a late torque (s < 0: the joint receives
 at t_k the motor torque the sensor read at t_k − |s|, its `time_delay_s`) pairs each motion step
-with the sample |s| away. Both are whole steps in the simulated arm (systems/real_arm.py
+with the sample |s| away. Both are whole steps in the simulated arm (systems/plant/station.py
 StepDelay, exact: tests/test_plant_friction.py), so re-pairing them is exact and the declared
 noise bound holds for the re-paired reading as for an immediate one: everything downstream (∫τ,
 the radii, the LP) is unchanged. A step whose reading never arrives (lost, or before the log's

@@ -7,10 +7,10 @@ from __future__ import annotations
 from collections.abc import Iterable
 
 import numpy as np
+from safesysid.systems.math.intervals import dot_rounding
+from safesysid.systems.model import inertial
 from scipy.optimize import linprog  # imported here: its first import costs ~0.3 s
 
-from .. import inertial
-from ..intervals import dot_rounding
 from .log_cholesky import ls_cost_terms
 from .segments import SegmentRows
 from .settings import EPS, EstimatorSettings

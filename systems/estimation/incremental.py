@@ -11,9 +11,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
+from safesysid.systems.model import inertial
+from safesysid.systems.model.uncertainty import parameter_radius
 
-from .. import inertial
-from ..uncertainty import parameter_radius
 from .delay import DelayInverse
 from .enclosure import box_is_consistent, interval_hull, set_membership_bounds, torque_row_radius
 from .lag import LagInverse
@@ -23,7 +23,7 @@ from .segments import SegmentRows, build_segment_rows, segment_bounds
 from .settings import EstimatorError, EstimatorSettings
 
 if TYPE_CHECKING:
-    from ..robot_model import RobotModel
+    from safesysid.systems.model.robot_model import RobotModel
 
 
 @dataclass

@@ -7,8 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
-from .. import inertial
+from safesysid.systems.model import inertial
 
 
 def ls_cost_terms(Y: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:

@@ -22,72 +22,14 @@ be trusted.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass
-
 import numpy as np
+from safesysid.systems.model import inertial
 
-from .. import inertial
 from .enclosure import certified_lp_min
-from .settings import EstimatorError
+from .settings import BoundingVolume
 
 MAX_KEPT_CUTS = 200  # cutting planes carried to the next call (the LPs stay small)
 _J_BASIS = np.stack([inertial.pseudo_inertia(e) for e in np.eye(10)])  # (10, 4, 4): J(θ) = Σ θ_j J_j
-
-
-@dataclass(frozen=True)
-class BoundingVolume:
-    """A region containing the payload, in the end-effector frame: an ellipsoid (half_extent_m =
-    semi-axes) or a box (half_extent_m = half side lengths), centred at centre_m, axes rotated by R."""
-
-    shape: str
-    centre_m: np.ndarray
-    half_extent_m: np.ndarray
-    R: np.ndarray
-
-    def __post_init__(self):
-        if self.shape not in ("ellipsoid", "box"):
-            raise EstimatorError(f"payload.bounding_volume.shape: {self.shape!r} is not none, ellipsoid or box")
-        if np.shape(self.centre_m) != (3,) or np.shape(self.half_extent_m) != (3,):
-            raise EstimatorError("payload.bounding_volume: centre_m and half_extent_m need 3 entries")
-        if not np.all(np.asarray(self.half_extent_m) > 0):
-            raise EstimatorError("payload.bounding_volume.half_extent_m: every entry must be > 0")
-
-    def forms(self) -> list[np.ndarray]:
-        """The 4×4 Q with [x; 1]ᵀ Q [x; 1] ≥ 0 for every x of the volume (one per ellipsoid, three per box)."""
-        c, a = np.asarray(self.centre_m, float), np.asarray(self.half_extent_m, float)
-        if self.shape == "ellipsoid":
-            shapes = [self.R @ np.diag(1.0 / a**2) @ self.R.T]
-        else:
-            shapes = [np.outer(self.R[:, i], self.R[:, i]) / a[i] ** 2 for i in range(3)]
-        out = []
-        for S in shapes:  # 1 − (x − c)ᵀ S (x − c)
-            Q = np.zeros((4, 4))
-            Q[:3, :3] = -S
-            Q[:3, 3] = Q[3, :3] = S @ c
-            Q[3, 3] = 1.0 - c @ S @ c
-            out.append(Q)
-        return out
-
-    def contains(self, points: np.ndarray) -> np.ndarray:
-        """Which of the points (N, 3) lie in the volume (tests draw payloads inside it)."""
-        local = (np.atleast_2d(points) - self.centre_m) @ self.R / self.half_extent_m
-        if self.shape == "ellipsoid":
-            return np.sum(local**2, 1) <= 1.0
-        return np.all(np.abs(local) <= 1.0, 1)
-
-
-def rpy_matrix(rpy: Sequence[float]) -> np.ndarray:
-    """R = Rz(yaw) Ry(pitch) Rx(roll)."""
-    r, p, y = rpy
-    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
-    return np.array(
-        [
-            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-            [-sp, cp * sr, cp * cr],
-        ]
-    )
 
 
 def _linear_form(M):

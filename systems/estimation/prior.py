@@ -3,7 +3,7 @@
 A payload is any rigid body of mass in [m_lo, m_hi] whose matter lies in a box of half extents
 h around a centre c, axes those of the end-effector frame (e.g. centred on the grasp point). Every
 entry of its theta about the frame origin is then bounded entry by entry (theta order of
-systems/inertial.py NAMES):
+systems/model/inertial.py NAMES):
 - m in [m_lo, m_hi];
 - m c_i in m [c_i - h_i, c_i + h_i] (the centre of mass lies in the box);
 - each inertia-tensor entry is the integral over the payload of a quadratic in the point r
@@ -17,8 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike
-
-from .. import inertial
+from safesysid.systems.model import inertial
 
 
 def _interval_times(a, b):

@@ -10,14 +10,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
+from safesysid.systems.math.spatial import cross
+from safesysid.systems.model import regressors
 
-from .. import regressors
-from ..spatial import cross
 from .settings import EstimatorError, EstimatorSettings
 
 if TYPE_CHECKING:
-    from ..regressors import KinematicTree
-    from ..robot_model import RobotModel
+    from safesysid.systems.model.regressors import KinematicTree
+    from safesysid.systems.model.robot_model import RobotModel
 
 
 def segment_bounds(t: ArrayLike, horizon_s: float, max_gap_s: float) -> tuple[np.ndarray, int]:

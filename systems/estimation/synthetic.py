@@ -13,7 +13,7 @@ from numpy.typing import ArrayLike
 from .settings import EstimatorError
 
 if TYPE_CHECKING:
-    from ..robot_model import RobotModel
+    from safesysid.systems.model.robot_model import RobotModel
 
 # motion(times) -> (q, v, a) at those times
 Motion = Callable[[ArrayLike], tuple[np.ndarray, np.ndarray, np.ndarray]]

@@ -23,12 +23,12 @@ from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import replace
 
 import numpy as np
+from safesysid.systems.estimation.system import SysIdEstimator, SysIdState, estimate_update
+from safesysid.systems.planner.safe_planner import PlanResult
+from safesysid.systems.planner.system import ExcitingPlanner
+from safesysid.systems.planner.trajectory_source import Piece
 
 from ..estimation import EstimatorError
-from ..planner import PlanResult
-from ..planner_system import ExcitingPlanner
-from ..sysid_system import SysIdEstimator, SysIdState, estimate_update
-from ..trajectory_source import Piece
 from .realtime import lower_realtime
 
 # Test hook (docs/hardware.md, faults): SAFESYSID_WORKER_FAULT="die:K" or "hang:K" makes the

@@ -1,6 +1,6 @@
 """The arm station over LCM (the Drake hardware idiom: MakeHardwareStation(..., hardware=True)).
 
-add_lcm_arm: the run's side. The same ports as systems/real_arm.py's station (commanded_torque in;
+add_lcm_arm: the run's side. The same ports as systems/plant/station.py's station (commanded_torque in;
 state, measured_torque, arm-timestamped estimator samples out) implemented by LCM subscriber and
 publisher systems behind one LcmInterfaceSystem; nothing else in the run's diagram changes.
 add_arm_driver: the arm's side (`safesysid arm-sim`, the reference a hardware driver follows):
@@ -21,11 +21,11 @@ from .lcm_systems import ArmDriver, CommandEncoder, LatestMessage, StatusEncoder
 if TYPE_CHECKING:
     from pydrake.lcm import DrakeLcm
     from pydrake.systems.framework import Context, DiagramBuilder, InputPort, OutputPort
+    from safesysid.systems.model.payload import Dumbbell
+    from safesysid.systems.model.robot_model import RobotModel
+    from safesysid.systems.plant.station import RealArm
 
     from ..config import Scenario
-    from ..payload import Dumbbell
-    from ..real_arm import RealArm
-    from ..robot_model import RobotModel
 
 # The run waits this long at initialization for the arm's first status (an arm must be answering).
 FIRST_STATUS_TIMEOUT_S = 10.0
@@ -71,8 +71,7 @@ class LcmArm:
 
 def add_lcm_arm(builder: DiagramBuilder, scenario: Scenario, robot: RobotModel, lcm: DrakeLcm) -> LcmArm:
     from pydrake.systems.lcm import LcmPublisherSystem
-
-    from ..real_arm import scenario_dumbbell
+    from safesysid.systems.plant.station import scenario_dumbbell
 
     n, h, cfg = robot.n, scenario.plant.time_step_s, scenario.arm
     _interface(builder, lcm)

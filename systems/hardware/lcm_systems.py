@@ -12,8 +12,8 @@ from drake import lcmt_panda_command, lcmt_panda_status
 from pydrake.common.value import AbstractValue
 from pydrake.lcm import DrakeLcm
 from pydrake.systems.framework import Context, EventStatus, LeafSystem
+from safesysid.systems.estimation.packets import pack, packet_size
 
-from ..faults import pack, packet_size
 from .freshness import Freshness
 from .messages import Status, command_message, parse_command, parse_status, status_message
 
@@ -114,7 +114,7 @@ class StatusEncoder(LeafSystem):
 
 class StatusReceiver(LeafSystem):
     """lcmt_panda_status -> state [q, v], measured_torque, the estimator's arm-timestamped samples
-    (systems/faults.py packets: each new status once, at the arm's time), and hold (1.0 once the
+    (systems/plant/faults.py packets: each new status once, at the arm's time), and hold (1.0 once the
     status stream stopped, jumped or stalled beyond status_timeout_s: the run must brake)."""
 
     def __init__(

@@ -1,0 +1,1 @@
+"""Controller role of safesysid.systems (see docs/design.md)."""

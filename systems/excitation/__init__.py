@@ -1,0 +1,1 @@
+"""Excitation role of safesysid.systems (see docs/design.md)."""

@@ -1,0 +1,1 @@
+"""Math role of safesysid.systems (see docs/design.md)."""

@@ -1,0 +1,1 @@
+"""Model role of safesysid.systems (see docs/design.md)."""

@@ -1,0 +1,1 @@
+"""Planner role of safesysid.systems (see docs/design.md)."""

@@ -1,0 +1,1 @@
+"""Plant role of safesysid.systems (see docs/design.md)."""

@@ -1,0 +1,1 @@
+"""Task role of safesysid.systems (see docs/design.md)."""
