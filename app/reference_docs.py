@@ -176,7 +176,7 @@ def _help(parser: argparse.ArgumentParser) -> str:
 PAGES = {"scenario.md": scenario_reference, "cli.md": cli_reference}
 
 
-def on_page_read_source(page, config) -> str | None:
+def on_page_read_source(page: object, config: object) -> str | None:
     """MkDocs hook (mkdocs.yml `hooks`): the site's reference pages are generated at build time,
     so they always match the code; the committed copies are for reading on a forge."""
     make = PAGES.get(page.file.src_uri)

@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 from safesysid.cli import BadInput
-from safesysid.scenario import METHODS, SCENARIOS_DIR, load_scenario
+from safesysid.scenario import METHODS, SCENARIOS_DIR, Scenario, load_scenario
 
 
 def scenario_path(args: argparse.Namespace) -> Path:
@@ -50,7 +50,7 @@ def _headline(s):
     )
 
 
-def identified_body(scenario, summary: dict) -> str:
+def identified_body(scenario: Scenario, summary: dict) -> str:
     """The summary's truth mass explained: last link + gripper + the dumbbell (from the scenario's file)."""
     from safesysid.report import identified_body_text
     from safesysid.systems.model.loading import resolve_path, scenario_dir

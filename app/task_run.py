@@ -11,10 +11,10 @@ import numpy as np
 if TYPE_CHECKING:
     from pydrake.systems.analysis import Simulator
     from safesysid.online import OnlineDiagram
-    from safesysid.systems.config import Scenario
+    from safesysid.systems.config import Scenario, Task
     from safesysid.systems.model.payload import Dumbbell
     from safesysid.systems.model.robot_model import RobotModel
-    from safesysid.systems.planner.trajectory_source import TaskPhaseSource
+    from safesysid.systems.planner.trajectory_source import PhaseState, TaskPhaseSource
     from safesysid.systems.plant.safety_monitor import SafetyRecord
     from safesysid.systems.task.trajectory import TaskProblem, TaskResult
 
@@ -78,7 +78,7 @@ def make_task_source(
     return TaskPhaseSource(robot.n, 14 * robot.n, scenario.q0_rad, switch_time_s, make_task)
 
 
-def certify_task(problem: TaskProblem, curves: list, thetas: tuple, task) -> tuple[list, dict, str]:
+def certify_task(problem: TaskProblem, curves: list, thetas: tuple, task: Task) -> tuple[list, dict, str]:
     """ARMOUR's certificate of the task phase's curves (the return move, the task trajectory)
     with the box latched at the switch (task_check.phase_certificate: sup |u| / limit over the
     tube and the box): the curves played at the smallest scale of the grid 1 .. task.max_time_scale
@@ -150,7 +150,7 @@ def judge(
     return first_failure(checks, t_switch)
 
 
-def task_certificate_summary(st, truth: np.ndarray, robot: RobotModel) -> dict:
+def task_certificate_summary(st: PhaseState, truth: np.ndarray, robot: RobotModel) -> dict:
     """summary.json task fields of the certificate (certify_task's report, PhaseState st): the
     scale played and the task trajectory's duration (None when refused or not found), and whether
     the latched box holds the true payload (else its certificate certifies nothing real: wrong)."""

@@ -17,7 +17,7 @@ import numpy as np
 from safesysid.systems.math.blas import single_threaded_blas
 from safesysid.systems.model.robot_model import RobotModel
 
-from .diagnose import diagnose
+from .diagnose import Diagnosis, diagnose
 from .effects import EFFECTS, PER_JOINT
 from .simulate import SNR_RANGE, make_case
 
@@ -127,7 +127,7 @@ def _run_case(job):
     return case
 
 
-def bootstrap_ratio(model: RobotModel, d, rng: np.random.Generator) -> float:
+def bootstrap_ratio(model: RobotModel, d: Diagnosis, rng: np.random.Generator) -> float:
     """Median over the selected parameters of the block bootstrap's 90 % half-width (percentile)
     over the block sandwich's (intervals.py), on the diagnosis' fit logs: the calibration check
     of the Jacobian intervals, on a subset of cases (every BOOTSTRAP_EVERY-th)."""

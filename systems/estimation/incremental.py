@@ -19,7 +19,7 @@ from .enclosure import box_is_consistent, interval_hull, set_membership_bounds, 
 from .lag import LagInverse
 from .log_cholesky import cost_grad_hess, nearest_consistent, solve_log_cholesky
 from .physical import prune_box
-from .segments import SegmentRows, build_segment_rows, segment_bounds
+from .segments import Reference, SegmentRows, build_segment_rows, segment_bounds
 from .settings import EstimatorError, EstimatorSettings
 
 if TYPE_CHECKING:
@@ -173,7 +173,7 @@ class IncrementalEstimator:
         self.messages = []
 
     # -- data -------------------------------------------------------------------------------
-    def add(self, t: ArrayLike, q: ArrayLike, v: ArrayLike, tau: ArrayLike, reference=None) -> int:
+    def add(self, t: ArrayLike, q: ArrayLike, v: ArrayLike, tau: ArrayLike, reference: Reference | None = None) -> int:
         """Append samples (any chunk size); builds the segments that became complete. reference:
         the motion between the samples, times -> (q, v, a), when known (A5 is then checked)."""
         t = np.atleast_1d(np.asarray(t, float))

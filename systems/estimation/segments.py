@@ -5,6 +5,7 @@ declared error bound of each row.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -14,6 +15,9 @@ from safesysid.systems.math.spatial import cross
 from safesysid.systems.model import regressors
 
 from .settings import EstimatorError, EstimatorSettings
+
+# The motion between samples, when known: times -> (q, v, a) (A5 is then checked).
+Reference = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
 
 if TYPE_CHECKING:
     from safesysid.systems.model.regressors import KinematicTree
@@ -236,7 +240,15 @@ def _integrand_on(robot, reference, t, bounds, integration, theta_box):
     return wc, integrand_rates(t, factors, fric, *theta_box)
 
 
-def resolved_quadrature(robot, reference, t, bounds, settings, theta_box, substeps: int = 8):
+def resolved_quadrature(
+    robot: RobotModel,
+    reference: Reference,
+    t: np.ndarray,
+    bounds: np.ndarray,
+    settings: EstimatorSettings,
+    theta_box: tuple[np.ndarray, np.ndarray],
+    substeps: int = 8,
+) -> tuple[np.ndarray, np.ndarray]:
     """A5 checked where the motion between the samples is known (`reference(times) -> (q, v, a)`,
     the motion the samples are of; online the commanded plan): per segment (bound (S, n),
     violated (S,) bool).
@@ -335,7 +347,9 @@ class SegmentRows:
         return SegmentRows(**vals)
 
 
-def torque_radius(tau_meas: np.ndarray, settings: EstimatorSettings, reading_radius=None) -> np.ndarray:
+def torque_radius(
+    tau_meas: np.ndarray, settings: EstimatorSettings, reading_radius: np.ndarray | None = None
+) -> np.ndarray:
     """Per-sample bound on |τ_true − τ_meas| from the declared |r − τ| ≤ ratio|τ| + floor of the
     sensor's reading r. reading_radius ρ: τ_meas is only known to be within ρ of r (a lag
     interval, estimation/lag.py), so |τ| ≤ (|τ_meas| + ρ + floor)/(1 − ratio) and the bound is
@@ -359,7 +373,7 @@ def build_segment_rows(
     theta_box: tuple[np.ndarray, np.ndarray] | None = None,
     index_offset: int = 0,
     reading_radius: np.ndarray | None = None,
-    reference=None,
+    reference: Reference | None = None,
 ) -> SegmentRows:
     """Y, D_r, ∫τ and interval bookkeeping for the given segments (vectorized over samples).
 
