@@ -273,3 +273,24 @@ def test_late_torque_reading_is_diagnosed_as_its_delay():
     assert d.result["cause"] == ["time_delay"]
     params = next(e for e in d.result["effects"] if e["name"] == "time_delay")["params"]
     assert params["law"].startswith("pure delay") and params["delay_s"] == pytest.approx(0.03, abs=5e-4)
+
+
+def test_the_starting_model_is_stored_relative_so_a_diagnosis_folder_can_move(tmp_path):
+    """The written model_resolved is relative to the YAML's folder (an absolute path breaks as soon
+    as the folder is copied to another machine), and the moved pair still finds its model."""
+    import shutil
+
+    from safesysid.systems.model.corrected_model import CorrectedModel, read_corrected_model
+
+    here = tmp_path / "lab"
+    (here / "models").mkdir(parents=True)
+    shutil.copy(URDF, here / "models" / "arm.urdf")
+    model = CorrectedModel(model="arm.urdf", model_resolved=str((here / "models" / "arm.urdf").resolve()))
+    (here / "out").mkdir()
+    dg.write_corrected_model(here / "out" / "corrected_model.yaml", model)
+    written = yaml.safe_load((here / "out" / "corrected_model.yaml").read_text())
+    assert written["model_resolved"] == "../models/arm.urdf"
+    moved = shutil.copytree(here, tmp_path / "elsewhere")
+    shutil.rmtree(here)
+    found = read_corrected_model(moved / "out" / "corrected_model.yaml").model_path()
+    assert found == moved / "out" / ".." / "models" / "arm.urdf" and found.is_file()

@@ -29,6 +29,7 @@ only says where the effect was found to matter.
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -114,7 +115,10 @@ class CorrectedModel:
     def model_path(self) -> Path:
         """The starting model file: model_resolved when it exists, else `model` relative to
         this file's folder, else `model` as written."""
-        candidates = [Path(self.model_resolved)] if self.model_resolved else []
+        resolved = Path(self.model_resolved) if self.model_resolved else None
+        if resolved is not None and not resolved.is_absolute() and self.path:
+            resolved = Path(self.path).parent / resolved  # written relative to this file's folder
+        candidates = [resolved] if resolved is not None else []
         if self.path and not Path(self.model).is_absolute():
             candidates.append(Path(self.path).parent / self.model)
         candidates.append(Path(self.model))
@@ -186,7 +190,11 @@ def write_corrected_model(path: str | Path, corrected: CorrectedModel, header: s
     """Write `corrected` (CorrectedModel) as YAML; floats round-trip exactly (repr)."""
     import yaml
 
-    text = yaml.safe_dump(corrected.to_doc(), sort_keys=False, default_flow_style=None, width=120)
+    doc = corrected.to_doc()
+    if doc["model_resolved"] and Path(doc["model_resolved"]).is_absolute():
+        # relative to the file's folder, so a diagnosis folder can be moved or shared with its model
+        doc["model_resolved"] = os.path.relpath(doc["model_resolved"], Path(path).resolve().parent)
+    text = yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=120)
     Path(path).write_text(header + text)
     return Path(path)
 
