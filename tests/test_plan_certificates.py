@@ -112,7 +112,7 @@ def run(tmp_path_factory):
         ctrl._torque = torque
         return ctrl
 
-    def stub_estimator(robot, scen, stop_time_s=np.inf):  # no task phase in this scene: never stops
+    def stub_estimator(robot, scen, stop_time_s=np.inf, worker=None):  # no task phase here: never stops
         prior = online.prior(robot, scen, "ours")
         return StubEstimator(robot, stub_boxes(robot, scen, prior), scen.planner.replan_period_s)
 

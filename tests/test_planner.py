@@ -9,6 +9,7 @@ from safesysid.benchmarks.bench_planner import parameter_box as theta_box  # one
 from safesysid.scenario import Obstacle, Planner
 from safesysid.systems.controller import armour as ctl
 from safesysid.systems.math.intervals import Interval
+from safesysid.systems.model import uncertainty
 from safesysid.systems.model.payload import load_dumbbells
 from safesysid.systems.model.robot_model import MODELS_DIR
 from safesysid.systems.planner import reachability as reach
@@ -489,7 +490,7 @@ def _table_ii_planner(robot, payload, obstacles, **cfg):
     from safesysid.scenario import InitialInterval, load_scenario
 
     ii = InitialInterval()
-    theta0, box = ctl.parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper))
+    theta0, box = uncertainty.parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper))
     gains = ctl.ArmourGains(GAINS.Kr, GAINS.alpha, load_scenario().controller.V_max)
     config = Planner(**{"num_cost_samples": 32, **cfg})
     planner = P.SafePlanner(robot, config, obstacles, payload, ctl.tracking_bounds_for(robot, gains, box.lo))

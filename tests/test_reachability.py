@@ -254,10 +254,11 @@ def table_ii_setup(robot, V_max):
     V_max with the Table II prior (rest of the robot +-5 %)."""
     from safesysid.scenario import load_scenario
     from safesysid.systems.controller import armour as ctl
+    from safesysid.systems.model import uncertainty
 
     s = load_scenario()
     ii = s.initial_interval
-    theta0, box = ctl.parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper))
+    theta0, box = uncertainty.parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper))
     gains = ctl.ArmourGains(Kr=np.array(s.controller.Kr, float), alpha=s.controller.alpha, V_max=V_max)
     return s, theta0, box, gains, ctl.tracking_bounds_for(robot, gains, box.lo)
 
@@ -351,11 +352,12 @@ def test_interval_mass_spread_encloses_the_point_spread(robot):
     configuration of it (corners included); equal to it on degenerate boxes; tight on small boxes."""
     from safesysid.scenario import InitialInterval
     from safesysid.systems.controller import armour as ctl
+    from safesysid.systems.model import uncertainty
 
     rng = np.random.default_rng(11)
     n = robot.n
     ii = InitialInterval()
-    _, box = ctl.parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper))
+    _, box = uncertainty.parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper))
     centre = rng.uniform(-2, 2, (12, n))
     point = np.array([ctl.mass_spread(robot, q, box.lo, box.hi) for q in centre])
     np.testing.assert_allclose(reach.interval_mass_spread(robot, Interval(centre), box.lo, box.hi), point, rtol=1e-9)

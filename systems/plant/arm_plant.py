@@ -216,7 +216,7 @@ class RealArm:
     # RandomSources (seeded with the noise), and the estimator's packet port when samples are faulty.
     fault_stages: tuple[LeafSystem, ...] = ()
     fault_sources: tuple[RandomSource, ...] = ()
-    estimator_samples_output: OutputPort | None = None  # faults.packet_size(n), or None
+    estimator_samples_output: OutputPort | None = None  # estimation.packets.packet_size(n), or None
 
     @property
     def n(self) -> int:
