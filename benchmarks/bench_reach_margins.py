@@ -73,7 +73,9 @@ def margins(V_max: float, starts: int = 10, samples: int = 40) -> dict:
     from safesysid.systems.math.intervals import Interval
     from safesysid.systems.model.payload import load_dumbbells
     from safesysid.systems.model.robot_model import MODELS_DIR, load_robot
+    from safesysid.systems.planner import interval_dynamics as idyn
     from safesysid.systems.planner import reachability as reach
+    from safesysid.systems.planner import torque_certificate as tcert
     from safesysid.systems.planner.safe_planner import SafePlanner
 
     robot = load_robot(coulomb_smoothing=0.01)
@@ -96,15 +98,15 @@ def margins(V_max: float, starts: int = 10, samples: int = 40) -> dict:
         centre = np.clip(np.zeros(7), k_lo, k_hi)
         ks = (centre + f * (k_lo - centre), centre + f * (k_hi - centre))
         boxes = pr.state_boxes(*ks)
-        wp = reach.interval_passivity_regressor(robot, *boxes)
-        excess = reach.barrier_excess(robot, boxes[0], lo, hi, bounds)
+        wp = idyn.interval_passivity_regressor(robot, *boxes)
+        excess = tcert.barrier_excess(robot, boxes[0], lo, hi, bounds)
         # before (interval boxes, the best of plain and aa-vertex w_bar) and now (the affine enclosure)
-        sup_i, nom_i, robust_i = reach.torque_bound(wp, theta0, lo, hi, excess)
-        wv, _ = reach.robust_bound_vertex(robot, *boxes, theta0, lo, hi, robot.ee_slice, full=wp)
-        sup_i = np.minimum(sup_i, nom_i + reach.robust_term(wv, excess))
+        sup_i, nom_i, robust_i = tcert.torque_bound(wp, theta0, lo, hi, excess)
+        wv, _ = tcert.robust_bound_vertex(robot, *boxes, theta0, lo, hi, robot.ee_slice, full=wp)
+        sup_i = np.minimum(sup_i, nom_i + tcert.robust_term(wv, excess))
         states = pr.tube_states(*ks)
-        wa = reach.affine_passivity_regressor(robot, *states)
-        sup, nominal, robust = reach.affine_torque_bound(wa, theta0, lo, hi, excess)
+        wa = idyn.affine_passivity_regressor(robot, *states)
+        sup, nominal, robust = tcert.affine_torque_bound(wa, theta0, lo, hi, excess)
         wbar = robust - excess  # ||w_bar|| (+ rounding), the same for every joint
         i, j = np.unravel_index(np.argmax(sup / limit), sup.shape)
         t = rng.uniform(pr.edges[i], pr.edges[i + 1], samples // 8)
@@ -143,7 +145,7 @@ def margins(V_max: float, starts: int = 10, samples: int = 40) -> dict:
                 "certified_interval_boxes": {
                     "total": float(sup_i[i, j]),
                     "nominal": float(nom_i[i, j]),
-                    "w_bar_norm": float(np.minimum(robust_i, reach.robust_term(wv, excess))[i, j] - excess[i, j]),
+                    "w_bar_norm": float(np.minimum(robust_i, tcert.robust_term(wv, excess))[i, j] - excess[i, j]),
                 },
                 "sampled": {
                     "total": float(s[4]),

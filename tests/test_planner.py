@@ -14,6 +14,7 @@ from safesysid.systems.model.payload import load_dumbbells
 from safesysid.systems.model.robot_model import MODELS_DIR
 from safesysid.systems.planner import reachability as reach
 from safesysid.systems.planner import safe_planner as P
+from safesysid.systems.planner.ee_regressor import ee_standard_regressor
 
 Q0 = np.array([0.0, 0.26, 0.0, 2.0, 0.0, 0.9, 1.57])
 GAINS = ctl.ArmourGains(Kr=np.array([5.0] * 4 + [7.0] * 3), alpha=20.0, V_max=0.02)
@@ -169,7 +170,7 @@ def planned(robot, payload):
 def test_ee_regressor_equals_the_robot_model_columns(robot):
     rng = np.random.default_rng(0)
     q, v, a = (rng.normal(size=(20, robot.n)) for _ in range(3))
-    ours = P.ee_standard_regressor(robot.tree, robot.end_effector, q, v, a)
+    ours = ee_standard_regressor(robot.tree, robot.end_effector, q, v, a)
     assert np.allclose(ours, robot.standard_regressor(q, v, a)[..., robot.ee_slice], atol=1e-12)
 
 
@@ -199,7 +200,7 @@ def test_inertia_columns_cost_is_the_log_cond_of_the_six_inertia_columns(robot, 
     val, grad, W = prob.exciting_cost(k)
     assert W.shape[1] == 6
     q, v, a = prob.desired_at(prob.t_cost, k)
-    full = P.ee_standard_regressor(robot.tree, robot.end_effector, q, v, a).reshape(-1, 10)
+    full = ee_standard_regressor(robot.tree, robot.end_effector, q, v, a).reshape(-1, 10)
     assert np.isclose(val, np.log(np.linalg.cond(full[:, 4:10])))
     fd = cost_fd_gradient(prob, k)
     assert np.allclose(grad, fd, rtol=1e-5, atol=1e-6)
@@ -252,10 +253,10 @@ def test_noise_weighted_cost_divides_each_row_by_its_declared_noise_bound(robot,
 
     spacing = planner.config.duration_s / (planner.config.num_cost_samples - 1)
     qp, vp, ap = first.evaluate(np.arange(0.0, planner.config.replan_period_s, spacing))
-    past_plain = P.ee_standard_regressor(robot.tree, robot.end_effector, qp, vp, ap).reshape(-1, 10)
+    past_plain = ee_standard_regressor(robot.tree, robot.end_effector, qp, vp, ap).reshape(-1, 10)
     assert np.allclose(past, past_plain * weights(qp, vp, ap)[:, None])
     q, v, a = prob.desired_at(prob.t_cost, k)
-    plain = P.ee_standard_regressor(robot.tree, robot.end_effector, q, v, a).reshape(-1, 10)
+    plain = ee_standard_regressor(robot.tree, robot.end_effector, q, v, a).reshape(-1, 10)
     assert np.allclose(W, plain)
     still = prob.desired_at(prob.t_cost, np.clip(np.zeros(7), prob.k_lo, prob.k_hi))
     weighted = np.vstack([past, plain * weights(*still)[:, None]])

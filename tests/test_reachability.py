@@ -5,7 +5,9 @@ import pytest
 from safesysid.systems.math.intervals import Interval
 from safesysid.systems.model.payload import load_dumbbells
 from safesysid.systems.model.robot_model import MODELS_DIR
+from safesysid.systems.planner import interval_dynamics as idyn
 from safesysid.systems.planner import reachability as reach
+from safesysid.systems.planner import torque_certificate as tcert
 
 
 @pytest.fixture(scope="module")
@@ -19,14 +21,14 @@ def test_interval_passivity_regressor_is_exact_on_points_and_encloses_boxes(robo
     n = robot.n
     q, v, va, aa = (rng.normal(size=(6, n)) for _ in range(4))
     point = robot.passivity_regressor(q, v, va, aa)
-    wp = reach.interval_passivity_regressor(robot, *(Interval(x) for x in (q, v, va, aa)))
+    wp = idyn.interval_passivity_regressor(robot, *(Interval(x) for x in (q, v, va, aa)))
     assert np.all(wp.lo <= point + 1e-9) and np.all(point <= wp.hi + 1e-9)
     assert np.max(wp.hi - wp.lo) < 1e-9  # degenerate boxes give the point regressor
     # Random boxes: every sampled point inside the box has its regressor inside the enclosure.
     mids = [rng.normal(size=(16, n)) for _ in range(4)]
     rads = [rng.uniform(0, r, size=(16, n)) for r in (0.2, 0.5, 0.5, 1.0)]
     boxes = [Interval(m - r, m + r) for m, r in zip(mids, rads)]
-    wp = reach.interval_passivity_regressor(robot, *boxes)
+    wp = idyn.interval_passivity_regressor(robot, *boxes)
     for _ in range(30):
         x = [m + r * rng.uniform(-1, 1, size=m.shape) for m, r in zip(mids, rads)]
         w = robot.passivity_regressor(*x)
@@ -243,9 +245,9 @@ def tube_boxes(desired, bounds):
 
 def planner_torque_bound(robot, boxes, theta0, box, bounds):
     """(sup|u| (N, n), robust term (N, n), excess (N, n)) of the planner on state boxes (q, qd, qd_a, qdd_a)."""
-    wp = reach.interval_passivity_regressor(robot, *boxes)
-    excess = reach.barrier_excess(robot, boxes[0], box.lo, box.hi, bounds)
-    sup, _, robust = reach.torque_bound(wp, theta0, box.lo, box.hi, excess)
+    wp = idyn.interval_passivity_regressor(robot, *boxes)
+    excess = tcert.barrier_excess(robot, boxes[0], box.lo, box.hi, bounds)
+    sup, _, robust = tcert.torque_bound(wp, theta0, box.lo, box.hi, excess)
     return sup, robust, excess
 
 
@@ -334,13 +336,13 @@ def test_body_jacobians_rebuild_the_mass_matrix(robot):
     rng = np.random.default_rng(10)
     n = robot.n
     q = rng.uniform(-np.pi, np.pi, (5, n))
-    jac = reach.interval_body_jacobians(robot.tree, Interval(q))
+    jac = idyn.interval_body_jacobians(robot.tree, Interval(q))
     assert np.max(jac.hi - jac.lo) < 1e-12
     for row in range(len(q)):
         r = rng.normal(size=n)
         twists = np.einsum("ijc,j->ic", jac.mid[row], r)  # (bodies, 6)
         energy = sum(
-            twists[i] @ np.einsum("kab,k->ab", reach._INERTIA_FORMS, robot.theta[10 * i : 10 * i + 10]) @ twists[i]
+            twists[i] @ np.einsum("kab,k->ab", idyn._INERTIA_FORMS, robot.theta[10 * i : 10 * i + 10]) @ twists[i]
             for i in range(n)
         )
         energy += robot.theta[10 * n + 2 :: 4] @ r**2
@@ -360,11 +362,11 @@ def test_interval_mass_spread_encloses_the_point_spread(robot):
     _, box = uncertainty.parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper))
     centre = rng.uniform(-2, 2, (12, n))
     point = np.array([ctl.mass_spread(robot, q, box.lo, box.hi) for q in centre])
-    np.testing.assert_allclose(reach.interval_mass_spread(robot, Interval(centre), box.lo, box.hi), point, rtol=1e-9)
-    assert np.all(reach.interval_mass_spread(robot, Interval(centre), box.lo, box.hi) >= point)
+    np.testing.assert_allclose(idyn.interval_mass_spread(robot, Interval(centre), box.lo, box.hi), point, rtol=1e-9)
+    assert np.all(idyn.interval_mass_spread(robot, Interval(centre), box.lo, box.hi) >= point)
     for rad_max, loose in ((0.02, 1.3), (0.15, None)):
         rad = rng.uniform(0, rad_max, centre.shape)
-        mu = reach.interval_mass_spread(robot, Interval(centre - rad, centre + rad), box.lo, box.hi)
+        mu = idyn.interval_mass_spread(robot, Interval(centre - rad, centre + rad), box.lo, box.hi)
         worst = np.zeros(len(centre))
         for _ in range(15):
             pick = rng.uniform(-1, 1, centre.shape)
@@ -421,7 +423,7 @@ def test_vertex_robust_bound_is_sound_and_tighter(robot):
     ]
     rads = [np.full((6, n), 0.02), np.full((6, n), 0.15), np.full((6, n), 0.07), np.full((6, n), 0.8)]
     boxes = [Interval(m - r, m + r) for m, r in zip(mids, rads)]
-    wv, plain = reach.robust_bound_vertex(robot, *boxes, theta0, lo, hi, sl)
+    wv, plain = tcert.robust_bound_vertex(robot, *boxes, theta0, lo, hi, sl)
     assert np.all(wv <= plain) and np.mean(wv) < 0.95 * np.mean(plain)
     worst = 0.0
     for _ in range(40):

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from safesysid.systems.math.intervals import Interval
 from safesysid.systems.planner import affine_forms as aff
-from safesysid.systems.planner import reachability as reach
+from safesysid.systems.planner import interval_dynamics as idyn
+from safesysid.systems.planner import torque_certificate as tcert
 
 
 def test_filter_gain_is_the_integral_of_the_envelope():
@@ -79,9 +80,9 @@ def test_affine_torque_bound_covers_the_controller_on_reachable_tube_states(robo
         plan = random_plan(s, rng, bounds)
         k_lo, k_hi = -0.25 * np.ones(n), 0.25 * np.ones(n)
         states = plan.tube_states(k_lo, k_hi)
-        wp = reach.affine_passivity_regressor(robot, *states)
-        excess = reach.barrier_excess(robot, Interval(states[0].lo, states[0].hi), box.lo, box.hi, bounds)
-        sup, _, robust = reach.affine_torque_bound(wp, theta0, box.lo, box.hi, excess)
+        wp = idyn.affine_passivity_regressor(robot, *states)
+        excess = tcert.barrier_excess(robot, Interval(states[0].lo, states[0].hi), box.lo, box.hi, bounds)
+        sup, _, robust = tcert.affine_torque_bound(wp, theta0, box.lo, box.hi, excess)
         for i, q, v, q_d, qd_d, qdd_d in tube_samples(robot, rng, plan, k_lo, k_hi, gains, bounds, box, 12):
             out = ctl.armour_control(dyn, gains, q, v, q_d, qd_d, qdd_d, theta0, box)
             point = robot.passivity_regressor(*(x[None] for x in (q, v, out.err.qd_a, out.err.qdd_a)))[0]

@@ -52,8 +52,9 @@ def m(what, path, where, original, mutated, *tests, equivalent=""):
 
 PLANNER_SYSTEM = "systems/planner/system.py"
 PLANNER = "systems/planner/safe_planner.py"
+PROBLEM = "systems/planner/problem.py"
 ARMOUR = "systems/controller/armour.py"
-DYN = "systems/planner/interval_dynamics.py"
+TCERT = "systems/planner/torque_certificate.py"
 REACH = "systems/planner/reachability.py"
 SEGMENTS = "systems/estimation/segments.py"
 ENCLOSURE = "systems/estimation/enclosure.py"
@@ -120,7 +121,7 @@ MUTANTS = [
     ),
     m(
         "collision test without outward rounding (vals >= 0)",
-        PLANNER,
+        PROBLEM,
         "PlanningProblem.is_feasible",
         "return bool(np.all(vals >= self.clearance_rounding(pts)))",
         "return bool(np.all(vals >= 0))",
@@ -131,7 +132,7 @@ MUTANTS = [
     # -- 2. torque limits ------------------------------------------------------------------------
     m(
         "interval torque bound: ‖w̄‖ halved",
-        DYN,
+        TCERT,
         "torque_bound",
         "    wbar = _up((wp.mag @ d) * (1 + 1e-12))",
         "    wbar = _up(0.5 * (wp.mag @ d))",
@@ -141,7 +142,7 @@ MUTANTS = [
     ),
     m(
         "affine torque bound: ‖w̄‖ halved",
-        DYN,
+        TCERT,
         "affine_torque_bound",
         "    wbar = _up((linear + free + err) * (1 + 1e-12))",
         "    wbar = _up(0.5 * (linear + free + err))",
@@ -151,7 +152,7 @@ MUTANTS = [
     ),
     m(
         "the barrier excess (α/2)εμ_j dropped from the torque bound",
-        DYN,
+        TCERT,
         "robust_term",
         "(1 + 1e-12))[:, None] + excess)",
         "(1 + 1e-12))[:, None] + 0 * excess)",
@@ -236,7 +237,7 @@ MUTANTS = [
     ),
     m(
         "collision constraint on sphere centres (radius + spread dropped)",
-        PLANNER,
+        PROBLEM,
         "PlanningProblem.collision",
         "        vals = vals - self.pair_need\n",
         "        vals = vals - 0 * self.pair_need\n",

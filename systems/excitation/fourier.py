@@ -139,7 +139,7 @@ class _Problem:
         """log sigma_max - log sigma_min of W_e and its exact gradient in x. The rows of sample t
         depend on (q, qd, qdd)(t) only, so one complex-step copy per (joint, derivative order)
         perturbing every sample at once gives each sample's partials (3 n copies)."""
-        from safesysid.systems.planner.safe_planner import ee_standard_regressor
+        from safesysid.systems.planner.ee_regressor import ee_standard_regressor
 
         n = self.n
         X = x.reshape(n, -1)

@@ -52,6 +52,7 @@ from safesysid.systems.math.bezier import QuinticBezier, restriction_matrix
 from safesysid.systems.math.intervals import Interval, _down, _up
 from safesysid.systems.model import regressors
 from safesysid.systems.model.robot_model import carrier_index
+from safesysid.systems.planner.interval_dynamics import merge_rows
 
 if TYPE_CHECKING:
     from safesysid.systems.config import Obstacle
@@ -447,18 +448,23 @@ class PlanReach:
         return tube_states(q_box, vd, ad, self.bounds)
 
 
-# The torque certificate lives in interval_dynamics.py; re-exported here (one import for the planner).
-from safesysid.systems.planner.interval_dynamics import (  # noqa: E402, F401
-    _INERTIA_FORMS,
-    affine_passivity_regressor,
-    affine_torque_bound,
-    barrier_excess,
-    interval_body_jacobians,
-    interval_mass_spread,
-    interval_passivity_regressor,
-    merge_rows,
-    robust_bound_vertex,
-    robust_term,
-    signed_selection,
-    torque_bound,
-)
+def floor_exempt(tree: regressors.KinematicTree, spheres: Spheres) -> np.ndarray:
+    """Spheres whose height no joint can change (world-fixed, or carried only by root joints with a
+    vertical axis): the floor constraint is constant for them and the base sits on the floor."""
+    out = np.zeros(len(spheres), bool)
+    anc = tree.ancestors()
+    for s in range(len(spheres)):
+        b = spheres.body[s]
+        if b < 0:
+            out[s] = True
+            continue
+        joints = np.flatnonzero(anc[:, b])
+        vertical = []
+        for j in joints:
+            if tree.parent[j] >= 0 or tree.prismatic[j]:
+                vertical.append(False)
+                continue
+            axis_world = tree.X_parent_joint[j, :3, :3] @ tree.axis[j]
+            vertical.append(abs(abs(axis_world[2]) - 1) < 1e-12)
+        out[s] = all(vertical)
+    return out

@@ -10,9 +10,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from safesysid.systems.math.bezier import _difference, restriction_matrix
 from safesysid.systems.math.piecewise_bezier import DEGREE, PiecewiseBezier
-from safesysid.systems.planner import reachability as reach
+from safesysid.systems.planner import interval_dynamics as idyn
+from safesysid.systems.planner import torque_certificate as tcert
 from safesysid.systems.task.constraints import GRIPPER_TILT_TOL_RAD, PLACEMENT_TOL_M
-from safesysid.systems.task.trajectory import TaskProblem, _jsonable
+from safesysid.systems.task.problem import TaskProblem, jsonable
 
 
 def certified_torque_ratio(
@@ -47,12 +48,12 @@ def certified_torque_ratio(
         return Interval(_down(_down(lo - r) - 1e-12 * np.abs(lo)), _up(_up(hi + r) + 1e-12 * np.abs(hi)))
 
     q_box = pad(q_lo, q_hi, tb.position)
-    wp = reach.interval_passivity_regressor(
+    wp = idyn.interval_passivity_regressor(
         problem.robot, q_box, pad(v_lo, v_hi, tb.velocity), pad(v_lo, v_hi, tb.qd_a), pad(a_lo, a_hi, tb.qdd_a)
     )
     # The robust input may exceed |w_bar| on the tube (h < 0): the same excess the planner adds.
-    excess = reach.barrier_excess(problem.robot, q_box, theta_lo, theta_hi, tb)
-    sup, _, _ = reach.torque_bound(wp, theta0, theta_lo, theta_hi, excess)
+    excess = tcert.barrier_excess(problem.robot, q_box, theta_lo, theta_hi, tb)
+    sup, _, _ = tcert.torque_bound(wp, theta0, theta_lo, theta_hi, excess)
     per_joint = sup.max(0)
     return float(np.max(per_joint / problem.robot.joint_params.torque_limit)), per_joint
 
@@ -123,7 +124,7 @@ class TaskVerification:
     failures: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
-        return _jsonable(self.__dict__)
+        return jsonable(self.__dict__)
 
 
 def verify_task_trajectory(
