@@ -25,8 +25,8 @@ if TYPE_CHECKING:
     from pydrake.systems.framework import Context
     from safesysid.scenario import Scenario
     from safesysid.systems.hardware.lcm_systems import ArmDriver
+    from safesysid.systems.plant.arm_plant import RealArm
     from safesysid.systems.plant.safety_monitor import SafetyMonitor
-    from safesysid.systems.plant.station import RealArm
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 

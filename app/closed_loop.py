@@ -15,7 +15,8 @@ from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput, Ve
 from safesysid.systems.controller import systems as controller_systems
 from safesysid.systems.math.intervals import Interval
 from safesysid.systems.planner.trajectory_source import Piece, make_trajectory_source
-from safesysid.systems.plant.station import RealArm, add_real_arm
+from safesysid.systems.plant.arm_plant import RealArm
+from safesysid.systems.plant.station import add_real_arm
 
 if TYPE_CHECKING:
     from safesysid.systems.config import Scenario

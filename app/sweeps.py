@@ -98,7 +98,7 @@ def random_scene(
     # Dumbbell clearance is covered by the gripper spheres' margin plus min_start_clearance_m.
     boxes = []
     if near_clearance_m is not None:
-        from safesysid.systems.plant.station import scenario_dumbbell
+        from safesysid.systems.plant.arm_plant import scenario_dumbbell
 
         near = near_box(*_sphere_centres(robot, q0, scenario_dumbbell(scene)), rng, rng.uniform(*near_clearance_m))
         boxes += [] if near is None else [near]

@@ -14,7 +14,7 @@ import typing
 
 import numpy as np
 
-from .methods import METHODS_SPEC
+from .methods import FOURIER, METHODS_SPEC, MethodSpec
 
 List = list
 Optional = typing.Optional
@@ -120,7 +120,7 @@ class PlantEffects:
     joint_stiffness_Nm_rad: List[float] = dc.field(default_factory=list)
     # quasi_static: the link moves as if rigid and motor-side encoders read q + tau / K;
     # dynamic: a motor (inertia = the armature) drives each link through the spring and a damper
-    # (joint_damping_Nms_rad), the encoders read the link; systems/real_arm.ElasticTransmission.
+    # (joint_damping_Nms_rad), the encoders read the link; systems/plant/stages.py ElasticTransmission.
     joint_elasticity: str = "quasi_static"
     joint_damping_Nms_rad: List[float] = dc.field(default_factory=list)
     # Friction the robot model has no term for (the diagnosis' laws, sgn = the Coulomb shape):
@@ -426,3 +426,18 @@ class Scenario:
 def task_enabled(s: Scenario) -> bool:
     """The scenario has a task phase (a goal or a platform)."""
     return bool(s.task.goal_q_rad or s.task.place_xyz_m or s.task.platform)
+
+
+def excitation_duration_s(spec: MethodSpec, scenario: Scenario) -> float:
+    """Length of the identification phase: planner (N - 1) t_p + t_f, Fourier one period, else 0."""
+    if spec.excitation is None:
+        return 0.0
+    if spec.excitation.trajectory == FOURIER:
+        return float(scenario.fourier.period_s)
+    return planner_horizon_s(scenario)
+
+
+def planner_horizon_s(scenario: Scenario) -> float:
+    """Algorithm 2's identification phase: plans start every t_p, the last runs t_f to rest."""
+    p = scenario.planner
+    return (p.num_plans - 1) * p.replan_period_s + p.duration_s

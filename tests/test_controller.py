@@ -84,7 +84,7 @@ def test_robust_input_hand_cases():
 def _quickstart_prior(robot):
     """theta0, [theta] of the quickstart (paper Table II end effector, the rest +-5 %) and the true theta."""
     from safesysid.scenario import load_scenario
-    from safesysid.systems.plant.station import scenario_dumbbell, true_theta
+    from safesysid.systems.plant.arm_plant import scenario_dumbbell, true_theta
 
     s = load_scenario(MODELS_DIR.parent / "scenarios" / "quickstart.yaml")
     ii = s.initial_interval

@@ -1,7 +1,7 @@
 """estimator.torque_delay_s: a torque reading that arrives late (> 0) or a torque that reaches the
 joint late (< 0) is re-paired with its step exactly, so the interval keeps containing the truth
 with the noise AT the declared bound; ignoring the shift breaks it. On the simulated arm the
-shift is exact to the step (systems/plant/station.py StepDelay), so every estimator row holds within
+shift is exact to the step (systems/plant/stages.py StepDelay), so every estimator row holds within
 its quadrature term alone."""
 
 import dataclasses

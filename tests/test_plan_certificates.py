@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from pydrake.systems.framework import BasicVector, LeafSystem
 from safesysid.scenario import SCENARIOS_DIR, load_scenario
-from safesysid.systems.plant.station import scenario_dumbbell, true_theta
+from safesysid.systems.plant.arm_plant import scenario_dumbbell, true_theta
 
 
 class StubEstimator(LeafSystem):

@@ -9,7 +9,8 @@ from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
 from safesysid.scenario import load_scenario, robot_from_scenario
 from safesysid.systems.controller.armour import ControllerDynamics
 from safesysid.systems.model.regressors import friction_columns
-from safesysid.systems.plant.station import add_real_arm, scenario_dumbbell, true_theta
+from safesysid.systems.plant.arm_plant import scenario_dumbbell, true_theta
+from safesysid.systems.plant.station import add_real_arm
 
 
 @pytest.fixture(scope="module")

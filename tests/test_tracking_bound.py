@@ -17,7 +17,7 @@ from safesysid.systems.controller import armour as C
 from safesysid.systems.math.bezier import QuinticBezier
 from safesysid.systems.math.intervals import Interval
 from safesysid.systems.model import uncertainty
-from safesysid.systems.plant.station import scenario_dumbbell, true_theta
+from safesysid.systems.plant.arm_plant import scenario_dumbbell, true_theta
 
 PAYLOADS = ["none", "4lb", "5lb", "6lb", "7lb", "8lb"]
 HARDWARE_V_MAX = 0.02  # J, the ARMOUR authors' value on the Gen3 hardware

@@ -23,7 +23,7 @@ if TYPE_CHECKING:
     from pydrake.systems.framework import Context, DiagramBuilder, InputPort, OutputPort
     from safesysid.systems.model.payload import Dumbbell
     from safesysid.systems.model.robot_model import RobotModel
-    from safesysid.systems.plant.station import RealArm
+    from safesysid.systems.plant.arm_plant import RealArm
 
     from ..config import Scenario
 
@@ -71,7 +71,7 @@ class LcmArm:
 
 def add_lcm_arm(builder: DiagramBuilder, scenario: Scenario, robot: RobotModel, lcm: DrakeLcm) -> LcmArm:
     from pydrake.systems.lcm import LcmPublisherSystem
-    from safesysid.systems.plant.station import scenario_dumbbell
+    from safesysid.systems.plant.arm_plant import scenario_dumbbell
 
     n, h, cfg = robot.n, scenario.plant.time_step_s, scenario.arm
     _interface(builder, lcm)

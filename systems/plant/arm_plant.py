@@ -36,7 +36,7 @@ from pydrake.geometry import (
 from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
 from pydrake.multibody.plant import CoulombFriction, MultibodyPlant
 from pydrake.multibody.tree import ModelInstanceIndex, RigidBody, SpatialInertia
-from pydrake.systems.framework import Context, Diagram, InputPort, LeafSystem, OutputPort
+from pydrake.systems.framework import Context, Diagram, DiagramBuilder, InputPort, LeafSystem, OutputPort
 from pydrake.systems.primitives import RandomSource
 from safesysid.systems.config import Scenario, ScenarioError
 from safesysid.systems.model import inertial
@@ -46,7 +46,7 @@ from safesysid.systems.model.robot_model import RobotModel, make_plant
 from safesysid.systems.model.uncertainty import parameter_radius
 
 if TYPE_CHECKING:
-    from safesysid.systems.plant.station import TorqueSensor
+    from safesysid.systems.plant.stages import TorqueSensor
 
 
 def scenario_dumbbell(scenario: Scenario) -> Dumbbell | None:
@@ -174,7 +174,9 @@ def real_robot_theta(
     }
 
 
-def _make_real_plant(robot, inertials, time_step, builder):
+def make_real_plant(
+    robot: RobotModel, inertials: dict | None, time_step: float, builder: DiagramBuilder
+) -> tuple[MultibodyPlant, SceneGraph, ModelInstanceIndex]:
     """make_plant of the model, or of a temporary copy of its URDF with the drawn inertials."""
 
     if inertials is None:
@@ -229,7 +231,7 @@ class RealArm:
         """Grasp (a Dumbbell) or release (None) at run time."""
 
         ctx = self.plant_context(root_context)
-        spatial = _dumbbell_spatial_inertia(dumbbell) if dumbbell is not None else SpatialInertia.Zero()
+        spatial = dumbbell_spatial_inertia(dumbbell) if dumbbell is not None else SpatialInertia.Zero()
         self.payload_body.SetSpatialInertiaInBodyFrame(ctx, spatial)
         self._set_payload_collision(root_context, dumbbell is not None)
 
@@ -314,23 +316,21 @@ class RealArm:
             weight = -self.plant.GetVelocitiesFromArray(self.instance, self.plant.CalcGravityGeneralizedForces(ctx))
             self.transmission.set_equilibrium(self.transmission.GetMyMutableContextFromRoot(root_context), q, v, weight)
         if self.released_body is not None:  # waiting, locked, for a release
-            self.plant.SetFreeBodyPose(ctx, self.released_body, _PARKED)
+            self.plant.SetFreeBodyPose(ctx, self.released_body, PARKED)
             self.released_body.Lock(ctx)
 
     def true_theta(self, dumbbell: Dumbbell | str | None = "current") -> np.ndarray:
         return true_theta(self.robot, self.dumbbell if dumbbell == "current" else dumbbell, self.theta)
 
 
-def _dumbbell_spatial_inertia(db: Dumbbell):
-
+def dumbbell_spatial_inertia(db: Dumbbell) -> SpatialInertia:
     return inertial.to_spatial_inertia(db.theta_about_centre())
 
 
-_PARKED = RigidTransform([0.0, 0.0, -3.0])  # the released body's pose until the release: far below the floor
+PARKED = RigidTransform([0.0, 0.0, -3.0])  # the released body's pose until the release: far below the floor
 
 
-def _register_dumbbell_geometry(plant, body, db: Dumbbell, prefix="dumbbell"):
-
+def register_dumbbell_geometry(plant: MultibodyPlant, body: RigidBody, db: Dumbbell, prefix: str = "dumbbell") -> None:
     along_x = RotationMatrix.MakeYRotation(np.pi / 2)  # Drake cylinders run along z
     friction = CoulombFriction(0.8, 0.6)
     for k, (_, x, radius, length) in enumerate(db.parts()):
@@ -340,8 +340,7 @@ def _register_dumbbell_geometry(plant, body, db: Dumbbell, prefix="dumbbell"):
         plant.RegisterCollisionGeometry(body, pose, Cylinder(radius, length), name, friction)
 
 
-def _register_obstacles(plant, scenario):
-
+def register_obstacles(plant: MultibodyPlant, scenario: Scenario) -> None:
     world = plant.world_body()
     friction = CoulombFriction(0.8, 0.6)
     # Obstacles that appear later (faults) are in the referee's world from the start (stricter).
