@@ -72,7 +72,8 @@ from .enclosure import (
     set_membership_bounds,
     torque_row_radius,
 )
-from .incremental import Estimate, IncrementalEstimator, identify
+from .estimate import Estimate
+from .incremental import IncrementalEstimator, identify
 from .log_cholesky import (
     ETA_LOWER,
     ETA_UPPER,

@@ -1,12 +1,11 @@
-"""Algorithm 1 chunk by chunk: the Estimate it publishes and the IncrementalEstimator that keeps
-per-segment rows, latches consistency and intersects each update with the published box.
+"""Algorithm 1 chunk by chunk: the IncrementalEstimator that keeps per-segment rows, latches
+consistency and intersects each update with the published box (the Estimate it publishes: estimate.py).
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -16,6 +15,7 @@ from safesysid.systems.model.uncertainty import parameter_radius
 
 from .delay import DelayInverse
 from .enclosure import box_is_consistent, interval_hull, set_membership_bounds, torque_row_radius
+from .estimate import Estimate, quadrature_assumption
 from .lag import LagInverse
 from .log_cholesky import cost_grad_hess, nearest_consistent, solve_log_cholesky
 from .physical import prune_box
@@ -26,96 +26,19 @@ if TYPE_CHECKING:
     from safesysid.systems.model.robot_model import RobotModel
 
 
-@dataclass
-class Estimate:
-    theta_e: np.ndarray  # θ0 = P(η*) of the end effector (10)
-    lower: np.ndarray  # [θ_e] (10), intersected with the previous interval
-    upper: np.ndarray
-    theta: np.ndarray  # whole robot nominal (14 n)
-    theta_lower: np.ndarray  # whole robot interval (14 n)
-    theta_upper: np.ndarray
-    eta: np.ndarray
-    theta_ls: np.ndarray  # unconstrained least squares Y⁺U(m) (centre of this update's box)
-    update_lower: np.ndarray  # this update's box before intersection
-    update_upper: np.ndarray
-    radius_torque: np.ndarray
-    radius_theta_r: np.ndarray
-    radius_quadrature: np.ndarray
-    radius_rounding: np.ndarray
-    case: str  # interior | interior_at_m | lmi_active | not_identifiable | prior
-    consistent: bool  # False from the first update whose data contradict a declared bound (latched)
-    cond_Y: float
-    num_segments: int
-    num_samples: int
-    solver: dict = field(default_factory=dict)
-    message: str = ""
-    problems: list = field(default_factory=list)  # this update's evidence that an assumption failed
-    quadrature_ratio: float = 0.0  # max over rows of quadrature bound / torque radius
-    # A5 (quadrature): "unverified" (assumed: the motion between the samples is unknown, e.g. a log
-    # offline), "checked" (on every segment, `segments.resolved_quadrature`), or "violated" (false
-    # on some segment, whose bound was re-derived on sub-steps).
-    quadrature_assumption: str = "unverified"
-    update_time_s: float = 0.0
-    # The data-driven box (data ∩ prior ∩ the previous data box) before physical pruning; equals
-    # lower/upper when settings.physical_pruning is off.
-    data_lower: np.ndarray | None = None
-    data_upper: np.ndarray | None = None
-    # The paper's first-order interval (Theorem 2 with the Jacobian at m only): Y⁺U(m) ± |Y⁺ ∂U/∂m|
-    # rad([m]), unweighted rows, no quadrature or rounding term, no prior: reported, never used.
-    first_order_lower: np.ndarray | None = None
-    first_order_upper: np.ndarray | None = None
-
-    @property
-    def widths(self) -> np.ndarray:
-        return self.upper - self.lower
-
-    def contains(self, theta_e: ArrayLike, tol: float = 0.0) -> bool:
-        return bool(np.all((self.lower - tol <= theta_e) & (theta_e <= self.upper + tol)))
-
-    def to_json(self, names: Sequence[str] = inertial.NAMES) -> dict:
-        f = lambda x: [float(v) for v in np.asarray(x).ravel()]  # noqa: E731
-        return {
-            "nominal": f(self.theta_e),
-            "lower": f(self.lower),
-            "upper": f(self.upper),
-            "names": list(names),
-            "widths": f(self.widths),
-            "theta_ls": f(self.theta_ls),
-            "update_lower": f(self.update_lower),
-            "update_upper": f(self.update_upper),
-            "radius": {
-                "torque": f(self.radius_torque),
-                "theta_r": f(self.radius_theta_r),
-                "quadrature": f(self.radius_quadrature),
-                "rounding": f(self.radius_rounding),
-            },
-            "case": self.case,
-            "consistent": self.consistent,
-            "cond_Y": float(self.cond_Y),
-            "num_segments": int(self.num_segments),
-            "num_samples": int(self.num_samples),
-            "solver": self.solver,
-            "message": self.message,
-            "problems": list(self.problems),
-            "quadrature_ratio": float(self.quadrature_ratio),
-            "quadrature_assumption": self.quadrature_assumption,
-            "update_time_s": float(self.update_time_s),
-            "data_lower": f(self.lower if self.data_lower is None else self.data_lower),
-            "data_upper": f(self.upper if self.data_upper is None else self.data_upper),
-            "first_order_lower": None if self.first_order_lower is None else f(self.first_order_lower),
-            "first_order_upper": None if self.first_order_upper is None else f(self.first_order_upper),
-        }
-
-
-def quadrature_assumption(rows: SegmentRows) -> str:
-    """What A5 rests on for these rows: violated | checked | unverified (see Estimate)."""
-    if rows.a5_violated.any():
-        return "violated"
-    return "checked" if len(rows) and rows.a5_checked.all() else "unverified"
-
-
 def _names(mask):
     return [inertial.NAMES[k] for k in np.flatnonzero(mask)]
+
+
+def _case(centre, radius, theta):
+    """Which case of Theorem 2 the box is in (Estimate.case), from the least-squares solution theta."""
+    box_ok, lam = box_is_consistent(centre, radius)
+    at_centre = np.abs(theta - centre) <= 1e-6 * (np.abs(centre) + radius + 1e-9)
+    if box_ok:
+        return "interior"  # exact hull of θ*([m]); θ* linear in m on the whole box
+    if lam > 0 and np.all(at_centre):
+        return "interior_at_m"  # LMI inactive at m but reachable inside [m]; box encloses truth
+    return "lmi_active"  # θ0 near the LMI boundary; box around Y⁺U(m) still encloses truth
 
 
 class IncrementalEstimator:
@@ -250,41 +173,85 @@ class IncrementalEstimator:
     def update(self) -> Estimate:
         """Algorithm 1 on all segments so far; returns the Estimate (also kept in .estimate)."""
         start = time.perf_counter()
-        robot, st = self.robot, self.settings
+        st = self.settings
         S = len(self.rows)
-        if S * self.n < 10:
-            hint = (
-                ""
-                if st.segment_gap_s() == st.max_gap_s
-                else (
-                    f" (held torque: a step longer than {st.segment_gap_s():.3g} s, 1.5 hold periods, ends a segment; "
-                    "for a log sampled slower than its controller set estimator.hold_period_s or "
-                    "estimator.torque_signal: continuous)"
-                )
-            )
-            raise EstimatorError(
-                f"too little data: {S} segment(s) of {st.horizon_s} s; need at least "
-                f"{int(np.ceil(10 / self.n))} gap-free segments{hint}"
-            )
+        self._require_data(S)
         hull, cond = interval_hull(self.rows, self.theta_r, self.theta_r_radius, st)
         prev = self.estimate
         if hull is None or cond > st.max_condition:
             return self._finish(self._prior_estimate(cond, S, f"not identifiable yet (cond(Y) = {cond:.3g})"), start)
         centre = hull["centre"]
+        sol = self._least_squares(hull)
+        radius = hull["rad_torque"] + hull["rad_theta_r"] + hull["rad_quad"] + hull["rad_round"]
+        # Evidence that a declared assumption failed (each one empties the set the truth is in).
+        problems = []
+        lo, hi = self._update_box(centre, radius, problems)
+        case = _case(centre, radius, sol.theta)
+        data_lo, data_hi, new_lo, new_hi = self._published_box(lo, hi, prev, problems)
+        notes, a5, quad_ratio = self._notes()
+        if problems:
+            if self.consistent:
+                notes.insert(
+                    0,
+                    "inconsistent data (" + "; ".join(problems) + "): torque noise or θ_r outside the "
+                    "declared bounds, or the model is wrong; keeping the last consistent interval",
+                )
+            self.consistent = False
+        self.messages.extend(notes)
+        if not self.consistent:  # latched: publish the last consistent box (or the prior) unchanged
+            keep = prev or self._prior_estimate(np.inf, 0, "")
+            theta_e, new_lo, new_hi = keep.theta_e.copy(), keep.lower.copy(), keep.upper.copy()
+            data_lo, data_hi = keep.data_lower.copy(), keep.data_upper.copy()
+            lo, hi = data_lo, data_hi  # this update's own box is evidence of a failure, not an interval
+        else:
+            self.eta = sol.eta  # the consistent least-squares solution stays the warm start
+            # Publish the nominal clipped into the interval: the truth is inside it, so per parameter
+            # the projection is never farther from the truth (it matters for barely excited inertias).
+            theta_e = np.clip(sol.theta, new_lo, new_hi)
+        est = self._estimate(theta_e, (new_lo, new_hi), sol=sol, hull=hull, cond=cond, case=case)
+        est.update_lower, est.update_upper, est.data_lower, est.data_upper = lo, hi, data_lo, data_hi
+        est.message, est.problems = "; ".join(notes), problems
+        est.quadrature_ratio, est.quadrature_assumption = quad_ratio, a5
+        return self._finish(est, start)
+
+    def _require_data(self, S):
+        """EstimatorError unless the S segments give at least 10 rows."""
+        st = self.settings
+        if S * self.n >= 10:
+            return
+        hint = (
+            ""
+            if st.segment_gap_s() == st.max_gap_s
+            else (
+                f" (held torque: a step longer than {st.segment_gap_s():.3g} s, 1.5 hold periods, ends a segment; "
+                "for a log sampled slower than its controller set estimator.hold_period_s or "
+                "estimator.torque_signal: continuous)"
+            )
+        )
+        raise EstimatorError(
+            f"too little data: {S} segment(s) of {st.horizon_s} s; need at least "
+            f"{int(np.ceil(10 / self.n))} gap-free segments{hint}"
+        )
+
+    def _least_squares(self, hull):
+        """The physically consistent least-squares solution (log-Cholesky NLP). Warm start: previous η,
+        or P⁻¹ of the unconstrained solution when it is consistent (then it is the optimum and the
+        NLP only confirms it) — whichever costs less."""
         A, b, c = hull["A"], hull["b"], hull["c"]
-        # Warm start: previous η, or P⁻¹ of the unconstrained solution when it is consistent
-        # (then it is the optimum and the NLP only confirms it) — whichever costs less.
-        starts = [self.eta, inertial.theta_to_log_cholesky(nearest_consistent(centre))]
+        starts = [self.eta, inertial.theta_to_log_cholesky(nearest_consistent(hull["centre"]))]
         eta0 = min(starts, key=lambda e: cost_grad_hess(e, A, b, c)[0])
-        sol = solve_log_cholesky(A, b, c, eta0, st.solver, st.newton_steps)
+        sol = solve_log_cholesky(A, b, c, eta0, self.settings.solver, self.settings.newton_steps)
         if not np.all(np.isfinite(sol.theta)):
             sol.eta, sol.theta = self.eta, inertial.log_cholesky_to_theta(self.eta)
             self.messages.append("solver failed; kept the previous estimate")
-        radius = hull["rad_torque"] + hull["rad_theta_r"] + hull["rad_quad"] + hull["rad_round"]
+        return sol
+
+    def _update_box(self, centre, radius, problems):
+        """This update's box: Theorem 2's hull, the `map` estimate's second enclosure, the prior
+        and the set-membership LP intersected; a contradiction is appended to `problems`."""
+        st = self.settings
         lo = np.nextafter(centre - radius, -np.inf)
         hi = np.nextafter(centre + radius, np.inf)
-        # Evidence that a declared assumption failed (each one empties the set the truth is in).
-        problems = []
         if np.any(self.rows.violated):
             problems.append(
                 f"the measured torque changes faster than the declared {st.torque_rate_limit_Nm_s} N·m/s "
@@ -323,23 +290,20 @@ class IncrementalEstimator:
             else:
                 lo = np.where(np.isnan(sm_lo), lo, np.maximum(lo, sm_lo))
                 hi = np.where(np.isnan(sm_hi), hi, np.minimum(hi, sm_hi))
-        box_ok, lam = box_is_consistent(centre, radius)
-        at_centre = np.abs(sol.theta - centre) <= 1e-6 * (np.abs(centre) + radius + 1e-9)
-        if box_ok:
-            case = "interior"  # exact hull of θ*([m]); θ* linear in m on the whole box
-        elif lam > 0 and np.all(at_centre):
-            case = "interior_at_m"  # LMI inactive at m but reachable inside [m]; box encloses truth
-        else:
-            case = "lmi_active"  # θ0 near the LMI boundary; box around Y⁺U(m) still encloses truth
-        # Intersect with the previous data-driven interval (or the prior) ...
+        return lo, hi
+
+    def _published_box(self, lo, hi, prev, problems):
+        """(data box, published box): the update box intersected with the previous data-driven
+        interval (or the prior), then pruned with physical knowledge inside the published one."""
         old = (prev.data_lower, prev.data_upper) if prev is not None else self.prior
         data_lo, data_hi = (lo, hi) if old is None else (np.maximum(lo, old[0]), np.minimum(hi, old[1]))
         if np.any(data_lo > data_hi):
             problems.append(f"the new interval does not meet the published one in {_names(data_lo > data_hi)}")
-        # ... then prune it with physical knowledge and keep it inside the published one.
         new_lo, new_hi = data_lo, data_hi
-        if st.physical_pruning and not problems:
-            p_lo, p_hi, feasible = prune_box(data_lo, data_hi, st.payload_volume, self.gripper_box, cuts=self._cuts)
+        if self.settings.physical_pruning and not problems:
+            p_lo, p_hi, feasible = prune_box(
+                data_lo, data_hi, self.settings.payload_volume, self.gripper_box, cuts=self._cuts
+            )
             if not feasible:
                 problems.append("the data box contradicts the payload's physical knowledge (LMI, bounding volume)")
             else:
@@ -348,6 +312,10 @@ class IncrementalEstimator:
                 )
                 if np.any(new_lo > new_hi):
                     problems.append(f"the pruned interval does not meet the published one in {_names(new_lo > new_hi)}")
+        return data_lo, data_hi, new_lo, new_hi
+
+    def _notes(self):
+        """(notes on the quadrature term, A5's status, the largest quadrature / torque radius ratio)."""
         notes = []
         a5 = quadrature_assumption(self.rows)
         if a5 == "violated":
@@ -356,46 +324,33 @@ class IncrementalEstimator:
                 "samples is faster than they show; those rows are bounded on sub-steps"
             )
         quad_ratio = float(np.max(self.rows.quad / np.maximum(torque_row_radius(self.rows), 1e-300)))
-        if quad_ratio > st.quadrature_warn_ratio:
+        if quad_ratio > self.settings.quadrature_warn_ratio:
             notes.append(
                 f"quadrature term up to {quad_ratio:.2f} of a row's torque radius: the motion is not "
                 "resolved by the sampling"
             )
-        if problems:
-            if self.consistent:
-                notes.insert(
-                    0,
-                    "inconsistent data (" + "; ".join(problems) + "): torque noise or θ_r outside the "
-                    "declared bounds, or the model is wrong; keeping the last consistent interval",
-                )
-            self.consistent = False
-        self.messages.extend(notes)
-        if not self.consistent:  # latched: publish the last consistent box (or the prior) unchanged
-            keep = prev or self._prior_estimate(np.inf, 0, "")
-            theta_e, new_lo, new_hi = keep.theta_e.copy(), keep.lower.copy(), keep.upper.copy()
-            data_lo, data_hi = keep.data_lower.copy(), keep.data_upper.copy()
-            lo, hi = data_lo, data_hi  # this update's own box is evidence of a failure, not an interval
-        else:
-            self.eta = sol.eta  # the consistent least-squares solution stays the warm start
-            # Publish the nominal clipped into the interval: the truth is inside it, so per parameter
-            # the projection is never farther from the truth (it matters for barely excited inertias).
-            theta_e = np.clip(sol.theta, new_lo, new_hi)
+        return notes, a5, quad_ratio
+
+    def _estimate(self, theta_e, box, *, sol, hull, cond, case):
+        """The Estimate of θ_e in `box` (the whole robot's θ and box around it; the update's own
+        boxes and notes are filled in by the caller)."""
+        robot = self.robot
         first = self._first_order()
         theta = robot.theta.copy()
         theta[robot.ee_slice] = theta_e
         t_lo, t_hi = self._robot_box()
-        t_lo[robot.ee_slice], t_hi[robot.ee_slice] = new_lo, new_hi
-        est = Estimate(
+        t_lo[robot.ee_slice], t_hi[robot.ee_slice] = box
+        return Estimate(
             theta_e=theta_e,
-            lower=new_lo,
-            upper=new_hi,
+            lower=box[0],
+            upper=box[1],
             theta=theta,
             theta_lower=t_lo,
             theta_upper=t_hi,
             eta=sol.eta,
-            theta_ls=centre,
-            update_lower=lo,
-            update_upper=hi,
+            theta_ls=hull["centre"],
+            update_lower=None,
+            update_upper=None,
             radius_torque=hull["rad_torque"],
             radius_theta_r=hull["rad_theta_r"],
             radius_quadrature=hull["rad_quad"],
@@ -403,7 +358,7 @@ class IncrementalEstimator:
             case=case,
             consistent=self.consistent,
             cond_Y=cond,
-            num_segments=S,
+            num_segments=len(self.rows),
             num_samples=self.num_samples,
             solver={
                 "name": sol.solver,
@@ -413,16 +368,9 @@ class IncrementalEstimator:
                 "grad_norm": sol.grad_norm,
                 "newton_steps": sol.newton_steps,
             },
-            message="; ".join(notes),
-            problems=problems,
-            quadrature_ratio=quad_ratio,
-            quadrature_assumption=a5,
-            data_lower=data_lo,
-            data_upper=data_hi,
             first_order_lower=None if first is None else first[0],
             first_order_upper=None if first is None else first[1],
         )
-        return self._finish(est, start)
 
     def _first_order(self):
         """The paper's first-order interval on the same data (see Estimate.first_order_lower)."""

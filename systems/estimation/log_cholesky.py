@@ -127,7 +127,6 @@ def solve_log_cholesky(
     in η: the solvers then stop at an iterate close to it (reported, not an error).
     """
     from pydrake.autodiffutils import AutoDiffXd, ExtractGradient, ExtractValue
-    from pydrake.solvers import MathematicalProgram, SolverOptions
 
     # Cost scaling: Ipopt's tolerances are absolute; scale so the start costs O(1).
     # (Cost scaled by trace(A): the scaled Hessian in θ has eigenvalues ≤ 1.)
@@ -140,13 +139,40 @@ def solve_log_cholesky(
             return AutoDiffXd(J / scale, (g / scale) @ ExtractGradient(x))
         return cost_and_gradient(np.asarray(x, float), A, b, c, centred)[0] / scale
 
+    eta0 = np.clip(eta0, ETA_LOWER, ETA_UPPER)
+    eta, ok, msg, name = _solve_nlp(cost, eta0, solver=solver, max_iterations=max_iterations, max_time_s=max_time_s)
+    if not np.all(np.isfinite(eta)):
+        eta = np.asarray(eta0, float)
+    J = cost_and_gradient(eta, A, b, c, centred)[0]
+    eta, J, steps, polished = _newton_polish(eta, J, (A, b, c, centred), scale=scale, newton_steps=newton_steps)
+    g = cost_and_gradient(eta, A, b, c, centred)[1]
+    # Stationary to working precision (relative to the curvature scale) counts as solved.
+    ok = ok or polished or bool(np.linalg.norm(g) <= 1e-9 * scale * max(1.0, np.linalg.norm(eta)))
+    return SolveResult(
+        eta=eta,
+        theta=inertial.log_cholesky_to_theta(eta),
+        cost=J,
+        grad_norm=float(np.linalg.norm(g)),
+        solver=name,
+        success=ok,
+        message=msg,
+        newton_steps=steps,
+    )
+
+
+def _solve_nlp(cost, eta0, *, solver, max_iterations, max_time_s):
+    """(η, success, message, solver name) of Drake's NLP on `cost` inside the η box from eta0 (in
+    the box); the start point when the solver crashes."""
+    import logging
+
+    from pydrake.solvers import MathematicalProgram, SolverOptions
+
     prog = MathematicalProgram()
     x = prog.NewContinuousVariables(10, "eta")
     prog.AddCost(cost, vars=x)
     # Keep η finite: when the unconstrained optimum is not physically consistent the infimum
     # lies on the LMI boundary (η → ∞); these bounds stop the search e^-20 away from it.
     prog.AddBoundingBoxConstraint(ETA_LOWER, ETA_UPPER, x)
-    eta0 = np.clip(eta0, ETA_LOWER, ETA_UPPER)
     prog.SetInitialGuess(x, eta0)
     slv, name = _solver(solver)
     opts = SolverOptions()
@@ -164,8 +190,6 @@ def solve_log_cholesky(
             opts.SetOption(slv.solver_id(), "max_cpu_time", max_time_s)
     else:
         opts.SetOption(slv.solver_id(), "Major iterations limit", max_iterations)
-    import logging
-
     drake_log = logging.getLogger("drake")
     level = drake_log.level
     drake_log.setLevel(logging.ERROR)  # an iteration/time cap is expected near the LMI boundary
@@ -178,11 +202,14 @@ def solve_log_cholesky(
         eta, ok, msg = np.asarray(eta0, float), False, f"solver error: {err}"
     finally:
         drake_log.setLevel(level)
-    if not np.all(np.isfinite(eta)):
-        eta = np.asarray(eta0, float)
-    # Exact-Hessian polish: trust-region Newton (scipy trust-exact) on our exact gradient and
-    # Hessian, from the NLP's answer; kept only if it lowers the cost and stays in the η box.
-    J = cost_and_gradient(eta, A, b, c, centred)[0]
+    return eta, ok, msg, name
+
+
+def _newton_polish(eta, J, data, *, scale, newton_steps):
+    """Exact-Hessian polish: trust-region Newton (scipy trust-exact) on our exact gradient and
+    Hessian, from the NLP's answer; kept only if it lowers the cost and stays in the η box.
+    data = (A, b, c, centred). (η, cost, Newton steps taken, converged)."""
+    A, b, c, centred = data
     steps = 0
     polished = False
     if newton_steps > 0:
@@ -202,19 +229,7 @@ def solve_log_cholesky(
             if np.isfinite(Jp) and Jp <= J:
                 eta, J, steps = pol.x, Jp, int(pol.nit)
                 polished = bool(pol.success)
-    g = cost_and_gradient(eta, A, b, c, centred)[1]
-    # Stationary to working precision (relative to the curvature scale) counts as solved.
-    ok = ok or polished or bool(np.linalg.norm(g) <= 1e-9 * scale * max(1.0, np.linalg.norm(eta)))
-    return SolveResult(
-        eta=eta,
-        theta=inertial.log_cholesky_to_theta(eta),
-        cost=J,
-        grad_norm=float(np.linalg.norm(g)),
-        solver=name,
-        success=ok,
-        message=msg,
-        newton_steps=steps,
-    )
+    return eta, J, steps, polished
 
 
 def ift_sensitivity(eta: np.ndarray, A: np.ndarray, b: np.ndarray, dU_dm_Y: np.ndarray) -> np.ndarray:

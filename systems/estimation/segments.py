@@ -354,12 +354,9 @@ def torque_radius(
     sensor's reading r. reading_radius ρ: τ_meas is only known to be within ρ of r (a lag
     interval, estimation/lag.py), so |τ| ≤ (|τ_meas| + ρ + floor)/(1 − ratio) and the bound is
     (ratio (|τ_meas| + ρ) + floor)/(1 − ratio) + ρ (ρ = 0: the plain bound, bit for bit)."""
-    ratio = settings.torque_ratio
-    if ratio >= 1:
+    if settings.declared_noise.ratio >= 1:
         raise EstimatorError("noise.declared_torque_ratio must be < 1")
-    if reading_radius is None:
-        return (ratio * np.abs(tau_meas) + settings.torque_floor_Nm) / (1.0 - ratio)
-    return (ratio * (np.abs(tau_meas) + reading_radius) + settings.torque_floor_Nm) / (1.0 - ratio) + reading_radius
+    return settings.declared_noise.bound_from_measured(tau_meas, reading_radius)
 
 
 def build_segment_rows(
@@ -393,27 +390,12 @@ def build_segment_rows(
     tt, qq, vv, ta = t[lo : hi + 1], q[lo : hi + 1], v[lo : hi + 1], tau[lo : hi + 1]
     integ = settings.integration
     factors = _pair_factors(robot.tree, qq, vv)
-    wc_rigid = integrated_rate_regressor(robot.tree, qq, vv, tt, loc, integ, factors)
     rate_fric = regressors.friction_columns(vv, kind="rate", smoothing_velocity=robot.coulomb_smoothing)
-    wc_fric = segment_sums(rate_fric, tt, loc, integ)
-    ends = np.unique(loc.ravel())
-    wm = robot.momentum_regressor(qq[ends], vv[ends])
-    pos = {k: r for r, k in enumerate(ends)}
-    wm_a = wm[[pos[a] for a in loc[:, 0]]]
-    wm_b = wm[[pos[b] for b in loc[:, 1]]]
-    D = wm_b - wm_a - np.concatenate([wc_rigid, wc_fric], -1)
+    D = _momentum_differences(robot, (tt, qq, vv), loc, integ=integ, factors=factors, rate_fric=rate_fric)
     rule = settings.torque_rule()
     T = segment_sums(ta, tt, loc, rule)
     r = torque_radius(ta, settings, None if reading_radius is None else reading_radius[lo : hi + 1])
-    w_first = np.empty(S)
-    w_last = np.empty(S)
-    r_inner = np.empty((S, n))
-    r_inner_sq = np.empty((S, n))
-    for s, (a, b) in enumerate(loc):
-        w = sample_weights(tt, a, b, rule)
-        w_first[s], w_last[s] = w[0], w[-1]
-        r_inner[s] = w[1:-1] @ r[a + 1 : b]
-        r_inner_sq[s] = w[1:-1] ** 2 @ r[a + 1 : b] ** 2
+    w_first, w_last, r_inner, r_inner_sq = _radius_weights(tt, r, loc, rule)
     shared_prev = np.zeros(S, bool)
     shared_prev[1:] = loc[1:, 0] == loc[:-1, 1]
     centre, radius = (robot.theta, np.zeros_like(robot.theta)) if theta_box is None else theta_box
@@ -447,3 +429,33 @@ def build_segment_rows(
         a5_checked=np.full(S, reference is not None),
         a5_violated=a5_violated,
     )
+
+
+def _momentum_differences(robot, samples, loc, *, integ, factors, rate_fric):
+    """D (S, n, 14 n) per segment: the momentum regressor's change minus the integrated rate
+    regressor (rigid and friction columns), for the samples (t, q, v) and segment bounds loc."""
+    tt, qq, vv = samples
+    wc_rigid = integrated_rate_regressor(robot.tree, qq, vv, tt, loc, integ, factors)
+    wc_fric = segment_sums(rate_fric, tt, loc, integ)
+    ends = np.unique(loc.ravel())
+    wm = robot.momentum_regressor(qq[ends], vv[ends])
+    pos = {k: r for r, k in enumerate(ends)}
+    wm_a = wm[[pos[a] for a in loc[:, 0]]]
+    wm_b = wm[[pos[b] for b in loc[:, 1]]]
+    return wm_b - wm_a - np.concatenate([wc_rigid, wc_fric], -1)
+
+
+def _radius_weights(tt, r, loc, rule):
+    """Per segment: the torque rule's first and last sample weights and the weighted sums of the
+    inner samples' radii and squared radii, (w_first, w_last, r_inner, r_inner_sq)."""
+    S, n = len(loc), r.shape[1]
+    w_first = np.empty(S)
+    w_last = np.empty(S)
+    r_inner = np.empty((S, n))
+    r_inner_sq = np.empty((S, n))
+    for s, (a, b) in enumerate(loc):
+        w = sample_weights(tt, a, b, rule)
+        w_first[s], w_last[s] = w[0], w[-1]
+        r_inner[s] = w[1:-1] @ r[a + 1 : b]
+        r_inner_sq[s] = w[1:-1] ** 2 @ r[a + 1 : b] ** 2
+    return w_first, w_last, r_inner, r_inner_sq
