@@ -12,7 +12,7 @@ import json
 import sys
 from pathlib import Path
 
-from safesysid.systems.diagnosis.self_check import calibrated_coverage, spurious_table
+from safesysid.systems.diagnosis.truth_scores import calibrated_coverage, spurious_table
 
 
 def read_cases(path: str | Path) -> list[dict]:

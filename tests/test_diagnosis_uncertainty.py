@@ -153,10 +153,10 @@ def test_interval_factors_are_chosen_on_even_cases_and_scored_on_odd_ones():
         }
 
     cases = [case(k, 0.95 if k % 4 == 0 else 0.9) for k in range(40)]
-    cov = dg.self_check.calibrated_coverage(cases)
+    cov = dg.truth_scores.calibrated_coverage(cases)
     assert cov["factors"]["time_delay"] == pytest.approx(2.0)
     assert cov["held_out_values"] == 20 and cov["held_out_rate"] == 1.0
-    sp = dg.self_check.spurious_table(cases + [{"injected": [], "false": []}])
+    sp = dg.truth_scores.spurious_table(cases + [{"injected": [], "false": []}])
     assert sp["non_null_with_false_effect"] == pytest.approx(1 / 40) and sp["null_with_false_effect"] == 0
     assert sp["per_effect"]["armature"] == {"cases_lacking": 41, "named_falsely": 1}
 

@@ -14,7 +14,7 @@ Modules, in the order the data flows:
   diagnose          diagnose, frozen_diagnosis, leave_one_out (the entry points)
   corrected_model   corrected_model.yaml: the diagnosis' product, written and read back
   intervals         statistical intervals of the diagnosed values (block sandwich, block bootstrap)
-  simulate, self_check, detection, real_arm_check   the self-check on simulated logs
+  simulate, self_check, truth_scores, detection, real_arm_check   the self-check on simulated logs
 """
 
 from safesysid.systems.math.blas import single_threaded_blas
@@ -99,14 +99,8 @@ from .self_check import (
     HARD_NOISE_LEVEL,
     NEAR_FLOOR_SNR,
     case_plan,
-    confusion,
-    confusion_markdown,
-    error_markdown,
-    error_table,
     parallel_map,
     run_self_check,
-    summarize,
-    value_errors,
 )
 from .simulate import (
     GAP_S,
@@ -124,6 +118,7 @@ from .simulate import (
     true_torque,
 )
 from .time_laws import first_order_lag, model_side_rows, restarted_lag
+from .truth_scores import confusion, confusion_markdown, error_markdown, error_table, summarize, value_errors
 
 __all__ = [
     "EFFECTS",

@@ -69,7 +69,7 @@ def inner_folds(model: RobotModel, fit_logs: list[JointLog], form: str, rule: Sa
     contiguous pieces, leave one piece out) when there is one fit log."""
     masks = velocity_saturation(fit_logs, rule)
     if len(fit_logs) >= 2:
-        designs = [build_design(model, l, form, WINDOW_S, saturated=m) for l, m in zip(fit_logs, masks)]
+        designs = [build_design(model, l, form, window_s=WINDOW_S, saturated=m) for l, m in zip(fit_logs, masks)]
         scheme = "leave_one_fit_log_out"
     else:
         (log,), (mask,) = fit_logs, masks
@@ -78,7 +78,7 @@ def inner_folds(model: RobotModel, fit_logs: list[JointLog], form: str, rule: Sa
             piece = dataclasses.replace(
                 log.slice(sl), source=f"{log.source} [{log.t[sl][0]:.2f}, {log.t[sl][-1]:.2f}] s"
             )
-            designs.append(build_design(model, piece, form, WINDOW_S, saturated=mask[sl]))
+            designs.append(build_design(model, piece, form, window_s=WINDOW_S, saturated=mask[sl]))
         scheme = "time_blocked"
     folds = [([i for i in range(len(designs)) if i != k], [k]) for k in range(len(designs))]
     return CrossValidated(model, designs, folds, scheme)

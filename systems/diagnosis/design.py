@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from safesysid.systems.model import regressors
@@ -199,6 +200,7 @@ def build_design(
     model: RobotModel,
     log: JointLog,
     form: str,
+    *,
     window_s: float = 0.1,
     max_gap_s: float | None = None,
     columns: bool = True,
@@ -206,116 +208,142 @@ def build_design(
 ) -> Design:
     """Residual rows and every effect's columns for one JointLog (see module docstring).
     `saturated`: (N, n) sample mask of velocity_saturation (default: none)."""
-    n = model.n
-    t, q, v, tau = log.t, log.q, log.v, log.tau
-    nb = 10 * n
-    theta, theta_b = model.theta, model.theta[:nb]
-    tree = model.tree
+    t, q, v = log.t, log.q, log.v
     segs = segments(t, max_gap_s)
     a_smooth = smooth_derivative(t, v, segs)
-    g = _gravity(tree, theta_b, q)
-    gnorm = float(np.linalg.norm(tree.gravity)) or 9.81
-    sgn = regressors.coulomb_shape(v, model.coulomb_smoothing)
-    std_cols = {}
-    if columns:
-        std_cols["coulomb_friction"] = _diag(sgn)
-        std_cols["viscous_friction"] = _diag(v)
-        for vs in STRIBECK_VELOCITIES:
-            std_cols[f"stribeck_friction@{vs}"] = _diag(sgn * np.exp(-((v / vs) ** 2)))
-        tau_nb = _neighbour_mean(tau, segs)
-        std_cols["load_friction"] = _diag(np.abs(tau_nb) * sgn)
-        std_cols["torque_offset"] = _diag(np.ones_like(v))
-        std_cols["base_tilt"] = np.stack(
-            [_gravity(tree, theta_b, q, [gnorm, 0, 0]), _gravity(tree, theta_b, q, [0, gnorm, 0])], -1
-        )
-        # d tau_rigid / dq at the logged motion (acceleration: logged, else the smoothed one).
-        h = 1e-6
-        a_el = log.a if (form == "inverse_dynamics" and log.a is not None) else a_smooth
-        tau0 = regressors.standard_regressor(tree, q, v, a_el) @ theta_b
-        dtdq = np.stack(
-            [
-                (regressors.standard_regressor(tree, q + h * np.eye(n)[j], v, a_el) @ theta_b - tau0) / h
-                for j in range(n)
-            ],
-            -1,
-        )
-        # Torque through the transmission: measured minus the nominal joint friction.
-        jp = model.joint_params
-        fric = jp.coulomb * sgn + jp.viscous * v + jp.offset
-        std_cols["joint_elasticity"] = -dtdq * (tau_nb - fric)[:, None, :]
-    ee = [model.end_effector]
+    g = _gravity(model.tree, model.theta[: 10 * model.n], q)
+    std_cols = _effect_columns(model, log, form=form, segs=segs, a_smooth=a_smooth) if columns else {}
     if form == "inverse_dynamics":
-        a = log.a
-        W = model.standard_regressor(q, v, a)
-        tau_nom = W @ theta
-        y = tau - tau_nom
-        cols = dict(std_cols)
-        if columns:
-            cols["torque_scale"] = _diag(tau_nom)
-            cols["armature"] = _diag(a)
-            cols["payload"] = W[:, :, model.ee_slice]
-            # Savitzky-Golay derivative: zero weight on the centre sample, so the column shares
-            # no white noise with the residual row.
-            cols["time_delay"] = -smooth_derivative(t, tau, segs)[:, :, None]
-            cols["time_delay@shift"] = np.zeros(y.shape + (0,))
-        rows = np.arange(len(t))
-        row_time = t
-        feat = {"v": v, "a": a, "g": g, "q": q}
-        sample_cols, sample_nominal, win = cols, tau_nom, None
+        rows = _inverse_dynamics_rows(model, log, std_cols, segs=segs, g=g, columns=columns)
     elif form == "momentum":
-        win = _windows(t, segs, window_s)
-        i0, i1 = win[:, 0], win[:, 1]
-        span = (t[i1] - t[i0])[:, None]
-        Wm = model.momentum_regressor(q, v)
-        Wc = model.momentum_rate_regressor(q, v)
-        pm = Wm @ theta
-        cc = _cumtrapz(t, Wc @ theta)
-        ct = _cumtrapz(t, tau)
-        y = (ct[i1] - ct[i0] - (pm[i1] - pm[i0]) + (cc[i1] - cc[i0])) / span
-        tau_nom = ((pm[i1] - pm[i0]) - (cc[i1] - cc[i0])) / span
-        # Each column as a sample-level "antiderivative" C; the window row is (C[i1] - C[i0]) / span.
-        cum = {}
-        if columns:
-            for name, c in std_cols.items():
-                cum[name] = _cumtrapz(t, c)
-            cum["torque_scale"] = _diag(pm - cc)
-            cum["armature"] = _diag(v)
-            cum["payload"] = Wm[:, :, model.ee_slice] - _cumtrapz(t, Wc[:, :, model.ee_slice])
-            cum["time_delay"] = -tau[:, :, None]
-            cum["time_delay@shift"] = np.zeros(tau.shape + (0,))
-        s3 = span[:, :, None]
-        cols = {name: (c[i1] - c[i0]) / s3 for name, c in cum.items()}
-        rows = (i0 + i1) // 2
-        row_time = 0.5 * (t[i0] + t[i1])
-        feat = {"v": v[rows], "a": a_smooth[rows], "g": g[rows], "q": q[rows]}
-        sample_cols, sample_nominal = cum, pm - cc
-        del ee
+        rows = _momentum_rows(
+            model, log, std_cols, segs=segs, g=g, a_smooth=a_smooth, window_s=window_s, columns=columns
+        )
     else:
         raise ValueError(f"unknown residual form {form!r}")
-    # Blocks for the held-out standard error: BLOCK_S pieces inside each segment.
+    return _design(form, log, rows, segs=segs, saturated=saturated)
+
+
+class _Rows(NamedTuple):
+    y: np.ndarray  # residual rows
+    cols: dict  # effect name -> columns per row
+    tau_nom: np.ndarray
+    rows: np.ndarray  # the sample each row sits at
+    row_time: np.ndarray
+    feat: dict
+    sample_cols: dict
+    sample_nominal: np.ndarray
+    win: np.ndarray | None  # momentum windows (sample index pairs), None per sample
+
+
+def _effect_columns(model, log, *, form, segs, a_smooth):
+    """Every sample-level effect column but the form-specific ones (friction laws, load friction,
+    offset, base tilt, joint elasticity)."""
+    n, tree = model.n, model.tree
+    q, v, tau = log.q, log.v, log.tau
+    theta_b = model.theta[: 10 * n]
+    gnorm = float(np.linalg.norm(tree.gravity)) or 9.81
+    sgn = regressors.coulomb_shape(v, model.coulomb_smoothing)
+    std_cols = {"coulomb_friction": _diag(sgn), "viscous_friction": _diag(v)}
+    for vs in STRIBECK_VELOCITIES:
+        std_cols[f"stribeck_friction@{vs}"] = _diag(sgn * np.exp(-((v / vs) ** 2)))
+    tau_nb = _neighbour_mean(tau, segs)
+    std_cols["load_friction"] = _diag(np.abs(tau_nb) * sgn)
+    std_cols["torque_offset"] = _diag(np.ones_like(v))
+    std_cols["base_tilt"] = np.stack(
+        [_gravity(tree, theta_b, q, [gnorm, 0, 0]), _gravity(tree, theta_b, q, [0, gnorm, 0])], -1
+    )
+    # d tau_rigid / dq at the logged motion (acceleration: logged, else the smoothed one).
+    h = 1e-6
+    a_el = log.a if (form == "inverse_dynamics" and log.a is not None) else a_smooth
+    tau0 = regressors.standard_regressor(tree, q, v, a_el) @ theta_b
+    dtdq = np.stack(
+        [(regressors.standard_regressor(tree, q + h * np.eye(n)[j], v, a_el) @ theta_b - tau0) / h for j in range(n)],
+        -1,
+    )
+    # Torque through the transmission: measured minus the nominal joint friction.
+    jp = model.joint_params
+    fric = jp.coulomb * sgn + jp.viscous * v + jp.offset
+    std_cols["joint_elasticity"] = -dtdq * (tau_nb - fric)[:, None, :]
+    return std_cols
+
+
+def _inverse_dynamics_rows(model, log, std_cols, *, segs, g, columns):
+    """One row per sample: measured minus the model's inverse dynamics at the logged acceleration."""
+    t, q, v, tau, a = log.t, log.q, log.v, log.tau, log.a
+    W = model.standard_regressor(q, v, a)
+    tau_nom = W @ model.theta
+    y = tau - tau_nom
+    cols = dict(std_cols)
+    if columns:
+        cols["torque_scale"] = _diag(tau_nom)
+        cols["armature"] = _diag(a)
+        cols["payload"] = W[:, :, model.ee_slice]
+        # Savitzky-Golay derivative: zero weight on the centre sample, so the column shares
+        # no white noise with the residual row.
+        cols["time_delay"] = -smooth_derivative(t, tau, segs)[:, :, None]
+        cols["time_delay@shift"] = np.zeros(y.shape + (0,))
+    feat = {"v": v, "a": a, "g": g, "q": q}
+    return _Rows(y, cols, tau_nom, np.arange(len(t)), t, feat, cols, tau_nom, None)
+
+
+def _momentum_rows(model, log, std_cols, *, segs, g, a_smooth, window_s, columns):
+    """One row per window: the momentum balance's residual over it, divided by its span."""
+    t, q, v, tau = log.t, log.q, log.v, log.tau
+    win = _windows(t, segs, window_s)
+    i0, i1 = win[:, 0], win[:, 1]
+    span = (t[i1] - t[i0])[:, None]
+    Wm = model.momentum_regressor(q, v)
+    Wc = model.momentum_rate_regressor(q, v)
+    pm = Wm @ model.theta
+    cc = _cumtrapz(t, Wc @ model.theta)
+    ct = _cumtrapz(t, tau)
+    y = (ct[i1] - ct[i0] - (pm[i1] - pm[i0]) + (cc[i1] - cc[i0])) / span
+    tau_nom = ((pm[i1] - pm[i0]) - (cc[i1] - cc[i0])) / span
+    # Each column as a sample-level "antiderivative" C; the window row is (C[i1] - C[i0]) / span.
+    cum = {}
+    if columns:
+        for name, c in std_cols.items():
+            cum[name] = _cumtrapz(t, c)
+        cum["torque_scale"] = _diag(pm - cc)
+        cum["armature"] = _diag(v)
+        cum["payload"] = Wm[:, :, model.ee_slice] - _cumtrapz(t, Wc[:, :, model.ee_slice])
+        cum["time_delay"] = -tau[:, :, None]
+        cum["time_delay@shift"] = np.zeros(tau.shape + (0,))
+    s3 = span[:, :, None]
+    cols = {name: (c[i1] - c[i0]) / s3 for name, c in cum.items()}
+    rows = (i0 + i1) // 2
+    feat = {"v": v[rows], "a": a_smooth[rows], "g": g[rows], "q": q[rows]}
+    return _Rows(y, cols, tau_nom, rows, 0.5 * (t[i0] + t[i1]), feat, cum, pm - cc, win)
+
+
+def _design(form, log, r, *, segs, saturated):
+    """The Design of rows r: held-out blocks (BLOCK_S pieces inside each segment), saturated rows
+    and the sample-level data."""
+    t, v = log.t, log.v
     seg_id = np.zeros(len(t), int)
     for k, (s0, s1) in enumerate(segs):
         seg_id[s0 : s1 + 1] = k
-    blk = seg_id[rows] * 100000 + np.floor((row_time - t[0]) / BLOCK_S).astype(int)
+    blk = seg_id[r.rows] * 100000 + np.floor((r.row_time - t[0]) / BLOCK_S).astype(int)
     _, row_block = np.unique(blk, return_inverse=True)
-    d = Design(form, y, cols, row_time, row_block, feat, tau_nom, log.source, segments=segs)
-    d.row_segment = seg_id[rows]
+    d = Design(form, r.y, r.cols, r.row_time, row_block, r.feat, r.tau_nom, log.source, segments=segs)
+    d.row_segment = seg_id[r.rows]
     sat = np.zeros(v.shape, bool) if saturated is None else np.asarray(saturated, bool)
-    if win is None:
-        d.row_saturated = sat[rows]
+    if r.win is None:
+        d.row_saturated = sat[r.rows]
     else:  # a window is saturated when any of its samples is
-        csum = np.concatenate([np.zeros((1, n), int), np.cumsum(sat, 0)])
-        d.row_saturated = (csum[win[:, 1] + 1] - csum[win[:, 0]]) > 0
+        csum = np.concatenate([np.zeros((1, v.shape[1]), int), np.cumsum(sat, 0)])
+        d.row_saturated = (csum[r.win[:, 1] + 1] - csum[r.win[:, 0]]) > 0
     d.sample = {
         "t": t,
         "segment": seg_id,
         "seg_bounds": np.array(segs, int).reshape(-1, 2),
-        "cols": sample_cols,
-        "nominal": sample_nominal,
-        "windows": win,
-        "measured": tau,
+        "cols": r.sample_cols,
+        "nominal": r.sample_nominal,
+        "windows": r.win,
+        "measured": log.tau,
         "restarts": lag_restarts(segs, sat),
-        "antiderivative": win is not None,
+        "antiderivative": r.win is not None,
     }
     return d
 

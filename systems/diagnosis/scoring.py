@@ -36,7 +36,7 @@ def frozen_designs(
     if form == "inverse_dynamics" and any(l.a is None for l in logs):
         form = "momentum"
     masks = velocity_saturation(logs, rule) if rule is not None else [np.zeros(l.v.shape, bool) for l in logs]
-    return [build_design(model, l, form, window_s, saturated=m) for l, m in zip(logs, masks)]
+    return [build_design(model, l, form, window_s=window_s, saturated=m) for l, m in zip(logs, masks)]
 
 
 def score_designs(corrected: CorrectedModel, designs: list[Design]) -> tuple[list[np.ndarray], list[np.ndarray]]:

@@ -237,7 +237,6 @@ def make_case(
     same joint). noise_level: fraction of each joint's torque range (default: drawn).
     Returns (fit_logs, check_logs, truth) where truth records every effect's parameters, the
     achieved SNR, the joints it acts on and the joints it was injected on (1-based)."""
-    n = model.n
     trajs = [random_trajectory(model, rng) for _ in range(n_fit + n_check)]
     times = [sample_times(rng, duration_s) for _ in trajs]
     clean = [true_torque(model, tr, t, {}) for tr, t in zip(trajs, times)]
@@ -249,33 +248,15 @@ def make_case(
     shared = None  # joints of the first per-joint effect (same_joints)
     for name in injected:
         snr = rng.uniform(*snr_range)
-        for _attempt in range(MAX_DRAWS):
-            # Joints and shape are redrawn when the physical cap keeps the effect far below the
-            # drawn SNR (e.g. a stiff joint on an axis whose torque hardly depends on its angle).
-            if name not in PER_JOINT:
-                joints = np.arange(n)
-            elif same_joints and shared is not None:
-                joints = shared
-            else:
-                joints = np.sort(rng.choice(n, size=rng.integers(1, 4), replace=False))
-            if fixed and name in fixed:
-                eff = fixed[name]
-                joints = np.flatnonzero(_joint_mask(name, eff, n)) if name in PER_JOINT else joints
-            else:
-                eff, cap = _unit_effect(name, model, rng, joints)
-            rms = _effect_rms(model, name, eff, trajs, times, clean)
-            acts = rms >= 0.2 * rms.max() if rms.max() > 0 else np.zeros(n, bool)
-            noise_acts = np.sqrt(np.mean(noise_rms[acts] ** 2)) if acts.any() else 1.0
-            achieved = np.sqrt(np.mean(rms[acts] ** 2)) if acts.any() else 0.0
-            if fixed and name in fixed:
-                final = achieved
-                break
-            eff = _scale_effect(name, eff, snr * noise_acts / achieved if achieved > 0 else 1.0, cap)
-            final = (
-                np.sqrt(np.mean(_effect_rms(model, name, eff, trajs, times, clean)[acts] ** 2)) if acts.any() else 0.0
-            )
-            if final >= MIN_SNR_AFTER_CAP * noise_acts:
-                break
+        eff, acts, joints, final, noise_acts = _draw_effect(
+            model,
+            name,
+            rng,
+            snr=snr,
+            sim=(trajs, times, clean, noise_rms),
+            joints=shared if same_joints else None,
+            fixed=fixed,
+        )
         if name in PER_JOINT and shared is None:
             shared = joints
         effects[name] = eff
@@ -300,6 +281,41 @@ def make_case(
         "with_acceleration": bool(with_acceleration),
     }
     return logs[:n_fit], logs[n_fit:], truth_all
+
+
+def _draw_effect(model, name, rng, *, snr, sim, joints, fixed):
+    """(effect, mask of the joints it acts on, joints it was injected on, achieved rms, noise rms
+    on those joints) of one injected effect scaled to `snr` (under its physical cap); `joints`
+    given: inject on them (same_joints); sim = (trajectories, times, clean torques, noise rms)."""
+    n = model.n
+    trajs, times, clean, noise_rms = sim
+    shared = joints
+    for _attempt in range(MAX_DRAWS):
+        # Joints and shape are redrawn when the physical cap keeps the effect far below the
+        # drawn SNR (e.g. a stiff joint on an axis whose torque hardly depends on its angle).
+        if name not in PER_JOINT:
+            joints = np.arange(n)
+        elif shared is not None:
+            joints = shared
+        else:
+            joints = np.sort(rng.choice(n, size=rng.integers(1, 4), replace=False))
+        if fixed and name in fixed:
+            eff = fixed[name]
+            joints = np.flatnonzero(_joint_mask(name, eff, n)) if name in PER_JOINT else joints
+        else:
+            eff, cap = _unit_effect(name, model, rng, joints)
+        rms = _effect_rms(model, name, eff, trajs, times, clean)
+        acts = rms >= 0.2 * rms.max() if rms.max() > 0 else np.zeros(n, bool)
+        noise_acts = np.sqrt(np.mean(noise_rms[acts] ** 2)) if acts.any() else 1.0
+        achieved = np.sqrt(np.mean(rms[acts] ** 2)) if acts.any() else 0.0
+        if fixed and name in fixed:
+            final = achieved
+            break
+        eff = _scale_effect(name, eff, snr * noise_acts / achieved if achieved > 0 else 1.0, cap)
+        final = np.sqrt(np.mean(_effect_rms(model, name, eff, trajs, times, clean)[acts] ** 2)) if acts.any() else 0.0
+        if final >= MIN_SNR_AFTER_CAP * noise_acts:
+            break
+    return eff, acts, joints, final, noise_acts
 
 
 def _joint_mask(name, eff, n):

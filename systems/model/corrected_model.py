@@ -217,19 +217,8 @@ def read_corrected_model(path: str | Path) -> CorrectedModel:
     """CorrectedModel from a corrected_model.yaml; CorrectedModelError (one line naming file and
     field) on anything missing or malformed. Joint counts are checked against a model with
     CorrectedModel.check_joints(n) once the model is loaded."""
-    import yaml
-
-    p = Path(path)
     where = str(path)
-    try:
-        doc = yaml.safe_load(p.read_text())
-    except OSError as err:
-        raise CorrectedModelError(f"{where}: cannot read ({err.strerror})") from err
-    except yaml.YAMLError as err:
-        line = getattr(getattr(err, "problem_mark", None), "line", None)
-        raise CorrectedModelError(
-            f"{where}: not valid YAML" + (f" (line {line + 1})" if line is not None else "")
-        ) from err
+    doc = _load_yaml(Path(path), where)
 
     def bad(field_name, msg):
         return CorrectedModelError(f"{where}: {field_name}: {msg}")
@@ -245,37 +234,7 @@ def read_corrected_model(path: str | Path) -> CorrectedModel:
     effects = []
     for k, e in enumerate(effects_doc):
         f = f"effects[{k}]"
-        if not isinstance(e, dict):
-            raise bad(f, "expected a mapping {name, joints, params}")
-        name = e.get("name")
-        if name not in EFFECT_NAMES:
-            raise bad(f"{f}.name", f"unknown effect {name!r} (known: {', '.join(EFFECT_NAMES)})")
-        joints = e.get("joints", [])
-        if not isinstance(joints, list) or not all(
-            isinstance(j, int) and not isinstance(j, bool) and j >= 1 for j in joints
-        ):
-            raise bad(f"{f}.joints", "expected a list of 1-based joint numbers")
-        params = e.get("params")
-        if not isinstance(params, dict):
-            raise bad(f"{f}.params", "missing or not a mapping")
-        if name == "time_delay" and "time_law" not in params and isinstance(params.get("law"), str):
-            # Files written before `time_law` existed name the law in prose only.
-            params = {**params, "time_law": "lag" if params["law"].startswith("first-order") else "shift"}
-        for key, kind in REQUIRED[name].items():
-            if key not in params:
-                raise bad(f"{f}.params.{key}", "missing")
-            val = params[key]
-            if kind == "law":
-                if val not in TIME_LAWS:
-                    raise bad(f"{f}.params.{key}", f"expected one of {', '.join(TIME_LAWS)}, got {val!r}")
-            elif kind is None:
-                if not _finite(val):
-                    raise bad(f"{f}.params.{key}", f"expected a finite number, got {val!r}")
-            else:
-                if not isinstance(val, list) or not all(_finite(x) for x in val):
-                    raise bad(f"{f}.params.{key}", "expected a list of finite numbers")
-                if kind is not True and len(val) != kind:
-                    raise bad(f"{f}.params.{key}", f"expected {kind} values, got {len(val)}")
+        name, joints, params = _read_effect(e, f, bad)
         if name in [x.name for x in effects]:
             raise bad(f"{f}.name", f"{name} given twice")
         effects.append(
@@ -291,6 +250,59 @@ def read_corrected_model(path: str | Path) -> CorrectedModel:
     )
 
 
+def _load_yaml(p, where):
+    import yaml
+
+    try:
+        return yaml.safe_load(p.read_text())
+    except OSError as err:
+        raise CorrectedModelError(f"{where}: cannot read ({err.strerror})") from err
+    except yaml.YAMLError as err:
+        line = getattr(getattr(err, "problem_mark", None), "line", None)
+        raise CorrectedModelError(
+            f"{where}: not valid YAML" + (f" (line {line + 1})" if line is not None else "")
+        ) from err
+
+
+def _read_effect(e, f, bad):
+    """(name, joints, params) of the effect entry `e` at field `f`, checked against REQUIRED."""
+    if not isinstance(e, dict):
+        raise bad(f, "expected a mapping {name, joints, params}")
+    name = e.get("name")
+    if name not in EFFECT_NAMES:
+        raise bad(f"{f}.name", f"unknown effect {name!r} (known: {', '.join(EFFECT_NAMES)})")
+    joints = e.get("joints", [])
+    if not isinstance(joints, list) or not all(_is_joint_number(j) for j in joints):
+        raise bad(f"{f}.joints", "expected a list of 1-based joint numbers")
+    params = e.get("params")
+    if not isinstance(params, dict):
+        raise bad(f"{f}.params", "missing or not a mapping")
+    if name == "time_delay" and "time_law" not in params and isinstance(params.get("law"), str):
+        # Files written before `time_law` existed name the law in prose only.
+        params = {**params, "time_law": "lag" if params["law"].startswith("first-order") else "shift"}
+    for key, kind in REQUIRED[name].items():
+        if key not in params:
+            raise bad(f"{f}.params.{key}", "missing")
+        _check_param(params[key], kind, f"{f}.params.{key}", bad)
+    return name, joints, params
+
+
+def _check_param(val, kind, field_name, bad):
+    """kind (REQUIRED): "law" a time law, None a finite number, True a list of them, an int a list
+    of that many."""
+    if kind == "law":
+        if val not in TIME_LAWS:
+            raise bad(field_name, f"expected one of {', '.join(TIME_LAWS)}, got {val!r}")
+    elif kind is None:
+        if not _finite(val):
+            raise bad(field_name, f"expected a finite number, got {val!r}")
+    else:
+        if not isinstance(val, list) or not all(_finite(x) for x in val):
+            raise bad(field_name, "expected a list of finite numbers")
+        if kind is not True and len(val) != kind:
+            raise bad(field_name, f"expected {kind} values, got {len(val)}")
+
+
 def _read_intervals(doc, f, bad):
     """An effect's optional `intervals`: {key: [lo, hi]}, lo/hi numbers, null or lists of them."""
     if not isinstance(doc, dict):
@@ -302,6 +314,10 @@ def _read_intervals(doc, f, bad):
         if not ok:
             raise bad(f"{f}.intervals.{key}", "expected [lo, hi] (numbers, null or per-joint lists)")
     return dict(doc)
+
+
+def _is_joint_number(j):
+    return isinstance(j, int) and not isinstance(j, bool) and j >= 1
 
 
 def _finite(x):
