@@ -16,7 +16,8 @@ if TYPE_CHECKING:
     from safesysid.systems.model.robot_model import RobotModel
     from safesysid.systems.planner.trajectory_source import PhaseState, TaskPhaseSource
     from safesysid.systems.plant.safety_monitor import SafetyRecord
-    from safesysid.systems.task.trajectory import TaskProblem, TaskResult
+    from safesysid.systems.task.problem import TaskProblem
+    from safesysid.systems.task.trajectory import TaskResult
 
 
 def released_parameters(

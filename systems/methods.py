@@ -21,10 +21,6 @@ carries the model's source.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
-
-if TYPE_CHECKING:
-    from .config import Scenario
 
 NO_PAYLOAD, PRIOR, IDENTIFIED, ADAPTED = "no_payload", "prior", "identified", "adapted"
 # Trajectories of the identification phase.
@@ -130,18 +126,3 @@ def method_spec(name: str) -> MethodSpec:
         return METHODS_SPEC[name]
     except KeyError:
         raise ValueError(f"method {name!r} is not one of {', '.join(METHODS_SPEC)}") from None
-
-
-def excitation_duration_s(spec: MethodSpec, scenario: Scenario) -> float:
-    """Length of the identification phase: planner (N - 1) t_p + t_f, Fourier one period, else 0."""
-    if spec.excitation is None:
-        return 0.0
-    if spec.excitation.trajectory == FOURIER:
-        return float(scenario.fourier.period_s)
-    return planner_horizon_s(scenario)
-
-
-def planner_horizon_s(scenario: Scenario) -> float:
-    """Algorithm 2's identification phase: plans start every t_p, the last runs t_f to rest."""
-    p = scenario.planner
-    return (p.num_plans - 1) * p.replan_period_s + p.duration_s

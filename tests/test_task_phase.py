@@ -11,9 +11,9 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource
 from safesysid.online import run_online
 from safesysid.scenario import SCENARIOS_DIR, Obstacle, load_scenario
+from safesysid.systems.math.piecewise_bezier import Parametrization, PiecewiseBezier
 from safesysid.systems.planner.trajectory_source import TaskPhaseSource
 from safesysid.systems.task import phase as task_phase
-from safesysid.systems.task import trajectory as tt
 
 N, P = 7, 14 * 7
 
@@ -28,9 +28,9 @@ NARROWED_PRIOR = (
 
 def straight(q_from, q_to, duration):
     """A rest-to-rest minimum-jerk straight line (one degree-5 piece)."""
-    par = tt.Parametrization.make(1)
+    par = Parametrization.make(1)
     x = par.control_points(np.zeros((par.r, N)), q_from, q_to)
-    return tt.PiecewiseBezier(x.reshape(1, 6, N), duration)
+    return PiecewiseBezier(x.reshape(1, 6, N), duration)
 
 
 def source_diagram(switch_time_s, plan_q, connect_plan=True):

@@ -8,11 +8,13 @@ import numpy as np
 import pytest
 from safesysid.scenario import SCENARIOS_DIR, ScenarioError, load_scenario
 from safesysid.systems.controller.armour import TrackingBounds
+from safesysid.systems.math.piecewise_bezier import Parametrization, PiecewiseBezier, jerk_gram
 from safesysid.systems.model.uncertainty import parameter_box
 from safesysid.systems.planner import reachability as reach
 from safesysid.systems.task import cache as task_cache
 from safesysid.systems.task import check as task_check
 from safesysid.systems.task import trajectory as tt
+from safesysid.systems.task.constraints import GRIPPER_TILT_TOL_RAD, TaskConstraints
 
 EXPERIMENTS = ("experiment_a", "experiment_b", "experiment_c")
 
@@ -39,10 +41,10 @@ def solved(tmp_path_factory):
 def test_pieces_start_and_end_at_rest_and_are_c2_at_the_junctions():
     rng = np.random.default_rng(1)
     for pieces in (2, 3):
-        par = tt.Parametrization.make(pieces)
+        par = Parametrization.make(pieces)
         q_s, q_g = rng.normal(size=(2, 7))
         x = par.control_points(rng.normal(size=(par.r, 7)), q_s, q_g)
-        traj = tt.PiecewiseBezier(x.reshape(pieces, 6, 7), 0.7)
+        traj = PiecewiseBezier(x.reshape(pieces, 6, 7), 0.7)
         start, end = traj.evaluate([0.0]), traj.evaluate([traj.duration])
         assert np.allclose(start[0], q_s) and np.allclose(end[0], q_g)
         assert max(np.abs(d).max() for d in start[1:3] + end[1:3]) < 1e-9
@@ -56,10 +58,10 @@ def test_pieces_start_and_end_at_rest_and_are_c2_at_the_junctions():
 
 def test_jerk_cost_is_the_integral_of_squared_jerk():
     rng = np.random.default_rng(2)
-    par = tt.Parametrization.make(2)
+    par = Parametrization.make(2)
     x = par.control_points(rng.normal(size=(par.r, 7)), rng.normal(size=7), rng.normal(size=7))
-    traj = tt.PiecewiseBezier(x.reshape(2, 6, 7), 1.0)
-    exact = np.einsum("ij,ik,kj->", x, tt.jerk_gram(2, 1.0), x)
+    traj = PiecewiseBezier(x.reshape(2, 6, 7), 1.0)
+    exact = np.einsum("ij,ik,kj->", x, jerk_gram(2, 1.0), x)
     total = 0.0
     for a in (0.0, 1.0):  # jerk jumps at the junction: integrate each piece on its own
         t = np.linspace(a, a + 1.0 - 1e-12, 40001)
@@ -69,7 +71,7 @@ def test_jerk_cost_is_the_integral_of_squared_jerk():
 
 def test_constraint_jacobians_match_finite_differences():
     prob = problem_of("experiment_a")
-    con = tt.TaskConstraints(prob)
+    con = TaskConstraints(prob)
     q_goal, _ = tt.solve_placement_ik(prob)
     y = con.initial_guess(q_goal)
     spread = con.spread(y)
@@ -112,7 +114,7 @@ def test_experiment_task_trajectory_is_found_and_verified_independently(solved, 
     assert check.max_torque_ratio <= certified <= 1.0, certified
     if prob.place_xyz is not None:
         assert check.placement_error_m < load_scenario(SCENARIOS_DIR / f"{name}.yaml").task.placement_tolerance_m
-        assert check.gripper_tilt_rad <= tt.GRIPPER_TILT_TOL_RAD
+        assert check.gripper_tilt_rad <= GRIPPER_TILT_TOL_RAD
     else:
         assert np.allclose(res.q_goal, prob.goal_q)
 
@@ -122,7 +124,7 @@ def test_the_obstacle_is_in_the_way(solved, name):
     """The straight joint-space minimum-jerk move to the same goal hits an obstacle (the
     verifier sees it), so the scenario's obstacle shapes the trajectory."""
     prob, res = solved[name]
-    con = tt.TaskConstraints(prob)
+    con = TaskConstraints(prob)
     q_goal = res.details.get("q_goal_ik_rad", res.q_goal)
     naive = task_check.verify_task_trajectory(prob, con.trajectory(con.initial_guess(np.asarray(q_goal))), rate_hz=250)
     assert not naive.ok and naive.min_clearance_m < 0, naive
@@ -131,7 +133,7 @@ def test_the_obstacle_is_in_the_way(solved, name):
 
 def test_drake_inverse_dynamics_of_the_verifier_agrees_with_the_regressor_model(solved):
     prob, res = solved["experiment_c"]
-    con = tt.TaskConstraints(prob)
+    con = TaskConstraints(prob)
     t = con.t_tau
     q, v, a = res.trajectory.evaluate(t, orders=2)
     mine = prob.robot.inverse_dynamics(q, v, a, prob.theta)
@@ -168,7 +170,7 @@ def test_window_margin_covers_the_motion_between_collision_samples(monkeypatch):
     assert res.ok, res.reason
     assert res.min_sphere_clearance_m < 1e-3  # a constraint is active: the test sits on the boundary
     assert dense_sphere_clearance(prob, res) >= 0
-    monkeypatch.setattr(tt.TaskConstraints, "spread", lambda self, y: np.zeros((len(self.t_col), len(self.p.spheres))))
+    monkeypatch.setattr(TaskConstraints, "spread", lambda self, y: np.zeros((len(self.t_col), len(self.p.spheres))))
     broken = tt.solve_task_trajectory(prob, fallback=False)
     assert broken.ok
     assert dense_sphere_clearance(prob, broken) < -1e-3

@@ -12,8 +12,6 @@ from safesysid.systems.config import InitialInterval, Noise, ParameterFloors
 from safesysid.systems.math.intervals import Interval
 from safesysid.systems.model.robot_model import RobotModel
 
-__all__ = ["ParameterFloors", "parameter_radius"]
-
 
 def parameter_radius(
     robot: RobotModel, inertial_ratio: float, friction_ratio: float, floors: ParameterFloors | None = None

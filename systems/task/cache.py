@@ -9,7 +9,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from safesysid.systems.task import trajectory as tt
-from safesysid.systems.task.trajectory import VERSION, TaskProblem, TaskResult, _jsonable, task_problem_from_scenario
+from safesysid.systems.task.problem import TaskProblem, jsonable
+from safesysid.systems.task.trajectory import VERSION, TaskResult, task_problem_from_scenario
 
 if TYPE_CHECKING:
     from safesysid.systems.config import Scenario
@@ -58,7 +59,7 @@ def cache_key(problem: TaskProblem, solver: str | None = None, fallback: bool = 
         "solver": solver or problem.settings.solver,
         "fallback": fallback,
     }
-    text = json.dumps(_jsonable(inputs), sort_keys=True, default=float)
+    text = json.dumps(jsonable(inputs), sort_keys=True, default=float)
     return hashlib.sha256(text.encode()).hexdigest()
 
 

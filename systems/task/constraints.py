@@ -17,14 +17,14 @@ PLACEMENT_TOL_M = 1e-4  # placement equality as a box of this half-width
 GRIPPER_TILT_TOL_RAD = 1e-3  # gripper axis vs vertical at a placement
 
 if TYPE_CHECKING:
-    from safesysid.systems.task.trajectory import TaskProblem
+    from safesysid.systems.task.problem import TaskProblem
 
 
 class TaskConstraints:
     """Values and Jacobians in y = [Z.ravel(), q_goal] of every constraint of one problem."""
 
     def __init__(self, problem: TaskProblem):
-        from safesysid.systems.planner.safe_planner import _floor_exempt  # the base stands on the floor
+        from safesysid.systems.planner.reachability import floor_exempt  # the base stands on the floor
 
         self.p = problem
         st = problem.settings
@@ -49,7 +49,7 @@ class TaskConstraints:
             for w, (a, b) in enumerate(zip(edges[:-1], edges[1:])):
                 self.window_matrix[p * per_piece + w, :, 6 * p : 6 * p + 6] = restriction_matrix(DEGREE, a, b)
         self.lipschitz = reach.sphere_lipschitz(robot.tree, problem.spheres)
-        self.floor_exempt = _floor_exempt(robot.tree, problem.spheres)
+        self.floor_exempt = floor_exempt(robot.tree, problem.spheres)
         self.t_tau = np.linspace(0.0, st.duration_s, st.torque_samples)
         self.tau_basis = [self._pair(basis(self.t_tau, st.num_pieces, self.piece, k)) for k in range(3)]
         self._cache = {}

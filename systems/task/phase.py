@@ -24,6 +24,7 @@ from safesysid.systems.config import Obstacle, Scenario
 from safesysid.systems.model.loading import resolve_path, scenario_dir
 from safesysid.systems.task import cache as task_cache
 from safesysid.systems.task import trajectory as tt
+from safesysid.systems.task.problem import TaskProblem
 
 if TYPE_CHECKING:
     from safesysid.systems.model.payload import Dumbbell
@@ -40,14 +41,14 @@ def cache_dir(scenario: Scenario) -> Path:
     return Path(base) / "safesysid" / "task"
 
 
-def task_plan(scenario: Scenario, problem: tt.TaskProblem | None = None) -> tuple[tt.TaskProblem, tt.TaskResult]:
+def task_plan(scenario: Scenario, problem: TaskProblem | None = None) -> tuple[TaskProblem, tt.TaskResult]:
     """(TaskProblem, TaskResult) of the scenario's task, through the cache."""
     problem = problem or tt.task_problem_from_scenario(scenario)
     return problem, task_cache.task_trajectory_cached(problem, cache_dir(scenario))
 
 
 def return_move(
-    problem: tt.TaskProblem, q_from: np.ndarray, duration_s: float, held: Dumbbell | None = None
+    problem: TaskProblem, q_from: np.ndarray, duration_s: float, held: Dumbbell | None = None
 ) -> tt.TaskResult | None:
     """Rest-to-rest move from q_from to the task start (one degree-5 piece of duration_s) under
     the task's constraints; None when q_from already is the start. held: the payload in the

@@ -47,32 +47,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
-from safesysid.systems.controller.armour import TrackingBounds
-from safesysid.systems.math.piecewise_bezier import DEGREE, Parametrization, PiecewiseBezier, basis, jerk_gram
-from safesysid.systems.planner import reachability as reach
-from safesysid.systems.task.constraints import (
-    GRIPPER_TILT_TOL_RAD,
-    PLACEMENT_TOL_M,
-    SOFTMIN_SHARPNESS_PER_M,
-    TaskConstraints,
-)
+from safesysid.systems.math.piecewise_bezier import PiecewiseBezier
+from safesysid.systems.task.constraints import GRIPPER_TILT_TOL_RAD, PLACEMENT_TOL_M, TaskConstraints
+from safesysid.systems.task.problem import TaskProblem, TaskSettings, jsonable
 
 if TYPE_CHECKING:
-    from safesysid.systems.config import Obstacle, Scenario, Task
+    from safesysid.systems.config import Obstacle, Scenario
     from safesysid.systems.model.payload import Dumbbell
-    from safesysid.systems.model.robot_model import RobotModel
 
-__all__ = [
-    "DEGREE",
-    "GRIPPER_TILT_TOL_RAD",
-    "PLACEMENT_TOL_M",
-    "SOFTMIN_SHARPNESS_PER_M",
-    "Parametrization",
-    "PiecewiseBezier",
-    "TaskConstraints",
-    "basis",
-    "jerk_gram",
-]
 
 VERSION = "task_trajectory/1"  # part of the cache key: bump when the formulation changes
 SOLVER_MARGIN = 1e-4  # the solver aims this far inside the collision / placement constraints
@@ -80,55 +62,8 @@ FEASIBILITY_TOL = 1e-6  # max violation accepted when our own evaluation re-chec
 
 
 # ---------------------------------------------------------------------------------------------
-# Problem and result
+# Result
 # ---------------------------------------------------------------------------------------------
-@dataclass
-class TaskSettings:
-    """Numbers of the optimization (scenario `task` section, app/scenario.py)."""
-
-    duration_s: float = 2.0
-    num_pieces: int = 2
-    collision_samples: int = 200
-    torque_samples: int = 41
-    torque_margin_ratio: float = 0.2
-    solver: str = "snopt"
-    max_iterations: int = 500
-    max_solve_time_s: float = 120.0  # per solver (all its rounds)
-
-    @classmethod
-    def from_task(cls, task: Task) -> TaskSettings:
-        return cls(**{f: getattr(task, f) for f in cls.__dataclass_fields__})
-
-
-@dataclass
-class TaskProblem:
-    """Everything the task trajectory depends on (and the cache key hashes)."""
-
-    robot: RobotModel  # limits, friction, kinematics
-    theta: np.ndarray  # 14 n parameters the torque is computed with (robot + payload model)
-    dumbbell: Dumbbell | None  # payload model
-    obstacles: list  # scenario Obstacle records (platform included)
-    floor_z: float | None
-    q_start: np.ndarray
-    goal_q: np.ndarray | None = None
-    place_xyz: np.ndarray | None = None  # payload centre target (grasp point), base frame
-    tracking: TrackingBounds | None = None
-    settings: TaskSettings = field(default_factory=TaskSettings)
-
-    def __post_init__(self):
-        n = self.robot.n
-        self.q_start = np.asarray(self.q_start, float)
-        self.goal_q = None if self.goal_q is None or len(self.goal_q) == 0 else np.asarray(self.goal_q, float)
-        self.place_xyz = (
-            None if self.place_xyz is None or len(self.place_xyz) == 0 else np.asarray(self.place_xyz, float)
-        )
-        if (self.goal_q is None) == (self.place_xyz is None):
-            raise ValueError("a task needs exactly one of goal_q and place_xyz")
-        self.tracking = TrackingBounds.coerce(self.tracking, n)
-        self.boxes = reach.Boxes.from_obstacles(list(self.obstacles))
-        self.spheres = reach.arm_spheres(self.robot).concat(reach.payload_spheres(self.robot, self.dumbbell))
-
-
 @dataclass
 class TaskResult:
     ok: bool
@@ -163,7 +98,7 @@ class TaskResult:
         }
         out["q_goal_rad"] = None if self.q_goal is None else self.q_goal.tolist()
         out["trajectory"] = None if self.trajectory is None else self.trajectory.to_dict()
-        out["details"] = _jsonable(self.details)
+        out["details"] = jsonable(self.details)
         return out
 
     @classmethod
@@ -175,18 +110,6 @@ class TaskResult:
             trajectory=None if traj is None else PiecewiseBezier.from_dict(traj),
             **doc,
         )
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, np.generic):
-        return x.item()
-    return x
 
 
 def task_problem_from_scenario(scenario: Scenario, q_start: ArrayLike | None = None) -> TaskProblem:
@@ -202,7 +125,7 @@ def task_problem_from_scenario(scenario: Scenario, q_start: ArrayLike | None = N
     from safesysid.systems.model.loading import resolve_path, robot_from_scenario, scenario_dir
     from safesysid.systems.model.payload import load_dumbbells
     from safesysid.systems.model.uncertainty import prior_box
-    from safesysid.systems.plant.station import true_theta
+    from safesysid.systems.plant.arm_plant import true_theta
 
     where = scenario.source or "scenario"
     if not task_enabled(scenario):
