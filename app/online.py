@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from safesysid.scenario import Scenario, robot_from_scenario, task_enabled
-from safesysid.systems import methods
+from safesysid.systems import config, methods
 from safesysid.systems.estimation.system import ESTIMATE_EXTRA
 from safesysid.systems.model import parameter_sources
 
@@ -48,8 +48,8 @@ if TYPE_CHECKING:
     from safesysid.systems.planner.safe_planner import PlanResult
     from safesysid.systems.planner.system import ExcitingPlanner
     from safesysid.systems.planner.trajectory_source import TaskPhaseSource
+    from safesysid.systems.plant.arm_plant import RealArm
     from safesysid.systems.plant.safety_monitor import SafetyMonitor
-    from safesysid.systems.plant.station import RealArm
 
 
 def prior(robot: RobotModel, scenario: Scenario, method: str) -> tuple[np.ndarray, Interval]:
@@ -162,12 +162,13 @@ def make_planner_system(
     """trajectory: methods.EXCITING (scenario.planner.cost) or methods.RANDOM. With a worker:
     the wall-clock planner, whose calls run one period ahead in it (systems/hardware/background.py)."""
     from safesysid.systems.hardware.background import WallClockPlanner
+    from safesysid.systems.model.torque_noise import DeclaredTorqueNoise
     from safesysid.systems.planner.safe_planner import SafePlanner
     from safesysid.systems.planner.system import ExcitingPlanner
 
     mode = "random" if trajectory == methods.RANDOM else scenario.planner.cost
-    noise = (scenario.noise.declared_torque_ratio, scenario.noise.declared_torque_floor_Nm)
-    planner = SafePlanner(robot, scenario.planner, scenario.obstacles, dumbbell, tracking, torque_noise=noise)
+    noise = DeclaredTorqueNoise.from_noise(scenario.noise)
+    planner = SafePlanner(robot, scenario.planner, scenario.obstacles, dumbbell, tracking, declared_noise=noise)
     theta0, box = theta_prior
     f = scenario.faults
     system, extra = (ExcitingPlanner, {}) if worker is None else (WallClockPlanner, {"worker": worker})
@@ -190,7 +191,7 @@ def task_switch_time_s(scenario: Scenario, spec: methods.MethodSpec) -> float:
     estimator's update due at its end is in the latched box), or 0 without identification."""
     if spec.excitation is None:
         return 0.0
-    return methods.excitation_duration_s(spec, scenario) + scenario.plant.time_step_s
+    return config.excitation_duration_s(spec, scenario) + scenario.plant.time_step_s
 
 
 def make_estimator_system(
@@ -422,7 +423,7 @@ def run_online(
     sim.Initialize()
     spec = methods.method_spec(method)
     # Without a task, a method without identification holds q0 as long as ours identifies.
-    horizon = methods.excitation_duration_s(spec, scenario) or methods.planner_horizon_s(scenario)
+    horizon = config.excitation_duration_s(spec, scenario) or config.planner_horizon_s(scenario)
     if built.source is None:
         # One step past the horizon so the estimator's update due at exactly t = horizon is applied.
         sim.AdvanceTo(horizon + scenario.plant.time_step_s)

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from safesysid.scenario import Scenario
-from safesysid.systems import methods
+from safesysid.systems import config, methods
 
 if TYPE_CHECKING:
     from pydrake.systems.framework import Context
@@ -86,7 +86,7 @@ def run_wallclock(
         sys.setswitchinterval(SWITCH_INTERVAL_S)  # the worker's result thread must not hold the loop 5 ms
         sim.ResetStatistics()  # real-time pacing from here, not from before the set-up
         spec = methods.method_spec(method)
-        horizon = methods.excitation_duration_s(spec, scenario) or methods.planner_horizon_s(scenario)
+        horizon = config.excitation_duration_s(spec, scenario) or config.planner_horizon_s(scenario)
         # one more t_p: the estimator's last update (its samples end at the horizon) is published then
         timing = _pace(sim, ctx, horizon + scenario.planner.replan_period_s + scenario.plant.time_step_s)
         _request_hold(built.arm, ctx.get_time())

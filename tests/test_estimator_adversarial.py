@@ -91,7 +91,7 @@ def make_case(robot, dumbbells, index, duration_s=3.0):
             sign = np.where(seg[:, None] % 2 == 0, 1.0, -1.0) * np.ones((1, robot.n))
     tau = E.held_torque(robot, motion, t, theta)
     st = probe.settings
-    tau_meas = tau + sign * (st.torque_ratio * np.abs(tau) + st.torque_floor_Nm)
+    tau_meas = tau + sign * (st.declared_noise.ratio * np.abs(tau) + st.declared_noise.floor_Nm)
     what = f"case {index}: {payload} {pattern} target {target} push {push:+.0f}"
     return t, q, v, tau_meas, theta, theta_e, what
 

@@ -12,6 +12,7 @@ from safesysid.systems.math.intervals import Interval
 from safesysid.systems.model import uncertainty
 from safesysid.systems.model.payload import load_dumbbells
 from safesysid.systems.model.robot_model import MODELS_DIR
+from safesysid.systems.model.torque_noise import DeclaredTorqueNoise
 from safesysid.systems.planner import reachability as reach
 from safesysid.systems.planner import safe_planner as P
 from safesysid.systems.planner.ee_regressor import ee_standard_regressor
@@ -237,7 +238,7 @@ def test_noise_weighted_cost_divides_each_row_by_its_declared_noise_bound(robot,
     past rows by their own nominal torque; exact gradient; the reported W_e (and cond) stays
     unweighted."""
     planner, thetas = make_planner(robot, payload, [], exciting_weighting="noise")
-    planner.torque_noise = (0.025, 0.05)
+    planner.declared_noise = DeclaredTorqueNoise(0.025, 0.05)
     rng = np.random.default_rng(12)
     q0, v0, a0 = Q0 + 0.1, rng.uniform(-0.2, 0.2, 7), rng.uniform(-0.2, 0.2, 7)
     first = planner.plan(Q0, np.zeros(7), np.zeros(7), *thetas)

@@ -16,12 +16,12 @@ from safesysid.systems import estimation as E
 from safesysid.systems.config import ParameterFloors
 from safesysid.systems.estimation import segments
 from safesysid.systems.model.payload import payload_theta_in_end_effector
+from safesysid.systems.model.torque_noise import DeclaredTorqueNoise
 
 RATE_HZ = 50.0
 SETTINGS = dict(
     hold_period_s=1 / RATE_HZ,
-    torque_ratio=0.002,
-    torque_floor_Nm=0.004,
+    declared_noise=DeclaredTorqueNoise(ratio=0.002, floor_Nm=0.004),
     theta_r_ratio=1e-4,
     theta_r_floor=ParameterFloors(*([1e-6] * 7)),
 )
@@ -44,7 +44,7 @@ def estimate(robot, dumbbells, index):
     theta[rest] = est.theta_r + est.theta_r_radius * rng.uniform(-1, 1, rest.sum())
     tau = E.held_torque(robot, motion, t, theta)
     tau_meas = tau + rng.choice([-1.0, 1.0], tau.shape) * (
-        settings.torque_ratio * np.abs(tau) + settings.torque_floor_Nm
+        settings.declared_noise.ratio * np.abs(tau) + settings.declared_noise.floor_Nm
     )
     est.add(t, q, v, tau_meas)
     return est.update(), theta_e

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import TYPE_CHECKING
 
 import numpy as np
-from safesysid.systems.model.uncertainty import ParameterFloors
+from safesysid.systems.config import ParameterFloors
+from safesysid.systems.model.torque_noise import DeclaredTorqueNoise
 
 if TYPE_CHECKING:
     from ..config import BoundingVolume as VolumeField
@@ -115,8 +116,7 @@ class EstimatorSettings:
     # torque reaches the joint late), re-paired before the lag is undone (estimation/delay.py).
     torque_delay_s: float = 0.0
     solver: str = "ipopt"  # ipopt | snopt
-    torque_ratio: float = 0.025  # declared |τ_meas − τ| ≤ ratio·|τ| + floor
-    torque_floor_Nm: float = 0.05
+    declared_noise: DeclaredTorqueNoise = field(default_factory=DeclaredTorqueNoise)  # |τ_meas − τ| ≤ ratio·|τ| + floor
     theta_r_ratio: float = 0.05  # [θ_r] = θ_r ± max(ratio·|θ_r|, floor of its kind)
     theta_r_floor: ParameterFloors = field(default_factory=ParameterFloors)
     # κ of the quadrature bound (`quadrature_bound`, its assumption); ≥ 2 covers any integrand
@@ -147,26 +147,19 @@ class EstimatorSettings:
 
     @classmethod
     def from_scenario(cls, s: Scenario) -> EstimatorSettings:
+        """The scenario's estimator section (every field of it, by name), its declared noise and
+        parameter box (noise), hold period (default: the plant's step) and payload volume."""
         e = s.estimator
+        own = {f.name: getattr(e, f.name) for f in fields(e)}
         return cls(
-            horizon_s=e.horizon_s,
-            max_gap_s=e.max_gap_s,
-            integration=e.integration,
-            solver=e.solver,
-            torque_signal=e.torque_signal,
-            hold_period_s=e.hold_period_s or s.plant.time_step_s,
-            torque_rate_limit_Nm_s=e.torque_rate_limit_Nm_s,
-            torque_lag_s=e.torque_lag_s,
-            torque_delay_s=e.torque_delay_s,
-            quadrature_safety=e.quadrature_safety,
-            torque_ratio=s.noise.declared_torque_ratio,
-            torque_floor_Nm=s.noise.declared_torque_floor_Nm,
-            theta_r_ratio=s.noise.theta_r_ratio,
-            theta_r_floor=s.noise.theta_r_floor,
-            set_membership=e.set_membership,
-            point_estimate=e.point_estimate,
-            physical_pruning=e.physical_pruning,
-            payload_volume=payload_volume(s.payload.bounding_volume),
+            **own
+            | {
+                "hold_period_s": e.hold_period_s or s.plant.time_step_s,
+                "declared_noise": DeclaredTorqueNoise.from_noise(s.noise),
+                "theta_r_ratio": s.noise.theta_r_ratio,
+                "theta_r_floor": s.noise.theta_r_floor,
+                "payload_volume": payload_volume(s.payload.bounding_volume),
+            }
         )
 
     def segment_gap_s(self) -> float:

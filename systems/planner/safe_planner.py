@@ -32,9 +32,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
+from safesysid.systems.config import Noise
 from safesysid.systems.controller.armour import TrackingBounds
 from safesysid.systems.math.bezier import QuinticBezier
 from safesysid.systems.math.blas import single_threaded_blas
+from safesysid.systems.model.torque_noise import DeclaredTorqueNoise
 from safesysid.systems.planner import reachability as reach
 from safesysid.systems.planner.ee_regressor import ee_standard_regressor
 from safesysid.systems.planner.problem import PlanningProblem
@@ -96,8 +98,8 @@ class SafePlanner:
     goal_q_rad, solver, max_solve_time_s, max_iterations, budget, k_center_rad, k_range_rad, floor_z_m).
     obstacles: scenario Obstacle records or a reachability.Boxes. payload: Dumbbell or None.
     tracking: controller.TrackingBounds (the controller's ultimate bound with ITS gains Kr; None
-    means perfect tracking, for tests only). torque_noise: scenario.noise's declared bound (ratio,
-    floor N m), which planner.exciting_weighting divides the cost's rows by (None: its default).
+    means perfect tracking, for tests only). declared_noise: scenario.noise's declared torque-noise
+    bound, which planner.exciting_weighting divides the cost's rows by (None: its default).
     """
 
     def __init__(
@@ -111,7 +113,7 @@ class SafePlanner:
         torque_shrink_steps: int = 4,
         torque_group: int = 2,
         spread_rows: int = 4,
-        torque_noise: tuple[float, float] | None = None,
+        declared_noise: DeclaredTorqueNoise | None = None,
     ) -> None:
         self.robot = robot
         self.config = config
@@ -127,11 +129,8 @@ class SafePlanner:
         self.torque_shrink_steps = torque_shrink_steps
         self.torque_group = torque_group
         self.spread_rows = spread_rows  # torque boxes per hull on which the M spread mu is bounded
-        if torque_noise is None:  # the scenario's default
-            from safesysid.systems.config import Noise
-
-            torque_noise = (Noise.declared_torque_ratio, Noise.declared_torque_floor_Nm)
-        self.torque_noise = torque_noise  # the estimator's declared bound (ratio, floor N m) per sample
+        # The estimator's declared bound per sample (None: the scenario's default).
+        self.declared_noise = declared_noise or DeclaredTorqueNoise.from_noise(Noise())
 
     @property
     def weighs_rows(self) -> bool:
@@ -141,9 +140,8 @@ class SafePlanner:
     def row_weights(self, q: np.ndarray, v: np.ndarray, a: np.ndarray, theta0: ArrayLike) -> np.ndarray:
         """1 / the declared torque-noise bound of each W_e row (samples x joints, flattened) of the
         nominal model theta0 along (q, v, a)."""
-        ratio, floor = self.torque_noise
         tau = self.robot.inverse_dynamics(q, v, a, np.asarray(theta0, float))
-        return (1.0 / (ratio * np.abs(tau) + floor)).ravel()
+        return (1.0 / self.declared_noise.bound(tau)).ravel()
 
     def problem(
         self,
