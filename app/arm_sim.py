@@ -41,7 +41,7 @@ def build_arm_side(scenario: Scenario, seed: int | None = None) -> tuple:
 
     builder = DiagramBuilder()
     arm = add_real_arm(builder, scenario, seed=seed)
-    driver = add_arm_driver(builder, arm, scenario, make_lcm(scenario))
+    driver = add_arm_driver(builder, arm, scenario, lcm=make_lcm(scenario))
     h = scenario.plant.time_step_s
     monitor = builder.AddSystem(SafetyMonitor(arm.plant, arm.scene_graph, arm.robot, period_s=h))
     monitor.set_name("referee")

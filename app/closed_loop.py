@@ -37,7 +37,9 @@ def add_controller(
     robot = arm.robot
     gains = controller_systems.gains_from_scenario(scenario, robot.n)
     ctrl = builder.AddSystem(
-        controller_systems.make_controller(kind or scenario.controller.kind, robot, gains, scenario.plant.time_step_s)
+        controller_systems.make_controller(
+            kind or scenario.controller.kind, robot, gains, time_step=scenario.plant.time_step_s
+        )
     )
     ctrl.set_name("controller")
     builder.Connect(arm.state_output, ctrl.GetInputPort("state"))

@@ -44,7 +44,7 @@ def load_model(path: str | Path) -> RobotModel:
             raise BadInput(f"{path}: --model: the file is empty (give a URDF/SDF or a scenario with its robot)")
         return robot_from_scenario(load_scenario(p))
     if suffix in (".urdf", ".sdf", ".xml"):
-        return load_robot(p)
+        return load_robot(model_path=p)
     raise BadInput(f"{path}: --model must be a .urdf/.sdf model or a scenario .yaml")
 
 
@@ -235,7 +235,9 @@ def self_check(args: argparse.Namespace) -> int:
 
     workers = getattr(args, "workers", 1)
     hard = bool(getattr(args, "hard", False))
-    cases, summary, table = diagnosis.run_self_check(model, args.cases, args.seed, progress, workers, hard=hard)
+    cases, summary, table = diagnosis.run_self_check(
+        model, args.cases, args.seed, progress=progress, workers=workers, hard=hard
+    )
     stream.close()
     summary["wall_time_s"] = time.perf_counter() - t0
     summary["targets"] = {

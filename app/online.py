@@ -168,7 +168,9 @@ def make_planner_system(
 
     mode = "random" if trajectory == methods.RANDOM else scenario.planner.cost
     noise = DeclaredTorqueNoise.from_noise(scenario.noise)
-    planner = SafePlanner(robot, scenario.planner, scenario.obstacles, dumbbell, tracking, declared_noise=noise)
+    planner = SafePlanner(
+        robot, scenario.planner, obstacles=scenario.obstacles, payload=dumbbell, tracking=tracking, declared_noise=noise
+    )
     theta0, box = theta_prior
     f = scenario.faults
     system, extra = (ExcitingPlanner, {}) if worker is None else (WallClockPlanner, {"worker": worker})
@@ -218,7 +220,7 @@ def make_estimator_system(
         update_period_s or scenario.planner.replan_period_s,
         (np.array(ii.lower, float), np.array(ii.upper, float)),
         np.array(ii.nominal, float),
-        stop_time_s,
+        stop_time_s=stop_time_s,
         **extra,
     )
 
@@ -251,7 +253,7 @@ def build_online(
     if over_lcm:
         from safesysid.systems.hardware.lcm_arm import add_lcm_arm, make_lcm
 
-        arm = add_lcm_arm(builder, scenario, robot, make_lcm(scenario))
+        arm = add_lcm_arm(builder, scenario, robot, lcm=make_lcm(scenario))
     else:
         arm = add_real_arm(builder, scenario, robot=robot, seed=seed, releasable=task and not scenario.task.goal_q_rad)
     theta0, box = prior(robot, scenario, method)

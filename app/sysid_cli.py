@@ -93,7 +93,7 @@ def run_sysid(
     torque_lag_s: float | list[float] = 0.0,
 ) -> tuple[IncrementalEstimator, list[dict]]:
     """Replay a JointLog through the incremental estimator; returns (estimator, history)."""
-    est = IncrementalEstimator(robot, settings, prior, prior_nominal)
+    est = IncrementalEstimator(robot, settings=settings, prior=prior, prior_nominal=prior_nominal)
     history = []
     t = log.t
     edges = list(np.arange(t[0] + period_s, t[-1], period_s)) + [t[-1]]

@@ -57,7 +57,7 @@ def make_task_source(
     def make_task(q_now, thetas):
         if not plan.ok:
             return [], [dict(kind="task_infeasible", detail=f"task trajectory {plan.status}: {plan.reason}")], {}
-        back = return_move(problem, q_now, scenario.task.return_duration_s, held)
+        back = return_move(problem, q_now, scenario.task.return_duration_s, held=held)
         curves, events = [], []
         if back is not None:
             solve = f"{back.status} ({back.solver}, {back.solve_time_s:.2f} s)"
@@ -76,7 +76,7 @@ def make_task_source(
         events.append(dict(kind="task_start", detail=detail))
         return curves, events, report
 
-    return TaskPhaseSource(robot.n, 14 * robot.n, scenario.q0_rad, switch_time_s, make_task)
+    return TaskPhaseSource(robot.n, 14 * robot.n, scenario.q0_rad, switch_time_s=switch_time_s, make_task=make_task)
 
 
 def certify_task(problem: TaskProblem, curves: list, thetas: tuple, task: Task) -> tuple[list, dict, str]:
@@ -88,7 +88,7 @@ def certify_task(problem: TaskProblem, curves: list, thetas: tuple, task: Task) 
     from safesysid.systems.task.check import phase_certificate, smallest_certified_scale, time_scale_grid, time_scaled
 
     scales = time_scale_grid(task.max_time_scale, task.time_scale_step)
-    found = smallest_certified_scale(lambda scale: phase_certificate(problem, curves, thetas, scale), scales)
+    found = smallest_certified_scale(lambda scale: phase_certificate(problem, curves, thetas, scale=scale), scales)
     unscaled = found.tried[0][1]
     report = {
         "time_scale": found.time_scale,

@@ -34,7 +34,7 @@ def logs_3x1500(model, seed, with_a, count=3, samples=1500):
         t = np.arange(samples) / dg.RATE_HZ
         t[samples // 2 :] += dg.GAP_S
         effects = {"time_delay": {"delay_s": 0.02}, "viscous_friction": {"delta": np.r_[2.0, np.zeros(model.n - 1)]}}
-        q, v, a, tau = dg.true_torque(model, traj, t, effects)
+        q, v, a, tau = dg.true_torque(model, traj, t, effects=effects)
         tau = tau + 0.5 * rng.uniform(-1, 1, tau.shape)
         logs.append(JointLog(t, q, v, tau, a if with_a else None))
     return logs
@@ -93,7 +93,7 @@ def scaling(quick: bool = False, out=None) -> dict:
 def real_leave_one_out():
     if not (REAL / "run1.csv").is_file() or not REFERENCE_URDF.is_file():
         return {"skipped": f"{REAL} or {REFERENCE_URDF} not available"}
-    model = load_robot(REFERENCE_URDF)
+    model = load_robot(model_path=REFERENCE_URDF)
     logs = [read_joint_log(REAL / f"run{k}.csv", model.n) for k in (1, 2, 3)]
     folds, out = dg.leave_one_out(model, logs)
     for f, d in zip(out["folds"], folds):

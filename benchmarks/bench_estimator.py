@@ -27,7 +27,7 @@ def _data(robot, seed=0, duration_s=7.5, rate_hz=1000.0):
     db = load_dumbbells(MODELS_DIR / "dumbbells.yaml")["8lb"]
     theta = est_mod.perturbed_robot_theta(rng, robot, 0.05)
     theta[robot.ee_slice] = robot.theta_e + payload_theta_in_end_effector(db, robot.extra["grasp_point"])
-    t, q, v, tau, _ = est_mod.simulate_log(rng, robot, theta, duration_s, rate_hz, centre=CENTRE)
+    t, q, v, tau, _ = est_mod.simulate_log(rng, robot, theta, duration_s=duration_s, rate_hz=rate_hz, centre=CENTRE)
     return t, q, v, tau
 
 
@@ -46,7 +46,7 @@ def scaling(quick: bool = False, out=None) -> dict:
         k = int(round(length * 1000))
 
         def update(k=k):
-            e = est_mod.IncrementalEstimator(robot, settings)
+            e = est_mod.IncrementalEstimator(robot, settings=settings)
             e.add(t[:k], q[:k], v[:k], tau[:k])
             return e.update()
 
@@ -96,7 +96,7 @@ def run(quick: bool = False, out=None) -> dict:
     n_new = int(round(1.5 * 1000))
 
     def full():
-        e = est_mod.IncrementalEstimator(robot, settings)
+        e = est_mod.IncrementalEstimator(robot, settings=settings)
         t0 = time.perf_counter()
         e.add(t, q, v, tau)
         t1 = time.perf_counter()
@@ -105,7 +105,7 @@ def run(quick: bool = False, out=None) -> dict:
 
     full_s, (add_s, upd_s, result) = _best(full, repeat)
 
-    base = est_mod.IncrementalEstimator(robot, settings)
+    base = est_mod.IncrementalEstimator(robot, settings=settings)
     split = len(t) - n_new
     base.add(t[:split], q[:split], v[:split], tau[:split])
     base.update()
@@ -127,7 +127,7 @@ def run(quick: bool = False, out=None) -> dict:
     _, (inc_add_s, inc_result) = _best(incremental, 1)
 
     def variant(**kw):
-        e = est_mod.IncrementalEstimator(robot, replace(settings, **kw))
+        e = est_mod.IncrementalEstimator(robot, settings=replace(settings, **kw))
         e.add(t, q, v, tau)
         return e.update()
 
@@ -179,7 +179,10 @@ def update_cost(log_path: str, scenario_path: str) -> dict:
     for mode in ("mass", "all"):
         settings = replace(est_mod.EstimatorSettings.from_scenario(scene), set_membership=mode)
         est = est_mod.IncrementalEstimator(
-            robot, settings, (np.array(prior.lower), np.array(prior.upper)), np.array(prior.nominal)
+            robot,
+            settings=settings,
+            prior=(np.array(prior.lower), np.array(prior.upper)),
+            prior_nominal=np.array(prior.nominal),
         )
         times, start = [], 0
         with single_threaded_blas():

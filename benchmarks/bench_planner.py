@@ -54,7 +54,7 @@ def table_ii_box(robot):
 
 def tracking(robot, theta_lo, V_max=0.02, Kr=(5.0, 5.0, 5.0, 5.0, 7.0, 7.0, 7.0), alpha=20.0):
     ia = theta_lo[10 * robot.n + 2 :: 4]
-    return reach.TrackingBounds.from_ultimate_bound(V_max, float(ia.min()), np.asarray(Kr), robot.n, alpha)
+    return reach.TrackingBounds.from_ultimate_bound(V_max, float(ia.min()), np.asarray(Kr), n=robot.n, alpha=alpha)
 
 
 def near_boxes(robot, q, rng, count=3, clearance=(0.06, 0.12), payload=None):
@@ -105,7 +105,7 @@ def _solve_series(
         # the real-time mode: the deadline is what is measured
         cfg = Planner(solver=solver, **{"budget": "wall_time", **config})
         boxes = near_boxes(robot, q, rng, count=obstacles, payload=payload)
-        planner = SafePlanner(robot, cfg, boxes, payload, bounds)
+        planner = SafePlanner(robot, cfg, obstacles=boxes, payload=payload, tracking=bounds)
         v = a = np.zeros(7)
         k_prev = past = None
         for _ in range(plans_per_scene):

@@ -40,7 +40,7 @@ def sampled_command(robot, dyn, gains, desired, bounds, theta0, box, joint, rng,
             theta_true = np.where(row >= 0, box.lo, box.hi)  # smallest true V for this r: h most negative
             m_true = robot.mass_matrix(q[None], theta_true)[0]
             r = u * min(np.sqrt(2 * gains.V_max / (u @ m_true @ u)), bounds.eps)  # |r| <= eps (physical truth)
-            tau0 = dyn.regressors(q, vd - (r - gains.Kr * e), vd + gains.Kr * e, ad, np.zeros(n))[0] @ theta0
+            tau0 = dyn.regressors(q, vd - (r - gains.Kr * e), vd + gains.Kr * e, aa=ad, x=np.zeros(n))[0] @ theta0
             sign = np.sign(tau0[joint]) or 1.0
             r = r * sign * np.sign(r[joint] or 1.0)  # |u_j| largest when v_j adds to tau_nom_j
             out = ctl.armour_control(dyn, gains, q, vd - (r - gains.Kr * e), qd, vd, ad, theta0, box)
@@ -90,7 +90,9 @@ def margins(V_max: float, starts: int = 10, samples: int = 40) -> dict:
     for start in range(starts):
         rng = np.random.default_rng(100 + start)
         q = Q0 + rng.uniform(-0.3, 0.3, 7) * np.array([1, 0.5, 1, 0.5, 1, 0.5, 1])
-        planner = SafePlanner(robot, Planner(), near_boxes(robot, q, rng, payload=payload), payload, bounds)
+        planner = SafePlanner(
+            robot, Planner(), obstacles=near_boxes(robot, q, rng, payload=payload), payload=payload, tracking=bounds
+        )
         prob = planner.problem(q, np.zeros(7), np.zeros(7), theta0, lo, hi)
         pr = prob.reach
         k_lo, k_hi, _ = pr.limit_box(robot.joint_params)
@@ -101,12 +103,12 @@ def margins(V_max: float, starts: int = 10, samples: int = 40) -> dict:
         wp = idyn.interval_passivity_regressor(robot, *boxes)
         excess = tcert.barrier_excess(robot, boxes[0], lo, hi, bounds)
         # before (interval boxes, the best of plain and aa-vertex w_bar) and now (the affine enclosure)
-        sup_i, nom_i, robust_i = tcert.torque_bound(wp, theta0, lo, hi, excess)
+        sup_i, nom_i, robust_i = tcert.torque_bound(wp, theta0, lo, theta_hi=hi, excess=excess)
         wv, _ = tcert.robust_bound_vertex(robot, *boxes, theta0, lo, hi, robot.ee_slice, full=wp)
         sup_i = np.minimum(sup_i, nom_i + tcert.robust_term(wv, excess))
         states = pr.tube_states(*ks)
         wa = idyn.affine_passivity_regressor(robot, *states)
-        sup, nominal, robust = tcert.affine_torque_bound(wa, theta0, lo, hi, excess)
+        sup, nominal, robust = tcert.affine_torque_bound(wa, theta0, lo, theta_hi=hi, excess=excess)
         wbar = robust - excess  # ||w_bar|| (+ rounding), the same for every joint
         i, j = np.unravel_index(np.argmax(sup / limit), sup.shape)
         t = rng.uniform(pr.edges[i], pr.edges[i + 1], samples // 8)
@@ -120,7 +122,9 @@ def margins(V_max: float, starts: int = 10, samples: int = 40) -> dict:
         kc, kh = 0.5 * (ks[0] + ks[1]), 0.5 * (ks[1] - ks[0])
         c_c, jac = reach.sphere_centres(robot.tree, planner.spheres, pr.q_mid(kc))
         k_dev = np.abs(pr.w_mid)[:, None] * (pr.kr * kh)[None, :]
-        spread = reach.local_spread(robot.tree, planner.lipschitz, np.linalg.norm(jac, axis=-1), pr.rho, pr.rho + k_dev)
+        spread = reach.local_spread(
+            robot.tree, planner.lipschitz, np.linalg.norm(jac, axis=-1), rho=pr.rho, reach_radius=pr.rho + k_dev
+        )
         moved = 0.0
         for _ in range(200):
             kk = rng.uniform(*ks)

@@ -110,7 +110,7 @@ def _batch_row(robot, model, setup, q, v, a, n_ad):
     # The controller's one-sample path (Wp and Wm of all 14 n parameters at once, armour_fast).
     dyn, m = FastControllerDynamics(robot), min(b, 100)
     row["ours_controller_Wp_Wm_us"] = 1e6 * _per_sample(
-        lambda: [dyn.regressors(q[k], v[k], v[k], a[k], v[k]) for k in range(m)], m
+        lambda: [dyn.regressors(q[k], v[k], v[k], aa=a[k], x=v[k]) for k in range(m)], m
     )
     ad = lambda: drake_autodiff_we(robot, q[:n_ad], v[:n_ad], a[:n_ad], setup)  # noqa: E731
     row["drake_autodiff_We_us"] = 1e6 * _per_sample(ad, n_ad, repeat=1)

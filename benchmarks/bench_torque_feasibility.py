@@ -34,7 +34,9 @@ def run(quick: bool = False) -> dict:
         for start in range(10):
             rng = np.random.default_rng(100 + start)
             q = Q0 + rng.uniform(-0.3, 0.3, 7) * np.array([1, 0.5, 1, 0.5, 1, 0.5, 1])
-            planner = SafePlanner(robot, Planner(), near_boxes(robot, q, rng, payload=payload), payload, bounds)
+            planner = SafePlanner(
+                robot, Planner(), obstacles=near_boxes(robot, q, rng, payload=payload), payload=payload, tracking=bounds
+            )
             res = planner.plan(q, np.zeros(7), np.zeros(7), theta0, lo, hi)
             times.append(res.solve_time_s)
             cpus.append(res.details.get("cpu_time_s", np.nan))

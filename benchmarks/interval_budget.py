@@ -45,7 +45,9 @@ SOURCES = {"torque": "rad_torque", "theta_r": "rad_theta_r", "quadrature": "rad_
 
 
 def _estimator(robot, t, q, v, tau):
-    est = E.IncrementalEstimator(robot, E.EstimatorSettings(set_membership="none"), PRIOR, PRIOR_NOMINAL)
+    est = E.IncrementalEstimator(
+        robot, settings=E.EstimatorSettings(set_membership="none"), prior=PRIOR, prior_nominal=PRIOR_NOMINAL
+    )
     est.add(t, q, v, tau)
     est.update()
     return est
@@ -53,7 +55,9 @@ def _estimator(robot, t, q, v, tau):
 
 def _lp_half(est, rad_r, box, rows=None):
     st = dataclasses.replace(est.settings, set_membership="all")
-    lo, hi, ok = set_membership_bounds(rows or est.rows, est.theta_r, rad_r, st, box[0], box[1], range(10))
+    lo, hi, ok = set_membership_bounds(
+        rows or est.rows, est.theta_r, rad_r, settings=st, box_lo=box[0], box_hi=box[1], params=range(10)
+    )
     return 0.5 * (hi - lo) if ok else np.full(10, np.nan)
 
 
@@ -64,11 +68,11 @@ def budget(robot, theta_true, amplitude_rad, duration_s, seed=0, velocity_fracti
     motion_kw = dict(centre=CENTRE, position_amplitude_rad=amplitude_rad, velocity_fraction=velocity_fraction)
     t, motion = E.fourier_motion(np.random.default_rng(seed), robot, duration_s, 1000.0, **motion_kw)
     q, v, acc = motion(t)
-    tau = E.held_torque(robot, motion, t, theta_true)
+    tau = E.held_torque(robot, motion, t, theta=theta_true)
     noise = 0.025 * np.abs(tau) + 0.05
     tau_meas = tau + rng.uniform(-1, 1, tau.shape) * noise
     est = _estimator(robot, t, q, v, tau_meas)
-    hull, _ = interval_hull(est.rows, est.theta_r, est.theta_r_radius, est.settings)
+    hull, _ = interval_hull(est.rows, est.theta_r, est.theta_r_radius, settings=est.settings)
     peak_torque = np.abs(tau).max(0) / robot.joint_params.torque_limit
     out = {"peak_acc_rad_s2": np.abs(acc).max(0), "peak_torque_ratio": peak_torque.max(), "cond_Y": est.estimate.cond_Y}
     for k, key in SOURCES.items():
@@ -79,7 +83,7 @@ def budget(robot, theta_true, amplitude_rad, duration_s, seed=0, velocity_fracti
     # Same motion, exact torque, θ_r at nominal: each source alone (the others' radius set to 0).
     nominal = robot.theta.copy()
     nominal[robot.ee_slice] = theta_true[robot.ee_slice]
-    clean = _estimator(robot, t, q, v, E.held_torque(robot, motion, t, nominal))
+    clean = _estimator(robot, t, q, v, E.held_torque(robot, motion, t, theta=nominal))
     no_tau = dataclasses.replace(
         clean.rows, r_first=0 * clean.rows.r_first, r_last=0 * clean.rows.r_last, r_inner=0 * clean.rows.r_inner
     )
@@ -92,7 +96,7 @@ def budget(robot, theta_true, amplitude_rad, duration_s, seed=0, velocity_fracti
     clipped = (np.maximum(full[0], PRIOR[0]), np.minimum(full[1], PRIOR[1]))
     out["lp_box_half"] = 0.5 * (full[1] - full[0])
     out["prior_clip"] = out["lp_box_half"] - 0.5 * (clipped[1] - clipped[0])
-    p_lo, p_hi, ok = prune_box(*clipped, VOLUME, est.gripper_box)
+    p_lo, p_hi, ok = prune_box(*clipped, volume=VOLUME, gripper=est.gripper_box)
     out["pruned_half"] = 0.5 * (p_hi - p_lo) if ok else np.full(10, np.nan)
     out["prior_half"] = 0.5 * (PRIOR[1] - PRIOR[0])
     out.update(_update_times(robot, t, q, v, tau_meas))
@@ -108,7 +112,12 @@ def _update_times(robot, t, q, v, tau, repeat=2):
     for key, kw in (("update_all_s", {}), ("update_all_pruned_s", dict(physical_pruning=True, payload_volume=VOLUME))):
         best = np.inf
         for _ in range(repeat):
-            est = E.IncrementalEstimator(robot, E.EstimatorSettings(set_membership="all", **kw), PRIOR, PRIOR_NOMINAL)
+            est = E.IncrementalEstimator(
+                robot,
+                settings=E.EstimatorSettings(set_membership="all", **kw),
+                prior=PRIOR,
+                prior_nominal=PRIOR_NOMINAL,
+            )
             est.add(t, q, v, tau)
             start = time.perf_counter()
             est.update()
@@ -124,7 +133,9 @@ def _lp_bounds(est):
     radius = e.radius_torque + e.radius_theta_r + e.radius_quadrature + e.radius_rounding
     lo, hi = e.theta_ls - radius, e.theta_ls + radius
     st = dataclasses.replace(est.settings, set_membership="all")
-    s_lo, s_hi, ok = set_membership_bounds(est.rows, est.theta_r, est.theta_r_radius, st, lo, hi, range(10))
+    s_lo, s_hi, ok = set_membership_bounds(
+        est.rows, est.theta_r, est.theta_r_radius, settings=st, box_lo=lo, box_hi=hi, params=range(10)
+    )
     return (np.maximum(lo, s_lo), np.minimum(hi, s_hi)) if ok else (lo, hi)
 
 

@@ -33,7 +33,7 @@ def main(argv: list[str] | None = None) -> int:
     from safesysid.systems.model.robot_model import load_robot
 
     out = Path(args.out)
-    folds, pooled = leave_one_out_folds(load_robot(URDF), RUNS, out, URDF)
+    folds, pooled = leave_one_out_folds(load_robot(model_path=URDF), RUNS, out, URDF)
     p = pooled["pooled"]
     print(f"held-out RMS pooled over the folds {p['rms_before']:.3f} -> {p['rms_after']:.3f} N·m")
     print("\n".join(residual_map_lines(pooled["residual_map_after"])))

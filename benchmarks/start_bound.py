@@ -26,7 +26,9 @@ def start_reason(scenario) -> str:
     theta0, box = prior_box(robot, scenario.initial_interval, scenario.noise)
     c = scenario.controller
     tracking = tracking_bounds_for(robot, ArmourGains(np.asarray(c.Kr, float), c.alpha, c.V_max), box.lo)
-    planner = SafePlanner(robot, scenario.planner, scenario.obstacles, scenario_dumbbell(scenario), tracking)
+    planner = SafePlanner(
+        robot, scenario.planner, obstacles=scenario.obstacles, payload=scenario_dumbbell(scenario), tracking=tracking
+    )
     rest = np.zeros(robot.n)
     return planner.problem(np.asarray(scenario.q0_rad, float), rest, rest, theta0, box.lo, box.hi).reason
 

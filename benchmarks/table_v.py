@@ -38,7 +38,7 @@ def observation_matrix(wm_e, wc_e, dt, h):
 
 def conditions(robot, rng, duration_s=10.0, rate_hz=1000.0, period_s=PERIOD_S, harmonics=HARMONICS):
     t, q, v, a = est_mod.fourier_trajectory(
-        rng, robot, duration_s, rate_hz, harmonics=harmonics, period_s=period_s, centre=CENTRE
+        rng, robot, duration_s, rate_hz=rate_hz, harmonics=harmonics, period_s=period_s, centre=CENTRE
     )
     ee = [robot.end_effector]
     tree = robot.tree

@@ -29,7 +29,7 @@ def certificates(name: str, method: str, scales=None) -> tuple[float, list[tuple
     )
     grid = scales or time_scale_grid(scenario.task.max_time_scale, scenario.task.time_scale_step)
     thetas = (theta0, box.lo, box.hi)
-    return plan.trajectory.duration, [(s, phase_certificate(problem, [plan.trajectory], thetas, s)) for s in grid]
+    return plan.trajectory.duration, [(s, phase_certificate(problem, [plan.trajectory], thetas, scale=s)) for s in grid]
 
 
 def main() -> None:

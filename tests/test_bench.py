@@ -38,7 +38,9 @@ def _states(n):
 
 
 def _boxes(robot):
-    theta0, box = uncertainty.parameter_box(robot, robot.theta_e, robot.theta_e - 0.3, robot.theta_e + 0.3, 0.05, 0.05)
+    theta0, box = uncertainty.parameter_box(
+        robot, robot.theta_e, robot.theta_e - 0.3, robot.theta_e + 0.3, rest_ratio=0.05, friction_ratio=0.05
+    )
     yield theta0, box
     yield theta0, Interval(theta0, theta0)  # zero width: w_bar = 0 up to rounding
     # Adversarial: theta0 on the box's edge (the estimator's theta0 need not be the centre).
@@ -48,13 +50,13 @@ def _boxes(robot):
 def test_fast_regressors_equal_reference(robot):
     ref, fast = C.ControllerDynamics(robot), FastControllerDynamics(robot)
     for q, v, va, aa, x in _states(robot.n):
-        for a, b in zip(ref.regressors(q, v, va, aa, x), fast.regressors(q, v, va, aa, x)):
+        for a, b in zip(ref.regressors(q, v, va, aa=aa, x=x), fast.regressors(q, v, va, aa=aa, x=x)):
             assert _close(a, b) <= TOL
-        wp, wm = ref.regressors(q, v, va, aa, x)
-        assert _close(np.vstack([wp, x @ wm]), fast.passivity_and_energy(q, v, va, aa, x)) <= TOL
+        wp, wm = ref.regressors(q, v, va, aa=aa, x=x)
+        assert _close(np.vstack([wp, x @ wm]), fast.passivity_and_energy(q, v, va, aa=aa, r=x)) <= TOL
     # A tree that is not a chain takes the general path: the same numbers.
     fast.serial = False
-    assert _close(ref.regressors(q, v, va, aa, x)[0], fast.regressors(q, v, va, aa, x)[0]) <= TOL
+    assert _close(ref.regressors(q, v, va, aa=aa, x=x)[0], fast.regressors(q, v, va, aa=aa, x=x)[0]) <= TOL
 
 
 def test_fast_law_equals_reference_law(robot, gains):
@@ -164,7 +166,7 @@ def test_fast_hull_contains_the_exact_one(robot, gains):
     for q, v, q_d, qd_d, qdd_d in _states(robot.n)[:8]:
         out = law(q, v, q_d, qd_d, qdd_d, theta0, theta0, theta0)
         e = out.err
-        a = fast.passivity_and_energy(q, v, e.qd_a, e.qdd_a, e.r)
+        a = fast.passivity_and_energy(q, v, e.qd_a, aa=e.qdd_a, r=e.r)
         exact = [sum(Fraction(x) * t for x, t in zip(row, exact_theta)) for row in a]
         for i in range(robot.n):
             assert Fraction(out.w_bar[i]) >= abs(exact[i] - Fraction(out.tau_nom[i]))

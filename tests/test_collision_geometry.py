@@ -165,7 +165,7 @@ def test_the_planner_checks_obstacles_against_the_fixed_base(robot):
     reasons = {}
     for gap in (0.01, 0.05):
         box = Obstacle(name="by_the_base", xyz_m=[-(0.045 + gap + 0.05), 0.0, 0.05], size_m=[0.1, 0.1, 0.1])
-        planner = SafePlanner(robot, Planner(num_cost_samples=16), [box], None, None)
+        planner = SafePlanner(robot, Planner(num_cost_samples=16), obstacles=[box], payload=None, tracking=None)
         problem = planner.problem(q0, np.zeros(robot.n), np.zeros(robot.n), theta, theta, theta)
         reasons[gap] = problem.reason
     assert "base_link_sphere" in reasons[0.01] and "by_the_base" in reasons[0.01]

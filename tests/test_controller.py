@@ -27,12 +27,12 @@ def test_fast_regressors_equal_robot_model(robot, dyn):
     rng = np.random.default_rng(0)
     for _ in range(5):
         q, v, va, aa, x = rng.normal(size=(5, robot.n))
-        wp, wm = dyn.regressors(q, v, va, aa, x)
+        wp, wm = dyn.regressors(q, v, va, aa=aa, x=x)
         np.testing.assert_allclose(wp, robot.passivity_regressor(q[None], v[None], va[None], aa[None])[0], atol=1e-11)
         np.testing.assert_allclose(wm, robot.momentum_regressor(q[None], x[None])[0], atol=1e-11)
     general = C.ControllerDynamics(robot)
     general.serial = False  # the tree path (loop over parents) gives the same
-    np.testing.assert_allclose(general.regressors(q, v, va, aa, x)[0], wp, atol=1e-12)
+    np.testing.assert_allclose(general.regressors(q, v, va, aa=aa, x=x)[0], wp, atol=1e-12)
 
 
 def test_passivity_form_is_christoffel(robot, dyn):
@@ -41,7 +41,7 @@ def test_passivity_form_is_christoffel(robot, dyn):
     q, v, x = rng.normal(size=(3, robot.n))
     theta = robot.theta
     zero = np.zeros(robot.n)
-    c_x = (dyn.regressors(q, v, x, zero, zero)[0] - dyn.regressors(q, zero, zero, zero, zero)[0]) @ theta
+    c_x = (dyn.regressors(q, v, x, aa=zero, x=zero)[0] - dyn.regressors(q, zero, zero, aa=zero, x=zero)[0]) @ theta
     c_x -= robot.joint_params.viscous * x + robot.joint_params.coulomb * np.tanh(x / 0.01)  # friction(va) columns
     d = 1e-6
     m_dot = (robot.mass_matrix(q + d * v, theta)[0] - robot.mass_matrix(q - d * v, theta)[0]) / (2 * d)
@@ -58,7 +58,7 @@ def test_tracking_errors_hand_case(robot):
     v = np.full(7, 0.5)
     qd_d = np.full(7, 0.25)
     qdd_d = np.full(7, 2.0)
-    err = C.tracking_errors(kr, q, v, q_d, qd_d, qdd_d, cont)
+    err = C.tracking_errors(kr, q, v, q_d=q_d, qd_d=qd_d, qdd_d=qdd_d, continuous=cont)
     assert err.e[0] == pytest.approx(-0.2) and err.e[1] == pytest.approx(0.2)
     np.testing.assert_allclose(err.edot, -0.25)
     np.testing.assert_allclose(err.qd_a, qd_d + kr * err.e)
@@ -107,7 +107,7 @@ def test_mass_spread_bounds_the_change_of_the_lyapunov_value(robot):
     worst = 0.0
     for _ in range(30):
         q = rng.uniform(-np.pi, np.pi, n)
-        mu = C.mass_spread(robot, q, box.lo, box.hi)
+        mu = C.mass_spread(robot, q, box.lo, theta_hi=box.hi)
         for _ in range(20):
             r = rng.normal(size=n)
             row = r @ robot.momentum_regressor(q[None], r[None])[0]  # r^T dM/dtheta_k r
@@ -146,7 +146,9 @@ def test_robust_gain_on_the_tube_boundary(robot, dyn, V_max):
         out = C.armour_control(dyn, gains, q, qd_d - (r - gains.Kr * e), q_d, qd_d, qdd_d, theta0, box)
         np.testing.assert_allclose(out.err.r, r, atol=1e-12)
         w_norm = np.linalg.norm(out.w_bar)
-        bound = C.robust_gain_bound(w_norm, gains.alpha, bounds.eps, C.mass_spread(robot, q, box.lo, box.hi))
+        bound = C.robust_gain_bound(
+            w_norm, gains.alpha, bounds.eps, mu=C.mass_spread(robot, q, box.lo, theta_hi=box.hi)
+        )
         assert out.lam <= bound and np.all(np.abs(out.v) <= bound)
         negative += out.h < 0
         over.append(out.lam - w_norm)
@@ -170,7 +172,7 @@ def test_reproduction_lambda_exceeds_w_bar_at_the_quickstart_pose(robot, dyn):
     out = C.armour_control(dyn, gains, q0, -r, q0, np.zeros(robot.n), np.zeros(robot.n), theta0, box)
     w_norm = np.linalg.norm(out.w_bar)
     eps = C.tracking_bounds_for(robot, gains, box.lo).eps
-    bound = C.robust_gain_bound(w_norm, gains.alpha, eps, C.mass_spread(robot, q0, box.lo, box.hi))
+    bound = C.robust_gain_bound(w_norm, gains.alpha, eps, mu=C.mass_spread(robot, q0, box.lo, theta_hi=box.hi))
     print(
         f"h = {out.h:.5f} J, |v_4| = {abs(out.v[3]):.3f} N m, |w_bar| = {w_norm:.3f} N m, "
         f"certified bound {bound:.3f} N m"
@@ -187,7 +189,7 @@ def test_law_on_the_trajectory_is_inverse_dynamics(robot, dyn):
     q, qd, qdd = rng.normal(size=(3, 7))
     out = C.armour_control(dyn, gains, q, qd, q, qd, qdd, theta0, box)
     assert out.lam == 0 and not out.v.any() and out.V_bar == 0 and out.h == pytest.approx(0.02)
-    np.testing.assert_allclose(out.u, robot.inverse_dynamics(q[None], qd[None], qdd[None], theta0)[0], atol=1e-10)
+    np.testing.assert_allclose(out.u, robot.inverse_dynamics(q[None], qd[None], qdd[None], theta=theta0)[0], atol=1e-10)
 
 
 def test_law_hand_assembled(robot, dyn):
@@ -224,7 +226,7 @@ def test_disturbance_and_lyapunov_bounds_contain_and_are_exact(robot, dyn):
     theta0, box = _box(robot, rng)
     for _ in range(5):
         q, v, va, aa, r = rng.normal(size=(5, 7))
-        wp, wm = dyn.regressors(q, v, va, aa, r)
+        wp, wm = dyn.regressors(q, v, va, aa=aa, x=r)
         tau_nom, tau_box, w_bar = C.disturbance_bound(wp, theta0, box)
         v_bar = C.lyapunov_upper(wm, r, box)
         thetas = rng.uniform(box.lo, box.hi, (2000, box.lo.size))
@@ -278,7 +280,7 @@ def test_sigma_min_without_armature_is_zero_bound():
 
 def test_tracking_bounds_formulas_and_tightness():
     kr = np.array([5.0, 7.0])
-    tb = C.tracking_bounds(kr, 0.02, 8.0, 20.0)
+    tb = C.tracking_bounds(kr, 0.02, 8.0, alpha=20.0)
     eps = np.sqrt(2 * 0.02 / 8.0)
     assert tb.eps == pytest.approx(eps) and tb.eps >= eps
     np.testing.assert_allclose(tb.position, eps / kr)
@@ -312,7 +314,7 @@ def test_all_controllers_share_ports(robot):
     expected = {"desired": 3 * n, "state": 2 * n, "theta0": p, "theta_lower": p, "theta_upper": p}
     theta0, box = _box(robot, np.random.default_rng(6))
     for kind in ("armour", "pid", "adaptive", "adaptive_robust"):
-        system = make_controller(kind, robot, gains, 0.001)
+        system = make_controller(kind, robot, gains, time_step=0.001)
         ports = {
             system.get_input_port(i).get_name(): system.get_input_port(i).size()
             for i in range(system.num_input_ports())
@@ -338,7 +340,7 @@ def test_armour_controller_never_commands_nan(robot, caplog):
     from safesysid.scenario import load_scenario
     from safesysid.systems.controller.systems import gains_from_scenario, make_controller
 
-    system = make_controller("armour", robot, gains_from_scenario(load_scenario(), robot.n), 0.001)
+    system = make_controller("armour", robot, gains_from_scenario(load_scenario(), robot.n), time_step=0.001)
     ctx = system.CreateDefaultContext()
     q = np.array([0.0, 0.26, 0.0, 2.0, 0.0, 0.9, 1.57])
     bad = robot.theta.copy()

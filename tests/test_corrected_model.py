@@ -45,7 +45,7 @@ def reproduce(tmp_path, effects, seed):
     rng = np.random.default_rng(seed)
     trajs = [dg.random_trajectory(controller, rng) for _ in range(3)]
     logs = [track_trajectory(real, controller, controller, tr, seed + k, DURATION_S) for k, tr in enumerate(trajs)]
-    d = dg.diagnose(load_robot(URDF), logs[:2], logs[2:])
+    d = dg.diagnose(load_robot(model_path=URDF), logs[:2], logs[2:])
     check = logs[2]
     quiet = load_scenario(
         overrides={"payload": {"dumbbell": "none"}, "noise": {"distribution": "none"}, "plant": {"effects": effects}}
@@ -145,7 +145,7 @@ def test_scenario_loads_both_sides(tmp_path):
     (tmp_path / "s.yaml").write_text("robot: {corrected_model: c.yaml, coulomb_smoothing_rad_s: 0.02}\n")
     s = load_scenario(tmp_path / "s.yaml")
     robot = robot_from_scenario(s)
-    bare = load_robot(URDF)
+    bare = load_robot(model_path=URDF)
     jp = robot.joint_params
     assert jp.viscous[0] == 2.0 and jp.armature[1] == 3.0 and jp.offset[2] == 0.5 and robot.source == str(URDF)
     assert np.array_equal(robot.theta[:70], bare.theta[:70]) and np.array_equal(robot.theta[70:], jp.friction_theta())

@@ -42,7 +42,9 @@ def _plan(robot, dumbbells, budget, cap_s):
     gains = ctl.ArmourGains(Kr=np.array([5.0] * 4 + [7.0] * 3), alpha=20.0, V_max=0.005)
     box = Obstacle(name="box", xyz_m=[0.30, -0.38, 0.15], rpy_rad=[0.0, 0.0, 0.3], size_m=[0.25, 0.15, 0.30])
     config = Planner(num_cost_samples=32, budget=budget, max_solve_time_s=cap_s)
-    planner = SafePlanner(robot, config, [box], payload, ctl.tracking_bounds_for(robot, gains, lo))
+    planner = SafePlanner(
+        robot, config, obstacles=[box], payload=payload, tracking=ctl.tracking_bounds_for(robot, gains, lo)
+    )
     return planner.plan(Q0, np.zeros(7), np.zeros(7), theta0, lo, hi)
 
 

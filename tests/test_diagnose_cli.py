@@ -18,13 +18,13 @@ def case(tmp_path_factory):
     root = tmp_path_factory.mktemp("diag")
     urdf = root / "two_link.urdf"
     urdf.write_text(TWO_LINK)
-    model = load_robot(urdf)
+    model = load_robot(model_path=urdf)
     rng = np.random.default_rng(21)
     paths = []
     for k in range(3):
         traj = dg.random_trajectory(model, rng)
         t = dg.sample_times(rng, 10.0)
-        q, v, a, tau = dg.true_torque(model, traj, t, {"viscous_friction": {"delta": np.array([1.5, 0.0])}})
+        q, v, a, tau = dg.true_torque(model, traj, t, effects={"viscous_friction": {"delta": np.array([1.5, 0.0])}})
         tau = tau + 0.2 * rng.uniform(-1, 1, tau.shape)
         paths.append(write_joint_log(root / f"log{k}.csv", JointLog(t, q, v, tau, a if k != 1 else None)))
     return root, urdf, paths
@@ -185,7 +185,9 @@ def test_scenario_yaml_as_model(tmp_path, capsys):
     for k in range(2):
         traj = dg.random_trajectory(model, rng)
         t = dg.sample_times(rng, 6.0)
-        q, v, a, tau = dg.true_torque(model, traj, t, {"torque_offset": {"delta": np.r_[0, 2.0, 0, 0, 0, 0, 0]}})
+        q, v, a, tau = dg.true_torque(
+            model, traj, t, effects={"torque_offset": {"delta": np.r_[0, 2.0, 0, 0, 0, 0, 0]}}
+        )
         tau = tau + 0.2 * rng.uniform(-1, 1, tau.shape)
         paths.append(write_joint_log(tmp_path / f"k{k}.csv", JointLog(t, q, v, tau, a)))
     out = tmp_path / "out"

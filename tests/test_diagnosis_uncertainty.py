@@ -15,7 +15,7 @@ from test_gap import TWO_LINK
 def two_link(tmp_path_factory):
     path = tmp_path_factory.mktemp("model") / "two_link.urdf"
     path.write_text(TWO_LINK)
-    return load_robot(path)
+    return load_robot(model_path=path)
 
 
 def _regression(rng, rows=2000, block=50, rho=0.8):
@@ -66,7 +66,7 @@ def _logs(model, seed, effects, *, amplitude=None, noise=0.3, n=3):
                 rng.uniform(0, 2 * np.pi, (3, 2)),
             )
         t = dg.sample_times(rng, 10.0)
-        q, v, _, tau = dg.true_torque(model, traj, t, effects)
+        q, v, _, tau = dg.true_torque(model, traj, t, effects=effects)
         logs.append(JointLog(t, q, v, tau + noise * rng.uniform(-1, 1, tau.shape), None, {}, "sim"))
     return logs
 

@@ -19,7 +19,7 @@ def true_theta(rng, robot, dumbbell, ratio=0.05):
 
 def run_online(robot, t, q, v, tau, settings=None, period_s=1.5):
     """Feed the log chunk by chunk and update every period (Algorithm 2's cadence)."""
-    est = E.IncrementalEstimator(robot, settings or E.EstimatorSettings())
+    est = E.IncrementalEstimator(robot, settings=settings or E.EstimatorSettings())
     out = []
     edges = np.arange(t[0] + period_s, t[-1] + 1e-9, period_s)
     start = 0
@@ -51,12 +51,14 @@ def test_segments_by_time_never_span_a_gap():
 @pytest.mark.parametrize("integration", ["trapezoid", "euler"])
 def test_integrated_rate_regressor_matches_per_sample_regressor(robot, integration):
     rng = np.random.default_rng(2)
-    t, q, v, _ = E.fourier_trajectory(rng, robot, 0.35, 1000.0, centre=CENTRE)
+    t, q, v, _ = E.fourier_trajectory(rng, robot, 0.35, rate_hz=1000.0, centre=CENTRE)
     t = t + rng.uniform(0, 2e-4, len(t)) * (np.arange(len(t)) > 0)  # uneven steps
     bounds, _ = E.segment_bounds(t, 0.1, 0.05)
-    fast = E.integrated_rate_regressor(robot.tree, q, v, t, bounds, integration)
+    fast = E.integrated_rate_regressor(robot.tree, q, v, t, bounds, integration=integration)
     wc = robot.momentum_rate_regressor(q, v)[..., : 10 * robot.n]
-    ref = np.stack([np.tensordot(E.sample_weights(t, a, b, integration), wc[a : b + 1], 1) for a, b in bounds])
+    ref = np.stack(
+        [np.tensordot(E.sample_weights(t, a, b, integration=integration), wc[a : b + 1], 1) for a, b in bounds]
+    )
     assert np.abs(fast - ref).max() <= 1e-12 * np.abs(ref).max()
 
 
@@ -71,16 +73,18 @@ def test_quadrature_bound_covers_the_integration_error(robot, dumbbells, integra
     old rule) leaves an error of h/2·|τ_b − τ_a| per segment that no bound carries."""
     rng = np.random.default_rng(3)
     theta, theta_e = true_theta(rng, robot, dumbbells["8lb"])
-    t, q, v, _, tau = E.simulate_log(rng, robot, theta, 3.0, rate_hz, centre=CENTRE, period_s=period_s)
+    t, q, v, _, tau = E.simulate_log(
+        rng, robot, theta, duration_s=3.0, rate_hz=rate_hz, centre=CENTRE, period_s=period_s
+    )
     settings = E.EstimatorSettings(integration=integration, horizon_s=max(0.1, 10 / rate_hz), hold_period_s=1 / rate_hz)
     bounds, _ = E.segment_bounds(t, settings.horizon_s, settings.segment_gap_s())
     box = (theta, 0.05 * np.abs(theta))  # the bound holds for every θ of a box around the truth
-    rows = E.build_segment_rows(robot, t, q, v, tau, bounds, settings, box)
+    rows = E.build_segment_rows(robot, t, q, v, tau, bounds, settings, theta_box=box)
     lhs = rows.Y @ theta_e + np.einsum("snk,k->sn", rows.D_r, theta[robot.rest_mask()])
     resid = lhs - rows.T
     assert np.all(np.abs(resid) <= rows.quad)
     assert np.abs(resid).max() > 1e-3 * rows.quad.max()  # a real error, not a zero
-    trapezoid_torque = E.segment_sums(tau, t, bounds, "trapezoid")
+    trapezoid_torque = E.segment_sums(tau, t, bounds, integration="trapezoid")
     assert np.any(np.abs(lhs - trapezoid_torque) > rows.quad)
 
 
@@ -89,11 +93,11 @@ def test_quadrature_bound_grows_with_the_box(robot, dumbbells):
     gives a smaller bound (monotone), and a zero box gives the nominal integrand's bound."""
     rng = np.random.default_rng(4)
     theta, _ = true_theta(rng, robot, dumbbells["6lb"])
-    t, q, v, _, tau = E.simulate_log(rng, robot, theta, 1.0, centre=CENTRE)
+    t, q, v, _, tau = E.simulate_log(rng, robot, theta, duration_s=1.0, centre=CENTRE)
     settings = E.EstimatorSettings()
     bounds, _ = E.segment_bounds(t, settings.horizon_s, settings.segment_gap_s())
     quads = [
-        E.build_segment_rows(robot, t, q, v, tau, bounds, settings, (theta, k * 0.05 * np.abs(theta))).quad
+        E.build_segment_rows(robot, t, q, v, tau, bounds, settings, theta_box=(theta, k * 0.05 * np.abs(theta))).quad
         for k in (0, 1, 2)
     ]
     assert np.all(quads[0] <= quads[1]) and np.all(quads[1] <= quads[2]) and np.any(quads[0] < quads[2])
@@ -140,7 +144,7 @@ def test_solver_recovers_consistent_optimum_and_ift_equals_linear_map(robot):
     assert sol.success
     assert np.allclose(sol.theta, theta_ls, rtol=1e-7, atol=1e-9)
     dU_dm = rng.normal(size=(80, 30))
-    sens = E.ift_sensitivity(sol.eta, A, b, Y.T @ dU_dm)
+    sens = E.ift_sensitivity(sol.eta, A, b, dU_dm_Y=Y.T @ dU_dm)
     assert np.allclose(sens, np.linalg.pinv(Y) @ dU_dm, rtol=1e-6, atol=1e-9)
 
 
@@ -169,7 +173,7 @@ def test_truth_inside_interval_in_every_randomized_run(robot, dumbbells, payload
     for seed in range(runs):
         rng = np.random.default_rng(1000 * PAYLOADS.index(payload) + seed)
         theta, theta_e = true_theta(rng, robot, dumbbells[payload])
-        t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 7.5, 1000.0, centre=CENTRE)
+        t, q, v, tau, _ = E.simulate_log(rng, robot, theta, duration_s=7.5, rate_hz=1000.0, centre=CENTRE)
         _, history = run_online(robot, t, q, v, tau)
         for k, est in enumerate(history):
             assert est.consistent, est.message
@@ -190,7 +194,7 @@ def uneven_held_log(rng, robot, theta, duration_s=7.5):
     t = t[t <= t_grid[-1]]
     t = t[(t < 3.0) | (t > 3.5)]  # the gap: no samples, the torque held over it is unknown
     q, v, _ = motion(t)
-    tau = E.held_torque(robot, motion, t, theta)
+    tau = E.held_torque(robot, motion, t, theta=theta)
     tau_meas = tau + rng.uniform(-1, 1, tau.shape) * (0.025 * np.abs(tau) + 0.05)
     return t, q, v, tau_meas
 
@@ -201,7 +205,7 @@ def test_held_torque_with_uneven_steps_and_gaps(robot, dumbbells, integration):
     theta, theta_e = true_theta(rng, robot, dumbbells["7lb"])
     t, q, v, tau = uneven_held_log(rng, robot, theta)
     settings = E.EstimatorSettings(integration=integration, hold_period_s=0.0014)
-    ie = E.IncrementalEstimator(robot, settings)
+    ie = E.IncrementalEstimator(robot, settings=settings)
     ie.add(t, q, v, tau)
     est = ie.update()
     assert est.consistent and est.contains(theta_e)
@@ -216,10 +220,10 @@ def test_held_torque_segments_never_span_a_lost_sample(robot, dumbbells, declare
     default settings (no hold period given: the 1 kHz controller's step, never "no rule")."""
     rng = np.random.default_rng(12)
     theta, _ = true_theta(rng, robot, dumbbells["5lb"])
-    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 3.0, 1000.0, centre=CENTRE)
+    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, duration_s=3.0, rate_hz=1000.0, centre=CENTRE)
     keep = np.ones(len(t), bool)
     keep[rng.choice(np.arange(1, len(t)), len(t) // 20, replace=False)] = False
-    ie = E.IncrementalEstimator(robot, E.EstimatorSettings(**declared))
+    ie = E.IncrementalEstimator(robot, settings=E.EstimatorSettings(**declared))
     ie.add(t[keep], q[keep], v[keep], tau[keep])
     tk = t[keep]
     assert len(ie.rows) > 0
@@ -231,8 +235,8 @@ def test_a_log_slower_than_the_hold_period_is_refused_with_a_hint(robot):
     """A 100 Hz log declared as held at 1 kHz: every step loses held samples, so no segment
     forms; the error says which setting to change."""
     rng = np.random.default_rng(14)
-    t, q, v, tau, _ = E.simulate_log(rng, robot, robot.theta, 2.0, 100.0, centre=CENTRE)
-    est = E.IncrementalEstimator(robot, E.EstimatorSettings(hold_period_s=1e-3))
+    t, q, v, tau, _ = E.simulate_log(rng, robot, robot.theta, duration_s=2.0, rate_hz=100.0, centre=CENTRE)
+    est = E.IncrementalEstimator(robot, settings=E.EstimatorSettings(hold_period_s=1e-3))
     est.add(t, q, v, tau)
     with pytest.raises(E.EstimatorError, match="hold_period_s"):
         est.update()
@@ -244,17 +248,19 @@ def test_continuous_torque_with_dropped_samples_and_its_rate_check(robot, dumbbe
     interval contains the truth; declared 10x below it, the data contradict it (flagged)."""
     rng = np.random.default_rng(13)
     theta, theta_e = true_theta(rng, robot, dumbbells["7lb"])
-    t, q, v, tau, tau_true = E.simulate_log(rng, robot, theta, 7.5, 1000.0, centre=CENTRE, torque="sampled")
+    t, q, v, tau, tau_true = E.simulate_log(
+        rng, robot, theta, duration_s=7.5, rate_hz=1000.0, centre=CENTRE, torque="sampled"
+    )
     keep = np.ones(len(t), bool)
     keep[rng.choice(len(t), 1500, replace=False)] = False
     keep[3000:3500] = False
     keep[0] = True
     true_rate = np.max(np.abs(np.diff(tau_true, axis=0)) / np.diff(t)[:, None])
     ok = E.EstimatorSettings(torque_signal="continuous", torque_rate_limit_Nm_s=1.2 * true_rate)
-    est = E.identify(robot, t[keep], q[keep], v[keep], tau[keep], ok)
+    est = E.identify(robot, t[keep], q[keep], v[keep], tau[keep], settings=ok)
     assert est.consistent and est.contains(theta_e), est.message
     low = E.EstimatorSettings(torque_signal="continuous", torque_rate_limit_Nm_s=0.1 * true_rate)
-    est = E.identify(robot, t[keep], q[keep], v[keep], tau[keep], low)
+    est = E.identify(robot, t[keep], q[keep], v[keep], tau[keep], settings=low)
     assert not est.consistent and "faster than the declared" in " ".join(est.problems)
 
 
@@ -266,7 +272,9 @@ def test_bound_is_not_vacuous_containment_fails_when_noise_exceeds_it(robot, dum
     for seed in range(runs):
         rng = np.random.default_rng(500 + seed)
         theta, theta_e = true_theta(rng, robot, dumbbells["8lb"])
-        t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 7.5, 1000.0, centre=CENTRE, noise_scale=10.0)
+        t, q, v, tau, _ = E.simulate_log(
+            rng, robot, theta, duration_s=7.5, rate_hz=1000.0, centre=CENTRE, noise_scale=10.0
+        )
         _, history = run_online(robot, t, q, v, tau)
         if any((not e.contains(theta_e)) or (not e.consistent) for e in history):
             failures += 1
@@ -278,7 +286,7 @@ def test_theta_r_outside_its_box_is_caught(robot, dumbbells):
     rng = np.random.default_rng(21)
     theta, theta_e = true_theta(rng, robot, dumbbells["8lb"], ratio=0.0)
     theta[robot.rest_mask()] *= 1.4
-    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 7.5, 1000.0, centre=CENTRE)
+    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, duration_s=7.5, rate_hz=1000.0, centre=CENTRE)
     _, history = run_online(robot, t, q, v, tau)
     assert any((not e.contains(theta_e)) or (not e.consistent) for e in history)
 
@@ -286,9 +294,9 @@ def test_theta_r_outside_its_box_is_caught(robot, dumbbells):
 def test_set_membership_lp_is_certified_and_tighter(robot, dumbbells):
     rng = np.random.default_rng(31)
     theta, theta_e = true_theta(rng, robot, dumbbells["6lb"])
-    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 4.5, 1000.0, centre=CENTRE)
-    plain = E.identify(robot, t, q, v, tau, E.EstimatorSettings(set_membership="none"))
-    full = E.identify(robot, t, q, v, tau, E.EstimatorSettings(set_membership="all"))
+    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, duration_s=4.5, rate_hz=1000.0, centre=CENTRE)
+    plain = E.identify(robot, t, q, v, tau, settings=E.EstimatorSettings(set_membership="none"))
+    full = E.identify(robot, t, q, v, tau, settings=E.EstimatorSettings(set_membership="all"))
     assert full.contains(theta_e) and plain.contains(theta_e)
     assert np.all(full.widths <= plain.widths + 1e-12)
     assert full.widths[0] < 0.9 * plain.widths[0]
@@ -297,7 +305,7 @@ def test_set_membership_lp_is_certified_and_tighter(robot, dumbbells):
 def test_interval_reports_widths_cond_and_radii(robot, dumbbells):
     rng = np.random.default_rng(41)
     theta, theta_e = true_theta(rng, robot, dumbbells["5lb"])
-    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 3.0, 1000.0, centre=CENTRE)
+    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, duration_s=3.0, rate_hz=1000.0, centre=CENTRE)
     est = E.identify(robot, t, q, v, tau)
     assert np.isfinite(est.cond_Y) and est.cond_Y >= 1
     assert est.widths.shape == (10,) and np.all(est.widths > 0)
@@ -316,7 +324,7 @@ def test_interval_reports_widths_cond_and_radii(robot, dumbbells):
 def test_incremental_chunks_give_the_batch_segments(robot, dumbbells):
     rng = np.random.default_rng(51)
     theta, _ = true_theta(rng, robot, dumbbells["4lb"])
-    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 3.0, 1000.0, centre=CENTRE)
+    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, duration_s=3.0, rate_hz=1000.0, centre=CENTRE)
     batch = E.IncrementalEstimator(robot)
     batch.add(t, q, v, tau)
     inc = E.IncrementalEstimator(robot)
@@ -335,7 +343,7 @@ def test_incremental_chunks_give_the_batch_segments(robot, dumbbells):
 def test_intersection_never_returns_an_inverted_interval(robot, dumbbells):
     rng = np.random.default_rng(61)
     theta, theta_e = true_theta(rng, robot, dumbbells["8lb"])
-    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 3.0, 1000.0, centre=CENTRE)
+    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, duration_s=3.0, rate_hz=1000.0, centre=CENTRE)
     wrong_prior = (np.r_[10.0, -np.ones(9)], np.r_[11.0, np.ones(9)])  # excludes the true mass
     est = E.identify(robot, t, q, v, tau, prior=wrong_prior)
     assert not est.consistent and "inconsistent" in est.message
@@ -355,7 +363,7 @@ def test_inconsistent_data_keep_the_last_consistent_box(robot, dumbbells):
 
     rng = np.random.default_rng(5)
     theta, theta_e = true_theta(rng, robot, dumbbells["8lb"], ratio=0.0)
-    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 7.5, 1000.0, centre=CENTRE)
+    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, duration_s=7.5, rate_hz=1000.0, centre=CENTRE)
     tau[t >= 4.5] += 1.0
     est = E.IncrementalEstimator(robot, prior=PRIOR, prior_nominal=PRIOR_NOMINAL)
     published, flags = PRIOR, []
@@ -380,7 +388,9 @@ def test_disjoint_enclosures_do_not_publish_the_gap(robot, dumbbells):
     for seed in range(4):
         rng = np.random.default_rng(500 + seed)
         theta, theta_e = true_theta(rng, robot, dumbbells["8lb"])
-        t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 3.0, 1000.0, centre=CENTRE, noise_scale=10.0)
+        t, q, v, tau, _ = E.simulate_log(
+            rng, robot, theta, duration_s=3.0, rate_hz=1000.0, centre=CENTRE, noise_scale=10.0
+        )
         e = E.identify(robot, t, q, v, tau, prior=PRIOR, prior_nominal=PRIOR_NOMINAL)
         if not e.consistent:
             np.testing.assert_array_equal(e.lower, PRIOR[0])
@@ -392,7 +402,7 @@ def test_disjoint_enclosures_do_not_publish_the_gap(robot, dumbbells):
 
 def test_bad_input_is_rejected(robot):
     rng = np.random.default_rng(71)
-    t, q, v, _ = E.fourier_trajectory(rng, robot, 1.0, 1000.0, centre=CENTRE)
+    t, q, v, _ = E.fourier_trajectory(rng, robot, 1.0, rate_hz=1000.0, centre=CENTRE)
     tau = np.zeros_like(q)
     est = E.IncrementalEstimator(robot)
     with pytest.raises(E.EstimatorError, match="joints"):
@@ -417,7 +427,7 @@ def test_table_v_observation_matrix_tends_to_dt_times_w(robot):
     from safesysid.systems.model import regressors
 
     rng = np.random.default_rng(81)
-    t, q, v, a = E.fourier_trajectory(rng, robot, 0.5, 1000.0, period_s=1.0, centre=CENTRE)
+    t, q, v, a = E.fourier_trajectory(rng, robot, 0.5, rate_hz=1000.0, period_s=1.0, centre=CENTRE)
     ee = [robot.end_effector]
     wm = regressors.momentum_regressor(robot.tree, q, v, bodies=ee)
     wc = regressors.momentum_rate_regressor(robot.tree, q, v, bodies=ee)

@@ -68,7 +68,7 @@ def make_case(robot, dumbbells, index, duration_s=3.0):
     if pattern.startswith("worst"):
         # Rows of the noise-free log give the estimator's L (it does not depend on the noise
         # signs); the attack chooses the noise signs and the θ_r vertex from it.
-        probe.add(t, q, v, robot.inverse_dynamics(q, v, motion(t)[2], theta))
+        probe.add(t, q, v, robot.inverse_dynamics(q, v, motion(t)[2], theta=theta))
         L = left_inverse(probe, probe.rows, pattern.split("_")[1])
         S = len(probe.rows)
         G = L[target].reshape(S, robot.n)
@@ -89,7 +89,7 @@ def make_case(robot, dumbbells, index, duration_s=3.0):
             sign = np.ones((len(t), robot.n))
         else:  # alternating per segment
             sign = np.where(seg[:, None] % 2 == 0, 1.0, -1.0) * np.ones((1, robot.n))
-    tau = E.held_torque(robot, motion, t, theta)
+    tau = E.held_torque(robot, motion, t, theta=theta)
     st = probe.settings
     tau_meas = tau + sign * (st.declared_noise.ratio * np.abs(tau) + st.declared_noise.floor_Nm)
     what = f"case {index}: {payload} {pattern} target {target} push {push:+.0f}"

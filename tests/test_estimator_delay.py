@@ -33,7 +33,7 @@ def test_a_shifted_reading_is_paired_with_its_step():
         keep[150] = False  # lost: step 150 has no motion, step 150 - steps no reading
         inverse = DelayInverse(0.001 * steps, hold_s=0.001)
         parts = [
-            inverse.push(t[keep][a:b], q[keep][a:b], q[keep][a:b], y[keep][a:b])
+            inverse.push(t[keep][a:b], q[keep][a:b], q[keep][a:b], y=y[keep][a:b])
             for a, b in ((0, 0), (0, 1), (1, 90), (90, 299))
         ]
         got_t = np.concatenate([p[0] for p in parts])
@@ -49,7 +49,7 @@ def test_a_delay_needs_a_held_torque_and_its_period(robot):
         dataclasses.replace(E.EstimatorSettings(), torque_delay_s=0.01, hold_period_s=None),
     ):
         with pytest.raises(E.EstimatorError, match="torque_delay_s"):
-            E.IncrementalEstimator(robot, bad)
+            E.IncrementalEstimator(robot, settings=bad)
 
 
 @pytest.mark.parametrize("late", ["reading", "torque"])
@@ -66,7 +66,7 @@ def test_truth_inside_with_a_shifted_torque_and_noise_at_the_bound(robot, dumbbe
         t, q, v, tau_meas, _, theta_e, what = make_case(robot, dumbbells, index)
         y = np.roll(tau_meas, steps, axis=0)  # the log at sample k holds the reading of step k - steps
         for delay_s in (0.001 * steps, 0.0):
-            est = E.IncrementalEstimator(robot, settings(delay_s), PRIOR, PRIOR_NOMINAL)
+            est = E.IncrementalEstimator(robot, settings=settings(delay_s), prior=PRIOR, prior_nominal=PRIOR_NOMINAL)
             ok = True
             for a, b in ((0, 1500), (1500, len(t))):
                 est.add(t[a:b], q[a:b], v[a:b], y[a:b])

@@ -42,7 +42,7 @@ def test_unlag_recovers_each_steps_reading_and_streams_one_sample_late():
     # Streamed in uneven chunks: the same readings, each once, the last one still waiting.
     inverse = LagInverse(LAG_S, max_step_s=0.0015)
     q = np.zeros((400, 7))
-    parts = [inverse.push(t[a:b], q[a:b], q[a:b], y[a:b]) for a, b in ((0, 1), (1, 2), (2, 137), (137, 400))]
+    parts = [inverse.push(t[a:b], q[a:b], q[a:b], y=y[a:b]) for a, b in ((0, 1), (1, 2), (2, 137), (137, 400))]
     got_t = np.concatenate([p[0] for p in parts])
     got_r = np.concatenate([p[3] for p in parts])
     assert not np.concatenate([p[4] for p in parts]).any()  # one lag: exact, no radius
@@ -52,7 +52,7 @@ def test_unlag_recovers_each_steps_reading_and_streams_one_sample_late():
     inverse = LagInverse(LAG_S, max_step_s=0.0015)
     keep = np.ones(400, bool)
     keep[200] = False
-    out_t, _, _, out_r, _ = inverse.push(t[keep], q[keep], q[keep], y[keep])
+    out_t, _, _, out_r, _ = inverse.push(t[keep], q[keep], q[keep], y=y[keep])
     assert 199 not in np.searchsorted(t, out_t) and len(out_t) == 397
     np.testing.assert_allclose(out_r, raw[:-1][np.isin(t[:-1], out_t)], rtol=0, atol=1e-10)
 
@@ -60,8 +60,8 @@ def test_unlag_recovers_each_steps_reading_and_streams_one_sample_late():
 def test_rows_of_a_lagged_log_are_the_rows_of_the_readings(robot, dumbbells):
     """Same segments, same ∫τ and radii as the unlagged readings (one sample later at most)."""
     t, q, v, tau_meas, *_ = make_case(robot, dumbbells, 3)
-    plain = E.IncrementalEstimator(robot, settings(0.0), PRIOR, PRIOR_NOMINAL)
-    lag = E.IncrementalEstimator(robot, settings(LAG_S), PRIOR, PRIOR_NOMINAL)
+    plain = E.IncrementalEstimator(robot, settings=settings(0.0), prior=PRIOR, prior_nominal=PRIOR_NOMINAL)
+    lag = E.IncrementalEstimator(robot, settings=settings(LAG_S), prior=PRIOR, prior_nominal=PRIOR_NOMINAL)
     plain.add(t, q, v, tau_meas)
     y = lagged(t, tau_meas, LAG_S)
     for a, b in ((0, 1), (1, 1500), (1500, len(t))):
@@ -84,7 +84,7 @@ def test_truth_inside_with_a_lagged_sensor_and_noise_at_the_bound(robot, dumbbel
         t, q, v, tau_meas, _, theta_e, what = make_case(robot, dumbbells, index)
         y = lagged(t, tau_meas, LAG_S)
         for lag_s in (LAG_S, 0.0):
-            est = E.IncrementalEstimator(robot, settings(lag_s), PRIOR, PRIOR_NOMINAL)
+            est = E.IncrementalEstimator(robot, settings=settings(lag_s), prior=PRIOR, prior_nominal=PRIOR_NOMINAL)
             for a, b in ((0, 1500), (1500, len(t))):
                 est.add(t[a:b], q[a:b], v[a:b], y[a:b])
                 e = est.update()
@@ -107,7 +107,7 @@ def test_truth_inside_with_a_lagged_sensor_and_noise_at_the_bound(robot, dumbbel
 def test_lag_needs_a_held_torque(robot):
     bad = dataclasses.replace(E.EstimatorSettings(), torque_lag_s=0.1, torque_signal="continuous")
     with pytest.raises(E.EstimatorError, match="torque_lag_s"):
-        E.IncrementalEstimator(robot, bad)
+        E.IncrementalEstimator(robot, settings=bad)
 
 
 def online_first_update(*texts):
@@ -164,7 +164,9 @@ def declared_lag_case(robot, dumbbells, index, true_lag_s, declared, set_members
     LPs): [(inside, consistent, mass width)] per update."""
     t, q, v, tau_meas, _, theta_e, _ = make_case(robot, dumbbells, index)
     y = lagged(t, tau_meas, true_lag_s)
-    est = E.IncrementalEstimator(robot, settings(declared, set_membership), PRIOR, PRIOR_NOMINAL)
+    est = E.IncrementalEstimator(
+        robot, settings=settings(declared, set_membership), prior=PRIOR, prior_nominal=PRIOR_NOMINAL
+    )
     out = []
     for a, b in ((0, 1500), (1500, len(t))):
         est.add(t[a:b], q[a:b], v[a:b], y[a:b])
@@ -234,7 +236,7 @@ def test_offline_lag_undo_encloses_every_lag_in_the_interval(robot, dumbbells):
     from safesysid.sysid_cli import undo_torque_lag
 
     t, q, v, tau_meas, *_ = make_case(robot, dumbbells, 2, duration_s=0.6)
-    est = E.IncrementalEstimator(robot, settings(0.0), PRIOR, PRIOR_NOMINAL)
+    est = E.IncrementalEstimator(robot, settings=settings(0.0), prior=PRIOR, prior_nominal=PRIOR_NOMINAL)
     est.add(t, q, v, tau_meas)
 
     def undone(lag):

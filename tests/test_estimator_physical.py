@@ -63,7 +63,7 @@ def test_pruning_never_cuts_a_payload_inside_the_volume(robot, shape):
         side = rng.integers(0, 3, 10)  # truth on the lower side, the upper side, or inside
         lo = truth - np.where(side == 0, 0.0, rng.uniform(0, 1, 10) * PRIOR_HALF)
         hi = truth + np.where(side == 1, 0.0, rng.uniform(0, 1, 10) * PRIOR_HALF)
-        p_lo, p_hi, feasible = prune_box(lo, hi, vol, (g_lo, g_hi))
+        p_lo, p_hi, feasible = prune_box(lo, hi, volume=vol, gripper=(g_lo, g_hi))
         assert feasible
         assert np.all((p_lo <= truth) & (truth <= p_hi)), (trial, truth, p_lo, p_hi)
         assert np.all((lo <= p_lo) & (p_hi <= hi))
@@ -75,14 +75,14 @@ def test_pruning_cuts_a_payload_outside_the_volume_and_shrinks_the_inertias(robo
     g = gripper(robot)
     inside = robot.theta_e + payload_theta(surface_points(vol, rng, 4), [0.5, 0.5, 0.4, 0.4])
     lo, hi = inside - PRIOR_HALF / 2, inside + PRIOR_HALF / 2
-    p_lo, p_hi, feasible = prune_box(lo, hi, vol, g)
+    p_lo, p_hi, feasible = prune_box(lo, hi, volume=vol, gripper=g)
     assert feasible
     shrink = (p_hi - p_lo)[4:] / (hi - lo)[4:]
     # Measured: the rotational inertias keep 0.16-0.78 of their width (mean 0.45) here.
     assert shrink.max() < 0.85 and shrink.mean() < 0.6, shrink
     # The same mass 0.25 m outside the box: its second moments are out of reach of the volume.
     outside = robot.theta_e + payload_theta(np.array([[0.0, 0.0, -0.45]]), [1.8])
-    o_lo, o_hi, feasible = prune_box(outside - 1e-3, outside + 1e-3, vol, g)
+    o_lo, o_hi, feasible = prune_box(outside - 1e-3, outside + 1e-3, volume=vol, gripper=g)
     assert not feasible or not np.all((o_lo <= outside) & (outside <= o_hi))
 
 
@@ -110,7 +110,7 @@ def pruning_estimator(robot, volume):
     from safesysid.systems import estimation as E
 
     settings = E.EstimatorSettings(physical_pruning=True, payload_volume=volume)
-    return E.IncrementalEstimator(robot, settings, PRIOR, PRIOR_NOMINAL)
+    return E.IncrementalEstimator(robot, settings=settings, prior=PRIOR, prior_nominal=PRIOR_NOMINAL)
 
 
 def test_estimator_reports_the_data_box_and_the_pruned_box_separately(robot, log8):

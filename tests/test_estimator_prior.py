@@ -52,7 +52,7 @@ def payload_log(robot, dumbbell, seed, amplitude_rad, duration_s=3.0):
     theta = E.perturbed_robot_theta(rng, robot, 0.05)
     theta[robot.ee_slice] = robot.theta_e + payload_theta_in_end_effector(dumbbell, robot.extra["grasp_point"])
     t, q, v, tau, _ = E.simulate_log(
-        rng, robot, theta, duration_s, 1000.0, centre=CENTRE, position_amplitude_rad=amplitude_rad
+        rng, robot, theta, duration_s=duration_s, rate_hz=1000.0, centre=CENTRE, position_amplitude_rad=amplitude_rad
     )
     return t, q, v, tau, theta[robot.ee_slice]
 
@@ -65,7 +65,9 @@ def wrist_log(robot, dumbbells):
 @pytest.mark.parametrize("mode", ["all", "mass", "none"])
 def test_no_published_interval_is_wider_than_the_prior(robot, wrist_log, mode):
     t, q, v, tau, truth = wrist_log
-    est = E.IncrementalEstimator(robot, E.EstimatorSettings(set_membership=mode), PRIOR, PRIOR_NOMINAL)
+    est = E.IncrementalEstimator(
+        robot, settings=E.EstimatorSettings(set_membership=mode), prior=PRIOR, prior_nominal=PRIOR_NOMINAL
+    )
     bad = []
     published = [est.prior_estimate()]
     for k in range(0, len(t), 750):
@@ -86,7 +88,10 @@ def test_no_published_interval_is_wider_than_the_prior(robot, wrist_log, mode):
 def test_not_identifiable_and_latched_updates_publish_inside_the_prior(robot, wrist_log):
     t, q, v, tau, _ = wrist_log
     est = E.IncrementalEstimator(
-        robot, E.EstimatorSettings(set_membership="all", max_condition=1.0), PRIOR, PRIOR_NOMINAL
+        robot,
+        settings=E.EstimatorSettings(set_membership="all", max_condition=1.0),
+        prior=PRIOR,
+        prior_nominal=PRIOR_NOMINAL,
     )
     est.add(t[:500], q[:500], v[:500], tau[:500])
     e = est.update()
@@ -101,12 +106,14 @@ def test_predicted_radius_is_the_update_radius_and_ranks_excitation(robot, wrist
     """The width a candidate log would give (for a planner's cost) equals the box the update then
     computes, and a barely moving candidate predicts a wider box than an exciting one."""
     t, q, v, tau, _ = wrist_log
-    est = E.IncrementalEstimator(robot, E.EstimatorSettings(set_membership="none"), PRIOR, PRIOR_NOMINAL)
-    predicted = est.predicted_radius(t, q, v, tau)
+    est = E.IncrementalEstimator(
+        robot, settings=E.EstimatorSettings(set_membership="none"), prior=PRIOR, prior_nominal=PRIOR_NOMINAL
+    )
+    predicted = est.predicted_radius(t, q, v, tau=tau)
     assert len(est.rows) == 0  # not changed
     est.add(t, q, v, tau)
     e = est.update()
     assert np.allclose(predicted, e.radius_torque + e.radius_theta_r + e.radius_quadrature, rtol=1e-9)
-    slow = E.IncrementalEstimator(robot, E.EstimatorSettings(), PRIOR, PRIOR_NOMINAL)
+    slow = E.IncrementalEstimator(robot, settings=E.EstimatorSettings(), prior=PRIOR, prior_nominal=PRIOR_NOMINAL)
     q_slow = q[0] + 0.1 * (q - q[0])  # the same path at a tenth of the amplitude (same torque level)
-    assert np.all(slow.predicted_radius(t, q_slow, 0.1 * v, tau)[4:] > predicted[4:])
+    assert np.all(slow.predicted_radius(t, q_slow, 0.1 * v, tau=tau)[4:] > predicted[4:])

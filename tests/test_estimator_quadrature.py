@@ -36,7 +36,7 @@ def held_torque(robot, motion, t, theta):
     h = 1.0 / RATE_HZ
     nodes = t[:, None] + 0.5 * h * (1 + GAUSS[0][None, :])
     q, v, a = motion(nodes.ravel())
-    tau = robot.inverse_dynamics(q, v, a, theta).reshape(len(t), len(GAUSS[0]), -1)
+    tau = robot.inverse_dynamics(q, v, a, theta=theta).reshape(len(t), len(GAUSS[0]), -1)
     return 0.5 * np.tensordot(tau, GAUSS[1], axes=([1], [0]))
 
 
@@ -53,8 +53,10 @@ def estimator(robot, t, motion, theta, reference):
     """An IncrementalEstimator fed the held-torque log of `motion` (noise-free) and its row residuals
     |Y θ_e + D_r θ_r − ∫τ|: with the torque exact, only the quadrature of ∫W_c θ dt errs."""
     q, v, _ = motion(t)
-    est = E.IncrementalEstimator(robot, E.EstimatorSettings(set_membership="none"), PRIOR, PRIOR_NOMINAL)
-    est.add(t, q, v, held_torque(robot, motion, t, theta), reference=reference)
+    est = E.IncrementalEstimator(
+        robot, settings=E.EstimatorSettings(set_membership="none"), prior=PRIOR, prior_nominal=PRIOR_NOMINAL
+    )
+    est.add(t, q, v, held_torque(robot, motion, t, theta=theta), reference=reference)
     r = est.rows
     residual = np.abs(r.Y @ theta[robot.ee_slice] + r.D_r @ theta[robot.rest_mask()] - r.T)
     return est, residual

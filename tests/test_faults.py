@@ -208,7 +208,7 @@ def test_after_the_faulty_link_and_the_sanitation_the_estimator_holds_the_clean_
     run, held, handed, expected, kinds_seen = SysIdState(None), None, [], [], set()
     for k in range(2000):
         row = np.concatenate([[k * h], rng.normal(size=3 * n)])
-        rows, held, events = deliver(row, held, rng.uniform(size=5), rates, n)
+        rows, held, events = deliver(row, held, rng.uniform(size=5), rates=rates, n=n)
         kinds_seen.update(e["kind"] for e in events)
         expected += [r[0] for r in rows if np.all(np.isfinite(r))]
         for r in rows:

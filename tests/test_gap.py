@@ -27,7 +27,7 @@ TWO_LINK = """<robot name="two"><link name="base"/>
 def two_link(tmp_path_factory):
     path = tmp_path_factory.mktemp("model") / "two_link.urdf"
     path.write_text(TWO_LINK)
-    return load_robot(path)
+    return load_robot(model_path=path)
 
 
 @pytest.fixture(scope="module")
@@ -42,7 +42,7 @@ def _logs(model, seed, effects, with_a=True, n=3, noise=0.0):
     for _ in range(n):
         traj = dg.random_trajectory(model, rng)
         t = dg.sample_times(rng, 10.0)
-        q, v, a, tau = dg.true_torque(model, traj, t, effects)
+        q, v, a, tau = dg.true_torque(model, traj, t, effects=effects)
         tau = tau + noise * rng.uniform(-1, 1, tau.shape)
         logs.append(JointLog(t, q, v, tau, a if with_a else None, {}, "sim"))
     return logs
@@ -190,7 +190,7 @@ def test_reference_gen3_urdf_and_real_logs_leave_one_run_out():
     runs = [shared_path("data", "kinova_gen3_real", f"run{k}.csv") for k in (1, 2, 3)]
     from safesysid.joint_log import read_joint_log
 
-    model = load_robot(urdf)
+    model = load_robot(model_path=urdf)
     assert model.n == 7 and model.joint_params.names[0] == "joint_1"
     logs = [read_joint_log(p, model.n) for p in runs]
     # The drive's speed limit (about 1.73 rad/s on joint 1) pins run1 and run3, never run2.
@@ -352,11 +352,11 @@ def test_restarted_lag_matches_the_ode_with_state_resets(integrated):
     smp = {"t": t, "restarts": restarts, "antiderivative": integrated}
     if not integrated:
         plain = dg.first_order_lag(t, x, bounds, d)
-        assert np.abs(dg.restarted_lag(smp, x, plain, d, anchor) - truth_y).max() < 1e-6
+        assert np.abs(dg.restarted_lag(smp, x, plain, d=d, anchor=anchor) - truth_y).max() < 1e-6
         assert np.abs(plain - truth_y).max() > 0.1  # the resets matter (not vacuous)
     else:
         X = dg.design._cumtrapz(t, x)
-        out = dg.restarted_lag(smp, X, dg.first_order_lag(t, X, bounds, d), d, anchor)
+        out = dg.restarted_lag(smp, X, dg.first_order_lag(t, X, bounds, d), d=d, anchor=anchor)
         for s0, s1 in bounds:  # differences inside a segment: the integral of the reset y
             err = (out[s0 : s1 + 1] - out[s0]) - (truth_int[s0 : s1 + 1] - truth_int[s0])
             assert np.abs(err).max() < 1e-4

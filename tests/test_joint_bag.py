@@ -78,7 +78,7 @@ def logs(tmp_path_factory):
     root = tmp_path_factory.mktemp("bags")
     urdf = root / "two_link.urdf"
     urdf.write_text(TWO_LINK)
-    model = load_robot(urdf)
+    model = load_robot(model_path=urdf)
     sims = _logs(model, 5, {"viscous_friction": {"delta": np.array([1.5, 0.0])}}, with_a=False, noise=0.2)
     # Absolute times like a robot clock (stamps with whole seconds).
     csvs = [write_joint_log(root / f"log{k}.csv", JointLog(100.0 + x.t, x.q, x.v, x.tau)) for k, x in enumerate(sims)]
@@ -232,7 +232,9 @@ def test_sysid_on_a_bag_equals_the_csv(tmp_path, capsys):
 
     robot = load_robot(coulomb_smoothing=0.01)
     rng = np.random.default_rng(4)
-    t, q, v, tau, _ = E.simulate_log(rng, robot, robot.theta, 2.0, 1000.0, centre=[0.0, 0.3, 0.0, 1.5, 0.0, 0.8, 0.0])
+    t, q, v, tau, _ = E.simulate_log(
+        rng, robot, robot.theta, duration_s=2.0, rate_hz=1000.0, centre=[0.0, 0.3, 0.0, 1.5, 0.0, 0.8, 0.0]
+    )
     csv = write_joint_log(tmp_path / "log.csv", JointLog(t, q, v, tau))
     log = read_joint_log(csv, 7)
     bag = write_bag(tmp_path / "log_mcap", "ros2_mcap", log, robot.joint_params.names, extra_group=False)

@@ -86,7 +86,7 @@ def gravity(robot, scenario, theta):
 def torque_at_rest(kind, robot, scenario, theta0, lo, hi):
     """The controller's command at rest on a desired point at rest (q0): u = g(q0; theta0) + beta
     for every law (errors, r and velocities are zero)."""
-    ctrl = make_controller(kind, robot, gains_from_scenario(scenario, robot.n), scenario.plant.time_step_s)
+    ctrl = make_controller(kind, robot, gains_from_scenario(scenario, robot.n), time_step=scenario.plant.time_step_s)
     ctx = ctrl.CreateDefaultContext()
     q0 = np.asarray(scenario.q0_rad, float)
     ctrl.GetInputPort("desired").FixValue(ctx, np.concatenate([q0, np.zeros(2 * robot.n)]))

@@ -87,13 +87,13 @@ def test_dumbbells_are_consistent_and_inside_the_table_ii_box():
 
 def test_bad_model_files_name_the_file(tmp_path):
     with pytest.raises(ModelError, match="not found"):
-        load_robot(tmp_path / "missing.urdf")
+        load_robot(model_path=tmp_path / "missing.urdf")
     broken = tmp_path / "broken.urdf"
     broken.write_text(
         "<robot name='x'><link name='a'/><joint name='j' type='revolute'><parent link='a'/></joint></robot>"
     )
     with pytest.raises(ModelError, match="broken.urdf"):
-        load_robot(broken)
+        load_robot(model_path=broken)
     params = tmp_path / "p.yaml"
     params.write_text(
         "urdf: kinova_gen3.urdf\njoints: {names: [a, b], velocity_limit_rad_s: [1, 2, 3], torque_limit_Nm: [1, 2]}\n"

@@ -39,7 +39,7 @@ def make_planner(robot, payload, obstacles, **cfg):
     theta0, lo, hi = theta_box(robot, payload)
     bounds = ctl.tracking_bounds_for(robot, GAINS, lo)
     config = Planner(**{"num_cost_samples": 32, **cfg})
-    return P.SafePlanner(robot, config, obstacles, payload, bounds), (theta0, lo, hi)
+    return P.SafePlanner(robot, config, obstacles=obstacles, payload=payload, tracking=bounds), (theta0, lo, hi)
 
 
 def cost_fd_gradient(prob, k, h=1e-6):
@@ -140,7 +140,7 @@ def check_plan_densely(robot, planner, thetas, k, scene, rng, samples=400, gains
         v = vd[m] - (r - gains.Kr * e)
         out = ctl.armour_control(dyn, gains, q, v, qd[m], vd[m], ad[m], theta0, box)
         assert np.all(np.abs(out.u) <= jp.torque_limit)
-        tau_true = dyn.regressors(q, v, out.err.qd_a, out.err.qdd_a, out.err.r)[0] @ theta_true
+        tau_true = dyn.regressors(q, v, out.err.qd_a, aa=out.err.qdd_a, x=out.err.r)[0] @ theta_true
         assert np.all(np.abs(tau_true) <= jp.torque_limit)
         stats["torque_samples"] += 1
         stats["negative_h"] += out.h < 0
@@ -171,7 +171,7 @@ def planned(robot, payload):
 def test_ee_regressor_equals_the_robot_model_columns(robot):
     rng = np.random.default_rng(0)
     q, v, a = (rng.normal(size=(20, robot.n)) for _ in range(3))
-    ours = ee_standard_regressor(robot.tree, robot.end_effector, q, v, a)
+    ours = ee_standard_regressor(robot.tree, robot.end_effector, q, v=v, a=a)
     assert np.allclose(ours, robot.standard_regressor(q, v, a)[..., robot.ee_slice], atol=1e-12)
 
 
@@ -201,7 +201,7 @@ def test_inertia_columns_cost_is_the_log_cond_of_the_six_inertia_columns(robot, 
     val, grad, W = prob.exciting_cost(k)
     assert W.shape[1] == 6
     q, v, a = prob.desired_at(prob.t_cost, k)
-    full = ee_standard_regressor(robot.tree, robot.end_effector, q, v, a).reshape(-1, 10)
+    full = ee_standard_regressor(robot.tree, robot.end_effector, q, v=v, a=a).reshape(-1, 10)
     assert np.isclose(val, np.log(np.linalg.cond(full[:, 4:10])))
     fd = cost_fd_gradient(prob, k)
     assert np.allclose(grad, fd, rtol=1e-5, atol=1e-6)
@@ -254,10 +254,10 @@ def test_noise_weighted_cost_divides_each_row_by_its_declared_noise_bound(robot,
 
     spacing = planner.config.duration_s / (planner.config.num_cost_samples - 1)
     qp, vp, ap = first.evaluate(np.arange(0.0, planner.config.replan_period_s, spacing))
-    past_plain = ee_standard_regressor(robot.tree, robot.end_effector, qp, vp, ap).reshape(-1, 10)
+    past_plain = ee_standard_regressor(robot.tree, robot.end_effector, qp, v=vp, a=ap).reshape(-1, 10)
     assert np.allclose(past, past_plain * weights(qp, vp, ap)[:, None])
     q, v, a = prob.desired_at(prob.t_cost, k)
-    plain = ee_standard_regressor(robot.tree, robot.end_effector, q, v, a).reshape(-1, 10)
+    plain = ee_standard_regressor(robot.tree, robot.end_effector, q, v=v, a=a).reshape(-1, 10)
     assert np.allclose(W, plain)
     still = prob.desired_at(prob.t_cost, np.clip(np.zeros(7), prob.k_lo, prob.k_hi))
     weighted = np.vstack([past, plain * weights(*still)[:, None]])
@@ -495,7 +495,9 @@ def _table_ii_planner(robot, payload, obstacles, **cfg):
     theta0, box = uncertainty.parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper))
     gains = ctl.ArmourGains(GAINS.Kr, GAINS.alpha, load_scenario().controller.V_max)
     config = Planner(**{"num_cost_samples": 32, **cfg})
-    planner = P.SafePlanner(robot, config, obstacles, payload, ctl.tracking_bounds_for(robot, gains, box.lo))
+    planner = P.SafePlanner(
+        robot, config, obstacles=obstacles, payload=payload, tracking=ctl.tracking_bounds_for(robot, gains, box.lo)
+    )
     return keep_last_problem(planner), (theta0, box.lo, box.hi), gains
 
 

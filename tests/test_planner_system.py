@@ -21,7 +21,13 @@ def setup():
     rel = 0.05 * np.abs(theta0)
     lo, hi = theta0 - rel, theta0 + rel
     gains = ctl.ArmourGains(Kr=np.array([5.0] * 4 + [7.0] * 3), alpha=20.0, V_max=0.02)
-    planner = SafePlanner(robot, Planner(num_cost_samples=32), [], None, ctl.tracking_bounds_for(robot, gains, lo))
+    planner = SafePlanner(
+        robot,
+        Planner(num_cost_samples=32),
+        obstacles=[],
+        payload=None,
+        tracking=ctl.tracking_bounds_for(robot, gains, lo),
+    )
     return robot, planner, (theta0, lo, hi)
 
 
@@ -276,14 +282,22 @@ def test_cumulative_excitation_hands_each_call_the_executed_motion(setup):
 
     robot, planner, thetas = setup
     cumulative = SafePlanner(
-        robot, dataclasses.replace(planner.config, cumulative_excitation=True), [], None, planner.tracking
+        robot,
+        dataclasses.replace(planner.config, cumulative_excitation=True),
+        obstacles=[],
+        payload=None,
+        tracking=planner.tracking,
     )
     st, _ = simulate(ExcitingPlanner(cumulative, Q0, *thetas, num_plans=3), 4.6, connect_thetas=thetas)
     assert st.calls == 3 and all(r["ok"] for r in st.records)
     executed = [cumulative.executed_rows(res, 1.5) for res in st.results[:2]]
     np.testing.assert_array_equal(st.past, np.vstack(executed))
     off = SafePlanner(
-        robot, dataclasses.replace(planner.config, cumulative_excitation=False), [], None, planner.tracking
+        robot,
+        dataclasses.replace(planner.config, cumulative_excitation=False),
+        obstacles=[],
+        payload=None,
+        tracking=planner.tracking,
     )  # the default is on (planner.cumulative_excitation: true)
     st_off, _ = simulate(ExcitingPlanner(off, Q0, *thetas, num_plans=3), 4.6, connect_thetas=thetas)
     assert st_off.past is None

@@ -38,7 +38,10 @@ def test_joint_friction_follows_the_diagnosis_law(robot):
     friction.applied.FixValue(ctx, tau)
     friction.state.FixValue(ctx, np.concatenate([np.zeros(7), v]))
     sgn = coulomb_shape(v, robot.coulomb_smoothing)
-    law = friction_columns(v[None], np.zeros((1, 7)), "standard", robot.coulomb_smoothing)[0] @ robot.theta[70:]
+    law = (
+        friction_columns(v[None], a=np.zeros((1, 7)), kind="standard", smoothing_velocity=robot.coulomb_smoothing)[0]
+        @ robot.theta[70:]
+    )
     law = law + np.array(MU) * np.abs(tau) * sgn + np.array(fs) * sgn * np.exp(-((v / vs) ** 2))
     np.testing.assert_allclose(friction.get_output_port().Eval(ctx), tau - law, rtol=1e-12, atol=1e-12)
 

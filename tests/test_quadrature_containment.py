@@ -42,7 +42,7 @@ def estimate(robot, dumbbells, index):
     theta[robot.ee_slice] = theta_e
     rest = robot.rest_mask()
     theta[rest] = est.theta_r + est.theta_r_radius * rng.uniform(-1, 1, rest.sum())
-    tau = E.held_torque(robot, motion, t, theta)
+    tau = E.held_torque(robot, motion, t, theta=theta)
     tau_meas = tau + rng.choice([-1.0, 1.0], tau.shape) * (
         settings.declared_noise.ratio * np.abs(tau) + settings.declared_noise.floor_Nm
     )
@@ -81,6 +81,6 @@ def test_the_bound_is_attained_by_an_integrand_monotone_on_each_step():
     exact = np.sum(h * f[:-1] + delta * h * (1 - ramp / 2))  # f_k + Δ on each step but its first ramp·h
     trapezoid = np.sum(0.5 * h * (f[:-1] + f[1:]))
     rates = np.full((steps, 1), delta / h)
-    bound = segments.quadrature_bound(t, rates, np.array([[0, steps]]), "trapezoid", 2.0)[0, 0]
+    bound = segments.quadrature_bound(t, rates, np.array([[0, steps]]), integration="trapezoid", safety=2.0)[0, 0]
     error = abs(exact - trapezoid)
     assert error <= bound and error > 0.99 * bound

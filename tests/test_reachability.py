@@ -116,7 +116,7 @@ def _reach(robot, rng, bounds=None, v_scale=0.5, a_scale=0.5):
     v0 = rng.uniform(-v_scale, v_scale, robot.n)
     a0 = rng.uniform(-a_scale, a_scale, robot.n)
     kr = np.array([np.pi / 48] * 4 + [np.pi / 20] * 3)
-    bounds = bounds or reach.TrackingBounds.from_ultimate_bound(0.02, 8.0, 5.0, robot.n, 20.0)
+    bounds = bounds or reach.TrackingBounds.from_ultimate_bound(0.02, 8.0, 5.0, n=robot.n, alpha=20.0)
     return reach.PlanReach(q0, v0, a0, 3.0, np.zeros(robot.n), kr, 64, bounds)
 
 
@@ -164,7 +164,7 @@ def test_limit_box_keeps_position_and_velocity_limits_and_is_not_vacuous(robot, 
     edge of the box comes within 2 mrad of the limit."""
     rng = np.random.default_rng(6)
     jp = robot.joint_params
-    b = reach.TrackingBounds.from_ultimate_bound(0.02, 8.0, 5.0, robot.n, 20.0)
+    b = reach.TrackingBounds.from_ultimate_bound(0.02, 8.0, 5.0, n=robot.n, alpha=20.0)
     limit = jp.position_upper if side > 0 else jp.position_lower
     q0 = np.zeros(robot.n)
     q0[1] = limit[1] - side * 0.05  # joint 2 close to its limit, moving toward it
@@ -197,7 +197,7 @@ def test_limit_box_keeps_the_velocity_margin_on_both_sides(robot):
     """A 1 s plan from rest whose wide k range for joint 5 would exceed its velocity limit: the box
     stops both ends exactly where the speed plus the tube's velocity bound reaches the limit."""
     jp = robot.joint_params
-    b = reach.TrackingBounds.from_ultimate_bound(0.02, 8.0, 5.0, robot.n, 20.0)
+    b = reach.TrackingBounds.from_ultimate_bound(0.02, 8.0, 5.0, n=robot.n, alpha=20.0)
     kr = np.array([np.pi / 48] * 4 + [1.0] + [np.pi / 20] * 2)
     z = np.zeros(robot.n)
     r = reach.PlanReach(z, z, z, 1.0, z, kr, 128, b)
@@ -247,7 +247,7 @@ def planner_torque_bound(robot, boxes, theta0, box, bounds):
     """(sup|u| (N, n), robust term (N, n), excess (N, n)) of the planner on state boxes (q, qd, qd_a, qdd_a)."""
     wp = idyn.interval_passivity_regressor(robot, *boxes)
     excess = tcert.barrier_excess(robot, boxes[0], box.lo, box.hi, bounds)
-    sup, _, robust = tcert.torque_bound(wp, theta0, box.lo, box.hi, excess)
+    sup, _, robust = tcert.torque_bound(wp, theta0, box.lo, theta_hi=box.hi, excess=excess)
     return sup, robust, excess
 
 
@@ -361,7 +361,7 @@ def test_interval_mass_spread_encloses_the_point_spread(robot):
     ii = InitialInterval()
     _, box = uncertainty.parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper))
     centre = rng.uniform(-2, 2, (12, n))
-    point = np.array([ctl.mass_spread(robot, q, box.lo, box.hi) for q in centre])
+    point = np.array([ctl.mass_spread(robot, q, box.lo, theta_hi=box.hi) for q in centre])
     np.testing.assert_allclose(idyn.interval_mass_spread(robot, Interval(centre), box.lo, box.hi), point, rtol=1e-9)
     assert np.all(idyn.interval_mass_spread(robot, Interval(centre), box.lo, box.hi) >= point)
     for rad_max, loose in ((0.02, 1.3), (0.15, None)):
@@ -371,7 +371,7 @@ def test_interval_mass_spread_encloses_the_point_spread(robot):
         for _ in range(15):
             pick = rng.uniform(-1, 1, centre.shape)
             pick = np.where(rng.uniform(size=centre.shape) < 0.5, np.sign(pick), pick)
-            sampled = np.array([ctl.mass_spread(robot, q, box.lo, box.hi) for q in centre + pick * rad])
+            sampled = np.array([ctl.mass_spread(robot, q, box.lo, theta_hi=box.hi) for q in centre + pick * rad])
             assert np.all(sampled <= mu)
             worst = np.maximum(worst, sampled)
         print(
@@ -388,7 +388,7 @@ def test_local_spread_bounds_sphere_motion_on_joint_boxes(robot, spheres):
     q_c = rng.uniform(-2, 2, size=(40, n))
     rho = rng.uniform(0.0, 0.08, size=(40, n))
     c, jac = reach.sphere_centres(robot.tree, spheres, q_c)
-    spread = reach.local_spread(robot.tree, lips, np.linalg.norm(jac, axis=-1), rho, rho)
+    spread = reach.local_spread(robot.tree, lips, np.linalg.norm(jac, axis=-1), rho=rho, reach_radius=rho)
     assert np.all(spread <= rho @ lips.T + 1e-12)  # never worse than the global bound
     worst = 0.0
     for _ in range(60):

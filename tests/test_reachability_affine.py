@@ -82,7 +82,7 @@ def test_affine_torque_bound_covers_the_controller_on_reachable_tube_states(robo
         states = plan.tube_states(k_lo, k_hi)
         wp = idyn.affine_passivity_regressor(robot, *states)
         excess = tcert.barrier_excess(robot, Interval(states[0].lo, states[0].hi), box.lo, box.hi, bounds)
-        sup, _, robust = tcert.affine_torque_bound(wp, theta0, box.lo, box.hi, excess)
+        sup, _, robust = tcert.affine_torque_bound(wp, theta0, box.lo, theta_hi=box.hi, excess=excess)
         for i, q, v, q_d, qd_d, qdd_d in tube_samples(robot, rng, plan, k_lo, k_hi, gains, bounds, box, 12):
             out = ctl.armour_control(dyn, gains, q, v, q_d, qd_d, qdd_d, theta0, box)
             point = robot.passivity_regressor(*(x[None] for x in (q, v, out.err.qd_a, out.err.qdd_a)))[0]

@@ -107,7 +107,10 @@ def test_friction_uses_the_regressor_law(robot):
     tau = rng.normal(size=7)
     friction.applied.FixValue(ctx, tau)
     friction.state.FixValue(ctx, np.concatenate([np.zeros(7), v]))
-    law = friction_columns(v[None], np.zeros((1, 7)), "standard", robot.coulomb_smoothing)[0] @ robot.theta[70:]
+    law = (
+        friction_columns(v[None], a=np.zeros((1, 7)), kind="standard", smoothing_velocity=robot.coulomb_smoothing)[0]
+        @ robot.theta[70:]
+    )
     np.testing.assert_allclose(friction.get_output_port().Eval(ctx), tau - law, atol=1e-12)
     assert robot.coulomb_smoothing == s.robot.coulomb_smoothing_rad_s > 0
 
@@ -420,7 +423,7 @@ def test_drawn_robot_parameters_stay_in_the_box_and_are_what_the_plant_uses(mode
     from safesysid.systems.model.uncertainty import parameter_radius
 
     s, robot, arm, diagram = _drawn_arm(mode, seed=3)
-    radius = parameter_radius(robot, s.noise.theta_r_ratio, s.noise.theta_r_ratio, s.noise.theta_r_floor)
+    radius = parameter_radius(robot, s.noise.theta_r_ratio, s.noise.theta_r_ratio, floors=s.noise.theta_r_floor)
     dev = (arm.theta - robot.theta) / radius
     assert np.all(np.abs(dev) <= 1.0 + 1e-12)
     n = robot.n
@@ -449,7 +452,10 @@ def test_drawn_robot_parameters_stay_in_the_box_and_are_what_the_plant_uses(mode
     v = rng.normal(scale=0.3, size=n)
     friction.applied.FixValue(fctx, np.zeros(n))
     friction.state.FixValue(fctx, np.concatenate([np.zeros(n), v]))
-    law = friction_columns(v[None], np.zeros((1, n)), "standard", robot.coulomb_smoothing)[0] @ arm.theta[10 * n :]
+    law = (
+        friction_columns(v[None], a=np.zeros((1, n)), kind="standard", smoothing_velocity=robot.coulomb_smoothing)[0]
+        @ arm.theta[10 * n :]
+    )
     np.testing.assert_allclose(friction.get_output_port().Eval(fctx), -law, atol=1e-12)
 
 
@@ -507,6 +513,6 @@ def test_logged_torque_is_the_torque_held_over_the_next_step(robot):
     lhs = rows.Y @ theta[robot.ee_slice] + np.einsum("snk,k->sn", rows.D_r, theta[robot.rest_mask()])
     left = np.abs(lhs - rows.T).max()
     right = np.abs(lhs - np.stack([tau[a + 1 : b + 1].T @ np.diff(t[a : b + 1]) for a, b in bounds])).max()
-    trapezoid = np.abs(lhs - E.segment_sums(tau, t, bounds, "trapezoid")).max()
+    trapezoid = np.abs(lhs - E.segment_sums(tau, t, bounds, integration="trapezoid")).max()
     print(f"momentum residual max: left sum {left:.3g}, trapezoid {trapezoid:.3g}, right sum {right:.3g} N·m·s")
     assert left < 0.5 * trapezoid < 0.5 * right

@@ -145,7 +145,7 @@ def test_regressor_is_generic_over_joint_count(tmp_path):
     <axis xyz="0 1 0"/>
     <limit lower="-3" upper="3" effort="50" velocity="3"/></joint>
     </robot>""")
-    robot = load_robot(urdf)
+    robot = load_robot(model_path=urdf)
     assert robot.n == 2 and robot.joint_params.torque_limit.tolist() == [50, 50]
     plant, _, _ = make_plant(urdf)
     plant.Finalize()

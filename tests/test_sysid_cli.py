@@ -23,7 +23,7 @@ def logged(robot, tmp_path_factory):
     theta = E.perturbed_robot_theta(rng, robot, 0.05)
     truth = robot.theta_e + payload_theta_in_end_effector(db, robot.extra["grasp_point"])
     theta[robot.ee_slice] = truth
-    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, 4.5, 1000.0, centre=CENTRE)
+    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, duration_s=4.5, rate_hz=1000.0, centre=CENTRE)
     folder = tmp_path_factory.mktemp("sysid")
     path = write_joint_log(folder / "log.csv", JointLog(t, q, v, tau))
     scenario = folder / "s.yaml"
@@ -124,7 +124,7 @@ def unmodelled(robot, tmp_path_factory):
     fric[:, 1] += d_fv
     fric[:, 2] += d_ia
     fric[:, 3] += offset
-    t, q, v, _, tau = E.simulate_log(rng, robot, theta, 4.5, 1000.0, centre=CENTRE)
+    t, q, v, _, tau = E.simulate_log(rng, robot, theta, duration_s=4.5, rate_hz=1000.0, centre=CENTRE)
     lagged = first_order_lag(t, tau, np.array(segments(t)), LAG_S)
     tau_meas = lagged + rng.uniform(-1, 1, tau.shape) * (0.025 * np.abs(lagged) + 0.05)
     folder = tmp_path_factory.mktemp("unmodelled")
@@ -227,7 +227,7 @@ def test_real_gen3_log_with_the_corrected_model(tmp_path, capsys):
 
     urdf = shared_path("models", "reference", "kinova_gen3_raptor_nomesh.urdf")
     runs = [shared_path("data", "kinova_gen3_real", f"run{k}.csv") for k in (1, 2, 3)]
-    model = load_robot(urdf)
+    model = load_robot(model_path=urdf)
     d = dg.diagnose(model, [read_joint_log(p, 7) for p in runs[:2]], [read_joint_log(runs[2], 7)])
     effects = [
         {"name": e["name"], "joints": e["joints"], "params": e["params"]}
@@ -273,7 +273,7 @@ def late_reading(robot, tmp_path_factory):
     theta = robot.theta.copy()
     truth = robot.theta_e + payload_theta_in_end_effector(db, robot.extra["grasp_point"])
     theta[robot.ee_slice] = truth
-    t, q, v, _, tau = E.simulate_log(rng, robot, theta, 4.5, 1000.0, centre=CENTRE)
+    t, q, v, _, tau = E.simulate_log(rng, robot, theta, duration_s=4.5, rate_hz=1000.0, centre=CENTRE)
     reading = tau + rng.uniform(-1, 1, tau.shape) * (0.025 * np.abs(tau) + 0.05)
     late = np.vstack([np.zeros((20, robot.n)), reading[:-20]])
     folder = tmp_path_factory.mktemp("late_reading")

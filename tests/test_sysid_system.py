@@ -59,7 +59,7 @@ def build(robot, update_period_s=1.0, duration_s=3.0, sensor_offset_Nm=0.0, stop
     at t_k is still the previous sample: logging it would shift the log by one step)."""
     builder = DiagramBuilder()
     # No SceneGraph: no contact between links (rigid-body dynamics only, as the model assumes).
-    plant, _, _ = make_plant(robot.source, 0.0)
+    plant, _, _ = make_plant(robot.source, time_step=0.0)
     if not plant.is_finalized():
         plant.Finalize()
     builder.AddSystem(plant)
@@ -102,7 +102,7 @@ def build(robot, update_period_s=1.0, duration_s=3.0, sensor_offset_Nm=0.0, stop
 
 def test_model_matches_plant(rigid_robot):
     builder = DiagramBuilder()
-    plant, _, _ = make_plant(rigid_robot.source, 0.0, builder=builder)
+    plant, _, _ = make_plant(rigid_robot.source, time_step=0.0, builder=builder)
     plant.Finalize()
     ctx = plant.CreateDefaultContext()
     q = np.array([0.1, 0.4, -0.3, 1.2, 0.5, 0.7, -0.2])

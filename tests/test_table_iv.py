@@ -87,10 +87,12 @@ def test_the_default_estimator_bounds_all_ten_parameters(robot, dumbbells):
     rng = np.random.default_rng(3)
     theta = E.perturbed_robot_theta(rng, robot, 0.05)
     theta[robot.ee_slice] = robot.theta_e + payload_theta_in_end_effector(dumbbells["4lb"], robot.extra["grasp_point"])
-    log = E.simulate_log(rng, robot, theta, 3.0, 1000.0, centre=CENTRE)[:4]
+    log = E.simulate_log(rng, robot, theta, duration_s=3.0, rate_hz=1000.0, centre=CENTRE)[:4]
     boxes = {}
     for mode in ("mass", settings.set_membership):
-        est = E.IncrementalEstimator(robot, dataclasses.replace(settings, set_membership=mode), PRIOR, PRIOR_NOMINAL)
+        est = E.IncrementalEstimator(
+            robot, settings=dataclasses.replace(settings, set_membership=mode), prior=PRIOR, prior_nominal=PRIOR_NOMINAL
+        )
         est.add(*log)
         boxes[mode] = est.update()
     default, mass = boxes[settings.set_membership], boxes["mass"]

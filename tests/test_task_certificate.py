@@ -57,7 +57,7 @@ def test_a_certificate_above_one_is_played_slower_on_the_same_path_until_it_hold
     assert np.array_equal(played.control_points, plan.trajectory.control_points)  # the same path
     # What is played, certified again from scratch: within the limit; one grid step faster is not.
     assert certified_torque_ratio(problem, played, *thetas)[0] <= 1.0
-    assert phase_certificate(problem, [plan.trajectory], thetas, scale - scene.task.time_scale_step) > 1.0
+    assert phase_certificate(problem, [plan.trajectory], thetas, scale=scale - scene.task.time_scale_step) > 1.0
 
 
 def test_a_task_that_no_scale_up_to_the_cap_certifies_is_refused_and_the_arm_holds(cache):
@@ -94,7 +94,7 @@ def test_the_box_latched_at_the_switch_stays_frozen_when_its_source_changes_afte
         return [], [], {}  # no curves: the arm holds, the parameters are still the task's
 
     builder = DiagramBuilder()
-    src = builder.AddSystem(TaskPhaseSource(n, p, np.zeros(n), switch, make_task))
+    src = builder.AddSystem(TaskPhaseSource(n, p, np.zeros(n), switch_time_s=switch, make_task=make_task))
     plan = {
         "plan_desired": np.zeros(3 * n),
         **{f"plan_{k}": np.ones(p) for k in ("theta0", "theta_lower", "theta_upper")},

@@ -44,7 +44,7 @@ def source_diagram(switch_time_s, plan_q, connect_plan=True):
         return [straight(q_now, q_goal, 1.0)], [dict(kind="task_start", detail="test")], {}
 
     builder = DiagramBuilder()
-    src = builder.AddSystem(TaskPhaseSource(N, P, np.zeros(N), switch_time_s, make_task))
+    src = builder.AddSystem(TaskPhaseSource(N, P, np.zeros(N), switch_time_s=switch_time_s, make_task=make_task))
     consts = {}
     if connect_plan:
         consts["plan_desired"] = np.concatenate([plan_q, np.zeros(2 * N)])

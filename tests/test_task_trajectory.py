@@ -136,7 +136,7 @@ def test_drake_inverse_dynamics_of_the_verifier_agrees_with_the_regressor_model(
     con = TaskConstraints(prob)
     t = con.t_tau
     q, v, a = res.trajectory.evaluate(t, orders=2)
-    mine = prob.robot.inverse_dynamics(q, v, a, prob.theta)
+    mine = prob.robot.inverse_dynamics(q, v, a, theta=prob.theta)
     check = task_check.verify_task_trajectory(prob, res.trajectory, rate_hz=(len(t) - 1) / res.trajectory.duration)
     assert check.num_samples == len(t)
     assert abs(check.max_torque_ratio - np.max(np.abs(mine) / prob.robot.joint_params.torque_limit)) < 1e-9

@@ -72,9 +72,9 @@ def boundary_start(robot, s, theta_true, rng, ee_ratio):
         )
         e = e_unit * C.tracking_bounds_for(robot, gains, box.lo).position
         theta0 = theta_true - 2 * rad * side
-        wp, _ = dyn.regressors(q_d - e, qd_d, qd_d + gains.Kr * e, qdd_d, np.zeros(n))
+        wp, _ = dyn.regressors(q_d - e, qd_d, qd_d + gains.Kr * e, aa=qdd_d, x=np.zeros(n))
         direction = wp @ (theta_true - theta0)
-        _, wm = dyn.regressors(q_d - e, qd_d, qd_d, qdd_d, direction)
+        _, wm = dyn.regressors(q_d - e, qd_d, qd_d, aa=qdd_d, x=direction)
         side = np.where(direction @ wm >= 0, 1.0, -1.0)
     box = Interval(
         np.minimum(theta_true, theta_true - 2 * rad * side), np.maximum(theta_true, theta_true - 2 * rad * side)

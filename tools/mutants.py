@@ -174,9 +174,9 @@ MUTANTS = [
         "the refined point's own certificate skipped (feasible_start)",
         PLANNER,
         "SafePlanner._refine",
-        "            point = self.problem(*args, k_box=(target, target), shrink_toward=base)\n"
+        "            point = self.problem(*box, mode=mode, past=past, k_box=(target, target), shrink_toward=base)\n"
         "            if not point.feasible_start:\n                return None\n",
-        "            point = self.problem(*args, k_box=(target, target), shrink_toward=base)\n",
+        "            point = self.problem(*box, mode=mode, past=past, k_box=(target, target), shrink_toward=base)\n",
         T_PLANNER,
         "-k",
         "never_adopts",

@@ -141,7 +141,7 @@ class ControllerDynamics:
         return H[:, :3, :3], H[:, :3, 3], S
 
     def regressors(
-        self, q: ArrayLike, v: ArrayLike, va: ArrayLike, aa: ArrayLike, x: ArrayLike
+        self, q: ArrayLike, v: ArrayLike, va: ArrayLike, *, aa: ArrayLike, x: ArrayLike
     ) -> tuple[np.ndarray, np.ndarray]:
         """(Wp, Wm): Wp theta = M aa + C(q, v) va + g + F(va, aa); Wm theta = (M + diag Ia) x."""
         q, v, va, aa, x = (np.asarray(a, float).reshape(-1) for a in (q, v, va, aa, x))
@@ -178,7 +178,7 @@ class ControllerDynamics:
     def gravity(self, q: ArrayLike, theta: ArrayLike) -> np.ndarray:
         """g(q; theta) + beta (the passivity regressor at rest) (n,)."""
         zero = np.zeros(self.n)
-        wp, _ = self.regressors(q, zero, zero, zero, zero)
+        wp, _ = self.regressors(q, zero, zero, aa=zero, x=zero)
         return wp @ theta
 
 
@@ -209,6 +209,7 @@ def tracking_errors(
     Kr: ArrayLike,
     q: ArrayLike,
     v: ArrayLike,
+    *,
     q_d: ArrayLike,
     qd_d: ArrayLike,
     qdd_d: ArrayLike,
@@ -245,7 +246,7 @@ def spectral_bound(a: ArrayLike) -> np.ndarray | float:
     return np.nextafter(top + 1e-12 * np.linalg.norm(sym, axis=(-2, -1)), np.inf)
 
 
-def mass_spread(robot: RobotModel, q: ArrayLike, theta_lo: ArrayLike, theta_hi: ArrayLike) -> float:
+def mass_spread(robot: RobotModel, q: ArrayLike, theta_lo: ArrayLike, *, theta_hi: ArrayLike) -> float:
     """mu(q) = lambda_max(sum_k (hi_k - lo_k) |dM/dtheta_k(q)|) (entrywise |.|), an upper bound of
     max over unit u of sum_k (hi_k - lo_k) |u^T dM/dtheta_k(q) u| (|u^T A u| <= |u|^T |A| |u|): the
     largest change of u^T M u between two parameters of the box, at configuration q (n,). M
@@ -258,13 +259,13 @@ def mass_spread(robot: RobotModel, q: ArrayLike, theta_lo: ArrayLike, theta_hi: 
     return float(spectral_bound(spread))
 
 
-def robust_gain_bound(w_bar_norm: ArrayLike, alpha: float, eps: float, mu: ArrayLike) -> np.ndarray | float:
+def robust_gain_bound(w_bar_norm: ArrayLike, alpha: float, eps: float, *, mu: ArrayLike) -> np.ndarray | float:
     """Upper bound of lambda on the tube (true V <= V_max, so |r| <= eps): |w_bar| + alpha eps mu / 2
     (module docstring; mu from `mass_spread` at q or over a box of configurations)."""
     return np.nextafter(np.asarray(w_bar_norm, float) + 0.5 * alpha * eps * np.asarray(mu, float) * _UP, np.inf)
 
 
-def robust_input(r: np.ndarray, w_bar: np.ndarray, h: float, alpha: float) -> tuple[np.ndarray, float]:
+def robust_input(r: np.ndarray, w_bar: np.ndarray, h: float, *, alpha: float) -> tuple[np.ndarray, float]:
     """(v, lambda): v = lambda r/|r|, lambda = max(0, -alpha h/|r| + |w_bar|)."""
     norm_r = float(np.sqrt(r @ r))
     if norm_r < _TINY_R:
@@ -298,8 +299,8 @@ def armour_control(
 ) -> ArmourOutput:
     """One evaluation of the ARMOUR law at measured (q, v) and desired (q_d, qd_d, qdd_d)."""
     q, v = np.asarray(q, float), np.asarray(v, float)
-    err = tracking_errors(gains.Kr, q, v, q_d, qd_d, qdd_d, dyn.robot.joint_params.continuous)
-    wp, wm_r = dyn.regressors(q, v, err.qd_a, err.qdd_a, err.r)
+    err = tracking_errors(gains.Kr, q, v, q_d=q_d, qd_d=qd_d, qdd_d=qdd_d, continuous=dyn.robot.joint_params.continuous)
+    wp, wm_r = dyn.regressors(q, v, err.qd_a, aa=err.qdd_a, x=err.r)
     # [tau] and the hull of r^T M r in one interval product (same as disturbance_bound and
     # lyapunov_upper, which the tests check separately).
     n = len(q)
@@ -308,7 +309,7 @@ def armour_control(
     w_bar = np.maximum(np.nextafter(np.maximum(hull.hi[:n] - tau_nom, tau_nom - hull.lo[:n]), np.inf), 0.0)
     V_bar = 0.5 * float(hull.hi[n])
     h = gains.V_max - V_bar
-    v_rob, lam = robust_input(err.r, w_bar, h, gains.alpha)
+    v_rob, lam = robust_input(err.r, w_bar, h, alpha=gains.alpha)
     return ArmourOutput(tau_nom + v_rob, tau_nom, v_rob, w_bar, V_bar, h, lam, err)
 
 
@@ -357,9 +358,11 @@ class TrackingBounds:
     alpha: float  # the barrier rate: lambda <= |w_bar| + alpha eps mu / 2 (robust_gain_bound)
 
     @classmethod
-    def from_ultimate_bound(cls, V_max: float, sigma_min: float, Kr: ArrayLike, n: int, alpha: float) -> TrackingBounds:
+    def from_ultimate_bound(
+        cls, V_max: float, sigma_min: float, Kr: ArrayLike, *, n: int, alpha: float
+    ) -> TrackingBounds:
         """Bounds of n joints (Kr scalar or per joint) from V_max, sigma_min and the barrier rate."""
-        return tracking_bounds(np.broadcast_to(np.asarray(Kr, float), (n,)), V_max, sigma_min, alpha)
+        return tracking_bounds(np.broadcast_to(np.asarray(Kr, float), (n,)), V_max, sigma_min, alpha=alpha)
 
     @classmethod
     def zero(cls, n: int) -> TrackingBounds:
@@ -382,7 +385,7 @@ class TrackingBounds:
         )
 
 
-def tracking_bounds(Kr: ArrayLike, V_max: float, sigma_min: float, alpha: float) -> TrackingBounds:
+def tracking_bounds(Kr: ArrayLike, V_max: float, sigma_min: float, *, alpha: float) -> TrackingBounds:
     Kr = np.asarray(Kr, float)
     eps = ultimate_bound(V_max, sigma_min)
     ones = np.ones_like(Kr)
@@ -391,4 +394,4 @@ def tracking_bounds(Kr: ArrayLike, V_max: float, sigma_min: float, alpha: float)
 
 def tracking_bounds_for(robot: RobotModel, gains: ArmourGains, theta_lower: ArrayLike) -> TrackingBounds:
     """Convenience: bounds from a RobotModel, the gains and the lower end of [theta]."""
-    return tracking_bounds(gains.Kr, gains.V_max, mass_matrix_lower_bound(robot.n, theta_lower), gains.alpha)
+    return tracking_bounds(gains.Kr, gains.V_max, mass_matrix_lower_bound(robot.n, theta_lower), alpha=gains.alpha)

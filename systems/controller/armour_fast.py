@@ -77,20 +77,20 @@ class FastControllerDynamics(ControllerDynamics):
         )
 
     def regressors(
-        self, q: ArrayLike, v: ArrayLike, va: ArrayLike, aa: ArrayLike, x: ArrayLike
+        self, q: ArrayLike, v: ArrayLike, va: ArrayLike, *, aa: ArrayLike, x: ArrayLike
     ) -> tuple[np.ndarray, np.ndarray]:
         if not self.serial:
-            return super().regressors(q, v, va, aa, x)
+            return super().regressors(q, v, va, aa=aa, x=x)
         out = armour_kernel.chain_regressors(*_samples(q, v, va, aa, x), self.kernel_constants)
         return out[0], out[1]
 
     def passivity_and_energy(
-        self, q: ArrayLike, v: ArrayLike, va: ArrayLike, aa: ArrayLike, r: ArrayLike
+        self, q: ArrayLike, v: ArrayLike, va: ArrayLike, *, aa: ArrayLike, r: ArrayLike
     ) -> np.ndarray:
         """(n + 1, 14 n): rows 0..n-1 Wp(q, v, va, aa), row n r^T Wm(q, r) (2 x the kinetic
         energy of r as a function of theta: the body terms r_b^T I r_b, without Wm itself)."""
         if not self.serial:
-            wp, wm_r = self.regressors(q, v, va, aa, r)
+            wp, wm_r = self.regressors(q, v, va, aa=aa, x=r)
             return np.vstack([wp, np.asarray(r, float).reshape(-1) @ wm_r])
         return armour_kernel.chain_passivity_energy(*_samples(q, v, va, aa, r), self.kernel_constants)
 

@@ -197,7 +197,7 @@ class AdaptiveController(ControllerBase):
     """adap-1 (robust=False) or adap-2 (robust=True); the adapted offset theta_hat_e - theta0_e
     is discrete state, stepped every time_step in the plant's phase (_declare_step_update)."""
 
-    def __init__(self, robot: RobotModel, gains: ControllerGains, time_step: float, robust: bool = False) -> None:
+    def __init__(self, robot: RobotModel, gains: ControllerGains, time_step: float, *, robust: bool = False) -> None:
         super().__init__(robot, gains)
         self.time_step, self.robust, self.ee = float(time_step), bool(robust), robot.ee_slice
         self._delta = self.DeclareDiscreteState(10)  # theta_hat_e - theta0_e
@@ -216,8 +216,10 @@ class AdaptiveController(ControllerBase):
 
     def _calc_regressor(self, context, value):
         q, v, q_d, qd_d, qdd_d, _, _ = self._inputs(context)
-        err = tracking_errors(self.gains.armour.Kr, q, v, q_d, qd_d, qdd_d, self.robot.joint_params.continuous)
-        wp, _ = self.dyn.regressors(q, v, err.qd_a, err.qdd_a, np.zeros(self.n))
+        err = tracking_errors(
+            self.gains.armour.Kr, q, v, q_d=q_d, qd_d=qd_d, qdd_d=qdd_d, continuous=self.robot.joint_params.continuous
+        )
+        wp, _ = self.dyn.regressors(q, v, err.qd_a, aa=err.qdd_a, x=np.zeros(self.n))
         value.set_value((err, wp))
 
     def estimate(self, context: Context, theta0: np.ndarray, box: Interval) -> np.ndarray:
@@ -261,7 +263,7 @@ CONTROLLERS = {
 }
 
 
-def make_controller(kind: str, robot: RobotModel, gains: ControllerGains, time_step: float) -> ControllerBase:
+def make_controller(kind: str, robot: RobotModel, gains: ControllerGains, *, time_step: float) -> ControllerBase:
     """kind: a key of CONTROLLERS (a method's MethodSpec.controller, or scenario.controller.kind)."""
     try:
         factory = CONTROLLERS[kind]

@@ -26,7 +26,7 @@ class CrossValidated:
     are one dict per fold (a tuple)."""
 
     def __init__(
-        self, model: RobotModel, designs: list[Design], folds: list[tuple[list[int], list[int]]], scheme: str
+        self, model: RobotModel, designs: list[Design], folds: list[tuple[list[int], list[int]]], *, scheme: str
     ) -> None:
         self.designs, self.folds, self.scheme = designs, folds, scheme
         self.problems = [Problem(model, [designs[i] for i in tr], [designs[i] for i in va]) for tr, va in folds]
@@ -64,7 +64,7 @@ def time_pieces(t: np.ndarray, k: int = TIME_FOLDS) -> list[slice]:
     return [slice(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
 
 
-def inner_folds(model: RobotModel, fit_logs: list[JointLog], form: str, rule: Saturation) -> CrossValidated:
+def inner_folds(model: RobotModel, fit_logs: list[JointLog], form: str, *, rule: Saturation) -> CrossValidated:
     """CrossValidated on the fit logs: leave one fit log out, or time-blocked folds (TIME_FOLDS
     contiguous pieces, leave one piece out) when there is one fit log."""
     masks = velocity_saturation(fit_logs, rule)
@@ -81,4 +81,4 @@ def inner_folds(model: RobotModel, fit_logs: list[JointLog], form: str, rule: Sa
             designs.append(build_design(model, piece, form, window_s=WINDOW_S, saturated=mask[sl]))
         scheme = "time_blocked"
     folds = [([i for i in range(len(designs)) if i != k], [k]) for k in range(len(designs))]
-    return CrossValidated(model, designs, folds, scheme)
+    return CrossValidated(model, designs, folds, scheme=scheme)

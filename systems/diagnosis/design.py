@@ -51,7 +51,7 @@ def segments(t: np.ndarray, max_gap_s: float | None = None) -> Segments:
 
 
 def smooth_derivative(
-    t: np.ndarray, x: np.ndarray, segs: Segments, window_s: float = 0.1, order: int = 3
+    t: np.ndarray, x: np.ndarray, segs: Segments, *, window_s: float = 0.1, order: int = 3
 ) -> np.ndarray:
     """Savitzky-Golay derivative of x (N, ...) along t, per gap-free segment (np.gradient when
     a segment is too short). The documented differentiator used only where a derivative is needed."""

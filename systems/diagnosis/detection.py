@@ -36,7 +36,7 @@ DETECTION_RATE = 0.9
 ELASTIC_JOINTS = (1, 3, 5)  # 0-based: the Gen3's pitch joints 2, 4, 6
 
 
-def effect_at(key: str, size: float, model: RobotModel, rng: np.random.Generator) -> tuple[str, dict]:
+def effect_at(key: str, size: float, model: RobotModel, *, rng: np.random.Generator) -> tuple[str, dict]:
     """(effect name, effect in its physical form) of DETECTION_LADDERS key at `size`."""
     n = model.n
     name = key.split("@")[0]
@@ -72,7 +72,7 @@ def _detection_case(job):
     rng = np.random.default_rng(
         [seed, list(DETECTION_LADDERS).index(key), int(round(1e4 * level)), int(round(1e9 * size)), i]
     )
-    name, eff = effect_at(key, size, model, rng)
+    name, eff = effect_at(key, size, model, rng=rng)
     with single_threaded_blas():
         fit, check, truth = make_case(model, rng, [name], i % 2 == 0, fixed={name: eff}, noise_level=level)
         named = diagnose(model, fit, check).result["cause"]
@@ -121,6 +121,7 @@ def _ladder(job):
 
 def detection_limits(
     model: RobotModel,
+    *,
     noise_levels: Sequence[float] = (0.01, 0.03),
     n_cases: int = 10,
     seed: int = 0,

@@ -52,6 +52,7 @@ def diagnose(
     model: RobotModel,
     fit_logs: Sequence[JointLog],
     check_logs: Sequence[JointLog],
+    *,
     effects: Sequence[str] = EFFECTS,
     form: str | None = None,
     max_effects: int = 6,
@@ -69,39 +70,21 @@ def diagnose(
 def _diagnose(model, fit_logs, check_logs, effects, form, max_effects, model_path):
     form = form or choose_form(fit_logs + check_logs)
     rule = saturation_rule(fit_logs)  # frozen on the fit logs
-    cv = inner_folds(model, fit_logs, form, rule)
+    cv = inner_folds(model, fit_logs, form, rule=rule)
     sel = select_effects(cv, effects, max_effects)
     check = frozen_designs(model, check_logs, form, rule)
     final = Problem(model, cv.designs, check)
     params, _ = final.fit_effects(sel.effects)
-    intervals = statistical_intervals(model, final, params, sel.effects)
-    corrected_model = corrected_model_of(model, sel, params, form, rule, model_path, [l.source for l in fit_logs])
+    intervals = statistical_intervals(model, final, params, effects=sel.effects)
+    corrected_model = corrected_model_of(
+        model, sel, params, form, rule, model_path=model_path, fit_sources=[l.source for l in fit_logs]
+    )
     for e in corrected_model.effects:
         e.intervals = intervals[e.name]
     before, after = score_designs(corrected_model, check)
     test = held_out_numbers(check, before, after)
     n = model.n
-    entries = []
-    for e in effects:
-        alone, _ = final.fit_effects([e])
-        rms_alone = rms(final.check_residual_all(alone))
-        chosen = e in sel.effects
-        src = params if chosen else alone
-        entry = {
-            "name": e,
-            "joints": sel.joints[e] if chosen else _effect_joints_single(cv, sel.single[e]["params"], e, n),
-            "params": effect_params(model, e, src, group_of(e, src)),
-            "rms_check_after": rms_alone,
-            "reduction": reduction(test["rms_before"], rms_alone),
-            "significant": chosen,
-            "params_from": "combined" if chosen else "alone",
-            "test_alone": _json_sig(sel.single[e]["sig"]),
-        }
-        if chosen:
-            entry["selection_step"] = sel.effects.index(e) + 1
-            entry["intervals"] = intervals[e]
-        entries.append(entry)
-    entries.sort(key=lambda x: (not x["significant"], x.get("selection_step", 0), -x["test_alone"]["delta_mse"]))
+    entries = _effect_entries(model, final, cv, sel, params=params, intervals=intervals, test=test, effects=effects)
 
     cv_before = cv.y_check_all.reshape(-1, n)
     cv_after = cv.check_residual(sel.params, valid_only=False).reshape(-1, n)
@@ -113,7 +96,7 @@ def _diagnose(model, fit_logs, check_logs, effects, form, max_effects, model_pat
         "without_saturated": rms_table(cv_before, cv_after, cv_valid),
         "selection": sel.steps,
     }
-    result = held_out_result(check, before, after, test, entries, form)
+    result = held_out_result(check, before, after, test=test, entries=entries, form=form)
     result["gap"]["rms_fit"] = float(np.sqrt(final.yy / max(final.n_fit_rows, 1)))
     result["combined"].update(rms_fit_after=rms(final.fit_residual(params)), selection=sel.steps)
     result.update(
@@ -148,6 +131,34 @@ def _diagnose(model, fit_logs, check_logs, effects, form, max_effects, model_pat
     return Diagnosis(result, form, cv.designs, check, before, after, params, corrected, corrected_model)
 
 
+def _effect_entries(model, final, cv, sel, *, params, intervals, test, effects):
+    """diagnosis.json's entry per candidate effect (selected ones first, in selection order): its
+    parameters (combined fit when selected, alone otherwise), check RMS alone and significance."""
+    n = model.n
+    entries = []
+    for e in effects:
+        alone, _ = final.fit_effects([e])
+        rms_alone = rms(final.check_residual_all(alone))
+        chosen = e in sel.effects
+        src = params if chosen else alone
+        entry = {
+            "name": e,
+            "joints": sel.joints[e] if chosen else _effect_joints_single(cv, sel.single[e]["params"], e, n),
+            "params": effect_params(model, e, src, group_used=group_of(e, src)),
+            "rms_check_after": rms_alone,
+            "reduction": reduction(test["rms_before"], rms_alone),
+            "significant": chosen,
+            "params_from": "combined" if chosen else "alone",
+            "test_alone": _json_sig(sel.single[e]["sig"]),
+        }
+        if chosen:
+            entry["selection_step"] = sel.effects.index(e) + 1
+            entry["intervals"] = intervals[e]
+        entries.append(entry)
+    entries.sort(key=lambda x: (not x["significant"], x.get("selection_step", 0), -x["test_alone"]["delta_mse"]))
+    return entries
+
+
 def frozen_diagnosis(model: RobotModel, corrected: CorrectedModel, logs: Sequence[JointLog]) -> Diagnosis:
     """Logs scored with a frozen corrected model (`diagnose --model corrected_model.yaml
     --check`): the contract fields on those logs, each effect's own numbers with that effect of
@@ -169,7 +180,7 @@ def frozen_diagnosis(model: RobotModel, corrected: CorrectedModel, logs: Sequenc
                     "selection_step": k + 1,
                 }
             )
-        result = held_out_result(designs, before, after, test, entries, designs[0].form)
+        result = held_out_result(designs, before, after, test=test, entries=entries, form=designs[0].form)
     sc = corrected.scoring
     result["gap"]["rms_fit"] = None  # no fit logs
     result["test"] = {**test, "note": "scored with the frozen corrected model; nothing fitted, nothing selected"}

@@ -98,7 +98,7 @@ def group_bounds(model: RobotModel, group: str, k: int) -> tuple[np.ndarray, np.
     return np.full(k, -inf), np.full(k, inf)
 
 
-def effect_params(model: RobotModel, effect: str, params: Params, group_used: str) -> dict:
+def effect_params(model: RobotModel, effect: str, params: Params, *, group_used: str) -> dict:
     """Physical parameters of a fitted effect (JSON friendly)."""
     jp = model.joint_params
     p = params[group_used]
@@ -172,7 +172,7 @@ def corrected_parameters(model: RobotModel, selected: Sequence[str], params: Par
             fric["offset_Nm"] = jp.offset + p
             plant_effects["torque_sensor_offset_Nm"] = [float(x) for x in p]
         else:
-            other[e] = effect_params(model, e, params, g)
+            other[e] = effect_params(model, e, params, group_used=g)
             if e == "torque_scale":
                 plant_effects["torque_sensor_scale"] = other[e]["scale"]
             elif e == "time_delay" and g == "time_delay@lag":

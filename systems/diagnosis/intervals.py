@@ -112,7 +112,7 @@ def sandwich_covariance(X: np.ndarray, r: np.ndarray, block: np.ndarray) -> tupl
 
 
 def block_bootstrap(
-    X: np.ndarray, r: np.ndarray, block: np.ndarray, rng: np.random.Generator, draws: int = 200
+    X: np.ndarray, r: np.ndarray, block: np.ndarray, rng: np.random.Generator, *, draws: int = 200
 ) -> np.ndarray:
     """(draws, K) parameter changes of the linearised fit on block resamples of the rows
     (working response X p + r at the fitted p, so each draw's change is its own LS of r)."""
@@ -147,7 +147,7 @@ def _value_interval(model, effect, group, key, *, p, cov_g, ident, half_factor, 
     lo_b, hi_b = bounds
 
     def value(x):
-        return np.atleast_1d(np.asarray(effect_params(model, effect, {group: x}, group)[key], float))
+        return np.atleast_1d(np.asarray(effect_params(model, effect, {group: x}, group_used=group)[key], float))
 
     sd = np.sqrt(np.maximum(np.diag(cov_g), 0.0))
     # Steps for the gradient: a thousandth of the standard deviation, or tiny where there is none
@@ -171,7 +171,7 @@ def _value_interval(model, effect, group, key, *, p, cov_g, ident, half_factor, 
             lo = np.maximum(lo, 0.0)  # a lag's time constant is positive
     elif key in ("Fc_Nm", "Fv_Nms_rad", "Ia_kgm2", "mass_kg"):
         lo = np.maximum(lo, 0.0)
-    return lo, hi, not isinstance(effect_params(model, effect, {group: p}, group)[key], list)
+    return lo, hi, not isinstance(effect_params(model, effect, {group: p}, group_used=group)[key], list)
 
 
 def _plain_interval(lo, hi, scalar):
@@ -185,8 +185,8 @@ def statistical_intervals(
     model: RobotModel,
     problem: Problem,
     params: Params,
-    effects: Sequence[str],
     *,
+    effects: Sequence[str],
     calibration: dict[str, float] | None = None,
 ) -> dict[str, dict[str, list]]:
     """{effect: {value key: [lo, hi]}} (90 %; per-joint values: [lo list, hi list]; None where

@@ -28,6 +28,7 @@ REAL_ARM_EFFECTS = {  # diagnosis vocabulary -> scenario.plant.effects field (re
 def real_arm_log(
     effects: dict,
     seed: int,
+    *,
     duration_s: float = 10.0,
     rate_hz: float = RATE_HZ,
     noise_ratio: float = 0.01,
@@ -53,12 +54,15 @@ def real_arm_log(
     robot = load_robot(coulomb_smoothing=scenario.robot.coulomb_smoothing_rad_s)
     rng = np.random.default_rng(seed)
     traj = random_trajectory(robot, rng)
-    log = track_trajectory(scenario, robot, robot, traj, seed, duration_s, rate_hz, kp, kd, skip_s=0.2)
+    log = track_trajectory(
+        scenario, robot, robot, traj, seed, duration_s, rate_hz=rate_hz, kp_Nm_rad=kp, kd_Nms_rad=kd, skip_s=0.2
+    )
     g0 = rng.uniform(0.3, 0.7) * duration_s
     return log.slice((log.t < g0) | (log.t > g0 + GAP_S)), robot
 
 
 def run_real_arm_check(
+    *,
     seed: int = 0,
     progress: Callable[[dict], None] | None = None,
     duration_s: float = 6.0,

@@ -111,7 +111,13 @@ def residual_map(designs: list[Design], residuals: list[np.ndarray], pose_bins: 
 
 
 def held_out_result(
-    designs: list[Design], before: list[np.ndarray], after: list[np.ndarray], test: dict, entries: list[dict], form: str
+    designs: list[Design],
+    before: list[np.ndarray],
+    after: list[np.ndarray],
+    *,
+    test: dict,
+    entries: list[dict],
+    form: str,
 ) -> dict:
     """The contract fields of diagnosis.json (gap, effects, cause, combined) on scored logs."""
     named = [e["name"] for e in entries if e["significant"]]

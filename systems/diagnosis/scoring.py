@@ -28,7 +28,7 @@ from .selection import Selection
 
 
 def frozen_designs(
-    model: RobotModel, logs: Sequence[JointLog], form: str, rule: Saturation | None, window_s: float = WINDOW_S
+    model: RobotModel, logs: Sequence[JointLog], form: str, rule: Saturation | None, *, window_s: float = WINDOW_S
 ) -> list[Design]:
     """Designs of logs scored with a frozen rule: the residual form of the diagnosis (the
     momentum form when a log has no accelerations) and the speed-saturation rule of the fit
@@ -58,7 +58,7 @@ def score(
     """Score a frozen corrected model on logs (`diagnose --model corrected_model.yaml --check`):
     (designs, before, after, held_out_numbers)."""
     sc = corrected.scoring
-    designs = frozen_designs(model, logs, sc.residual_form, sc.saturation, sc.window_s)
+    designs = frozen_designs(model, logs, sc.residual_form, sc.saturation, window_s=sc.window_s)
     before, after = score_designs(corrected, designs)
     return designs, before, after, held_out_numbers(designs, before, after)
 
@@ -99,6 +99,7 @@ def corrected_model_of(
     params: Params,
     form: str,
     rule: Saturation,
+    *,
     model_path: str | Path = "",
     fit_sources: Sequence[str] = (),
 ) -> CorrectedModel:
@@ -106,7 +107,7 @@ def corrected_model_of(
     first) with their parameters refitted on all fit logs, and the frozen scoring rule."""
     path = str(model_path or model.source or "")
     effects = [
-        CorrectedEffect(e, list(selection.joints[e]), effect_params(model, e, params, group_of(e, params)))
+        CorrectedEffect(e, list(selection.joints[e]), effect_params(model, e, params, group_used=group_of(e, params)))
         for e in selection.effects
     ]
     return CorrectedModel(

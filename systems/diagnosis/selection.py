@@ -93,6 +93,7 @@ def significance(
     sse0_fit: float,
     sse1_fit: float,
     k_added: int,
+    *,
     joint: int | None = None,
 ) -> dict:
     """The significance rule of the module docstring. r0/r1: held-out residual vectors of

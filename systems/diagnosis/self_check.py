@@ -28,7 +28,7 @@ BOOTSTRAP_EVERY = 4  # the block bootstrap's calibration check runs on every 4th
 
 
 def case_plan(
-    n_cases: int, rng: np.random.Generator, effects: Sequence[str] = EFFECTS, hard: bool = False
+    n_cases: int, rng: np.random.Generator, *, effects: Sequence[str] = EFFECTS, hard: bool = False
 ) -> list[dict]:
     """Injected effect sets: every 5th case null, then alternating single and double effects;
     every other double puts two per-joint effects on the same joints; every 3rd non-null case
@@ -159,9 +159,9 @@ def run_self_check(
     model: RobotModel,
     n_cases: int,
     seed: int,
+    *,
     progress: Callable[[dict], None] | None = None,
     workers: int = 1,
-    *,
     hard: bool = False,
 ) -> tuple[list[dict], dict, dict]:
     """Blind diagnosis of simulated cases (selection on the fit logs only, the check log scored

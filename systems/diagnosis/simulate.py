@@ -106,7 +106,7 @@ def payload_theta(model: RobotModel, mass: float, rng: np.random.Generator) -> n
 
 
 def true_torque(
-    model: RobotModel, traj: Trajectory, t: np.ndarray, effects: dict[str, dict]
+    model: RobotModel, traj: Trajectory, t: np.ndarray, *, effects: dict[str, dict]
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Joint torque the 'real' arm measures (before noise) and the logged q offset."""
     timing = effects.get("time_delay", {})
@@ -208,11 +208,11 @@ def _effect_rms(model, name, eff, trajs, times, clean):
     """Per-joint RMS of what the effect changes in the residual of the nominal model."""
     if name == "joint_elasticity":  # acts through the logged angle: the nominal model sees it there
         contrib = [
-            model.inverse_dynamics(*true_torque(model, tr, t, {name: eff})[:3]) - c[3]
+            model.inverse_dynamics(*true_torque(model, tr, t, effects={name: eff})[:3]) - c[3]
             for tr, t, c in zip(trajs, times, clean)
         ]
     else:
-        contrib = [true_torque(model, tr, t, {name: eff})[3] - c[3] for tr, t, c in zip(trajs, times, clean)]
+        contrib = [true_torque(model, tr, t, effects={name: eff})[3] - c[3] for tr, t, c in zip(trajs, times, clean)]
     return np.sqrt(np.mean(np.concatenate(contrib) ** 2, 0))
 
 
@@ -221,6 +221,7 @@ def make_case(
     rng: np.random.Generator,
     injected: Sequence[str],
     with_acceleration: bool,
+    *,
     n_fit: int = 2,
     n_check: int = 1,
     duration_s: float = 10.0,
@@ -239,7 +240,7 @@ def make_case(
     achieved SNR, the joints it acts on and the joints it was injected on (1-based)."""
     trajs = [random_trajectory(model, rng) for _ in range(n_fit + n_check)]
     times = [sample_times(rng, duration_s) for _ in trajs]
-    clean = [true_torque(model, tr, t, {}) for tr, t in zip(trajs, times)]
+    clean = [true_torque(model, tr, t, effects={}) for tr, t in zip(trajs, times)]
     tau_all = np.concatenate([c[3] for c in clean])
     level = rng.uniform(*NOISE_LEVEL_RANGE) if noise_level is None else float(noise_level)
     noise_amp = level * (tau_all.max(0) - tau_all.min(0))
@@ -271,7 +272,7 @@ def make_case(
         }
     logs = []
     for tr, t in zip(trajs, times):
-        q, v, a, tau = true_torque(model, tr, t, effects)
+        q, v, a, tau = true_torque(model, tr, t, effects=effects)
         tau = tau + rng.uniform(-1, 1, tau.shape) * noise_amp
         logs.append(JointLog(t, q, v, tau, a if with_acceleration else None, {}, "simulated"))
     truth_all = {

@@ -25,7 +25,9 @@ def _sample_shift(sample, idx, delay):
     return j0, j1, w
 
 
-def first_order_lag(t: np.ndarray, x: np.ndarray, seg_bounds: np.ndarray, d: float, chunk: float = 50.0) -> np.ndarray:
+def first_order_lag(
+    t: np.ndarray, x: np.ndarray, seg_bounds: np.ndarray, d: float, *, chunk: float = 50.0
+) -> np.ndarray:
     """y with d y' = x - y along t, per gap-free segment, exact for x linear between samples;
     each segment starts in the steady ramp (y = x - d x'). Works on (N, ...) arrays.
 
@@ -54,7 +56,7 @@ def first_order_lag(t: np.ndarray, x: np.ndarray, seg_bounds: np.ndarray, d: flo
     return y
 
 
-def restarted_lag(smp: dict, x: np.ndarray, lagged: np.ndarray, d: float, anchor: float | np.ndarray) -> np.ndarray:
+def restarted_lag(smp: dict, x: np.ndarray, lagged: np.ndarray, *, d: float, anchor: float | np.ndarray) -> np.ndarray:
     """The lag `lagged` = first_order_lag(x) restarted at smp["restarts"]: from each restart s
     of joint j on, the lagged output starts at anchor[s, j] (the measured torque for the
     nominal, 0 for effect columns, so the prediction there is the measurement) instead of the
@@ -98,8 +100,8 @@ def model_side_rows(design: Design, groups: list[str], transform: tuple[str, flo
     A = smp[key]
     if law == "lag":
         t, bounds = smp["t"], smp["seg_bounds"]
-        A = restarted_lag(smp, A, first_order_lag(t, A, bounds, d), d, 0.0)
-        nom = restarted_lag(smp, nom, first_order_lag(t, nom, bounds, d), d, smp["measured"])
+        A = restarted_lag(smp, A, first_order_lag(t, A, bounds, d), d=d, anchor=0.0)
+        nom = restarted_lag(smp, nom, first_order_lag(t, nom, bounds, d), d=d, anchor=smp["measured"])
 
     def at(idx):
         if law == "lag":

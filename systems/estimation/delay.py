@@ -28,7 +28,7 @@ class DelayInverse:
         self._readings = None  # (t, y) a waiting or a future step can still pair with
 
     def push(
-        self, t: np.ndarray, q: np.ndarray, v: np.ndarray, y: np.ndarray
+        self, t: np.ndarray, q: np.ndarray, v: np.ndarray, *, y: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The steps whose reading is now known, (t, q, v, τ); y the logged torque."""
         motion, readings = (t, q, v), (t, y)

@@ -95,7 +95,7 @@ def _left_inverse(rows: SegmentRows, theta_r, rad_r, settings):
 
 
 def interval_hull(
-    rows: SegmentRows, theta_r: np.ndarray, rad_r: np.ndarray, settings: EstimatorSettings
+    rows: SegmentRows, theta_r: np.ndarray, rad_r: np.ndarray, *, settings: EstimatorSettings
 ) -> tuple[dict | None, float]:
     """Centre L U(m) and radii of the exact hull {L(U(m') − e) : m' ∈ [m], |e| ≤ quad}.
 
@@ -154,6 +154,7 @@ def set_membership_bounds(
     rows: SegmentRows,
     theta_r: np.ndarray,
     rad_r: np.ndarray,
+    *,
     settings: EstimatorSettings,
     box_lo: np.ndarray,
     box_hi: np.ndarray,
@@ -209,6 +210,7 @@ def certified_lp_min(
     b_ub: np.ndarray,
     lo_x: np.ndarray,
     hi_x: np.ndarray,
+    *,
     solution: list | None = None,
 ) -> tuple[str, float]:
     """A certified lower bound on min c·x s.t. A_ub x ≤ b_ub, lo_x ≤ x ≤ hi_x (HiGHS dual simplex).

@@ -55,7 +55,7 @@ class IncrementalEstimator:
     outside the previous one, nor outside the prior.
     """
 
-    def __init__(self, robot, settings: EstimatorSettings | None = None, prior=None, prior_nominal=None):
+    def __init__(self, robot, *, settings: EstimatorSettings | None = None, prior=None, prior_nominal=None):
         self.robot = robot
         self.settings = st = settings or EstimatorSettings()
         if st.integration not in ("trapezoid", "euler"):
@@ -74,7 +74,7 @@ class IncrementalEstimator:
         self.n = robot.n
         rest = robot.rest_mask()
         self.theta_r = robot.theta[rest].copy()
-        self.theta_r_radius = parameter_radius(robot, st.theta_r_ratio, st.theta_r_ratio, st.theta_r_floor)[rest]
+        self.theta_r_radius = parameter_radius(robot, st.theta_r_ratio, st.theta_r_ratio, floors=st.theta_r_floor)[rest]
         self.rows = SegmentRows.empty(self.n, len(self.theta_r))
         self._pending = None  # (t, q, v, tau, reading radius) of the unfinished tail
         self._consumed = 0  # global index of the first pending sample
@@ -84,7 +84,7 @@ class IncrementalEstimator:
         self.prior_nominal = nominal.copy()  # published before the first update (need not be consistent)
         # The gripper's own parameters (the end-effector link without payload) in the robot box:
         # what the payload's bounding volume is subtracted from (estimation/physical.py).
-        rad_g = parameter_radius(robot, st.theta_r_ratio, st.theta_r_ratio, st.theta_r_floor)[robot.ee_slice]
+        rad_g = parameter_radius(robot, st.theta_r_ratio, st.theta_r_ratio, floors=st.theta_r_floor)[robot.ee_slice]
         self.gripper_box = (robot.theta_e - rad_g, robot.theta_e + rad_g)
         self._cuts = []  # cutting planes of the pruning LPs (valid for every box: kept across updates)
         self.eta = (
@@ -96,7 +96,9 @@ class IncrementalEstimator:
         self.messages = []
 
     # -- data -------------------------------------------------------------------------------
-    def add(self, t: ArrayLike, q: ArrayLike, v: ArrayLike, tau: ArrayLike, reference: Reference | None = None) -> int:
+    def add(
+        self, t: ArrayLike, q: ArrayLike, v: ArrayLike, tau: ArrayLike, *, reference: Reference | None = None
+    ) -> int:
         """Append samples (any chunk size); builds the segments that became complete. reference:
         the motion between the samples, times -> (q, v, a), when known (A5 is then checked)."""
         t = np.atleast_1d(np.asarray(t, float))
@@ -108,10 +110,10 @@ class IncrementalEstimator:
         ):
             raise EstimatorError("NaN or inf in the estimator input")
         if self._unshift is not None:  # each step paired with its reading, once it has arrived
-            t, q, v, tau = self._unshift.push(t, q, v, tau)
+            t, q, v, tau = self._unshift.push(t, q, v, y=tau)
         rho = None  # how far each τ is from the sensor's reading (a lag interval)
         if self._unlag is not None:  # the readings of a lagged sensor, one sample late
-            t, q, v, tau, rho = self._unlag.push(t, q, v, tau)
+            t, q, v, tau, rho = self._unlag.push(t, q, v, y=tau)
         rho = np.zeros_like(tau) if rho is None else rho
         if self._pending is not None:
             if len(t) and len(self._pending[0]) and t[0] <= self._pending[0][-1]:
@@ -130,10 +132,10 @@ class IncrementalEstimator:
                 tau,
                 bounds,
                 self.settings,
-                self.theta_box(),
-                self._consumed,
-                rho if rho.any() else None,
-                reference,
+                theta_box=self.theta_box(),
+                index_offset=self._consumed,
+                reading_radius=rho if rho.any() else None,
+                reference=reference,
             )
             if len(self.rows) and len(new) and new.start_index[0] == self.rows.end_index[-1]:
                 new.shared_prev[0] = True
@@ -142,7 +144,7 @@ class IncrementalEstimator:
         self._pending = tuple(x[next_start:] for x in (t, q, v, tau, rho))
         return len(bounds)
 
-    def predicted_radius(self, t: ArrayLike, q: ArrayLike, v: ArrayLike, tau: ArrayLike) -> np.ndarray | None:
+    def predicted_radius(self, t: ArrayLike, q: ArrayLike, v: ArrayLike, *, tau: ArrayLike) -> np.ndarray | None:
         """Half-widths of the Theorem-2 box (torque + θ_r + quadrature terms, the `map` left
         inverse) if the candidate log (t, q, v, τ: e.g. a plan's samples with its predicted
         torque) were added to the data so far; the estimator is not changed. A planner can rank
@@ -150,8 +152,8 @@ class IncrementalEstimator:
         level). None when the data would not identify θ_e."""
         t, q, v, tau = (np.asarray(x, float) for x in (t, q, v, tau))
         bounds, _ = segment_bounds(t, self.settings.horizon_s, self.settings.segment_gap_s())
-        new = build_segment_rows(self.robot, t, q, v, tau, bounds, self.settings, self.theta_box())
-        hull, cond = interval_hull(self.rows.concat(new), self.theta_r, self.theta_r_radius, self.settings)
+        new = build_segment_rows(self.robot, t, q, v, tau, bounds, self.settings, theta_box=self.theta_box())
+        hull, cond = interval_hull(self.rows.concat(new), self.theta_r, self.theta_r_radius, settings=self.settings)
         if hull is None or cond > self.settings.max_condition:
             return None
         return hull["rad_torque"] + hull["rad_theta_r"] + hull["rad_quad"]
@@ -176,7 +178,7 @@ class IncrementalEstimator:
         st = self.settings
         S = len(self.rows)
         self._require_data(S)
-        hull, cond = interval_hull(self.rows, self.theta_r, self.theta_r_radius, st)
+        hull, cond = interval_hull(self.rows, self.theta_r, self.theta_r_radius, settings=st)
         prev = self.estimate
         if hull is None or cond > st.max_condition:
             return self._finish(self._prior_estimate(cond, S, f"not identifiable yet (cond(Y) = {cond:.3g})"), start)
@@ -240,7 +242,7 @@ class IncrementalEstimator:
         A, b, c = hull["A"], hull["b"], hull["c"]
         starts = [self.eta, inertial.theta_to_log_cholesky(nearest_consistent(hull["centre"]))]
         eta0 = min(starts, key=lambda e: cost_grad_hess(e, A, b, c)[0])
-        sol = solve_log_cholesky(A, b, c, eta0, self.settings.solver, self.settings.newton_steps)
+        sol = solve_log_cholesky(A, b, c, eta0, solver=self.settings.solver, newton_steps=self.settings.newton_steps)
         if not np.all(np.isfinite(sol.theta)):
             sol.eta, sol.theta = self.eta, inertial.log_cholesky_to_theta(self.eta)
             self.messages.append("solver failed; kept the previous estimate")
@@ -261,7 +263,10 @@ class IncrementalEstimator:
         # an enclosure, often tighter on the mass; keep the intersection.
         if st.point_estimate == "map":
             alt, _ = interval_hull(
-                self.rows, self.theta_r, self.theta_r_radius, replace(st, point_estimate="paper", row_weighting="bound")
+                self.rows,
+                self.theta_r,
+                self.theta_r_radius,
+                settings=replace(st, point_estimate="paper", row_weighting="bound"),
             )
             if alt is not None:
                 r_alt = alt["rad_torque"] + alt["rad_theta_r"] + alt["rad_quad"] + alt["rad_round"]
@@ -283,7 +288,7 @@ class IncrementalEstimator:
         params = {"none": [], "mass": [0], "all": list(range(10))}[st.set_membership]
         if params and not problems:
             sm_lo, sm_hi, feasible = set_membership_bounds(
-                self.rows, self.theta_r, self.theta_r_radius, st, lo, hi, params
+                self.rows, self.theta_r, self.theta_r_radius, settings=st, box_lo=lo, box_hi=hi, params=params
             )
             if not feasible:
                 problems.append("the set-membership LP is infeasible")
@@ -302,7 +307,7 @@ class IncrementalEstimator:
         new_lo, new_hi = data_lo, data_hi
         if self.settings.physical_pruning and not problems:
             p_lo, p_hi, feasible = prune_box(
-                data_lo, data_hi, self.settings.payload_volume, self.gripper_box, cuts=self._cuts
+                data_lo, data_hi, volume=self.settings.payload_volume, gripper=self.gripper_box, cuts=self._cuts
             )
             if not feasible:
                 problems.append("the data box contradicts the payload's physical knowledge (LMI, bounding volume)")
@@ -375,7 +380,7 @@ class IncrementalEstimator:
     def _first_order(self):
         """The paper's first-order interval on the same data (see Estimate.first_order_lower)."""
         paper = replace(self.settings, point_estimate="paper", row_weighting="none")
-        hull, _ = interval_hull(self.rows, self.theta_r, self.theta_r_radius, paper)
+        hull, _ = interval_hull(self.rows, self.theta_r, self.theta_r_radius, settings=paper)
         if hull is None:
             return None
         radius = hull["rad_torque"] + hull["rad_theta_r"]
@@ -442,11 +447,12 @@ def identify(
     q: ArrayLike,
     v: ArrayLike,
     tau: ArrayLike,
+    *,
     settings: EstimatorSettings | None = None,
     prior: tuple[ArrayLike, ArrayLike] | None = None,
     prior_nominal: ArrayLike | None = None,
 ) -> Estimate:
     """Algorithm 1 on a whole log (pure function): returns an Estimate."""
-    est = IncrementalEstimator(robot, settings, prior, prior_nominal)
+    est = IncrementalEstimator(robot, settings=settings, prior=prior, prior_nominal=prior_nominal)
     est.add(t, q, v, tau)
     return est.update()

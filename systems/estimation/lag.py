@@ -44,7 +44,7 @@ def inversion_rounding(t: np.ndarray, y: np.ndarray, lag_s: float) -> np.ndarray
     return 4 * EPS * (np.abs(y[:-1]) + np.abs(np.diff(y, axis=0)) * (g * (g + 1))[:, None])
 
 
-def unlag_interval(t: np.ndarray, y: np.ndarray, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray]:
+def unlag_interval(t: np.ndarray, y: np.ndarray, lo: float, *, hi: float) -> tuple[np.ndarray, np.ndarray]:
     """(centre c, radius ρ) of the readings of the steps, (N − 1, n) each: |r_k(d) − c_k| ≤ ρ_k for
     every lag d in [lo, hi] (r_k monotone in d: its ends r_k(lo), r_k(hi) bound it). lo == hi:
     `unlag` and ρ = 0 (the exact inversion, its rounding inside the estimator's pads)."""
@@ -72,7 +72,7 @@ class LagInverse:
         self._tail = None  # (t, q, v, y) of the last sample, waiting for the next
 
     def push(
-        self, t: np.ndarray, q: np.ndarray, v: np.ndarray, y: np.ndarray
+        self, t: np.ndarray, q: np.ndarray, v: np.ndarray, *, y: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The samples whose reading is now known, (t, q, v, r, ρ); y the lagged torque, r the
         reading (the centre over a lag interval), ρ its radius over the interval (0 for one lag)."""
@@ -84,5 +84,5 @@ class LagInverse:
             raise EstimatorError("time is not strictly increasing")
         self._tail = (t[-1], q[-1], v[-1], y[-1])
         step_ok = np.diff(t) <= self.max_step_s
-        r, rho = unlag_interval(t, y, self.lo, self.hi)
+        r, rho = unlag_interval(t, y, self.lo, hi=self.hi)
         return t[:-1][step_ok], q[:-1][step_ok], v[:-1][step_ok], r[step_ok], rho[step_ok]

@@ -27,6 +27,7 @@ def cost_grad_hess(
     A: np.ndarray,
     b: np.ndarray,
     c: float,
+    *,
     centred: tuple[np.ndarray, float] | None = None,
 ) -> tuple[float, np.ndarray, np.ndarray]:
     """J(η) = ½‖Y P(η) − U‖² and its exact gradient and Hessian (paper appendix, eq. D_ee)."""
@@ -64,6 +65,7 @@ def cost_and_gradient(
     A: np.ndarray,
     b: np.ndarray,
     c: float,
+    *,
     centred: tuple[np.ndarray, float] | None = None,
 ) -> tuple[float, np.ndarray]:
     """J(η) and its exact gradient, the fast path used inside the NLP (≈ 20 µs)."""
@@ -107,6 +109,7 @@ def solve_log_cholesky(
     b: np.ndarray,
     c: float,
     eta0: np.ndarray,
+    *,
     solver: str = "ipopt",
     newton_steps: int = 50,
     scale: float | None = None,
@@ -135,17 +138,17 @@ def solve_log_cholesky(
 
     def cost(x):
         if x.dtype == object:
-            J, g = cost_and_gradient(ExtractValue(x).ravel(), A, b, c, centred)
+            J, g = cost_and_gradient(ExtractValue(x).ravel(), A, b, c, centred=centred)
             return AutoDiffXd(J / scale, (g / scale) @ ExtractGradient(x))
-        return cost_and_gradient(np.asarray(x, float), A, b, c, centred)[0] / scale
+        return cost_and_gradient(np.asarray(x, float), A, b, c, centred=centred)[0] / scale
 
     eta0 = np.clip(eta0, ETA_LOWER, ETA_UPPER)
     eta, ok, msg, name = _solve_nlp(cost, eta0, solver=solver, max_iterations=max_iterations, max_time_s=max_time_s)
     if not np.all(np.isfinite(eta)):
         eta = np.asarray(eta0, float)
-    J = cost_and_gradient(eta, A, b, c, centred)[0]
+    J = cost_and_gradient(eta, A, b, c, centred=centred)[0]
     eta, J, steps, polished = _newton_polish(eta, J, (A, b, c, centred), scale=scale, newton_steps=newton_steps)
-    g = cost_and_gradient(eta, A, b, c, centred)[1]
+    g = cost_and_gradient(eta, A, b, c, centred=centred)[1]
     # Stationary to working precision (relative to the curvature scale) counts as solved.
     ok = ok or polished or bool(np.linalg.norm(g) <= 1e-9 * scale * max(1.0, np.linalg.norm(eta)))
     return SolveResult(
@@ -217,22 +220,22 @@ def _newton_polish(eta, J, data, *, scale, newton_steps):
 
         with np.errstate(over="ignore", invalid="ignore"):
             pol = minimize(
-                lambda e: cost_and_gradient(e, A, b, c, centred)[0] / scale,
+                lambda e: cost_and_gradient(e, A, b, c, centred=centred)[0] / scale,
                 eta,
-                jac=lambda e: cost_and_gradient(e, A, b, c, centred)[1] / scale,
-                hess=lambda e: cost_grad_hess(e, A, b, c, centred)[2] / scale,
+                jac=lambda e: cost_and_gradient(e, A, b, c, centred=centred)[1] / scale,
+                hess=lambda e: cost_grad_hess(e, A, b, c, centred=centred)[2] / scale,
                 method="trust-exact",
                 options={"maxiter": newton_steps, "gtol": 1e-12},
             )
         if np.all(np.isfinite(pol.x)) and np.all(pol.x >= ETA_LOWER) and np.all(pol.x <= ETA_UPPER):
-            Jp = cost_and_gradient(pol.x, A, b, c, centred)[0]
+            Jp = cost_and_gradient(pol.x, A, b, c, centred=centred)[0]
             if np.isfinite(Jp) and Jp <= J:
                 eta, J, steps = pol.x, Jp, int(pol.nit)
                 polished = bool(pol.success)
     return eta, J, steps, polished
 
 
-def ift_sensitivity(eta: np.ndarray, A: np.ndarray, b: np.ndarray, dU_dm_Y: np.ndarray) -> np.ndarray:
+def ift_sensitivity(eta: np.ndarray, A: np.ndarray, b: np.ndarray, *, dU_dm_Y: np.ndarray) -> np.ndarray:
     """Paper appendix: ∂θ*/∂m = −P_η (∂²J/∂η²)⁻¹ ∂²J/∂m∂η at η, with dU_dm_Y = Yᵀ ∂U/∂m.
 
     At an interior least-squares optimum this equals Y⁺ ∂U/∂m (the residual-curvature term of

@@ -40,6 +40,7 @@ def _linear_form(M):
 def prune_box(
     lo: np.ndarray,
     hi: np.ndarray,
+    *,
     volume: BoundingVolume | None = None,
     gripper: tuple[np.ndarray, np.ndarray] | None = None,
     max_cuts: int = 5,
@@ -84,7 +85,7 @@ def prune_box(
             for _ in range(max_cuts):
                 sol = []
                 A = a_ub()
-                status, bound = certified_lp_min(c, A, np.zeros(len(A)), lo_x, hi_x, sol)
+                status, bound = certified_lp_min(c, A, np.zeros(len(A)), lo_x, hi_x, solution=sol)
                 if status == "infeasible":
                     return lo, hi, False
                 if status != "ok":

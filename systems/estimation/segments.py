@@ -53,7 +53,7 @@ def segment_bounds(t: ArrayLike, horizon_s: float, max_gap_s: float) -> tuple[np
     return np.asarray(out, int).reshape(-1, 2), int(next_start)
 
 
-def sample_weights(t: np.ndarray, a: int, b: int, integration: str) -> np.ndarray:
+def sample_weights(t: np.ndarray, a: int, b: int, *, integration: str) -> np.ndarray:
     """Quadrature weights of samples a..b for ∫ over [t_a, t_b]."""
     dt = np.diff(t[a : b + 1])
     w = np.zeros(b - a + 1)
@@ -123,6 +123,7 @@ def integrated_rate_regressor(
     v: np.ndarray,
     t: np.ndarray,
     bounds: np.ndarray,
+    *,
     integration: str = "trapezoid",
     factors: _Factors | None = None,
 ) -> np.ndarray:
@@ -138,7 +139,7 @@ def integrated_rate_regressor(
     N = factors.nsamp
     kbasis = _K_BASIS.reshape(36, 10)
     out = np.zeros((len(bounds), n, 10 * n))
-    weights = [sample_weights(t, a, b, integration) for a, b in bounds]
+    weights = [sample_weights(t, a, b, integration=integration) for a, b in bounds]
     for i in range(n):
         js = factors.joints[i]
         k = len(js)
@@ -153,11 +154,11 @@ def integrated_rate_regressor(
     return out
 
 
-def segment_sums(values: np.ndarray, t: np.ndarray, bounds: np.ndarray, integration: str) -> np.ndarray:
+def segment_sums(values: np.ndarray, t: np.ndarray, bounds: np.ndarray, *, integration: str) -> np.ndarray:
     """∫ values dt per segment with the same quadrature, values (N, ...) -> (S, ...)."""
     out = np.empty((len(bounds),) + values.shape[1:])
     for s, (a, b) in enumerate(bounds):
-        out[s] = np.tensordot(sample_weights(t, a, b, integration), values[a : b + 1], 1)
+        out[s] = np.tensordot(sample_weights(t, a, b, integration=integration), values[a : b + 1], 1)
     return out
 
 
@@ -196,7 +197,7 @@ def integrand_rates(
 
 
 def quadrature_bound(
-    t: np.ndarray, rates: np.ndarray, bounds: np.ndarray, integration: str, safety: float
+    t: np.ndarray, rates: np.ndarray, bounds: np.ndarray, *, integration: str, safety: float
 ) -> np.ndarray:
     """Per segment and joint, a bound on |∫ f dt − quadrature(f)| for the integrand f = W_c θ.
 
@@ -232,8 +233,8 @@ def _integrand_on(robot, reference, t, bounds, integration, theta_box):
     fric = regressors.friction_columns(v, kind="rate", smoothing_velocity=robot.coulomb_smoothing)
     wc = np.concatenate(
         [
-            integrated_rate_regressor(robot.tree, q, v, t, bounds, integration, factors),
-            segment_sums(fric, t, bounds, integration),
+            integrated_rate_regressor(robot.tree, q, v, t, bounds, integration=integration, factors=factors),
+            segment_sums(fric, t, bounds, integration=integration),
         ],
         -1,
     )
@@ -247,6 +248,7 @@ def resolved_quadrature(
     bounds: np.ndarray,
     settings: EstimatorSettings,
     theta_box: tuple[np.ndarray, np.ndarray],
+    *,
     substeps: int = 8,
 ) -> tuple[np.ndarray, np.ndarray]:
     """A5 checked where the motion between the samples is known (`reference(times) -> (q, v, a)`,
@@ -265,7 +267,9 @@ def resolved_quadrature(
     fine, fine_rates = _integrand_on(robot, reference, fine_t, bounds * substeps, settings.integration, theta_box)
     diff = coarse - fine
     bound = np.abs(diff @ theta_box[0]) + np.abs(diff) @ theta_box[1]
-    bound += quadrature_bound(fine_t, fine_rates, bounds * substeps, settings.integration, settings.quadrature_safety)
+    bound += quadrature_bound(
+        fine_t, fine_rates, bounds * substeps, integration=settings.integration, safety=settings.quadrature_safety
+    )
     sub_max = fine_rates.reshape(len(h), substeps, -1).max(1)
     violated = np.array(
         [np.any(sub_max[a:b] > settings.quadrature_safety * neighbour_max(rates[a:b])) for a, b in bounds], bool
@@ -274,7 +278,7 @@ def resolved_quadrature(
 
 
 def torque_rate_bound(
-    t: np.ndarray, tau_meas: np.ndarray, radius: np.ndarray, bounds: np.ndarray, rate_limit: float
+    t: np.ndarray, tau_meas: np.ndarray, radius: np.ndarray, *, bounds: np.ndarray, rate_limit: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """Continuous torque signal with |dτ/dt| ≤ rate_limit: per segment and joint the trapezoid
     error bound rate_limit·Σ h²/4, and per segment whether the measurements contradict the
@@ -367,6 +371,7 @@ def build_segment_rows(
     tau: np.ndarray,
     bounds: np.ndarray,
     settings: EstimatorSettings,
+    *,
     theta_box: tuple[np.ndarray, np.ndarray] | None = None,
     index_offset: int = 0,
     reading_radius: np.ndarray | None = None,
@@ -393,21 +398,21 @@ def build_segment_rows(
     rate_fric = regressors.friction_columns(vv, kind="rate", smoothing_velocity=robot.coulomb_smoothing)
     D = _momentum_differences(robot, (tt, qq, vv), loc, integ=integ, factors=factors, rate_fric=rate_fric)
     rule = settings.torque_rule()
-    T = segment_sums(ta, tt, loc, rule)
+    T = segment_sums(ta, tt, loc, integration=rule)
     r = torque_radius(ta, settings, None if reading_radius is None else reading_radius[lo : hi + 1])
     w_first, w_last, r_inner, r_inner_sq = _radius_weights(tt, r, loc, rule)
     shared_prev = np.zeros(S, bool)
     shared_prev[1:] = loc[1:, 0] == loc[:-1, 1]
     centre, radius = (robot.theta, np.zeros_like(robot.theta)) if theta_box is None else theta_box
     rates = integrand_rates(tt, factors, rate_fric, centre, radius)
-    quad = quadrature_bound(tt, rates, loc, integ, settings.quadrature_safety)
+    quad = quadrature_bound(tt, rates, loc, integration=integ, safety=settings.quadrature_safety)
     violated = np.zeros(S, bool)
     a5_violated = np.zeros(S, bool)
     if reference is not None:  # never below the samples' own A5 bound
         resolved, a5_violated = resolved_quadrature(robot, reference, tt, loc, settings, (centre, radius))
         quad = np.maximum(quad, resolved)
     if settings.torque_signal == "continuous":
-        err, violated = torque_rate_bound(tt, ta, r, loc, settings.torque_rate_limit_Nm_s)
+        err, violated = torque_rate_bound(tt, ta, r, bounds=loc, rate_limit=settings.torque_rate_limit_Nm_s)
         quad = quad + err
     return SegmentRows(
         t0=tt[loc[:, 0]],
@@ -435,8 +440,8 @@ def _momentum_differences(robot, samples, loc, *, integ, factors, rate_fric):
     """D (S, n, 14 n) per segment: the momentum regressor's change minus the integrated rate
     regressor (rigid and friction columns), for the samples (t, q, v) and segment bounds loc."""
     tt, qq, vv = samples
-    wc_rigid = integrated_rate_regressor(robot.tree, qq, vv, tt, loc, integ, factors)
-    wc_fric = segment_sums(rate_fric, tt, loc, integ)
+    wc_rigid = integrated_rate_regressor(robot.tree, qq, vv, tt, loc, integration=integ, factors=factors)
+    wc_fric = segment_sums(rate_fric, tt, loc, integration=integ)
     ends = np.unique(loc.ravel())
     wm = robot.momentum_regressor(qq[ends], vv[ends])
     pos = {k: r for r, k in enumerate(ends)}
@@ -454,7 +459,7 @@ def _radius_weights(tt, r, loc, rule):
     r_inner = np.empty((S, n))
     r_inner_sq = np.empty((S, n))
     for s, (a, b) in enumerate(loc):
-        w = sample_weights(tt, a, b, rule)
+        w = sample_weights(tt, a, b, integration=rule)
         w_first[s], w_last[s] = w[0], w[-1]
         r_inner[s] = w[1:-1] @ r[a + 1 : b]
         r_inner_sq[s] = w[1:-1] ** 2 @ r[a + 1 : b] ** 2

@@ -24,6 +24,7 @@ def fourier_motion(
     robot: RobotModel,
     duration_s: float,
     rate_hz: float,
+    *,
     harmonics: int = 5,
     period_s: float | None = None,
     centre: ArrayLike | None = None,
@@ -76,7 +77,7 @@ def fourier_motion(
 
 
 def fourier_trajectory(
-    rng: np.random.Generator, robot: RobotModel, duration_s: float, rate_hz: float, **kw: Any
+    rng: np.random.Generator, robot: RobotModel, duration_s: float, *, rate_hz: float, **kw: Any
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """`fourier_motion` sampled on its grid: t, q, v, a."""
     t, motion = fourier_motion(rng, robot, duration_s, rate_hz, **kw)
@@ -86,7 +87,7 @@ def fourier_trajectory(
 _GAUSS_NODES, _GAUSS_WEIGHTS = np.polynomial.legendre.leggauss(3)
 
 
-def held_torque(robot: RobotModel, motion: Motion, t: np.ndarray, theta: np.ndarray) -> np.ndarray:
+def held_torque(robot: RobotModel, motion: Motion, t: np.ndarray, *, theta: np.ndarray) -> np.ndarray:
     """The torque a zero-order hold must apply on each step [t_k, t_k+1] to produce `motion`
     exactly, in the momentum sense: τ̄_k = (1/h_k) ∫ τ_ID dt (3-point Gauss, error ~h⁶; the last sample
     holds over one more step of the same length). Over any segment of whole steps
@@ -95,7 +96,7 @@ def held_torque(robot: RobotModel, motion: Motion, t: np.ndarray, theta: np.ndar
     h = np.append(h, h[-1])
     nodes = t[:, None] + 0.5 * h[:, None] * (1 + _GAUSS_NODES[None, :])  # (N, 4)
     q, v, a = motion(nodes.ravel())
-    tau = robot.inverse_dynamics(q, v, a, theta).reshape(len(t), len(_GAUSS_NODES), -1)
+    tau = robot.inverse_dynamics(q, v, a, theta=theta).reshape(len(t), len(_GAUSS_NODES), -1)
     return 0.5 * np.tensordot(tau, _GAUSS_WEIGHTS, axes=([1], [0]))
 
 
@@ -111,6 +112,7 @@ def simulate_log(
     rng: np.random.Generator,
     robot: RobotModel,
     theta_true: np.ndarray,
+    *,
     duration_s: float = 7.5,
     rate_hz: float = 1000.0,
     noise_ratio: float = 0.025,
@@ -125,7 +127,11 @@ def simulate_log(
     "sampled": τ is inverse dynamics at the sample instants. Returns t, q, v, τ_meas, τ."""
     t, motion = fourier_motion(rng, robot, duration_s, rate_hz, **traj)
     q, v, a = motion(t)
-    tau = held_torque(robot, motion, t, theta_true) if torque == "held" else robot.inverse_dynamics(q, v, a, theta_true)
+    tau = (
+        held_torque(robot, motion, t, theta=theta_true)
+        if torque == "held"
+        else robot.inverse_dynamics(q, v, a, theta=theta_true)
+    )
     bound = noise_scale * (noise_ratio * np.abs(tau) + noise_floor_Nm)
     tau_meas = tau + rng.uniform(-1, 1, tau.shape) * bound
     return t, q, v, tau_meas, tau

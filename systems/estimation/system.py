@@ -82,6 +82,7 @@ class SysIdEstimator(LeafSystem):
         update_period_s: float,
         prior: tuple[np.ndarray, np.ndarray],
         prior_nominal: np.ndarray,
+        *,
         stop_time_s: float = np.inf,
     ) -> None:
         """settings: the estimator's (EstimatorSettings.from_scenario); sample_period_s: the plant
@@ -126,7 +127,9 @@ class SysIdEstimator(LeafSystem):
         self.DeclarePeriodicUnrestrictedUpdateEvent(self.sample_period_s, 0.0, self._on_sample)
 
     def _initial_state(self):
-        return SysIdState(IncrementalEstimator(self.robot, self.settings, self.prior, self.prior_nominal))
+        return SysIdState(
+            IncrementalEstimator(self.robot, settings=self.settings, prior=self.prior, prior_nominal=self.prior_nominal)
+        )
 
     def _write(self, state, est, updates):
         discrete, groups = state.get_mutable_discrete_state(), self._groups

@@ -156,8 +156,8 @@ class _Problem:
             self.robot.tree,
             self.robot.end_effector,
             samples[:, 0].reshape(-1, n),
-            samples[:, 1].reshape(-1, n),
-            samples[:, 2].reshape(-1, n),
+            v=samples[:, 1].reshape(-1, n),
+            a=samples[:, 2].reshape(-1, n),
         ).reshape(3 * n, T, n, 10)
         W = w[0].real.reshape(T * n, 10)
         dW = (w.imag / _COMPLEX_STEP).reshape(3, n, T, n, 10)  # [order, joint, t, row, col]

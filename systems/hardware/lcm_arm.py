@@ -69,7 +69,7 @@ class LcmArm:
         return list(self.receiver.guard(self.receiver.GetMyContextFromRoot(context)).events)
 
 
-def add_lcm_arm(builder: DiagramBuilder, scenario: Scenario, robot: RobotModel, lcm: DrakeLcm) -> LcmArm:
+def add_lcm_arm(builder: DiagramBuilder, scenario: Scenario, robot: RobotModel, *, lcm: DrakeLcm) -> LcmArm:
     from pydrake.systems.lcm import LcmPublisherSystem
     from safesysid.systems.plant.arm_plant import scenario_dumbbell
 
@@ -77,7 +77,9 @@ def add_lcm_arm(builder: DiagramBuilder, scenario: Scenario, robot: RobotModel, 
     _interface(builder, lcm)
     statuses = LatestMessage(lcm, cfg.status_channel, lcmt_panda_status)
     receiver = builder.AddSystem(
-        StatusReceiver(n, statuses, h, cfg.status_timeout_ms * 1e-3, np.asarray(scenario.q0_rad))
+        StatusReceiver(
+            n, statuses, h, status_timeout_s=cfg.status_timeout_ms * 1e-3, q_start=np.asarray(scenario.q0_rad)
+        )
     )
     receiver.set_name("status_receiver")
     encoder = builder.AddSystem(CommandEncoder(n))
@@ -102,7 +104,7 @@ def add_lcm_arm(builder: DiagramBuilder, scenario: Scenario, robot: RobotModel, 
     )
 
 
-def add_arm_driver(builder: DiagramBuilder, arm: RealArm, scenario: Scenario, lcm: DrakeLcm) -> ArmDriver:
+def add_arm_driver(builder: DiagramBuilder, arm: RealArm, scenario: Scenario, *, lcm: DrakeLcm) -> ArmDriver:
     """Commands -> ArmDriver (watchdog, hold) -> the station's commanded_torque; its status out
     every plant step. Returns the driver (its torque output is u before saturation: the referee's)."""
     from pydrake.systems.lcm import LcmPublisherSystem
@@ -111,7 +113,11 @@ def add_arm_driver(builder: DiagramBuilder, arm: RealArm, scenario: Scenario, lc
     _interface(builder, lcm)
     commands = LatestMessage(lcm, cfg.command_channel, lcmt_panda_command)
     q_start = np.asarray(scenario.q0_rad, float)
-    driver = builder.AddSystem(ArmDriver(arm.robot.n, plant_gravity(arm), commands, h, cfg.watchdog_ms * 1e-3, q_start))
+    driver = builder.AddSystem(
+        ArmDriver(
+            arm.robot.n, plant_gravity(arm), commands, time_step_s=h, watchdog_s=cfg.watchdog_ms * 1e-3, q_start=q_start
+        )
+    )
     driver.set_name("arm_driver")
     builder.Connect(arm.state_output, driver.state)
     builder.Connect(driver.get_output_port(), arm.commanded_torque_input)

@@ -49,7 +49,7 @@ class ArmDriver(LeafSystem):
     driver stays in its error state."""
 
     def __init__(
-        self, n: int, gravity, commands: LatestMessage, time_step_s: float, watchdog_s: float, q_start: np.ndarray
+        self, n: int, gravity, commands: LatestMessage, *, time_step_s: float, watchdog_s: float, q_start: np.ndarray
     ):
         super().__init__()
         self.gravity, self.n, self.commands = gravity, n, commands
@@ -118,7 +118,7 @@ class StatusReceiver(LeafSystem):
     status stream stopped, jumped or stalled beyond status_timeout_s: the run must brake)."""
 
     def __init__(
-        self, n: int, statuses: LatestMessage, time_step_s: float, status_timeout_s: float, q_start: np.ndarray
+        self, n: int, statuses: LatestMessage, time_step_s: float, *, status_timeout_s: float, q_start: np.ndarray
     ):
         super().__init__()
         self.n, self.statuses = n, statuses

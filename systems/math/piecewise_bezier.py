@@ -35,7 +35,7 @@ class PiecewiseBezier:
         """[q, dq/dt, d2q/dt2, ...] (orders + 1 arrays (len(t), n)); at rest outside [0, T]."""
         t = np.atleast_1d(np.asarray(t, float))
         x = self.control_points.reshape(-1, self.control_points.shape[-1])
-        out = [basis(t, self.num_pieces, self.piece_duration, k) @ x for k in range(orders + 1)]
+        out = [basis(t, self.num_pieces, self.piece_duration, order=k) @ x for k in range(orders + 1)]
         outside = ((t < 0) | (t > self.duration))[:, None]
         return [out[0]] + [np.where(outside, 0.0, d) for d in out[1:]]
 
@@ -47,7 +47,7 @@ class PiecewiseBezier:
         return cls(np.asarray(doc["control_points_rad"], float), float(doc["piece_duration_s"]))
 
 
-def basis(t: float | np.ndarray, num_pieces: int, piece_duration: float, order: int = 0) -> np.ndarray:
+def basis(t: float | np.ndarray, num_pieces: int, piece_duration: float, *, order: int = 0) -> np.ndarray:
     """B (len(t), 6K): the order-th time derivative of the curve at t is B @ X (X: (6K, n))."""
     t = np.clip(np.atleast_1d(np.asarray(t, float)), 0.0, num_pieces * piece_duration)
     piece = np.minimum((t // piece_duration).astype(int), num_pieces - 1)

@@ -41,7 +41,11 @@ def _robot_of(robot: Robot, base: Path, where: str) -> RobotModel:
             raise ScenarioError(f"{where}: robot.corrected_model: {err}") from err
     model = resolve_path(robot.model, base) if robot.model else None
     try:
-        return load_robot(model, resolve_path(robot.params, base), coulomb_smoothing=robot.coulomb_smoothing_rad_s)
+        return load_robot(
+            model_path=model,
+            params_path=resolve_path(robot.params, base),
+            coulomb_smoothing=robot.coulomb_smoothing_rad_s,
+        )
     except ModelError as err:  # name the scenario and the field, not only the model file
         field = f"robot.model ({robot.model})" if robot.model else f"robot.params ({robot.params})"
         raise ScenarioError(f"{where}: {field}: {err}") from err
@@ -57,7 +61,7 @@ def starting_robot(corr: CorrectedModel, coulomb_smoothing: float = 0.0) -> Robo
     if not path.is_file():
         raise CorrectionError(f"{corr.path}: model: file {corr.model!r} not found")
     if path.suffix.lower() not in (".yaml", ".yml"):
-        return load_robot(path, coulomb_smoothing=coulomb_smoothing)
+        return load_robot(model_path=path, coulomb_smoothing=coulomb_smoothing)
     import yaml
 
     try:

@@ -17,7 +17,7 @@ if TYPE_CHECKING:
 
 
 def parameters_from(
-    source: str, robot: RobotModel, scenario: Scenario, identified: Sequence[ArrayLike] | None = None
+    source: str, robot: RobotModel, scenario: Scenario, *, identified: Sequence[ArrayLike] | None = None
 ) -> tuple[np.ndarray, Interval]:
     """(theta0 (14 n), Interval) of a parameter source; IDENTIFIED needs `identified` =
     (theta0, lower, upper) of the estimator."""
@@ -41,11 +41,11 @@ def initial_parameters(spec: MethodSpec, robot: RobotModel, scenario: Scenario) 
 
 
 def task_parameters(
-    spec: MethodSpec, robot: RobotModel, scenario: Scenario, identified: Sequence[ArrayLike] | None = None
+    spec: MethodSpec, robot: RobotModel, scenario: Scenario, *, identified: Sequence[ArrayLike] | None = None
 ) -> tuple[np.ndarray, Interval]:
     """(theta0, [theta]) the task-phase controller takes (identified: the estimator's final
     (theta0, lower, upper), for the IDENTIFIED methods). Where the model and box sources differ
     (none today) the box's source wins only for the box."""
-    theta0, _ = parameters_from(spec.theta0_source, robot, scenario, identified)
-    _, box = parameters_from(spec.box_source, robot, scenario, identified)
+    theta0, _ = parameters_from(spec.theta0_source, robot, scenario, identified=identified)
+    _, box = parameters_from(spec.box_source, robot, scenario, identified=identified)
     return theta0, box

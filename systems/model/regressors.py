@@ -230,6 +230,7 @@ def passivity_regressor(
     v: np.ndarray,
     va: np.ndarray,
     aa: np.ndarray,
+    *,
     bodies: Sequence[int] | None = None,
 ) -> np.ndarray:
     """Wp (N, n, 10n): Wp theta = M(q) aa + C(q, v) va + g(q), C Christoffel-consistent.
@@ -253,14 +254,14 @@ def passivity_regressor(
 
 
 def standard_regressor(
-    tree: KinematicTree, q: np.ndarray, v: np.ndarray, a: np.ndarray, bodies: Sequence[int] | None = None
+    tree: KinematicTree, q: np.ndarray, v: np.ndarray, a: np.ndarray, *, bodies: Sequence[int] | None = None
 ) -> np.ndarray:
     """W (N, n, 10n): W theta = M(q) a + C(q, v) v + g(q) (rigid-body part)."""
-    return passivity_regressor(tree, q, v, v, a, bodies)
+    return passivity_regressor(tree, q, v, v, a, bodies=bodies)
 
 
 def momentum_regressor(
-    tree: KinematicTree, q: np.ndarray, v: np.ndarray, bodies: Sequence[int] | None = None
+    tree: KinematicTree, q: np.ndarray, v: np.ndarray, *, bodies: Sequence[int] | None = None
 ) -> np.ndarray:
     """Wm (N, n, 10n): Wm theta = M(q) v."""
     kin = forward_kinematics(tree, q, v)
@@ -270,7 +271,7 @@ def momentum_regressor(
 
 
 def momentum_rate_regressor(
-    tree: KinematicTree, q: np.ndarray, v: np.ndarray, bodies: Sequence[int] | None = None
+    tree: KinematicTree, q: np.ndarray, v: np.ndarray, *, bodies: Sequence[int] | None = None
 ) -> np.ndarray:
     """Wc (N, n, 10n): Wc theta = C(q, v)^T v - g(q), the rate of M v without input torque."""
     q = np.atleast_2d(np.asarray(q, float))
@@ -291,7 +292,7 @@ def coulomb_shape(v: np.ndarray, smoothing_velocity: float = 0.0) -> np.ndarray:
 
 
 def friction_columns(
-    v: np.ndarray, a: np.ndarray | None = None, kind: str = "standard", smoothing_velocity: float = 0.0
+    v: np.ndarray, *, a: np.ndarray | None = None, kind: str = "standard", smoothing_velocity: float = 0.0
 ) -> np.ndarray:
     """Friction regressor (N, n, 4n), columns per joint [Fc, Fv, Ia, beta].
 

@@ -108,7 +108,7 @@ class RobotModel:
         return np.concatenate(
             [
                 regressors.standard_regressor(self.tree, q, v, a),
-                regressors.friction_columns(v, a, "standard", self.coulomb_smoothing),
+                regressors.friction_columns(v, a=a, kind="standard", smoothing_velocity=self.coulomb_smoothing),
             ],
             -1,
         )
@@ -137,13 +137,13 @@ class RobotModel:
         return np.concatenate(
             [
                 regressors.passivity_regressor(self.tree, q, v, va, aa),
-                regressors.friction_columns(va, aa, "standard", self.coulomb_smoothing),
+                regressors.friction_columns(va, a=aa, kind="standard", smoothing_velocity=self.coulomb_smoothing),
             ],
             -1,
         )
 
     def inverse_dynamics(
-        self, q: np.ndarray, v: np.ndarray, a: np.ndarray, theta: np.ndarray | None = None
+        self, q: np.ndarray, v: np.ndarray, a: np.ndarray, *, theta: np.ndarray | None = None
     ) -> np.ndarray:
         theta = self.theta if theta is None else theta
         return self.standard_regressor(q, v, a) @ theta
@@ -201,7 +201,7 @@ def load_joint_parameters(path: str | Path, joint_names: Sequence[str] | None = 
 
 
 def make_plant(
-    model_path: str | Path, time_step: float = 0.0, scene_graph: bool = False, builder: DiagramBuilder | None = None
+    model_path: str | Path, *, time_step: float = 0.0, scene_graph: bool = False, builder: DiagramBuilder | None = None
 ) -> tuple[MultibodyPlant, SceneGraph | None, ModelInstanceIndex]:
     """Drake MultibodyPlant of a fixed-base arm (root welded to the world if it floats).
 
@@ -361,6 +361,7 @@ def joint_parameters_from_plant(plant: MultibodyPlant, joint_names: Sequence[str
 
 
 def load_robot(
+    *,
     model_path: str | Path | None = None,
     params_path: str | Path | None = None,
     coulomb_smoothing: float = 0.0,

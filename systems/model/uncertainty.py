@@ -14,7 +14,7 @@ from safesysid.systems.model.robot_model import RobotModel
 
 
 def parameter_radius(
-    robot: RobotModel, inertial_ratio: float, friction_ratio: float, floors: ParameterFloors | None = None
+    robot: RobotModel, inertial_ratio: float, friction_ratio: float, *, floors: ParameterFloors | None = None
 ) -> np.ndarray:
     """(14 n,) half-widths max(ratio |theta|, floor) around the model's nominal theta (the end
     effector's entries too; callers replace them by its own box)."""
@@ -30,6 +30,7 @@ def parameter_box(
     theta_e_nominal: ArrayLike,
     theta_e_lower: ArrayLike,
     theta_e_upper: ArrayLike,
+    *,
     rest_ratio: float | None = None,
     friction_ratio: float | None = None,
     floors: ParameterFloors | None = None,
@@ -41,7 +42,7 @@ def parameter_box(
     rest_ratio = doc.get("link_inertial_ratio", 0.0) if rest_ratio is None else rest_ratio
     friction_ratio = doc.get("friction_ratio", 0.0) if friction_ratio is None else friction_ratio
     theta0 = robot.theta.copy()
-    rad = parameter_radius(robot, rest_ratio, friction_ratio, floors)
+    rad = parameter_radius(robot, rest_ratio, friction_ratio, floors=floors)
     theta0[robot.ee_slice] = theta_e_nominal
     lo, hi = theta0 - rad, theta0 + rad
     lo[robot.ee_slice], hi[robot.ee_slice] = theta_e_lower, theta_e_upper
@@ -49,7 +50,7 @@ def parameter_box(
 
 
 def prior_box(
-    robot: RobotModel, initial_interval: InitialInterval, noise: Noise, exact: bool = False
+    robot: RobotModel, initial_interval: InitialInterval, noise: Noise, *, exact: bool = False
 ) -> tuple[np.ndarray, Interval]:
     """(theta0, [theta]) a run starts from: the end effector's scenario.initial_interval, the rest
     of the robot nominal +- max(noise.theta_r_ratio |theta|, noise.theta_r_floor). exact: the

@@ -76,7 +76,7 @@ class Affine:
     __array_ufunc__ = None  # ndarray op Affine -> Affine's reflected op
 
     def __init__(
-        self, c: np.ndarray, g: np.ndarray, r: np.ndarray, layout: Layout, m: np.ndarray | None = None
+        self, c: np.ndarray, g: np.ndarray, r: np.ndarray, layout: Layout, *, m: np.ndarray | None = None
     ) -> None:
         self.c, self.g, self.r, self.layout, self.m = c, g, r, layout, m
         self._dev = None
@@ -128,7 +128,7 @@ class Affine:
 
     # -- arithmetic ----------------------------------------------------------------------------
     def _new(self, c, g, r, m=None):
-        return Affine(c, g, r, self.layout, m)
+        return Affine(c, g, r, self.layout, m=m)
 
     @staticmethod
     def _lift(o, like):
@@ -226,7 +226,7 @@ def swap_last(x: Affine) -> Affine:
     )
 
 
-def gather(x: Affine, comp: np.ndarray, sign: np.ndarray, shape: tuple[int, ...]) -> Affine:
+def gather(x: Affine, comp: np.ndarray, sign: np.ndarray, *, shape: tuple[int, ...]) -> Affine:
     """y[..., m] = sign[m] x[..., comp[m]] reshaped to (..., *shape) (exact)."""
     lead = x.c.shape[:-1]
     c = (x.c[..., comp] * sign).reshape(lead + shape)

@@ -27,7 +27,7 @@ def _motion_cross(v, m):
 
 
 def ee_standard_regressor(
-    tree: regressors.KinematicTree, body: int, q: ArrayLike, v: ArrayLike, a: ArrayLike
+    tree: regressors.KinematicTree, body: int, q: ArrayLike, *, v: ArrayLike, a: ArrayLike
 ) -> np.ndarray:
     """W_e (N, n, 10): the end-effector (body `body`) columns of the standard regressor.
 

@@ -157,7 +157,7 @@ _K_COMP, _K_SIGN = signed_selection(np.swapaxes(regressors.inertia_times(np.eye(
 def _inertia_times(x):
     """Interval K(x) stored as (..., 10, 6) (exact: every entry is +-one component of x)."""
     if isinstance(x, Affine):
-        return aff.gather(x, _K_COMP, _K_SIGN, (10, 6))
+        return aff.gather(x, _K_COMP, _K_SIGN, shape=(10, 6))
     lo, hi = x.lo[..., _K_COMP], x.hi[..., _K_COMP]
     shape = x.shape[:-1] + (10, 6)
     return _Box(
@@ -282,7 +282,7 @@ _INERTIA_FORMS = 0.5 * (_INERTIA_FORMS + np.swapaxes(_INERTIA_FORMS, 1, 2))
 
 
 def interval_mass_spread(
-    robot: RobotModel, q: Interval, theta_lo: ArrayLike, theta_hi: ArrayLike, per_joint: bool = False
+    robot: RobotModel, q: Interval, theta_lo: ArrayLike, theta_hi: ArrayLike, *, per_joint: bool = False
 ) -> np.ndarray:
     """mu (N,) >= controller.mass_spread(q') for every q' in each configuration box q (Interval (N, n)).
 
@@ -338,7 +338,7 @@ def joint_spread_bound(spread: np.ndarray, grid: int = 512) -> np.ndarray:
 
 
 def interval_passivity_regressor(
-    robot: RobotModel, q: Interval, v: Interval, va: Interval, aa: Interval, gravity: bool = True
+    robot: RobotModel, q: Interval, v: Interval, va: Interval, aa: Interval, *, gravity: bool = True
 ) -> Interval:
     """Interval Wp (N, n, 14n) enclosing RobotModel.passivity_regressor over boxes q, v, va, aa
     (Intervals (N, n)). Local-frame RNEA: each body's velocity/acceleration from its parent's
@@ -353,7 +353,7 @@ def interval_passivity_regressor(
 
 
 def affine_passivity_regressor(
-    robot: RobotModel, q: Affine, v: Affine, va: Affine, aa: Affine, gravity: bool = True
+    robot: RobotModel, q: Affine, v: Affine, va: Affine, aa: Affine, *, gravity: bool = True
 ) -> Affine:
     """Affine Wp (N, n, 14n) (affine_forms.Affine) enclosing RobotModel.passivity_regressor for every
     state of the affine forms q, v, va, aa (N, n) (e.g. affine_forms.tube_states): the same RNEA on

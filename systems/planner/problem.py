@@ -50,6 +50,7 @@ class PlanningProblem:
         theta0: ArrayLike,
         theta_lo: ArrayLike,
         theta_hi: ArrayLike,
+        *,
         mode: str | None = None,
         past: np.ndarray | None = None,
         k_box: tuple[np.ndarray, np.ndarray] | None = None,
@@ -141,7 +142,9 @@ class PlanningProblem:
         k_half = 0.5 * (self.k_hi - self.k_lo)
         c, jac = reach.sphere_centres(pl.robot.tree, spheres, r.q_mid(k_mid))
         k_dev = np.abs(r.w_mid)[:, None] * (r.kr * k_half)[None, :]  # |q_mid(k) - q_mid(k_mid)|
-        self.spread = reach.local_spread(pl.robot.tree, lips, np.linalg.norm(jac, axis=-1), r.rho, r.rho + k_dev)
+        self.spread = reach.local_spread(
+            pl.robot.tree, lips, np.linalg.norm(jac, axis=-1), rho=r.rho, reach_radius=r.rho + k_dev
+        )
         # Centre motion over the whole k box (Lipschitz): used to drop pairs no k can activate.
         k_motion = k_dev @ lips.T  # (nint, m)
         need = spheres.radius[None, :] + self.spread  # required clearance of the centre
@@ -228,7 +231,7 @@ class PlanningProblem:
         r = self.reach
         ints = self.active_intervals
         qm = r.q_mid(k)[ints]
-        c, dc = reach.sphere_centres(pl.robot.tree, pl.spheres, qm, with_jacobian)
+        c, dc = reach.sphere_centres(pl.robot.tree, pl.spheres, qm, with_jacobian=with_jacobian)
         pos = np.searchsorted(ints, self.pair_i)
         pts = c[pos, self.pair_s]
         vals = np.empty(len(pts))
@@ -297,7 +300,7 @@ class PlanningProblem:
         vc = v[None] + 1j * h * dirs[:, :, 1]
         ac = a[None] + 1j * h * dirs[:, :, 2]
         w = ee_standard_regressor(
-            pl.robot.tree, pl.robot.end_effector, qc.reshape(-1, n), vc.reshape(-1, n), ac.reshape(-1, n)
+            pl.robot.tree, pl.robot.end_effector, qc.reshape(-1, n), v=vc.reshape(-1, n), a=ac.reshape(-1, n)
         ).reshape(n, ns * n, 10)
         cols = _EXCITING_COLUMNS[getattr(pl.config, "exciting_columns", "all")]
         plain = W = w[0].real[:, cols]

@@ -198,6 +198,7 @@ def local_spread(
     tree: regressors.KinematicTree,
     lipschitz: np.ndarray,
     jac_norm: np.ndarray,
+    *,
     rho: np.ndarray,
     reach_radius: np.ndarray,
 ) -> np.ndarray:
@@ -217,7 +218,7 @@ def local_spread(
 
 
 def sphere_centres(
-    tree: regressors.KinematicTree, spheres: Spheres, q: np.ndarray, with_jacobian: bool = True
+    tree: regressors.KinematicTree, spheres: Spheres, q: np.ndarray, *, with_jacobian: bool = True
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """Centres (N, m, 3) in world and d c / d q (N, m, n, 3) at configurations q (N, n)."""
     kin = regressors.forward_kinematics(tree, q)
@@ -307,6 +308,7 @@ class PlanReach:
         k_range: ArrayLike,
         num_intervals: int,
         bounds: TrackingBounds,
+        *,
         restrictions: list[np.ndarray] | None = None,
     ) -> None:
         self.bezier = QuinticBezier(

@@ -106,6 +106,7 @@ class SafePlanner:
         self,
         robot: RobotModel,
         config: Planner,
+        *,
         obstacles: Iterable[Obstacle] | reach.Boxes = (),
         payload: Dumbbell | None = None,
         tracking: TrackingBounds | None = None,
@@ -140,7 +141,7 @@ class SafePlanner:
     def row_weights(self, q: np.ndarray, v: np.ndarray, a: np.ndarray, theta0: ArrayLike) -> np.ndarray:
         """1 / the declared torque-noise bound of each W_e row (samples x joints, flattened) of the
         nominal model theta0 along (q, v, a)."""
-        tau = self.robot.inverse_dynamics(q, v, a, np.asarray(theta0, float))
+        tau = self.robot.inverse_dynamics(q, v, a, theta=np.asarray(theta0, float))
         return (1.0 / self.declared_noise.bound(tau)).ravel()
 
     def problem(
@@ -151,6 +152,7 @@ class SafePlanner:
         theta0: ArrayLike,
         theta_lo: ArrayLike,
         theta_hi: ArrayLike,
+        *,
         mode: str | None = None,
         past: np.ndarray | None = None,
         k_box: tuple[np.ndarray, np.ndarray] | None = None,
@@ -162,7 +164,19 @@ class SafePlanner:
         of point_refinement); shrink_toward: where the torque check shrinks the box (PlanningProblem);
         box_scale < 1: the limit box shrunk by it toward k = 0."""
         return PlanningProblem(
-            self, q0, v0, a0, theta0, theta_lo, theta_hi, mode, past, k_box, certify_torque, shrink_toward, box_scale
+            self,
+            q0,
+            v0,
+            a0,
+            theta0,
+            theta_lo,
+            theta_hi,
+            mode=mode,
+            past=past,
+            k_box=k_box,
+            certify_torque=certify_torque,
+            shrink_toward=shrink_toward,
+            box_scale=box_scale,
         )
 
     def executed_rows(self, plan: PlanResult, duration_s: float, theta0: ArrayLike | None = None) -> np.ndarray:
@@ -173,7 +187,7 @@ class SafePlanner:
         cfg = self.config
         t = np.arange(0.0, duration_s, cfg.duration_s / (cfg.num_cost_samples - 1))
         q, v, a = plan.evaluate(t)
-        rows = ee_standard_regressor(self.robot.tree, self.robot.end_effector, q, v, a).reshape(-1, 10)
+        rows = ee_standard_regressor(self.robot.tree, self.robot.end_effector, q, v=v, a=a).reshape(-1, 10)
         if not self.weighs_rows:
             return rows
         return rows * self.row_weights(q, v, a, self.robot.theta if theta0 is None else theta0)[:, None]
@@ -186,6 +200,7 @@ class SafePlanner:
         theta0: ArrayLike,
         theta_lo: ArrayLike,
         theta_hi: ArrayLike,
+        *,
         k_init: ArrayLike | None = None,
         rng: np.random.Generator | None = None,
         mode: str | None = None,
@@ -214,7 +229,7 @@ class SafePlanner:
                 res.num_collision_constraints = prob.num_pairs
                 res.max_torque_ratio = prob.torque_ratio
         if k is None:
-            prob = self.problem(q0, v0, a0, theta0, theta_lo, theta_hi, mode, past)
+            prob = self.problem(q0, v0, a0, theta0, theta_lo, theta_hi, mode=mode, past=past)
             if prob.feasible_start:
                 res.k_box = (prob.k_lo.copy(), prob.k_hi.copy())
                 res.num_collision_constraints = prob.num_pairs
@@ -262,8 +277,8 @@ class SafePlanner:
         machinery on point boxes, whose enclosures only span time and the tube), and check its
         collisions and limits as any plan's. (k, its problem, status, solver status) or None:
         then the caller plans in the certified box."""
-        mode = args[6]
-        wide = self.problem(*args, certify_torque=False, box_scale=self.config.refinement_scale)
+        box, (mode, past) = args[:6], args[6:]  # (q0, v0, a0, theta0, theta_lo, theta_hi), options
+        wide = self.problem(*box, mode=mode, past=past, certify_torque=False, box_scale=self.config.refinement_scale)
         if not wide.feasible_start:
             return None
         if mode == "random":
@@ -274,7 +289,7 @@ class SafePlanner:
             return None
         base = np.clip(np.zeros(self.n), wide.k_lo, wide.k_hi)
         for _ in range(1 + 3 * self.config.continuation):  # halved toward base while it cannot continue
-            point = self.problem(*args, k_box=(target, target), shrink_toward=base)
+            point = self.problem(*box, mode=mode, past=past, k_box=(target, target), shrink_toward=base)
             if not point.feasible_start:
                 return None
             k = point.k_lo.copy()
@@ -293,7 +308,7 @@ class SafePlanner:
         t_p = np.array([self.config.replan_period_s])
         q, v, a = (x[0] for x in point.desired_at(t_p, k))
         zero = np.zeros(self.n)
-        nxt = self.problem(q, v, a, *args[3:6], args[6], None, k_box=(zero, zero))
+        nxt = self.problem(q, v, a, *args[3:6], mode=args[6], past=None, k_box=(zero, zero))
         return nxt.feasible_start and nxt.is_feasible(zero)
 
     def _initial_guess(self, prob, k_init, rng=None):

@@ -85,6 +85,7 @@ class ExcitingPlanner(LeafSystem):
         theta0: ArrayLike,
         theta_lower: ArrayLike,
         theta_upper: ArrayLike,
+        *,
         num_plans: int | None = None,
         replan_period_s: float | None = None,
         mode: str | None = None,

@@ -116,7 +116,7 @@ class _TorqueBoxSearch:
         excess = barrier_excess(
             self.robot, boxes[0], self.theta_lo, self.theta_hi, self.tracking, rows=self.spread_rows
         )
-        return (*torque_bound(wp, self.theta0, self.theta_lo, self.theta_hi, excess), excess, nb)
+        return (*torque_bound(wp, self.theta0, self.theta_lo, theta_hi=self.theta_hi, excess=excess), excess, nb)
 
     def take_largest_fit(self, scales, sup, nb):
         """The largest shrink level whose bound fits the limits (None if none does)."""
@@ -159,7 +159,7 @@ class _TorqueBoxSearch:
         q_box = Interval(states[0].lo, states[0].hi)
         rows = max(1, self.spread_rows // COARSE)
         excess = barrier_excess(self.robot, q_box, self.theta_lo, self.theta_hi, self.tracking, rows=rows)
-        sup, _, _ = affine_torque_bound(wp, self.theta0, self.theta_lo, self.theta_hi, excess)
+        sup, _, _ = affine_torque_bound(wp, self.theta0, self.theta_lo, theta_hi=self.theta_hi, excess=excess)
         nbig = len(per[0][0].c)
         fine = np.arange(len(scales) * nb)
         return sup[(fine // nb) * nbig + (fine % nb) // COARSE]  # the hull containing each fine box

@@ -27,6 +27,7 @@ def robust_bound_vertex(
     theta_lo: ArrayLike,
     theta_hi: ArrayLike,
     block: slice | np.ndarray,
+    *,
     full: Interval | None = None,
     b_rows: int = 1,
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -90,7 +91,7 @@ def robust_bound_vertex(
 
 
 def barrier_excess(
-    robot: RobotModel, q: Interval, theta_lo: ArrayLike, theta_hi: ArrayLike, bounds: TrackingBounds, rows: int = 1
+    robot: RobotModel, q: Interval, theta_lo: ArrayLike, theta_hi: ArrayLike, bounds: TrackingBounds, *, rows: int = 1
 ) -> np.ndarray:
     """(N, n): alpha eps mu_j / 2 over each configuration box, the amount by which the controller's
     |v_j| = lambda |r_j|/|r| may exceed |w_bar| on the tube (controller.robust_gain_bound with the
@@ -100,11 +101,11 @@ def barrier_excess(
         return np.zeros(q.shape)
     mu = interval_mass_spread(robot, merge_rows(q, rows), theta_lo, theta_hi, per_joint=True)
     mu = mu[np.arange(q.shape[0]) // rows]
-    return robust_gain_bound(np.zeros_like(mu), bounds.alpha, bounds.eps, mu)
+    return robust_gain_bound(np.zeros_like(mu), bounds.alpha, bounds.eps, mu=mu)
 
 
 def torque_bound(
-    wp: Interval, theta0: ArrayLike, theta_lo: ArrayLike, theta_hi: ArrayLike, excess: np.ndarray
+    wp: Interval, theta0: ArrayLike, theta_lo: ArrayLike, *, theta_hi: ArrayLike, excess: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """sup |u| per (interval, joint) over the boxes of wp (Interval (N, n, p)).
 
@@ -125,7 +126,7 @@ def torque_bound(
 
 
 def affine_torque_bound(
-    wp: Affine, theta0: ArrayLike, theta_lo: ArrayLike, theta_hi: ArrayLike, excess: np.ndarray
+    wp: Affine, theta0: ArrayLike, theta_lo: ArrayLike, *, theta_hi: ArrayLike, excess: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """torque_bound for an affine regressor (affine_passivity_regressor): the nominal torque keeps the
     dependence across columns, |c theta0 + (g theta0) . s| <= |c theta0| + B(g theta0) + r |theta0|,

@@ -198,7 +198,7 @@ class TaskPhaseSource(LeafSystem):
     1 task). `set_thetas` replaces the task parameters (the payload's release).
     """
 
-    def __init__(self, n, num_params, q0, switch_time_s, make_task):
+    def __init__(self, n, num_params, q0, *, switch_time_s, make_task):
         super().__init__()
         from pydrake.common.value import AbstractValue
         from pydrake.systems.framework import BasicVector

@@ -76,6 +76,7 @@ def draw_robot_theta(
     robot: RobotModel,
     radius: np.ndarray,
     rng: np.random.Generator,
+    *,
     mode: str = "drawn",
     link_theta: ArrayLike | None = None,
 ) -> np.ndarray:
@@ -100,7 +101,7 @@ def draw_robot_theta(
 def _robot_parameter_box(robot, scenario):
 
     ratio = scenario.noise.theta_r_ratio
-    return parameter_radius(robot, ratio, ratio, scenario.noise.theta_r_floor)
+    return parameter_radius(robot, ratio, ratio, floors=scenario.noise.theta_r_floor)
 
 
 def _link_inertials(plant, names):
@@ -167,7 +168,7 @@ def real_robot_theta(
     nominal_plant, _, _ = make_plant(robot.source)
     own = _link_inertials(nominal_plant, robot.body_names)
     rng = np.random.default_rng([int(seed), 0x5EED])  # its own stream: not the sensor noise's
-    theta = draw_robot_theta(robot, _robot_parameter_box(robot, scenario), rng, mode, own)
+    theta = draw_robot_theta(robot, _robot_parameter_box(robot, scenario), rng, mode=mode, link_theta=own)
     return theta, {
         name: own[i] + theta[10 * i : 10 * i + 10] - robot.theta[10 * i : 10 * i + 10]
         for i, name in enumerate(robot.body_names)
@@ -175,14 +176,16 @@ def real_robot_theta(
 
 
 def make_real_plant(
-    robot: RobotModel, inertials: dict | None, time_step: float, builder: DiagramBuilder
+    robot: RobotModel, inertials: dict | None, time_step: float, *, builder: DiagramBuilder
 ) -> tuple[MultibodyPlant, SceneGraph, ModelInstanceIndex]:
     """make_plant of the model, or of a temporary copy of its URDF with the drawn inertials."""
 
     if inertials is None:
-        return make_plant(robot.source, time_step, builder=builder)
+        return make_plant(robot.source, time_step=time_step, builder=builder)
     with tempfile.TemporaryDirectory(prefix="safesysid_real_arm_") as directory:
-        return make_plant(_urdf_with_inertials(robot.source, inertials, directory), time_step, builder=builder)
+        return make_plant(
+            _urdf_with_inertials(robot.source, inertials, directory), time_step=time_step, builder=builder
+        )
 
 
 @dataclass
@@ -314,7 +317,9 @@ class RealArm:
         self.plant.SetVelocities(ctx, self.instance, v)
         if self.transmission is not None:  # the springs carry the links' weight from the start
             weight = -self.plant.GetVelocitiesFromArray(self.instance, self.plant.CalcGravityGeneralizedForces(ctx))
-            self.transmission.set_equilibrium(self.transmission.GetMyMutableContextFromRoot(root_context), q, v, weight)
+            self.transmission.set_equilibrium(
+                self.transmission.GetMyMutableContextFromRoot(root_context), q, v, link_torque=weight
+            )
         if self.released_body is not None:  # waiting, locked, for a release
             self.plant.SetFreeBodyPose(ctx, self.released_body, PARKED)
             self.released_body.Lock(ctx)
@@ -330,7 +335,9 @@ def dumbbell_spatial_inertia(db: Dumbbell) -> SpatialInertia:
 PARKED = RigidTransform([0.0, 0.0, -3.0])  # the released body's pose until the release: far below the floor
 
 
-def register_dumbbell_geometry(plant: MultibodyPlant, body: RigidBody, db: Dumbbell, prefix: str = "dumbbell") -> None:
+def register_dumbbell_geometry(
+    plant: MultibodyPlant, body: RigidBody, db: Dumbbell, *, prefix: str = "dumbbell"
+) -> None:
     along_x = RotationMatrix.MakeYRotation(np.pi / 2)  # Drake cylinders run along z
     friction = CoulombFriction(0.8, 0.6)
     for k, (_, x, radius, length) in enumerate(db.parts()):

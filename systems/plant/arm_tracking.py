@@ -27,7 +27,7 @@ class ComputedTorque(LeafSystem):
     the command held over the next step uses that step's state and desired values."""
 
     def __init__(
-        self, h: float, feed_forward: np.ndarray, q_d: np.ndarray, v_d: np.ndarray, kp: float, kd: float
+        self, h: float, feed_forward: np.ndarray, q_d: np.ndarray, *, v_d: np.ndarray, kp: float, kd: float
     ) -> None:
         super().__init__()
         n = feed_forward.shape[1]
@@ -52,6 +52,7 @@ def track_trajectory(
     traj: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]],
     seed: int,
     duration_s: float,
+    *,
     rate_hz: float = 100.0,
     kp_Nm_rad: float = 400.0,
     kd_Nms_rad: float = 40.0,
@@ -71,7 +72,7 @@ def track_trajectory(
     builder = DiagramBuilder()
     arm = add_real_arm(builder, scenario, plant_robot, dumbbell=None, seed=seed)
 
-    ctrl = builder.AddSystem(ComputedTorque(h, feed_forward, q_d, v_d, kp_Nm_rad, kd_Nms_rad))
+    ctrl = builder.AddSystem(ComputedTorque(h, feed_forward, q_d, v_d=v_d, kp=kp_Nm_rad, kd=kd_Nms_rad))
     builder.Connect(arm.state_output, ctrl.state)
     builder.Connect(ctrl.get_output_port(), arm.commanded_torque_input)
     log_x = LogVectorOutput(arm.state_output, builder, 1.0 / rate_hz)

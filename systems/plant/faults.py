@@ -73,7 +73,7 @@ class TorqueSensorFaults(_EventStage):
     """The measured torque plus spikes (on a draw u0 < rate h: ±magnitude on a joint picked by
     u1 among `joints`, 0-based) and a dropout (0 N m) over [dropout_start_s, + duration)."""
 
-    def __init__(self, n, time_step_s, magnitude_Nm, rate_per_s, joints, dropout_start_s, dropout_duration_s):
+    def __init__(self, n, time_step_s, magnitude_Nm, *, rate_per_s, joints, dropout_start_s, dropout_duration_s):
         self.n = n
         self.magnitude = float(magnitude_Nm)
         self.p_spike = float(rate_per_s) * time_step_s if magnitude_Nm > 0 else 0.0
@@ -177,7 +177,7 @@ class SampleRates:
 
 
 def deliver(
-    row: np.ndarray, held: np.ndarray | None, u: np.ndarray, rates: SampleRates, n: int
+    row: np.ndarray, held: np.ndarray | None, u: np.ndarray, *, rates: SampleRates, n: int
 ) -> tuple[list[np.ndarray], np.ndarray | None, list[dict]]:
     """What reaches the estimator at one step: (rows delivered, the row held back for the next
     step or None, events). row: this step's true sample [t, q, v, τ]; held: a row held back at
@@ -214,7 +214,7 @@ class SampleFaults(_EventStage):
 
     def _deliver(self, context, held):
         row = np.concatenate([[context.get_time()], self.state.Eval(context), self.torque.Eval(context)])
-        return deliver(row, held, self.unit_noise.Eval(context), self.rates, self.n)
+        return deliver(row, held, self.unit_noise.Eval(context), rates=self.rates, n=self.n)
 
     def _calc(self, context, output):
         rows, _, _ = self._deliver(context, self._memo(context))
@@ -251,7 +251,7 @@ class InjectedFaults:
 
 
 def add_fault_stages(
-    station: DiagramBuilder, scenario: Scenario, n: int, h: float, measured: OutputPort, state_out: OutputPort
+    station: DiagramBuilder, scenario: Scenario, n: int, *, h: float, measured: OutputPort, state_out: OutputPort
 ) -> tuple[OutputPort, OutputPort, InjectedFaults]:
     """The scenario's fault stages (above) on the measured torque and the encoders,
     and the faulty link to the estimator: (measured torque, state, InjectedFaults)."""
@@ -275,10 +275,10 @@ def add_fault_stages(
             n,
             h,
             f.torque_spike_magnitude_Nm,
-            f.torque_spike_rate_per_s,
-            joints,
-            f.torque_dropout_start_s,
-            f.torque_dropout_duration_s,
+            rate_per_s=f.torque_spike_rate_per_s,
+            joints=joints,
+            dropout_start_s=f.torque_dropout_start_s,
+            dropout_duration_s=f.torque_dropout_duration_s,
         )
         add(stage, "fault_torque_sensor", 2 if spikes else 0)
         station.Connect(measured, stage.torque)

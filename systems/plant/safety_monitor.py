@@ -91,7 +91,9 @@ class SafetyMonitor(LeafSystem):
     """Inputs: geometry query, plant state (q, v), applied (motor) torque, commanded torque.
     Records every `period_s`."""
 
-    def __init__(self, plant, scene_graph, robot, period_s, max_distance_m=0.5, supports=("floor",), ignore_bodies=()):
+    def __init__(
+        self, plant, scene_graph, robot, period_s, *, max_distance_m=0.5, supports=("floor",), ignore_bodies=()
+    ):
         """supports: names of environment geometries the fixed base stands on (not collisions);
         ignore_bodies: bodies whose geometry takes no part (module docstring)."""
         super().__init__()

@@ -14,7 +14,7 @@ class JointFriction(LeafSystem):
     Fc tanh(v / vs) + Fv v + beta, sign(v) when vs = 0; plus plant.effects' load-dependent
     mu |tau| and Stribeck Fs exp(-(v / vs_s)^2) terms with the same sign law)."""
 
-    def __init__(self, coulomb, viscous, offset, smoothing, load_mu=0.0, stribeck=0.0, stribeck_vs=1.0):
+    def __init__(self, coulomb, viscous, offset, smoothing, *, load_mu=0.0, stribeck=0.0, stribeck_vs=1.0):
         super().__init__()
         self.coulomb, self.viscous, self.offset = (np.asarray(x, float) for x in (coulomb, viscous, offset))
         self.smoothing = float(smoothing)
@@ -91,7 +91,7 @@ class ElasticTransmission(LeafSystem):
         w = motor[self.n :] + self.h * (self.drive.Eval(context) - tau_s) / self.inertia
         state.get_mutable_discrete_state(self._motor).SetFromVector(np.concatenate([motor[: self.n] + self.h * w, w]))
 
-    def set_equilibrium(self, context: Context, q: np.ndarray, v: np.ndarray, link_torque: np.ndarray) -> None:
+    def set_equilibrium(self, context: Context, q: np.ndarray, v: np.ndarray, *, link_torque: np.ndarray) -> None:
         """Motor state that carries `link_torque` (the link's gravity at rest) with the link at (q, v)."""
         context.SetDiscreteState(np.concatenate([q + link_torque / self.stiffness, v]))
 
@@ -147,7 +147,7 @@ class TorqueSensor(LeafSystem):
     reading of the step [t_(k-1), t_k) that just ended, starting steady; the output is the filter
     state (reading the current step's torque again would lead the continuous law by one step)."""
 
-    def __init__(self, n, time_step, ratio, floor, scale, offset, noisy, lag_s=0.0):
+    def __init__(self, n, time_step, ratio, floor, scale, offset, noisy, *, lag_s=0.0):
         super().__init__()
         self.ratio, self.floor = float(ratio), float(floor)
         self.scale, self.offset = np.asarray(scale, float), np.asarray(offset, float)

@@ -191,7 +191,7 @@ def add_real_arm(
     dynamic_elasticity = stiffness is not None and eff.joint_elasticity == "dynamic"
     fric = theta[10 * n :].reshape(n, 4)  # [Fc, Fv, Ia, beta] per joint
     station = DiagramBuilder()
-    plant, scene_graph, instance = make_real_plant(robot, inertials, h, station)
+    plant, scene_graph, instance = make_real_plant(robot, inertials, h, builder=station)
     plant.set_name("real_arm_plant")
     joints = _apply_actuators(plant, instance, robot, fric=fric, damping=damping if dynamic_elasticity else None)
     payload_body, released_body = _apply_payload(plant, instance, robot, db, releasable=releasable)
@@ -207,11 +207,11 @@ def add_real_arm(
         _check_elastic_step(plant, joints, payload_body, scenario, stiffness, damping, fric[:, 2], h)
     elastic = (stiffness, damping, fric[:, 2], h) if dynamic_elasticity else None
     transmission = _apply_drive(station, plant, instance, chain, elastic=elastic)
-    state_out, velocity_noise = _apply_encoders(
-        station, plant, instance, chain, stiffness=None if dynamic_elasticity else stiffness, eff=eff, n=n, time_step=h
-    )
+    quasi_static = None if dynamic_elasticity else stiffness
+    state_out, velocity_noise = _apply_encoders(station, plant, instance, chain, stiffness=quasi_static, eff=eff, n=n)
     sensor, noise_source, measured = _apply_torque_sensor(station, scenario, chain.saturation, n=n, time_step=h)
-    measured, state_out, injected = faults.add_fault_stages(station, scenario, n, h, measured, state_out)
+    stages = faults.add_fault_stages(station, scenario, n, h=h, measured=measured, state_out=state_out)
+    measured, state_out, injected = stages
     system = _export(
         builder, station, plant, instance, scene_graph, chain, injected, state=state_out, measured=measured
     )
@@ -342,9 +342,9 @@ def _apply_actuation(station, plant, instance, robot, *, eff, fric, time_step):
             fric[:, 1],
             fric[:, 3],
             robot.coulomb_smoothing,
-            _per_joint(eff.load_friction_mu, n, 0.0, "load_friction_mu"),
-            _per_joint(eff.stribeck_friction_Nm, n, 0.0, "stribeck_friction_Nm"),
-            eff.stribeck_velocity_rad_s,
+            load_mu=_per_joint(eff.load_friction_mu, n, 0.0, "load_friction_mu"),
+            stribeck=_per_joint(eff.stribeck_friction_Nm, n, 0.0, "stribeck_friction_Nm"),
+            stribeck_vs=eff.stribeck_velocity_rad_s,
         )
     )
     friction.set_name("joint_friction")
@@ -369,7 +369,7 @@ def _apply_drive(station, plant, instance, chain, *, elastic):
     return transmission
 
 
-def _apply_encoders(station, plant, instance, chain, *, stiffness, eff, n, time_step):
+def _apply_encoders(station, plant, instance, chain, *, stiffness, eff, n):
     """The encoders' state output: motor-side under quasi-static elasticity (stiffness given),
     velocities noisy under plant.effects.velocity_noise_rad_s. (state port, its RandomSource or None)."""
     state_out = plant.get_state_output_port(instance)
@@ -381,7 +381,7 @@ def _apply_encoders(station, plant, instance, chain, *, stiffness, eff, n, time_
         state_out = encoders.get_output_port()
     velocity_noise = None
     if eff.velocity_noise_rad_s > 0:
-        velocity_noise = station.AddSystem(RandomSource(RandomDistribution.kUniform, n, time_step))
+        velocity_noise = station.AddSystem(RandomSource(RandomDistribution.kUniform, n, plant.time_step()))
         velocity_noise.set_name("velocity_noise")
         encoders = station.AddSystem(NoisyVelocity(n, eff.velocity_noise_rad_s))
         encoders.set_name("noisy_velocity_encoders")
@@ -405,7 +405,7 @@ def _apply_torque_sensor(station, scenario, sat, *, n, time_step):
             _per_joint(eff.torque_sensor_scale, n, 1.0, "torque_sensor_scale"),
             _per_joint(eff.torque_sensor_offset_Nm, n, 0.0, "torque_sensor_offset_Nm"),
             noisy,
-            eff.torque_sensor_lag_s,
+            lag_s=eff.torque_sensor_lag_s,
         )
     )
     sensor.set_name("torque_sensor")

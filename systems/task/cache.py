@@ -64,7 +64,7 @@ def cache_key(problem: TaskProblem, solver: str | None = None, fallback: bool = 
 
 
 def task_trajectory_cached(
-    problem: TaskProblem | Scenario, cache_dir: str | Path, solver: str | None = None, fallback: bool = True
+    problem: TaskProblem | Scenario, cache_dir: str | Path, *, solver: str | None = None, fallback: bool = True
 ) -> TaskResult:
     """solve_task_trajectory through a cache: `cache_dir`/task_<key>.json holds the result for
     the inputs hashed by cache_key; a hit loads it without solving (details['cache'] = 'hit'),

@@ -22,6 +22,7 @@ def certified_torque_ratio(
     theta0: np.ndarray,
     theta_lo: np.ndarray,
     theta_hi: np.ndarray,
+    *,
     windows_per_piece: int = 100,
 ) -> tuple[float, np.ndarray]:
     """max_j sup |u_j| / limit_j of the ARMOUR command while tracking `trajectory`: over every
@@ -53,7 +54,7 @@ def certified_torque_ratio(
     )
     # The robust input may exceed |w_bar| on the tube (h < 0): the same excess the planner adds.
     excess = tcert.barrier_excess(problem.robot, q_box, theta_lo, theta_hi, tb)
-    sup, _, _ = tcert.torque_bound(wp, theta0, theta_lo, theta_hi, excess)
+    sup, _, _ = tcert.torque_bound(wp, theta0, theta_lo, theta_hi=theta_hi, excess=excess)
     per_joint = sup.max(0)
     return float(np.max(per_joint / problem.robot.joint_params.torque_limit)), per_joint
 
@@ -99,7 +100,7 @@ def smallest_certified_scale(certificate: Callable[[float], float], scales: Sequ
 
 
 def phase_certificate(
-    problem: TaskProblem, curves: Sequence[PiecewiseBezier], thetas: Sequence[np.ndarray], scale: float
+    problem: TaskProblem, curves: Sequence[PiecewiseBezier], thetas: Sequence[np.ndarray], *, scale: float
 ) -> float:
     """certified_torque_ratio of every curve of the task phase played `scale` times slower, with
     the parameter box (theta0, lower, upper): the largest."""

@@ -51,7 +51,7 @@ class TaskConstraints:
         self.lipschitz = reach.sphere_lipschitz(robot.tree, problem.spheres)
         self.floor_exempt = floor_exempt(robot.tree, problem.spheres)
         self.t_tau = np.linspace(0.0, st.duration_s, st.torque_samples)
-        self.tau_basis = [self._pair(basis(self.t_tau, st.num_pieces, self.piece, k)) for k in range(3)]
+        self.tau_basis = [self._pair(basis(self.t_tau, st.num_pieces, self.piece, order=k)) for k in range(3)]
         self._cache = {}
 
     def _remember(self, key, value):
@@ -144,7 +144,9 @@ class TaskConstraints:
         q = self._samples(self.col_basis, y)
         _, dc = reach.sphere_centres(self.p.robot.tree, self.p.spheres, q)
         rho = self.window_radius(y, q)
-        return reach.local_spread(self.p.robot.tree, self.lipschitz, np.linalg.norm(dc, axis=-1), rho, rho)
+        return reach.local_spread(
+            self.p.robot.tree, self.lipschitz, np.linalg.norm(dc, axis=-1), rho=rho, reach_radius=rho
+        )
 
     def collision_pairs(
         self, y: ArrayLike, with_jacobian: bool = True, spread: np.ndarray | None = None
@@ -187,7 +189,9 @@ class TaskConstraints:
         q = np.atleast_2d(q)
         _, dc = reach.sphere_centres(self.p.robot.tree, self.p.spheres, q)
         rho = np.broadcast_to(self.p.tracking.position, q.shape)
-        spread = reach.local_spread(self.p.robot.tree, self.lipschitz, np.linalg.norm(dc, axis=-1), rho, rho)
+        spread = reach.local_spread(
+            self.p.robot.tree, self.lipschitz, np.linalg.norm(dc, axis=-1), rho=rho, reach_radius=rho
+        )
         vals, _ = self._clearance(q, spread, with_jacobian=False)
         if not vals.size:
             return np.inf, ""
@@ -231,12 +235,12 @@ class TaskConstraints:
         q, v, a = (self._samples(b, y) for b in self.tau_basis)
         nsamp, n = q.shape
         if not with_jacobian:
-            return self._remember(key, (p.robot.inverse_dynamics(q, v, a, p.theta) / self.tau_max, None))
+            return self._remember(key, (p.robot.inverse_dynamics(q, v, a, theta=p.theta) / self.tau_max, None))
         eye = np.eye(n) * step
         qs = np.concatenate([q] + [q + e for e in eye] + [q] * (2 * n))
         vs = np.concatenate([v] * (n + 1) + [v + e for e in eye] + [v] * n)
         as_ = np.concatenate([a] * (2 * n + 1) + [a + e for e in eye])
-        tau = p.robot.inverse_dynamics(qs, vs, as_, p.theta).reshape(3 * n + 1, nsamp, n)
+        tau = p.robot.inverse_dynamics(qs, vs, as_, theta=p.theta).reshape(3 * n + 1, nsamp, n)
         base = tau[0]
         deriv = (tau[1:] - base[None]) / step  # (3n, N, n_out): [d/dq_j, d/dv_j, d/da_j]
         scale = 1.0 / self.tau_max

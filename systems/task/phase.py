@@ -48,7 +48,7 @@ def task_plan(scenario: Scenario, problem: TaskProblem | None = None) -> tuple[T
 
 
 def return_move(
-    problem: TaskProblem, q_from: np.ndarray, duration_s: float, held: Dumbbell | None = None
+    problem: TaskProblem, q_from: np.ndarray, duration_s: float, *, held: Dumbbell | None = None
 ) -> tt.TaskResult | None:
     """Rest-to-rest move from q_from to the task start (one degree-5 piece of duration_s) under
     the task's constraints; None when q_from already is the start. held: the payload in the
