@@ -166,7 +166,7 @@ def test_a_command_beyond_the_torque_limit_is_a_failure(quickstart, monkeypatch)
     make = controller_systems.make_controller
 
     def overdriven(kind, robot, gains, time_step):
-        ctrl = make(kind, robot, gains, time_step)
+        ctrl = make(kind, robot, gains, time_step=time_step)
         law = ctrl._torque
         spike = np.zeros(robot.n)
         spike[-1] = 1.2 * robot.joint_params.torque_limit[-1]

@@ -99,7 +99,7 @@ def run(tmp_path_factory):
     make = controller_systems.make_controller
 
     def spying_controller(kind, robot, gains, time_step):
-        ctrl = make(kind, robot, gains, time_step)
+        ctrl = make(kind, robot, gains, time_step=time_step)
         law = ctrl._torque
 
         def torque(context, *args):

@@ -137,7 +137,7 @@ def test_return_move_is_checked_with_the_held_payloads_geometry(cache, monkeypat
 
     def record(problem, q_from, duration_s, held=None):
         calls.append((orig(problem, q_from, duration_s), held))  # the task model's geometry
-        return orig(problem, q_from, duration_s, held)
+        return orig(problem, q_from, duration_s, held=held)
 
     monkeypatch.setattr(task_phase, "return_move", record)
     s = run_online(experiment_a(cache), None, method="random", seed=1, write=False)

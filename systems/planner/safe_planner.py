@@ -28,7 +28,7 @@ import os
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -145,39 +145,14 @@ class SafePlanner:
         return (1.0 / self.declared_noise.bound(tau)).ravel()
 
     def problem(
-        self,
-        q0: ArrayLike,
-        v0: ArrayLike,
-        a0: ArrayLike,
-        theta0: ArrayLike,
-        theta_lo: ArrayLike,
-        theta_hi: ArrayLike,
-        *,
-        mode: str | None = None,
-        past: np.ndarray | None = None,
-        k_box: tuple[np.ndarray, np.ndarray] | None = None,
-        certify_torque: bool = True,
-        shrink_toward: np.ndarray | None = None,
-        box_scale: float = 1.0,
+        self, q0: ArrayLike, v0: ArrayLike, a0: ArrayLike, *thetas: ArrayLike, **options: Any
     ) -> PlanningProblem:
-        """k_box: a sub-box (e.g. one point); certify_torque False: no torque check (the wider solve
-        of point_refinement); shrink_toward: where the torque check shrinks the box (PlanningProblem);
-        box_scale < 1: the limit box shrunk by it toward k = 0."""
-        return PlanningProblem(
-            self,
-            q0,
-            v0,
-            a0,
-            theta0,
-            theta_lo,
-            theta_hi,
-            mode=mode,
-            past=past,
-            k_box=k_box,
-            certify_torque=certify_torque,
-            shrink_toward=shrink_toward,
-            box_scale=box_scale,
-        )
+        """The planning problem of one call from (q0, v0, a0) under the parameter box thetas =
+        (theta0, theta_lo, theta_hi); options (PlanningProblem): mode, past, k_box (a sub-box, e.g.
+        one point), certify_torque (False: no torque check, the wider solve of point_refinement),
+        shrink_toward (where the torque check shrinks the box), box_scale (< 1: the limit box
+        shrunk by it toward k = 0)."""
+        return PlanningProblem(self, q0, v0, a0, *thetas, **options)
 
     def executed_rows(self, plan: PlanResult, duration_s: float, theta0: ArrayLike | None = None) -> np.ndarray:
         """W_e rows (rows, 10) of the first duration_s of an accepted plan, at the exciting cost's
