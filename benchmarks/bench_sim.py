@@ -53,7 +53,11 @@ def _reference_armour():
     make = controller_systems.make_controller
 
     def reference(kind, robot, gains, time_step):
-        return ReferenceArmourController(robot, gains) if kind == "armour" else make(kind, robot, gains, time_step=time_step)
+        return (
+            ReferenceArmourController(robot, gains)
+            if kind == "armour"
+            else make(kind, robot, gains, time_step=time_step)
+        )
 
     controller_systems.make_controller = reference
     try:
