@@ -91,7 +91,7 @@ def run(tmp_path_factory):
     plan = planner.SafePlanner.plan
 
     def recording_plan(self, q, v, a, theta0, lo, hi, **kw):
-        res = plan(self, q, v, a, theta0, lo, k_init=hi, **kw)
+        res = plan(self, q, v, a, theta0, lo, hi, **kw)
         calls.append((np.array(theta0), np.array(lo), np.array(hi), res.ok))
         return res
 
