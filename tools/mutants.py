@@ -290,7 +290,7 @@ MUTANTS = [
     m(
         "the prior not intersected",
         INCREMENTAL,
-        "IncrementalEstimator.update",
+        "IncrementalEstimator.update (_update_box)",
         "            lo, hi = np.maximum(lo, self.prior[0]), np.minimum(hi, self.prior[1])",
         "            lo, hi = lo, hi",
         "tests/test_estimator_prior.py",
