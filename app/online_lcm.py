@@ -26,7 +26,7 @@ from safesysid.systems import methods
 
 if TYPE_CHECKING:
     from pydrake.systems.framework import Context
-    from safesysid.online import OnlineDiagram
+    from safesysid.online_diagram import OnlineDiagram
 
 SWITCH_INTERVAL_S = 1e-4
 CHUNK_S = 0.05  # the run advances in chunks of this much, measuring its lag behind the wall clock
@@ -61,7 +61,8 @@ def run_wallclock(
 ) -> dict:
     """Run Algorithm 2's identification phase against the arm on scenario.arm's channels."""
     from pydrake.systems.analysis import Simulator
-    from safesysid.online import build_online, merge_events
+    from safesysid.online import build_online
+    from safesysid.summary import merge_events
     from safesysid.systems.hardware.background import BackgroundWorker
     from safesysid.systems.hardware.realtime import request_realtime
 

@@ -10,7 +10,7 @@ import numpy as np
 
 if TYPE_CHECKING:
     from pydrake.systems.analysis import Simulator
-    from safesysid.online import OnlineDiagram
+    from safesysid.online_diagram import OnlineDiagram
     from safesysid.systems.config import Scenario, Task
     from safesysid.systems.model.payload import Dumbbell
     from safesysid.systems.model.robot_model import RobotModel

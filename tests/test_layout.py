@@ -232,7 +232,6 @@ TYPE_ONLY_CYCLES = [
     ["safesysid.systems.config", "safesysid.systems.methods"],  # methods' durations annotate Scenario
     ["safesysid.systems.plant.arm_plant", "safesysid.systems.plant.station"],  # ArmPlant holds a TorqueSensor
     ["safesysid.systems.task.constraints", "safesysid.systems.task.trajectory"],  # constraints of a TaskProblem
-    ["safesysid.online", "safesysid.task_run"],  # the task phase runs on an OnlineDiagram
 ]
 
 
