@@ -143,7 +143,17 @@ def _write_outputs(out, d, model_path, fit_paths, check_paths, t0, plots, params
     wall = time.perf_counter() - t0
     d.result["wall_time_s"] = wall
     (out / "diagnosis.json").write_text(json.dumps(_clean(d.result), indent=2))
-    write_report(out, d, model_path, fit_paths, check_paths, files, wall, params_file, frozen=frozen)
+    write_report(
+        out,
+        d,
+        model_path,
+        fit_paths=fit_paths,
+        check_paths=check_paths,
+        plots=files,
+        wall_time_s=wall,
+        params_file=params_file,
+        frozen=frozen,
+    )
 
 
 def score_corrected(
