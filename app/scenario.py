@@ -62,27 +62,17 @@ __all__ = [  # the loader, and the schema of systems/config.py re-exported
 List = list
 
 
-_CHOICES = {
-    "method": METHODS,
-    "planner.cost": ("exciting", "goal", "random"),
-    "planner.exciting_columns": ("all", "inertia"),
-    "planner.exciting_criterion": ("cond", "a_optimal", "e_optimal", "cond_interval", "d_optimal"),
-    "planner.exciting_weighting": ("none", "noise"),
-    "planner.solver": ("ipopt", "snopt"),
-    "planner.budget": ("iterations", "wall_time"),
-    "estimator.solver": ("ipopt", "snopt"),
-    "estimator.integration": ("trapezoid", "euler"),
-    "estimator.set_membership": ("none", "mass", "all"),
-    "estimator.point_estimate": ("map", "paper"),
-    "estimator.torque_signal": ("held", "continuous"),
-    "payload.bounding_volume.shape": ("none", "ellipsoid", "box"),
-    "plant.robot_parameters": ("nominal", "drawn", "corner"),
-    "noise.distribution": ("uniform", "none"),
-    "controller.kind": ("armour", "pid", "adaptive", "adaptive_robust"),
-    "task.solver": ("snopt", "ipopt"),
-    "faults.planner_failure_kind": ("solver_failed", "timeout"),
-    "arm.driver": ("simulated", "lcm"),
-}
+def choices_of(cls: type = Scenario, prefix: str = "") -> dict[str, tuple[str, ...]]:
+    """{dotted field path: its allowed values} of every field declared with systems/config.py
+    one_of, nested sections included (lists of sections have none)."""
+    found = {}
+    hints = typing.get_type_hints(cls)
+    for f in dc.fields(cls):
+        if "choices" in f.metadata:
+            found[f"{prefix}{f.name}"] = f.metadata["choices"]
+        elif dc.is_dataclass(hints[f.name]):
+            found.update(choices_of(hints[f.name], f"{prefix}{f.name}."))
+    return found
 
 
 def _check(value, schema, path, errors):
@@ -140,7 +130,7 @@ def _validate(s: Scenario, where):
         if not cond:
             raise ScenarioError(f"{where}: {field}: {msg}")
 
-    for key, allowed in _CHOICES.items():
+    for key, allowed in choices_of().items():
         obj = s
         for part in key.split("."):
             obj = getattr(obj, part)
