@@ -26,7 +26,7 @@ def require_positive(**counts: int) -> None:
 
 def _bad_input_types():
     from safesysid.joint_log import LogError
-    from safesysid.scenario import ScenarioError
+    from safesysid.systems.config import ScenarioError
     from safesysid.systems.model.robot_model import ModelError
 
     return (BadInput, LogError, ScenarioError, ModelError)

@@ -312,7 +312,7 @@ def write_report(
     lines += ["## Plots", ""] + [f"![{k}]({v})" for k, v in plots.items()] + [""]
     text = "\n".join(lines)
     Path(out, "report.md").write_text(text)
-    write_html(Path(out, "report.html"), text, out, title)
+    write_html(Path(out, "report.html"), text, out, title=title)
 
 
 def residual_map_lines(residual_map: dict | None) -> list[str]:
@@ -414,7 +414,7 @@ def _effects_section(res, frozen):
 
 
 def write_leave_one_out_report(
-    out: str | Path, pooled: dict, model_path: str | Path, fold_dirs: Sequence[Path]
+    out: str | Path, pooled: dict, model_path: str | Path, *, fold_dirs: Sequence[Path]
 ) -> None:
     """report.md/.html of a nested leave-one-log-out diagnosis: test RMS pooled over the folds per
     joint (all samples and without speed-saturated ones), the mean over folds, each fold, and the
@@ -479,7 +479,7 @@ def write_leave_one_out_report(
         Path(out) / "pooled_joint_rms.png",
         p["rms_before_per_joint"],
         p["rms_after_per_joint"],
-        "corrected (each log held out once)",
+        label_after="corrected (each log held out once)",
     )
     plots = [f"![pooled per joint]({bars})"]
     if pooled.get("residual_map_after"):
@@ -491,4 +491,4 @@ def write_leave_one_out_report(
     lines += ["", "## Plots", "", *plots, ""]
     text = "\n".join(lines)
     Path(out, "report.md").write_text(text)
-    write_html(Path(out, "report.html"), text, out, "Gap diagnosis, leave one log out")
+    write_html(Path(out, "report.html"), text, out, title="Gap diagnosis, leave one log out")

@@ -28,10 +28,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from safesysid.online_diagram import THETA_NAMES, OnlineDiagram
-from safesysid.scenario import Scenario, robot_from_scenario, task_enabled
 from safesysid.summary import SimulatedRun, read_logs, summarize
 from safesysid.systems import methods
+from safesysid.systems.config import Scenario, task_enabled
 from safesysid.systems.model import parameter_sources
+from safesysid.systems.model.loading import robot_from_scenario
 
 if TYPE_CHECKING:
     from pydrake.geometry import Meshcat
@@ -70,7 +71,14 @@ def _add_planner(builder, built: OnlineDiagram, scenario: Scenario, spec, *, see
     robot, estimator, theta_prior = built.arm.robot, built.estimator, built.theta_prior
     trajectory = spec.excitation.trajectory
     system = make_planner_system(
-        robot, scenario, trajectory, built.tracking, built.arm.dumbbell, theta_prior, seed, worker=worker
+        robot,
+        scenario,
+        trajectory,
+        tracking=built.tracking,
+        dumbbell=built.arm.dumbbell,
+        theta_prior=theta_prior,
+        seed=seed,
+        worker=worker,
     )
     planner = builder.AddNamedSystem("planner", system)
     desired = builder.AddNamedSystem("desired_q_v_a", Multiplexer([robot.n] * 3))
@@ -112,11 +120,11 @@ def make_planner_system(
     robot: RobotModel,
     scenario: Scenario,
     trajectory: str,
+    *,
     tracking: TrackingBounds,
     dumbbell: Dumbbell | None,
     theta_prior: tuple[np.ndarray, Interval],
     seed: int,
-    *,
     worker: BackgroundWorker | None = None,
 ) -> ExcitingPlanner:
     """trajectory: methods.EXCITING (scenario.planner.cost) or methods.RANDOM. With a worker:
@@ -157,8 +165,8 @@ def make_estimator_system(
     robot: RobotModel,
     scenario: Scenario,
     update_period_s: float | None = None,
-    stop_time_s: float = np.inf,
     *,
+    stop_time_s: float = np.inf,
     worker: BackgroundWorker | None = None,
 ) -> SysIdEstimator:
     """The SysIdEstimator of a scenario: its estimator settings and initial interval, sampling at
@@ -246,7 +254,9 @@ def _add_task_phase(builder, built: OnlineDiagram, scenario: Scenario, spec, exc
     certify = spec.controller == "armour"  # ARMOUR runs the task: its certificate must hold
     source = builder.AddNamedSystem(
         "task_phase_source",
-        make_task_source(robot, scenario, switch_s, *task_info, built.arm.dumbbell, certify=certify),
+        make_task_source(
+            robot, scenario, switch_s, problem=task_info[0], plan=task_info[1], held=built.arm.dumbbell, certify=certify
+        ),
     )
     if spec.model == methods.IDENTIFIED:
         task_thetas = [built.estimator.GetOutputPort(name) for name in THETA_NAMES]
@@ -270,15 +280,16 @@ def _connect_controllers(builder, built: OnlineDiagram, scenario: Scenario, spec
 
     controllers = [built.controller]
     if switches:
-        task_controller, _ = add_controller(builder, built.arm, scenario, kind=spec.controller, connect=False)
-        task_controller.set_name("task_controller")
+        task_controller, _ = add_controller(
+            builder, built.arm, scenario, kind=spec.controller, connect=False, name="task_controller"
+        )
         controllers.append(task_controller)
     for ctrl in controllers:
         for name, port in zip(THETA_NAMES, thetas):
             builder.Connect(port, ctrl.GetInputPort(name))
         builder.Connect(desired, ctrl.GetInputPort("desired"))
     if switches:
-        return add_phase_switch(builder, built.arm, built.source, controllers)
+        return add_phase_switch(builder, built.arm, built.source, controllers=controllers)
     return built.controller.GetOutputPort("torque")
 
 
@@ -301,8 +312,8 @@ def build_online(
     scenario: Scenario,
     method: str | None = None,
     meshcat: Meshcat | None = None,
-    seed: int | None = None,
     *,
+    seed: int | None = None,
     worker: BackgroundWorker | None = None,
 ) -> OnlineDiagram:
     """worker: the wall-clock run's (app/online_lcm.py): planner and estimator calls run in it.
@@ -363,7 +374,7 @@ def _add_monitor(builder, arm, robot, command):
     return monitor
 
 
-def simulate(built: OnlineDiagram, scenario: Scenario, method: str, live_meshcat: RunDisplay | bool) -> SimulatedRun:
+def simulate(built: OnlineDiagram, scenario: Scenario, method: str, *, live_meshcat: RunDisplay | bool) -> SimulatedRun:
     """Advance a built run from rest at q0 through identification (and the task phase, the
     release and the settling when the scenario has one)."""
     from pydrake.systems.analysis import Simulator
@@ -372,7 +383,7 @@ def simulate(built: OnlineDiagram, scenario: Scenario, method: str, live_meshcat
 
     arm = built.arm
     sim = GuardedSimulator(Simulator(built.diagram))
-    progress.watch(sim.simulator, scenario, live_meshcat, getattr(built.source, "switch_time_s", None))
+    progress.watch(sim.simulator, scenario, live_meshcat, switch_time_s=getattr(built.source, "switch_time_s", None))
     ctx = sim.get_mutable_context()
     arm.seed_noise(ctx)
     arm.set_state(ctx, np.asarray(scenario.q0_rad, float))
@@ -386,7 +397,7 @@ def simulate(built: OnlineDiagram, scenario: Scenario, method: str, live_meshcat
         # One step past the horizon so the estimator's update due at exactly t = horizon is applied.
         sim.AdvanceTo(horizon + scenario.plant.time_step_s)
         return SimulatedRun(sim, ctx, np.inf, horizon, None)
-    task_summary = run_task_phase(built, sim, scenario, method)
+    task_summary = run_task_phase(built, sim, scenario, method=method)
     return SimulatedRun(sim, ctx, built.source.switch_time_s, task_summary["end_time_s"], task_summary)
 
 
@@ -394,6 +405,7 @@ def run_online(
     scenario: Scenario,
     out_dir: str | Path | None,
     method: str | None = None,
+    *,
     seed: int | None = None,
     live_meshcat: RunDisplay | bool = False,
     write: bool = True,
@@ -411,10 +423,10 @@ def run_online(
     meshcat = viz.start_meshcat(live_meshcat) if write or live_meshcat else None
     wall0 = time.perf_counter()
     built = build_online(scenario, method, meshcat=meshcat, seed=seed)
-    run = simulate(built, scenario, method, live_meshcat)
+    run = simulate(built, scenario, method, live_meshcat=live_meshcat)
     wall_s = time.perf_counter() - wall0
     logs = read_logs(built, run.context)
-    summary, identified = summarize(built, run, logs, scenario, method=method, seed=seed, wall_s=wall_s)
+    summary, identified = summarize(built, run, logs, scenario=scenario, method=method, seed=seed, wall_s=wall_s)
     summary = summary.to_json()
     if write:
         write_outputs(out, built, logs, summary=summary, ident=identified, scenario=scenario, context=run.context)

@@ -38,10 +38,11 @@ def estimate_in_force(built: OnlineDiagram, t: np.ndarray, history: list[dict]) 
     return [np.array([first[j]] + [h[key] for h in history])[idx + 1] for j, (key, _) in enumerate(ESTIMATE_COLUMNS)]
 
 
-def write_log(out: Path, built: OnlineDiagram, logs: RunLogs, history: list[dict]) -> None:
+def write_log(out: Path, built: OnlineDiagram, logs: RunLogs, *, history: list[dict]) -> None:
     """log.csv: the joint log, the desired q, v, a, the command and the estimate in force."""
-    from safesysid.joint_log import JointLog, write_joint_log
+    from safesysid.joint_log import write_joint_log
     from safesysid.systems.model.inertial import NAMES
+    from safesysid.systems.model.joint_data import JointLog
 
     n, desired = built.arm.robot.n, logs.desired
     extra = {f"qd{k + 1}": desired[:, k] for k in range(n)}
@@ -63,13 +64,17 @@ def write_plots(
     arm, robot, history = built.arm, built.arm.robot, ident.history
     limit = robot.joint_params.torque_limit
     report.plot_tracking(
-        out / "tracking.png", logs.t, logs.error, built.tracking.position, np.max(np.abs(logs.command) / limit, 1)
+        out / "tracking.png",
+        logs.t,
+        logs.error,
+        bound=built.tracking.position,
+        torque_ratio=np.max(np.abs(logs.command) / limit, 1),
     )
     rec = built.monitor.record(built.monitor.GetMyContextFromRoot(context))
     report.plot_clearance(
-        out / "clearance.png", np.array(rec.times), np.array(rec.clearance), figures.phases_of(summary)
+        out / "clearance.png", np.array(rec.times), np.array(rec.clearance), phases=figures.phases_of(summary)
     )
-    figures.write_run_figures(out, summary, history, limit)  # joints, conditioning
+    figures.write_run_figures(out, summary, history, torque_limit=limit)  # joints, conditioning
     # The identified body is the last link + gripper + payload: say so, and show the prior behind the intervals.
     truth = np.asarray(summary["payload_true"]["theta"])
     body = report.identified_body_text(
@@ -79,15 +84,17 @@ def write_plots(
     prior = (first[1], first[2])
     est = ident.estimate
     nominal, lo, hi = (np.asarray(x) for x in (est.nominal, est.lower, est.upper))
-    report.plot_intervals(out / "intervals.png", nominal, lo, hi, truth, title=f"{title}; {body}", prior=prior)
+    report.plot_intervals(
+        out / "intervals.png", nominal, lo, upper=hi, truth=truth, title=f"{title}; {body}", prior=prior
+    )
     if history:
         report.plot_estimate_history(
             out / "mass.png",
             [0.0] + [h["t"] for h in history],
             [first[0]] + [h["nominal"] for h in history],
-            [first[1]] + [h["lower"] for h in history],
-            [first[2]] + [h["upper"] for h in history],
-            truth,
+            lower=[first[1]] + [h["lower"] for h in history],
+            upper=[first[2]] + [h["upper"] for h in history],
+            truth=truth,
             prior=prior,
             title=body,
         )
@@ -127,7 +134,7 @@ def write_outputs(
 ) -> None:
     """Every file of a run in `out` (which exists)."""
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
-    write_log(out, built, logs, ident.history)
+    write_log(out, built, logs, history=ident.history)
     title = f"{scenario.name} / {summary['method']}"
     write_plots(out, built, logs, summary=summary, ident=ident, context=context, title=title)
     write_replay(out, built, logs, summary=summary, scenario=scenario, context=context)
@@ -144,4 +151,4 @@ def draw_plans(meshcat: Meshcat, robot: RobotModel, results: Iterable[PlanResult
         ee = robot.end_effector
         viz.draw_plan(meshcat, kin.p[:, ee] + kin.R[:, ee] @ grasp, index)
         if "sphere_centres" in res.details:
-            viz.draw_swept_spheres(meshcat, res.details["sphere_centres"], res.details["sphere_radii"], index)
+            viz.draw_swept_spheres(meshcat, res.details["sphere_centres"], res.details["sphere_radii"], index=index)

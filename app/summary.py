@@ -244,7 +244,7 @@ def _estimate(theta_e0, lo, hi, consistent, extra: dict, spec: methods.MethodSpe
     )
 
 
-def planner_summary(plans: list[dict], events: list[dict], scenario: Scenario, method: str) -> PlannerSummary:
+def planner_summary(plans: list[dict], events: list[dict], scenario: Scenario, *, method: str) -> PlannerSummary:
     solve_times = [p["solve_time_s"] for p in plans]
     deadline = scenario.planner.replan_period_s
     return PlannerSummary(
@@ -273,7 +273,7 @@ SAFETY_KEYS = (
 
 
 def summarize(
-    built: OnlineDiagram, run: SimulatedRun, logs: RunLogs, scenario: Scenario, *, method: str, seed: int, wall_s: float
+    built: OnlineDiagram, run: SimulatedRun, logs: RunLogs, *, scenario: Scenario, method: str, seed: int, wall_s: float
 ) -> tuple[Summary, Identified]:
     """The run's Summary, and the identification phase's estimate and history (for the figures)."""
     from safesysid.systems.plant.faults import scenario_events
@@ -301,7 +301,15 @@ def summarize(
     armour_active = np.where(in_identification, spec.first_controller == "armour", spec.controller == "armour")
     tracking_ratio = np.where(armour_active, ratio_t, 0.0)
     failed_at = run.sim.failure["t"] if run.sim.failure else None
-    failure, phase, t_fail = judge(record, plans, logs.t, tracking_ratio, task, run.switch_time_s, failed_at)
+    failure, phase, t_fail = judge(
+        record,
+        plans,
+        logs.t,
+        tracking_ratio=tracking_ratio,
+        task=task,
+        t_switch=run.switch_time_s,
+        simulation_failed_at=failed_at,
+    )
     robust = None
     if "armour" in built.loggers:
         _, diag = log_of(built.loggers["armour"], ctx)
@@ -328,7 +336,7 @@ def summarize(
         events=events,
         contains_truth=bool(np.all((np.asarray(est.lower) <= truth) & (truth <= np.asarray(est.upper)))),
         cond_Y=ident.cond_y,
-        planner=planner_summary(plans, events, scenario, method),
+        planner=planner_summary(plans, events, scenario, method=method),
         sysid=SysidSummary(updates=len(ident.history), update_time_s=[h["update_time_s"] for h in ident.history]),
         robust_input=robust,
         wall_time_s=wall_s,
