@@ -102,8 +102,8 @@ def random_scene(
     if near_clearance_m is not None:
         from safesysid.systems.plant.station import scenario_dumbbell
 
-        centres, radii = _sphere_centres(robot, q0, scenario_dumbbell(scene))
-        near = near_box(centres, radii, rng, clearance_m=rng.uniform(*near_clearance_m))
+        held_points, held_radii = _sphere_centres(robot, q0, scenario_dumbbell(scene))  # with the payload's
+        near = near_box(held_points, held_radii, rng, clearance_m=rng.uniform(*near_clearance_m))
         boxes += [] if near is None else [near]
     for _ in range(200):
         if len(boxes) >= rng.integers(1, 5):
