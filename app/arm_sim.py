@@ -23,7 +23,7 @@ import numpy as np
 
 if TYPE_CHECKING:
     from pydrake.systems.framework import Context
-    from safesysid.scenario import Scenario
+    from safesysid.systems.config import Scenario
     from safesysid.systems.hardware.lcm_systems import ArmDriver
     from safesysid.systems.plant.arm_plant import RealArm
     from safesysid.systems.plant.safety_monitor import SafetyMonitor
@@ -43,8 +43,7 @@ def build_arm_side(scenario: Scenario, seed: int | None = None) -> tuple:
     arm = add_real_arm(builder, scenario, seed=seed)
     driver = add_arm_driver(builder, arm, scenario, lcm=make_lcm(scenario))
     h = scenario.plant.time_step_s
-    monitor = builder.AddSystem(SafetyMonitor(arm.plant, arm.scene_graph, arm.robot, period_s=h))
-    monitor.set_name("referee")
+    monitor = builder.AddNamedSystem("referee", SafetyMonitor(arm.plant, arm.scene_graph, arm.robot, period_s=h))
     builder.Connect(arm.query_output, monitor.query_port)
     builder.Connect(arm.plant_state_output, monitor.state_port)
     builder.Connect(arm.motor_torque_output, monitor.torque_port)
@@ -84,17 +83,18 @@ def run_arm_sim(
     while ctx.get_time() < duration_s and not stop:
         sim.AdvanceTo(min(duration_s, ctx.get_time() + 0.05))
     wall = time.perf_counter() - wall0
-    summary = arm_summary(ctx, arm, driver, monitor, loggers, out)
+    summary = arm_summary(ctx, arm, driver, monitor=monitor, loggers=loggers, out=out)
     summary.update(scheduling=scheduling, wall_time_s=wall, arm_time_s=ctx.get_time(), stopped_by_signal=bool(stop))
     (out / "arm_summary.json").write_text(json.dumps(summary, indent=2, default=float))
     return summary
 
 
 def arm_summary(
-    ctx: Context, arm: RealArm, driver: ArmDriver, monitor: SafetyMonitor, loggers: dict, out: Path
+    ctx: Context, arm: RealArm, driver: ArmDriver, *, monitor: SafetyMonitor, loggers: dict, out: Path
 ) -> dict:
     """The referee's judgement and the driver's record; the ground truth into out/arm_log.csv."""
-    from safesysid.joint_log import JointLog, write_joint_log
+    from safesysid.joint_log import write_joint_log
+    from safesysid.systems.model.joint_data import JointLog
 
     n = arm.robot.n
     data = {name: sink.FindLog(ctx) for name, sink in loggers.items()}

@@ -26,7 +26,7 @@ def require_positive(**counts: int) -> None:
 
 def _bad_input_types():
     from safesysid.joint_log import LogError
-    from safesysid.scenario import ScenarioError
+    from safesysid.systems.config import ScenarioError
     from safesysid.systems.model.robot_model import ModelError
 
     return (BadInput, LogError, ScenarioError, ModelError)
@@ -72,12 +72,7 @@ def _installed_version() -> str:
         return "unknown"
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="safesysid", description=__doc__.splitlines()[0])
-    parser.add_argument("--version", action="version", version=f"%(prog)s {_installed_version()}")
-    sub = parser.add_subparsers(dest="verb", metavar="VERB")
-    sub.required = True
-
+def _run_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="run Algorithm 2 (plan, track, identify) on a scenario")
     p.add_argument("scenario", nargs="?", help="scenario YAML (default: scenarios/quickstart.yaml)")
     p.add_argument("--out", default="out/run", help="output folder")
@@ -99,6 +94,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_scenario_text(p)
 
+
+def _compare_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "compare",
         help="methods x dumbbells x trials on a process pool; the paper's Table III row",
@@ -119,6 +116,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="out/compare")
     _add_scenario_text(p)
 
+
+def _sweep_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "sweep",
         help="randomized adversarial closed-loop trials; aggregate safety evidence",
@@ -144,6 +143,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="out/sweep")
     _add_scenario_text(p)
 
+
+def _sysid_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "sysid",
         help="Algorithm 1 offline on a joint log",
@@ -160,6 +161,8 @@ def build_parser() -> argparse.ArgumentParser:
     _bag_options(p)
     _add_scenario_text(p)
 
+
+def _diagnose_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "diagnose",
         help="where and why a model and logs disagree",
@@ -184,6 +187,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     _bag_options(p)
 
+
+def _arm_sim_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("arm-sim", help="the simulated arm behind LCM, in wall-clock time (docs/hardware.md)")
     p.add_argument("scenario", nargs="?", help="scenario YAML (default: scenarios/quickstart.yaml)")
     p.add_argument("--out", default="out/arm-sim", help="output folder (arm_summary.json, arm_log.csv)")
@@ -192,9 +197,31 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-fifo", action="store_true", help="do not ask for SCHED_FIFO real-time scheduling")
     _add_scenario_text(p)
 
+
+def _bench_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="timing benchmarks")
     p.add_argument("--out", default="out/bench")
     p.add_argument("--quick", action="store_true", help="smaller sizes")
+
+
+SUB_COMMANDS = (
+    _run_parser,
+    _compare_parser,
+    _sweep_parser,
+    _sysid_parser,
+    _diagnose_parser,
+    _arm_sim_parser,
+    _bench_parser,
+)  # each adds its verb's parser
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="safesysid", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_installed_version()}")
+    sub = parser.add_subparsers(dest="verb", metavar="VERB")
+    sub.required = True
+    for add in SUB_COMMANDS:
+        add(sub)
     return parser
 
 

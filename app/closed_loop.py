@@ -28,7 +28,13 @@ if TYPE_CHECKING:
 
 
 def add_controller(
-    builder: DiagramBuilder, arm: RealArm, scenario: Scenario, kind: str | None = None, connect: bool = True
+    builder: DiagramBuilder,
+    arm: RealArm,
+    scenario: Scenario,
+    *,
+    kind: str | None = None,
+    connect: bool = True,
+    name: str = "controller",
 ) -> tuple[ControllerBase, ControllerGains]:
     """The scenario's controller (scenario.controller.kind unless `kind`) closing the loop on the
     arm station: station state -> controller -> commanded torque (unless not `connect`: the
@@ -36,12 +42,12 @@ def add_controller(
     caller's to connect. Returns (controller, gains)."""
     robot = arm.robot
     gains = controller_systems.gains_from_scenario(scenario, robot.n)
-    ctrl = builder.AddSystem(
+    ctrl = builder.AddNamedSystem(
+        name,
         controller_systems.make_controller(
             kind or scenario.controller.kind, robot, gains, time_step=scenario.plant.time_step_s
-        )
+        ),
     )
-    ctrl.set_name("controller")
     builder.Connect(arm.state_output, ctrl.GetInputPort("state"))
     if connect:
         builder.Connect(ctrl.GetOutputPort("torque"), arm.commanded_torque_input)
@@ -49,13 +55,12 @@ def add_controller(
 
 
 def add_phase_switch(
-    builder: DiagramBuilder, arm: RealArm, source: TaskPhaseSource, controllers: list[ControllerBase]
+    builder: DiagramBuilder, arm: RealArm, source: TaskPhaseSource, *, controllers: list[ControllerBase]
 ) -> OutputPort:
     """The commanded torque of a method whose task controller differs from its identification
     controller: controllers[0] until the TaskPhaseSource `source` switches, controllers[1] after.
     Returns the selected torque port (the one the referee judges), already driving the arm."""
-    switch = builder.AddSystem(controller_systems.PhaseSwitch(arm.robot.n))
-    switch.set_name("controller_by_phase")
+    switch = builder.AddNamedSystem("controller_by_phase", controller_systems.PhaseSwitch(arm.robot.n))
     builder.Connect(source.GetOutputPort("phase"), switch.GetInputPort("phase"))
     for name, ctrl in zip(("identification", "task"), controllers):
         builder.Connect(ctrl.GetOutputPort("torque"), switch.GetInputPort(name))
@@ -76,6 +81,7 @@ def build_closed_loop(
     scenario: Scenario,
     trajectory: tuple[QuinticBezier, np.ndarray] | list[Piece],
     theta0: ArrayLike,
+    *,
     theta_box: Interval,
     kind: str | None = None,
     robot: RobotModel | None = None,
@@ -88,13 +94,11 @@ def build_closed_loop(
     builder = DiagramBuilder()
     arm = add_real_arm(builder, scenario, robot=robot, dumbbell=dumbbell, seed=seed)
     h = scenario.plant.time_step_s
-    ctrl, _ = add_controller(builder, arm, scenario, kind)
-    src = builder.AddSystem(make_trajectory_source(arm.n, trajectory))
-    src.set_name("trajectory_source")
+    ctrl, _ = add_controller(builder, arm, scenario, kind=kind)
+    src = builder.AddNamedSystem("trajectory_source", make_trajectory_source(arm.n, trajectory))
     builder.Connect(src.get_output_port(), ctrl.GetInputPort("desired"))
     for name, value in (("theta0", theta0), ("theta_lower", theta_box.lo), ("theta_upper", theta_box.hi)):
-        const = builder.AddSystem(ConstantVectorSource(np.asarray(value, float)))
-        const.set_name(name)
+        const = builder.AddNamedSystem(name, ConstantVectorSource(np.asarray(value, float)))
         builder.Connect(const.get_output_port(), ctrl.GetInputPort(name))
     loggers = {}
     if log:
@@ -113,7 +117,7 @@ def build_closed_loop(
 
 
 def simulate_closed_loop(
-    loop: ClosedLoop, q0: ArrayLike, duration_s: float, v0: ArrayLike | None = None
+    loop: ClosedLoop, q0: ArrayLike, duration_s: float, *, v0: ArrayLike | None = None
 ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Run from (q0, v0); returns {name: (t, data (N, size))} from the loggers."""
     sim = Simulator(loop.diagram)

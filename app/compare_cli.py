@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 
 from safesysid.cli import BadInput, require_positive
-from safesysid.scenario import Scenario
+from safesysid.systems.config import Scenario
 
 TABLE_FILES = ("table.md", "table.csv", "table.json", "table.png")
 # runs.csv: one line per run (what the former per-run table.csv held)
@@ -61,7 +61,7 @@ def parse_dumbbells(text: str | None, catalogue: dict[str, float], default: str)
 
 def parse_methods(text: str) -> list[str]:
     """`all` (every name of systems/config.METHODS) or a comma-separated list of them."""
-    from safesysid.scenario import METHODS
+    from safesysid.systems.config import METHODS
 
     if text.strip() == "all":
         return list(METHODS)
@@ -94,7 +94,7 @@ def stack_layer(dumbbells: list[str], dumbbell: str, stack: bool) -> list[str]:
     return [f"task: {{stack_on: [{', '.join(below)}]}}"] if stack and below else []
 
 
-def run_folder(out: Path, method: str, dumbbell: str, trial: int) -> Path:
+def run_folder(out: Path, method: str, dumbbell: str, *, trial: int) -> Path:
     return out / method / dumbbell / f"trial{trial}"
 
 
@@ -105,7 +105,7 @@ def run_one(scenario_path: str, scenario_text: list, method: str, dumbbell: str,
     from safesysid.scenario import load_scenario
 
     scenario = load_scenario(scenario_path, overrides=[*scenario_text, f"payload: {{dumbbell: {dumbbell}}}"])
-    folder = run_folder(Path(out), method, dumbbell, trial)
+    folder = run_folder(Path(out), method, dumbbell, trial=trial)
     summary = run_online(scenario, folder, method=method, seed=scenario.seed + trial)
     summary.update(dumbbell=dumbbell, trial=trial, folder=str(folder.relative_to(out)))
     return summary
@@ -115,7 +115,7 @@ def _key(s: dict) -> tuple:
     return s["method"], s["dumbbell"], int(s["trial"])
 
 
-def table(done: list[dict], methods: list[str], dumbbells: list[str], trials: int) -> dict:
+def table(done: list[dict], methods: list[str], dumbbells: list[str], *, trials: int) -> dict:
     """table.json: per method its cell and, per dumbbell, successes and failures by reason."""
     rows = {}
     for m in methods:
@@ -166,7 +166,7 @@ def _per_dumbbell_text(entry: dict) -> str:
     return text
 
 
-def write_tables(out: Path, scenario_name: str, rows: dict, dumbbells: list[str], trials: int) -> None:
+def write_tables(out: Path, scenario_name: str, rows: dict, *, dumbbells: list[str], trials: int) -> None:
     """table.md / table.csv / table.json: one row per method, the Table III cell of this
     experiment, then successes/runs per dumbbell with the failures by reason."""
     head = ["method", scenario_name, *dumbbells]
@@ -249,7 +249,8 @@ def cmd_compare(args: argparse.Namespace) -> int:
     from safesysid import figures, table_iv
     from safesysid.pool import read_jsonl, run_streamed
     from safesysid.run_cli import scenario_path
-    from safesysid.scenario import load_scenario, robot_from_scenario
+    from safesysid.scenario import load_scenario
+    from safesysid.systems.model.loading import robot_from_scenario
 
     path = scenario_path(args)
     scenario = load_scenario(path, overrides=args.scenario_text)  # exit 2 on bad input before any worker starts
@@ -282,13 +283,13 @@ def cmd_compare(args: argparse.Namespace) -> int:
         return f"{job[2]} {job[3]} trial {job[4]}: {'success' if s['success'] else s['failure']}"
 
     try:
-        _, interrupted = run_streamed(run_one, jobs, args.workers, jsonl, note, label="compare")
+        _, interrupted = run_streamed(run_one, jobs, args.workers, jsonl=jsonl, describe=note, label="compare")
     finally:  # a run that raised still leaves the table of those that finished (they are in runs.jsonl)
         done = [s for s in read_jsonl(jsonl, _key) if s.get("scenario") == scenario.name]
-        rows = table(done, methods, dumbbells, args.trials)
-        write_tables(out, scenario.name, rows, dumbbells, args.trials)
+        rows = table(done, methods, dumbbells, trials=args.trials)
+        write_tables(out, scenario.name, rows, dumbbells=dumbbells, trials=args.trials)
         write_runs_csv(out, done)
-        figures.table_figure(out / "table.png", scenario.name, rows, dumbbells)
+        figures.table_figure(out / "table.png", scenario.name, rows, dumbbells=dumbbells)
         limit = robot_from_scenario(scenario).joint_params.torque_limit
         figures.compare_figures(out, [s for s in done if s["method"] in methods and s["dumbbell"] in dumbbells], limit)
         prior = (scenario.initial_interval.lower, scenario.initial_interval.upper)

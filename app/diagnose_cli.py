@@ -32,7 +32,8 @@ def load_model(path: str | Path) -> RobotModel:
     """RobotModel from a URDF/SDF (root welded, limits from the file, friction zero) or a
     scenario YAML (its robot section)."""
     from safesysid.cli import BadInput
-    from safesysid.scenario import load_scenario, robot_from_scenario
+    from safesysid.scenario import load_scenario
+    from safesysid.systems.model.loading import robot_from_scenario
     from safesysid.systems.model.robot_model import load_robot
 
     p = Path(path)
@@ -96,6 +97,7 @@ def run_diagnosis(
     model: RobotModel,
     fit_paths: Sequence[str | Path],
     check_paths: Sequence[str | Path],
+    *,
     out: str | Path,
     model_path: str | Path = "",
     plots: bool = True,
@@ -143,13 +145,24 @@ def _write_outputs(out, d, model_path, fit_paths, check_paths, t0, plots, params
     wall = time.perf_counter() - t0
     d.result["wall_time_s"] = wall
     (out / "diagnosis.json").write_text(json.dumps(_clean(d.result), indent=2))
-    write_report(out, d, model_path, fit_paths, check_paths, files, wall, params_file, frozen=frozen)
+    write_report(
+        out,
+        d,
+        model_path,
+        fit_paths=fit_paths,
+        check_paths=check_paths,
+        plots=files,
+        wall_time_s=wall,
+        params_file=params_file,
+        frozen=frozen,
+    )
 
 
 def score_corrected(
     path: str | Path,
     check_paths: Sequence[str | Path],
     out: str | Path,
+    *,
     plots: bool = True,
     bag_args: argparse.Namespace | None = None,
 ) -> int:
@@ -213,65 +226,28 @@ def _print_summary(d, out):
     print(f"wrote {out}/diagnosis.json, report.md, report.html, corrected_model.yaml, corrected_params.yaml")
 
 
-def self_check(args: argparse.Namespace) -> int:
-    from safesysid.systems import diagnosis
-    from safesysid.systems.model.robot_model import load_robot
-
-    model = load_model(args.model) if args.model else load_robot()
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
-    stream = (out / "cases.jsonl").open("w")  # each case as it finishes (a long run can be read early)
-
-    def progress(c):
-        stream.write(json.dumps(_clean(c)) + "\n")
-        stream.flush()
-        print(
-            f"case {c['case']:3d} ({'a' if c['with_acceleration'] else 'no a'}): injected "
-            f"{', '.join(c['injected']) or 'none'} -> named {', '.join(c['named']) or 'none'}",
-            file=sys.stderr,
-            flush=True,
-        )
-
-    workers = getattr(args, "workers", 1)
-    hard = bool(getattr(args, "hard", False))
-    cases, summary, table = diagnosis.run_self_check(
-        model, args.cases, args.seed, progress=progress, workers=workers, hard=hard
-    )
-    stream.close()
-    summary["wall_time_s"] = time.perf_counter() - t0
-    summary["targets"] = {
+def _self_check_targets(summary: dict, *, hard: bool) -> dict[str, bool]:
+    """The self-check's pass/fail targets (the hard set adds its own)."""
+    targets = {
         "injected_named_rate>=0.95": summary["injected_named_rate"] >= 0.95,
         "cases_with_false_effect_rate<=0.05": summary["cases_with_false_effect_rate"] <= 0.05,
         "null_cases_all_none": summary["null_correct"] == summary["null_cases"],
     }
     if hard:  # issue targets of the hard set: false naming <= 1 % of cases, calibrated coverage >= 85 %
         cov = summary["interval_coverage_calibrated"]["held_out_rate"]
-        summary["targets"]["hard_cases_with_false_effect<=0.01"] = summary["cases_with_false_effect_rate"] <= 0.01
-        summary["targets"]["interval_coverage_held_out>=0.85"] = cov is not None and cov >= 0.85
-    md = diagnosis.confusion_markdown(table)
-    errors = diagnosis.error_markdown(summary["parameter_errors"])
-    (out / "self_check.json").write_text(
-        json.dumps(
-            _clean(
-                {
-                    "summary": summary,
-                    "confusion": table,
-                    "cases": cases,
-                    "seed": args.seed,
-                    "hard": hard,
-                    "model": model.source,
-                }
-            ),
-            indent=2,
-        )
-    )
+        targets["hard_cases_with_false_effect<=0.01"] = summary["cases_with_false_effect_rate"] <= 0.01
+        targets["interval_coverage_held_out>=0.85"] = cov is not None and cov >= 0.85
+    return targets
+
+
+def _confusion_lines(summary: dict, md: str, errors: str, *, seed: int, model_source: str) -> list[str]:
+    """confusion.md: the protocol, the confusion table and the rates."""
     near, same = summary["near_floor"], summary["same_joints"]
     fn, cov = summary["false_naming"], summary["interval_coverage_calibrated"]
     text = [
         "# Diagnosis self-check (withheld effects, blind)",
         "",
-        f"{summary['cases']} cases, seed {args.seed}, model `{model.source}`. Logs: exact inverse dynamics of "
+        f"{summary['cases']} cases, seed {seed}, model `{model_source}`. Logs: exact inverse dynamics of "
         "the model along random smooth trajectories plus the withheld effects (systems/diagnosis/simulate.py), "
         "bounded noise up to 3% of each joint's torque range, half of the cases without accelerations. "
         "Honest protocol: effects are selected on the two fit logs only (inner cross-validation) and the "
@@ -305,6 +281,55 @@ def self_check(args: argparse.Namespace) -> int:
         errors,
         "",
     ]
+    return text
+
+
+def self_check(args: argparse.Namespace) -> int:
+    from safesysid.systems import diagnosis
+    from safesysid.systems.model.robot_model import load_robot
+
+    model = load_model(args.model) if args.model else load_robot()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    stream = (out / "cases.jsonl").open("w")  # each case as it finishes (a long run can be read early)
+
+    def progress(c):
+        stream.write(json.dumps(_clean(c)) + "\n")
+        stream.flush()
+        print(
+            f"case {c['case']:3d} ({'a' if c['with_acceleration'] else 'no a'}): injected "
+            f"{', '.join(c['injected']) or 'none'} -> named {', '.join(c['named']) or 'none'}",
+            file=sys.stderr,
+            flush=True,
+        )
+
+    workers = getattr(args, "workers", 1)
+    hard = bool(getattr(args, "hard", False))
+    cases, summary, table = diagnosis.run_self_check(
+        model, args.cases, args.seed, progress=progress, workers=workers, hard=hard
+    )
+    stream.close()
+    summary["wall_time_s"] = time.perf_counter() - t0
+    summary["targets"] = _self_check_targets(summary, hard=hard)
+    md = diagnosis.confusion_markdown(table)
+    errors = diagnosis.error_markdown(summary["parameter_errors"])
+    (out / "self_check.json").write_text(
+        json.dumps(
+            _clean(
+                {
+                    "summary": summary,
+                    "confusion": table,
+                    "cases": cases,
+                    "seed": args.seed,
+                    "hard": hard,
+                    "model": model.source,
+                }
+            ),
+            indent=2,
+        )
+    )
+    text = _confusion_lines(summary, md, errors, seed=args.seed, model_source=model.source)
     (out / "confusion.md").write_text("\n".join(text))
     print(md)
     print("\n".join(line for line in text if line.startswith("- ")))
@@ -314,12 +339,12 @@ def self_check(args: argparse.Namespace) -> int:
 
 
 def leave_one_out(
-    model: RobotModel, paths: Sequence[str | Path], out: str | Path, model_path: str | Path, bag: dict | None = None
+    model: RobotModel, paths: Sequence[str | Path], out: str | Path, *, model_path: str | Path, bag: dict | None = None
 ) -> int:
     """Each log held out once (fit on the others): a diagnosis folder per fold, and the pooled
     held-out numbers in DIR/leave_one_out.json and DIR/report.md."""
     out = Path(out)
-    _, pooled = leave_one_out_folds(model, paths, out, model_path, bag)
+    _, pooled = leave_one_out_folds(model, paths, out, model_path=model_path, bag=bag)
     p, m = pooled["pooled"], pooled["mean_over_folds"]
     print(
         f"held-out (test) RMS pooled over {len(paths)} folds {p['rms_before']:.3f} -> {p['rms_after']:.3f} N·m "
@@ -331,7 +356,7 @@ def leave_one_out(
 
 
 def leave_one_out_folds(
-    model: RobotModel, paths: Sequence[str | Path], out: Path, model_path: str | Path, bag: dict | None = None
+    model: RobotModel, paths: Sequence[str | Path], out: Path, *, model_path: str | Path, bag: dict | None = None
 ) -> tuple[list[Diagnosis], dict]:
     """The folds of leave_one_out (each written to its folder) and the pooled numbers, written to
     out/leave_one_out.json and out/report.md/.html."""
@@ -341,11 +366,12 @@ def leave_one_out_folds(
 
     dirs = [out / f"fold{k + 1}_{Path(p).stem}" for k, p in enumerate(paths)]
     folds = [
-        run_diagnosis(model, paths[:k] + paths[k + 1 :], [paths[k]], d, model_path, bag=bag) for k, d in enumerate(dirs)
+        run_diagnosis(model, paths[:k] + paths[k + 1 :], [paths[k]], out=d, model_path=model_path, bag=bag)
+        for k, d in enumerate(dirs)
     ]
     pooled = diagnosis.pool_held_out(folds)
     (out / "leave_one_out.json").write_text(json.dumps(_clean(pooled), indent=2))
-    write_leave_one_out_report(out, pooled, model_path, dirs)
+    write_leave_one_out_report(out, pooled, model_path, fold_dirs=dirs)
     return folds, pooled
 
 
@@ -376,7 +402,7 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
         if len(paths) < 2:
             raise BadInput("--leave-one-out: give at least two logs (--fit A.csv B.csv ...)")
         model = load_model(args.model)
-        return leave_one_out(model, paths, args.out, args.model, bag_options(args, model))
+        return leave_one_out(model, paths, args.out, model_path=args.model, bag=bag_options(args, model))
     model = load_model(args.model)  # a bad model is named before the logs are counted
     if not args.fit:
         raise BadInput("--fit: at least one log is required")
@@ -385,6 +411,6 @@ def cmd_diagnose(args: argparse.Namespace) -> int:
         if len(fit) < 2:
             raise BadInput("--check: give held-out logs (or at least two --fit logs; the last is then held out)")
         fit, check = fit[:-1], fit[-1:]
-    d = run_diagnosis(model, fit, check, args.out, args.model, bag=bag_options(args, model))
+    d = run_diagnosis(model, fit, check, out=args.out, model_path=args.model, bag=bag_options(args, model))
     _print_summary(d, args.out)
     return 0

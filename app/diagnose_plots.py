@@ -102,12 +102,12 @@ def write_plots(out: str | Path, diagnosis: Diagnosis) -> dict[str, str]:
         out / "joint_rms.png",
         res["gap"]["rms_check_per_joint"],
         res["combined"]["rms_check_per_joint_after"],
-        "corrected",
+        label_after="corrected",
     )
     return files
 
 
-def joint_bars(path: str | Path, before: Sequence[float], after: Sequence[float], label_after: str) -> str:
+def joint_bars(path: str | Path, before: Sequence[float], after: Sequence[float], *, label_after: str) -> str:
     """Per-joint held-out RMS bars, nominal vs corrected; returns the file name."""
     plt = _plt()
     idx = np.arange(len(before))

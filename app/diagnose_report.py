@@ -155,27 +155,8 @@ def verdict_lines(result: dict, frozen: bool = False) -> list[str]:
     return [where, why, shrink]
 
 
-def write_report(
-    out: str | Path,
-    diagnosis: Diagnosis,
-    model_path: str | Path,
-    fit_paths: Sequence[str | Path],
-    check_paths: Sequence[str | Path],
-    plots: dict[str, str],
-    wall_time_s: float,
-    params_file: str | None = None,
-    frozen: bool = False,
-) -> None:
-    """report.md (verdict first, then tables and plots) and report.html (the same, plots embedded)."""
-    res = diagnosis.result
-    gap = res["gap"]
-    comb = res["combined"]
-    n = len(gap["rms_check_per_joint"])
-    title = "Sim-to-real gap: frozen corrected model scored" if frozen else "Sim-to-real gap diagnosis"
-    lines = [f"# {title}", ""]
-    for v in verdict_lines(res, frozen):
-        lines += [v, ""]
-    lines += [
+def _inputs_lines(gap: dict, model_path, fit_paths, check_paths, *, wall_time_s: float, frozen: bool) -> list[str]:
+    return [
         "## Inputs",
         "",
         f"- model: `{model_path}`",
@@ -193,6 +174,12 @@ def write_report(
         ),
         f"- wall time: {wall_time_s:.1f} s",
         "",
+    ]
+
+
+def _gap_lines(gap: dict, comb: dict) -> list[str]:
+    """The held-out gap per joint, where it lies (regimes, worst windows) and by residual form."""
+    lines = [
         "## Gap on the check logs (test)",
         "",
         f"Held-out RMS residual of the nominal model: **{gap['rms_check']:.3f} N·m**"
@@ -202,7 +189,7 @@ def write_report(
         "| joint | RMS before [N·m] | RMS after [N·m] | reduction |",
         "|---|---|---|---|",
     ]
-    for j in range(n):
+    for j in range(len(gap["rms_check_per_joint"])):
         b, a = gap["rms_check_per_joint"][j], comb["rms_check_per_joint_after"][j]
         lines.append(f"| {j + 1} | {b:.3f} | {a:.3f} | {100 * (1 - a / b) if b > 0 else 0:.0f}% |")
     lines += [
@@ -227,40 +214,41 @@ def write_report(
         lines += ["", "Nominal residual RMS by form (per check log): ", ""]
         for log, forms in gap["residual_forms"].items():
             lines.append(f"- `{Path(log).name}`: " + ", ".join(f"{k} {v:.3f}" for k, v in forms.items()))
+    return lines
+
+
+def _saturation_lines(gap: dict, comb: dict) -> list[str]:
+    """The velocity-saturated spans left out of fitting and selection (none: no lines)."""
     sat = gap.get("velocity_saturation")
-    if sat and sat["spans"]:
-        wo = comb["without_saturated"]
-        lines += [
-            "",
-            f"Velocity saturation: joints ran pinned at their top speed on "
-            f"{100 * sat['element_share']:.1f}% of the held-out joint samples, which carry "
-            f"{100 * sat['residual_share']:.1f}% of the nominal residual². There the drive does not "
-            "deliver the logged torque (it swings while velocity and acceleration stay flat), so no "
-            "model of the arm can follow it: these samples are left out of fitting and selection "
-            "(the top speeds are those of the fit logs, frozen in corrected_model.yaml). "
-            f"On the other samples: {wo['rms_check']:.3f} → {wo['rms_check_after']:.3f} N·m "
-            f"({100 * wo['reduction']:.1f}% reduction; all samples {100 * comb['reduction']:.1f}%).",
-            "",
-            "| log | joint | from [s] | to [s] | speed [rad/s] |",
-            "|---|---|---|---|---|",
-        ]
-        for sp in sat["spans"]:
-            lines.append(
-                f"| `{Path(sp['log']).name}` | {sp['joint']} | {sp['t_start']:.2f} | {sp['t_end']:.2f} "
-                f"| {sp['speed_rad_s']:.3f} |"
-            )
-    lines += [
+    if not (sat and sat["spans"]):
+        return []
+    wo = comb["without_saturated"]
+    lines = [
         "",
-        "Where the residual left after the correction lies (share of its square):",
+        f"Velocity saturation: joints ran pinned at their top speed on "
+        f"{100 * sat['element_share']:.1f}% of the held-out joint samples, which carry "
+        f"{100 * sat['residual_share']:.1f}% of the nominal residual². There the drive does not "
+        "deliver the logged torque (it swings while velocity and acceleration stay flat), so no "
+        "model of the arm can follow it: these samples are left out of fitting and selection "
+        "(the top speeds are those of the fit logs, frozen in corrected_model.yaml). "
+        f"On the other samples: {wo['rms_check']:.3f} → {wo['rms_check_after']:.3f} N·m "
+        f"({100 * wo['reduction']:.1f}% reduction; all samples {100 * comb['reduction']:.1f}%).",
         "",
-        "| regime | share after | share of samples |",
-        "|---|---|---|",
+        "| log | joint | from [s] | to [s] | speed [rad/s] |",
+        "|---|---|---|---|---|",
     ]
-    for k, v in comb.get("regimes_after", {}).items():
-        lines.append(f"| {k} | {100 * v:.1f}% | {100 * gap['where']['regime_sample_share'][k]:.1f}% |")
-    lines += residual_map_lines(comb.get("residual_map_after"))
-    lines += _effects_section(res, frozen)
-    lines += [
+    for sp in sat["spans"]:
+        lines.append(
+            f"| `{Path(sp['log']).name}` | {sp['joint']} | {sp['t_start']:.2f} | {sp['t_end']:.2f} "
+            f"| {sp['speed_rad_s']:.3f} |"
+        )
+    return lines
+
+
+def _combined_lines(res: dict, params_file: str | None) -> list[str]:
+    """The combined correction, the lag's restarts (when selected) and the corrected model's files."""
+    gap, comb = res["gap"], res["combined"]
+    lines = [
         "## Combined",
         "",
         f"Effects {', '.join(comb['effects']) or '(none)'}: held-out (test) RMS **{gap['rms_check']:.3f} → "
@@ -285,10 +273,46 @@ def write_report(
             "`load_robot(params_path=...)` / a scenario's `robot.params`).",
             "",
         ]
+    return lines
+
+
+def write_report(
+    out: str | Path,
+    diagnosis: Diagnosis,
+    model_path: str | Path,
+    *,
+    fit_paths: Sequence[str | Path],
+    check_paths: Sequence[str | Path],
+    plots: dict[str, str],
+    wall_time_s: float,
+    params_file: str | None = None,
+    frozen: bool = False,
+) -> None:
+    """report.md (verdict first, then tables and plots) and report.html (the same, plots embedded)."""
+    res = diagnosis.result
+    gap, comb = res["gap"], res["combined"]
+    title = "Sim-to-real gap: frozen corrected model scored" if frozen else "Sim-to-real gap diagnosis"
+    lines = [f"# {title}", ""]
+    for v in verdict_lines(res, frozen):
+        lines += [v, ""]
+    lines += _inputs_lines(gap, model_path, fit_paths, check_paths, wall_time_s=wall_time_s, frozen=frozen)
+    lines += _gap_lines(gap, comb) + _saturation_lines(gap, comb)
+    lines += [
+        "",
+        "Where the residual left after the correction lies (share of its square):",
+        "",
+        "| regime | share after | share of samples |",
+        "|---|---|---|",
+    ]
+    for k, v in comb.get("regimes_after", {}).items():
+        lines.append(f"| {k} | {100 * v:.1f}% | {100 * gap['where']['regime_sample_share'][k]:.1f}% |")
+    lines += residual_map_lines(comb.get("residual_map_after"))
+    lines += _effects_section(res, frozen)
+    lines += _combined_lines(res, params_file)
     lines += ["## Plots", ""] + [f"![{k}]({v})" for k, v in plots.items()] + [""]
     text = "\n".join(lines)
     Path(out, "report.md").write_text(text)
-    write_html(Path(out, "report.html"), text, out, title)
+    write_html(Path(out, "report.html"), text, out, title=title)
 
 
 def residual_map_lines(residual_map: dict | None) -> list[str]:
@@ -390,7 +414,7 @@ def _effects_section(res, frozen):
 
 
 def write_leave_one_out_report(
-    out: str | Path, pooled: dict, model_path: str | Path, fold_dirs: Sequence[Path]
+    out: str | Path, pooled: dict, model_path: str | Path, *, fold_dirs: Sequence[Path]
 ) -> None:
     """report.md/.html of a nested leave-one-log-out diagnosis: test RMS pooled over the folds per
     joint (all samples and without speed-saturated ones), the mean over folds, each fold, and the
@@ -455,7 +479,7 @@ def write_leave_one_out_report(
         Path(out) / "pooled_joint_rms.png",
         p["rms_before_per_joint"],
         p["rms_after_per_joint"],
-        "corrected (each log held out once)",
+        label_after="corrected (each log held out once)",
     )
     plots = [f"![pooled per joint]({bars})"]
     if pooled.get("residual_map_after"):
@@ -467,4 +491,4 @@ def write_leave_one_out_report(
     lines += ["", "## Plots", "", *plots, ""]
     text = "\n".join(lines)
     Path(out, "report.md").write_text(text)
-    write_html(Path(out, "report.html"), text, out, "Gap diagnosis, leave one log out")
+    write_html(Path(out, "report.html"), text, out, title="Gap diagnosis, leave one log out")

@@ -41,6 +41,7 @@ def plot_joints(
     path: Path,
     series: list[tuple],
     bound: Sequence[float] | None,
+    *,
     limit: Sequence[float] | None,
     phases: Sequence[tuple[str, float, float]] = (),
     title: str = "",
@@ -72,7 +73,7 @@ def plot_joints(
     return save_figure(fig, path)
 
 
-def plot_conditioning(path: Path, cond_w: list, updates: list[tuple[float, float]], title: str = "") -> Path:
+def plot_conditioning(path: Path, cond_w: list, updates: list[tuple[float, float]], *, title: str = "") -> Path:
     """cond(W) of each accepted plan (the planner's excitation) and cond(Y) after each
     identification update (updates: [(t, cond_Y)])."""
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 3.2))
@@ -91,15 +92,22 @@ def plot_conditioning(path: Path, cond_w: list, updates: list[tuple[float, float
     return save_figure(fig, path)
 
 
-def write_run_figures(out: Path, summary: dict, history: list, torque_limit: Sequence[float]) -> None:
+def write_run_figures(out: Path, summary: dict, history: list, *, torque_limit: Sequence[float]) -> None:
     """joints.png (Figs. 8/9 for one run, phases shaded) and conditioning.png (cond per plan)."""
     out = Path(out)
     t, error, u, _ = run_log(out)
     title = f"{summary['scenario']} / {summary['method']} ({summary['payload_true'].get('dumbbell')})"
     bound = summary.get("tracking_bound_per_joint_rad")
-    plot_joints(out / "joints.png", [(summary["method"], t, error, u)], bound, torque_limit, phases_of(summary), title)
+    plot_joints(
+        out / "joints.png",
+        [(summary["method"], t, error, u)],
+        bound,
+        limit=torque_limit,
+        phases=phases_of(summary),
+        title=title,
+    )
     cond_w = summary["planner"].get("cond_W") or []
-    plot_conditioning(out / "conditioning.png", cond_w, [(h["t"], h.get("cond_Y")) for h in history], title)
+    plot_conditioning(out / "conditioning.png", cond_w, [(h["t"], h.get("cond_Y")) for h in history], title=title)
 
 
 # ---- compare ------------------------------------------------------------------------------------
@@ -112,7 +120,7 @@ def _first_runs(done, dumbbell):
     return chosen
 
 
-def plot_mass_over_time(path: Path, series: dict, truth_kg: float, title: str = "") -> Path:
+def plot_mass_over_time(path: Path, series: dict, truth_kg: float, *, title: str = "") -> Path:
     """Fig. 6: each method's estimated end-effector mass over time (series: {method: (t, m,
     switch_time_s or None)}), the task switch dotted, the truth dashed."""
     fig, ax = plt.subplots(figsize=(9, 3.6))
@@ -156,7 +164,7 @@ def compare_figures(out: Path, done: list[dict], torque_limit: Sequence[float] |
             m: (s["estimate"]["nominal"], s["estimate"]["lower"], s["estimate"]["upper"]) for m, s in pair.items()
         }
         title = f"{scenario}, {lightest}: intervals after identification (Fig. 5)"
-        written.append(plot_intervals_side_by_side(out / "fig5_intervals.png", estimates, truth, title))
+        written.append(plot_intervals_side_by_side(out / "fig5_intervals.png", estimates, truth, title=title))
     series = {}
     for m in FIG6_METHODS:
         if m in first:
@@ -166,7 +174,7 @@ def compare_figures(out: Path, done: list[dict], torque_limit: Sequence[float] |
                 series[m] = (t, log.extra["est_m"], task["switch_time_s"] if task else None)
     if series:
         title = f"{scenario}, {lightest}: estimated end-effector mass (Fig. 6)"
-        written.append(plot_mass_over_time(out / "fig6_mass.png", series, truth[0], title))
+        written.append(plot_mass_over_time(out / "fig6_mass.png", series, truth[0], title=title))
     for m in dict.fromkeys(s["method"] for s in done):
         lines, bound = [], None
         for d in by_mass:
@@ -179,11 +187,13 @@ def compare_figures(out: Path, done: list[dict], torque_limit: Sequence[float] |
             bound = bound or s["tracking_bound_per_joint_rad"]
         if lines:
             title = f"{scenario} / {m}: task phase (time from its start), first trial per dumbbell (Figs. 8/9)"
-            written.append(plot_joints(out / f"fig8_task_{m}.png", lines, bound, torque_limit, (), title))
+            written.append(
+                plot_joints(out / f"fig8_task_{m}.png", lines, bound, limit=torque_limit, phases=(), title=title)
+            )
     return written
 
 
-def table_figure(path: Path, scenario_name: str, rows: dict, dumbbells: list[str]) -> Path:
+def table_figure(path: Path, scenario_name: str, rows: dict, *, dumbbells: list[str]) -> Path:
     """The compare table as a picture: per method and dumbbell the share of successful runs,
     coloured by outcome (green all succeeded, orange a failure, red a collision), and the
     Table III cell."""

@@ -44,7 +44,7 @@ def _stamp_seconds(sec, nanosec):
 
 
 def read_joint_bag(
-    path: str | Path, topic: str = "/joint_states", joints: Sequence[str] | None = None, n_joints: int | None = None
+    path: str | Path, topic: str = "/joint_states", joints: Sequence[str] | None = None, *, n_joints: int | None = None
 ) -> JointLog:
     """JointLog from the JointState messages of `topic`; `joints` (names, in model order) picks
     and orders the columns (default: the names of the first message that has efforts).
@@ -125,9 +125,9 @@ def _joint_rows(reader, cons, where, joints):
 
 
 def read_log(
-    path: str | Path, n_joints: int | None = None, topic: str = "/joint_states", joints: Sequence[str] | None = None
+    path: str | Path, n_joints: int | None = None, topic: str = "/joint_states", *, joints: Sequence[str] | None = None
 ) -> JointLog:
     """A joint log from a CSV (joint_log.py) or a ROS bag (`topic`, `joints` in model order)."""
     if is_bag(path):
-        return read_joint_bag(path, topic, joints, n_joints)
+        return read_joint_bag(path, topic, joints, n_joints=n_joints)
     return read_joint_log(path, n_joints)

@@ -1,5 +1,5 @@
-"""Joint log CSV: t, q1..qn, v1..vn, optional a1..an, tau1..taun, extra columns (read into the
-JointLog of systems/model/joint_data.py, re-exported here)."""
+"""Joint log CSV: t, q1..qn, v1..vn, optional a1..an, tau1..taun, extra columns, read into and
+written from the JointLog of systems/model/joint_data.py."""
 
 from __future__ import annotations
 
@@ -8,8 +8,6 @@ from pathlib import Path
 
 import numpy as np
 from safesysid.systems.model.joint_data import JointLog
-
-__all__ = ["JointLog", "LogError", "read_joint_log", "write_joint_log"]
 
 
 class LogError(ValueError):
@@ -23,9 +21,7 @@ def _joint_count(header):
     return n
 
 
-def read_joint_log(path: str | Path, n_joints: int | None = None) -> JointLog:
-    """Read and validate a joint log; LogError (one line) on any problem."""
-    path = Path(path)
+def _read_rows(path: Path) -> list[list[str]]:
     try:
         with path.open(newline="") as fh:
             rows = list(csv.reader(fh))
@@ -33,7 +29,12 @@ def read_joint_log(path: str | Path, n_joints: int | None = None) -> JointLog:
         raise LogError(f"{path}: cannot read ({err.strerror})") from err
     if not rows:
         raise LogError(f"{path}: empty file")
-    header = [h.strip() for h in rows[0]]
+    return rows
+
+
+def _columns_read(path: Path, header: list[str], n_joints: int | None) -> tuple[int, set[str], bool]:
+    """(joints, the columns we read, whether a1..an are among them) of a header; LogError naming
+    the first missing column."""
     if "t" not in header:
         raise LogError(f"{path}: row 1: missing column 't'")
     n = _joint_count(header)
@@ -46,7 +47,11 @@ def read_joint_log(path: str | Path, n_joints: int | None = None) -> JointLog:
         if col not in header:
             raise LogError(f"{path}: row 1: missing column '{col}'")
     has_a = all(f"a{k}" in header for k in range(1, n + 1))
-    known = {"t", *need, *([f"a{k}" for k in range(1, n + 1)] if has_a else [])}  # the columns we read
+    return n, {"t", *need, *([f"a{k}" for k in range(1, n + 1)] if has_a else [])}, has_a
+
+
+def _numbers(path: Path, rows: list[list[str]], header: list[str], known: set[str]) -> np.ndarray:
+    """The data rows as numbers; a cell of an extra column that is no number becomes NaN."""
     if len(rows) < 2:
         raise LogError(f"{path}: no data rows")
     data = np.empty((len(rows) - 1, len(header)))
@@ -65,6 +70,16 @@ def read_joint_log(path: str | Path, n_joints: int | None = None) -> JointLog:
     if bad.any():
         r, c = np.argwhere(bad)[0]
         raise LogError(f"{path}: row {r + 2}, column '{header[used[c]]}': NaN or inf")
+    return data
+
+
+def read_joint_log(path: str | Path, n_joints: int | None = None) -> JointLog:
+    """Read and validate a joint log; LogError (one line) on any problem."""
+    path = Path(path)
+    rows = _read_rows(path)
+    header = [h.strip() for h in rows[0]]
+    n, known, has_a = _columns_read(path, header, n_joints)
+    data = _numbers(path, rows, header, known)
     col = {h: data[:, k] for k, h in enumerate(header)}
     t = col["t"]
     step = np.diff(t)

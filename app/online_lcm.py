@@ -21,12 +21,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from safesysid.scenario import Scenario
 from safesysid.systems import config, methods
+from safesysid.systems.config import Scenario
 
 if TYPE_CHECKING:
     from pydrake.systems.framework import Context
-    from safesysid.online import OnlineDiagram
+    from safesysid.online_diagram import OnlineDiagram
 
 SWITCH_INTERVAL_S = 1e-4
 CHUNK_S = 0.05  # the run advances in chunks of this much, measuring its lag behind the wall clock
@@ -57,11 +57,12 @@ def _estimate(est, ctx):
 
 
 def run_wallclock(
-    scenario: Scenario, out_dir: str | Path, method: str | None = None, seed: int | None = None, *, fifo: bool = True
+    scenario: Scenario, out_dir: str | Path, method: str | None = None, *, seed: int | None = None, fifo: bool = True
 ) -> dict:
     """Run Algorithm 2's identification phase against the arm on scenario.arm's channels."""
     from pydrake.systems.analysis import Simulator
-    from safesysid.online import build_online, merge_events
+    from safesysid.online import build_online
+    from safesysid.summary import merge_events
     from safesysid.systems.hardware.background import BackgroundWorker
     from safesysid.systems.hardware.realtime import request_realtime
 
@@ -92,7 +93,7 @@ def run_wallclock(
         _request_hold(built.arm, ctx.get_time())
     finally:
         worker.shutdown()
-    summary = wallclock_summary(built, ctx, scenario, method, seed)
+    summary = wallclock_summary(built, ctx, scenario, method=method, seed=seed)
     summary.update(timing=timing, scheduling=scheduling, identification_end_s=horizon)
     summary["events"] = merge_events(summary["events"])
     (out / "lcm_run.json").write_text(json.dumps(summary, indent=2, default=float))
@@ -131,7 +132,7 @@ def _request_hold(arm, t_s: float) -> None:
         time.sleep(0.002)
 
 
-def wallclock_summary(built: OnlineDiagram, ctx: Context, scenario: Scenario, method: str, seed: int) -> dict:
+def wallclock_summary(built: OnlineDiagram, ctx: Context, scenario: Scenario, *, method: str, seed: int) -> dict:
     planner, est = built.planner, built.estimator
     records = planner.records(planner.GetMyContextFromRoot(ctx)) if planner is not None else []
     events = list(built.arm.fault_events(ctx))
@@ -174,7 +175,7 @@ def cmd_run_lcm(args: argparse.Namespace, scenario: Scenario, method: str) -> in
 
     scenario = dataclasses.replace(scenario, arm=dataclasses.replace(scenario.arm, driver="lcm"))
     try:
-        summary = run_wallclock(scenario, args.out, method, args.seed, fifo=not args.no_fifo)
+        summary = run_wallclock(scenario, args.out, method, seed=args.seed, fifo=not args.no_fifo)
     except ArmNotAnswering as err:
         print(f"safesysid run: {err}", file=sys.stderr)
         return 1

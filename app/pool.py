@@ -95,6 +95,7 @@ def run_streamed(
     fn: Callable[..., dict],
     jobs: list[tuple],
     workers: int,
+    *,
     jsonl: Path,
     describe: Callable[[tuple, dict], str],
     label: str = "runs",

@@ -27,7 +27,7 @@ class Progress:
     """A progress bar on stderr: redrawn in place on a terminal, one line per step otherwise
     (logs and CI keep every line). No dependency (neither tqdm nor rich is installed)."""
 
-    def __init__(self, total: int, label: str, stream: TextIO | None = None, width: int = 24) -> None:
+    def __init__(self, total: int, label: str, stream: TextIO | None = None, *, width: int = 24) -> None:
         self.total, self.label, self.width = total, label, width
         self.stream = stream or sys.stderr
         self.done = 0
@@ -115,6 +115,7 @@ def watch(
     simulator: Simulator,
     scenario: Scenario,
     display: RunDisplay | bool,
+    *,
     switch_time_s: float | None = None,
     stream: TextIO | None = None,
 ) -> None:
@@ -127,7 +128,7 @@ def watch(
         return
     if display.meshcat and display.viewer is not None:  # the live view framed on the arm at its start
         from safesysid import viz
-        from safesysid.scenario import robot_from_scenario
+        from safesysid.systems.model.loading import robot_from_scenario
 
         viz.frame_camera(
             display.viewer, viz.frame_points(robot_from_scenario(scenario), scenario.q0_rad, scenario.obstacles)
@@ -162,7 +163,7 @@ def watch(
     simulator.set_monitor(monitor)
 
 
-def realtime_shortfall(sim_s: float, wall_s: float, target_rate: float, tolerance: float = 0.9) -> str | None:
+def realtime_shortfall(sim_s: float, wall_s: float, target_rate: float, *, tolerance: float = 0.9) -> str | None:
     """The warning a live run prints when it does not reach its --realtime-rate (None when it does,
     or when no rate was asked)."""
     if target_rate <= 0 or wall_s <= 0 or sim_s / wall_s >= tolerance * target_rate:

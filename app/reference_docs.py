@@ -34,7 +34,6 @@ UNIT_SUFFIXES = (
     ("_s", "s"),
     ("_hz", "Hz"),
 )
-CHOICES = re.compile(r"^\s*([\w.-]+(?:\s*\|\s*[\w.-]+)+)")
 
 
 def unit_of(name: str) -> str:
@@ -94,14 +93,14 @@ def schema_rows(cls: type = config.Scenario, prefix: str = "") -> list[tuple[str
         nested = _dataclass_of(hints[field.name])
         if nested is not None and not comment:
             comment = (inspect.getdoc(nested) or "").split("\n\n")[0]
-        choices = CHOICES.match(comment)
+        choices = field.metadata.get("choices") or ()
         rows.append(
             (
                 path,
                 _type_name(hints[field.name]),
                 unit_of(field.name),
                 _default(field),
-                choices.group(1).replace(" ", "") if choices else "",
+                "|".join(choices),
                 comment,
             )
         )

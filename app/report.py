@@ -22,7 +22,7 @@ def save_figure(fig: plt.Figure, path: str | Path) -> Path:
 
 
 def plot_tracking(
-    path: str | Path, t: np.ndarray, error: np.ndarray, bound: np.ndarray, torque_ratio: np.ndarray
+    path: str | Path, t: np.ndarray, error: np.ndarray, *, bound: np.ndarray, torque_ratio: np.ndarray
 ) -> Path:
     """Per-joint |e_i| / bound_i (1 = the certified ultimate bound), and max |u|/limit."""
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
@@ -41,7 +41,7 @@ CLEARANCE_TITLE = "least distance between the links' own shapes (+ payload) and 
 
 
 def plot_clearance(
-    path: str | Path, t: np.ndarray, clearance: np.ndarray, phases: Sequence[tuple[str, float, float]] = ()
+    path: str | Path, t: np.ndarray, clearance: np.ndarray, *, phases: Sequence[tuple[str, float, float]] = ()
 ) -> Path:
     """The referee's clearance (Drake signed distance on the link shapes), the phases shaded."""
     fig, ax = plt.subplots(figsize=(8, 3.2))
@@ -59,23 +59,23 @@ def plot_intervals(
     path: str | Path,
     nominal: np.ndarray,
     lower: np.ndarray,
+    *,
     upper: np.ndarray,
     truth: np.ndarray | None = None,
     title: str = "",
-    *,
     prior: tuple | None = None,
 ) -> Path:
     """The 10 end-effector intervals with nominal (and truth), like the paper's Fig. 5; the prior
     (lower, upper) as a grey band, so a parameter the data did not narrow shows as such."""
-    return plot_intervals_side_by_side(path, {"estimate": (nominal, lower, upper)}, truth, title, prior=prior)
+    return plot_intervals_side_by_side(path, {"estimate": (nominal, lower, upper)}, truth, title=title, prior=prior)
 
 
 def plot_intervals_side_by_side(
     path: str | Path,
     estimates: dict[str, tuple],
     truth: np.ndarray | None = None,
-    title: str = "",
     *,
+    title: str = "",
     prior: tuple | None = None,
 ) -> Path:
     """Fig. 5: per parameter, each estimate's interval and nominal side by side (estimates:
@@ -105,11 +105,11 @@ def plot_estimate_history(
     path: str | Path,
     times: np.ndarray,
     nominal: np.ndarray,
+    *,
     lower: np.ndarray,
     upper: np.ndarray,
     truth: np.ndarray | None = None,
     index: int = 0,
-    *,
     prior: tuple | None = None,
     title: str = "",
 ) -> Path:

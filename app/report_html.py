@@ -91,6 +91,6 @@ def markdown_to_html(text: str, folder: str | Path, title: str) -> str:
     )
 
 
-def write_html(path: str | Path, markdown_text: str, folder: str | Path, title: str) -> Path:
+def write_html(path: str | Path, markdown_text: str, folder: str | Path, *, title: str) -> Path:
     Path(path).write_text(markdown_to_html(markdown_text, folder, title))
     return Path(path)

@@ -8,7 +8,8 @@ import sys
 from pathlib import Path
 
 from safesysid.cli import BadInput
-from safesysid.scenario import METHODS, SCENARIOS_DIR, Scenario, load_scenario
+from safesysid.scenario import SCENARIOS_DIR, load_scenario
+from safesysid.systems.config import METHODS, Scenario
 
 
 def scenario_path(args: argparse.Namespace) -> Path:

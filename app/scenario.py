@@ -1,5 +1,5 @@
 """Scenario loader: YAML layers read with Drake's yaml_load_typed into the schema of
-systems/config.py (re-exported here), checked field by field with errors naming file and key.
+systems/config.py, checked field by field with errors naming file and key.
 """
 
 import dataclasses as dc
@@ -11,21 +11,8 @@ import numpy as np
 import yaml
 from safesysid.systems.config import (
     MAX_CONTROL_STEP_S,
-    METHODS,
-    Controller,
-    Estimator,
-    InitialInterval,
-    Noise,
-    Obstacle,
-    ParameterFloors,
-    Payload,
-    Planner,
-    Plant,
-    PlantEffects,
-    Robot,
     Scenario,
     ScenarioError,
-    Task,
     task_enabled,
 )
 from safesysid.systems.model.loading import resolve_path, robot_from_scenario, scenario_dir
@@ -34,71 +21,41 @@ if typing.TYPE_CHECKING:
     from safesysid.systems.model.corrected_model import CorrectedModel
 
 SCENARIOS_DIR = Path(__file__).resolve().parent.parent / "scenarios"
-__all__ = [  # the loader, and the schema of systems/config.py re-exported
-    "SCENARIOS_DIR",
-    "load_scenario",
-    "check_starting_scenario",
-    "MAX_CONTROL_STEP_S",
-    "METHODS",
-    "Controller",
-    "Estimator",
-    "InitialInterval",
-    "Noise",
-    "Obstacle",
-    "ParameterFloors",
-    "Payload",
-    "Planner",
-    "Plant",
-    "PlantEffects",
-    "Robot",
-    "Scenario",
-    "ScenarioError",
-    "Task",
-    "resolve_path",
-    "robot_from_scenario",
-    "scenario_dir",
-    "task_enabled",
-]
 List = list
 
 
-_CHOICES = {
-    "method": METHODS,
-    "planner.cost": ("exciting", "goal", "random"),
-    "planner.exciting_columns": ("all", "inertia"),
-    "planner.exciting_criterion": ("cond", "a_optimal", "e_optimal", "cond_interval", "d_optimal"),
-    "planner.exciting_weighting": ("none", "noise"),
-    "planner.solver": ("ipopt", "snopt"),
-    "planner.budget": ("iterations", "wall_time"),
-    "estimator.solver": ("ipopt", "snopt"),
-    "estimator.integration": ("trapezoid", "euler"),
-    "estimator.set_membership": ("none", "mass", "all"),
-    "estimator.point_estimate": ("map", "paper"),
-    "estimator.torque_signal": ("held", "continuous"),
-    "payload.bounding_volume.shape": ("none", "ellipsoid", "box"),
-    "plant.robot_parameters": ("nominal", "drawn", "corner"),
-    "noise.distribution": ("uniform", "none"),
-    "controller.kind": ("armour", "pid", "adaptive", "adaptive_robust"),
-    "task.solver": ("snopt", "ipopt"),
-    "faults.planner_failure_kind": ("solver_failed", "timeout"),
-    "arm.driver": ("simulated", "lcm"),
-}
+def choices_of(cls: type = Scenario, prefix: str = "") -> dict[str, tuple[str, ...]]:
+    """{dotted field path: its allowed values} of every field declared with systems/config.py
+    one_of, nested sections included (lists of sections have none)."""
+    found = {}
+    hints = typing.get_type_hints(cls)
+    for f in dc.fields(cls):
+        if "choices" in f.metadata:
+            found[f"{prefix}{f.name}"] = f.metadata["choices"]
+        elif dc.is_dataclass(hints[f.name]):
+            found.update(choices_of(hints[f.name], f"{prefix}{f.name}."))
+    return found
+
+
+def _check_section(value, schema, path, errors):
+    """A mapping against a section's dataclass: known keys, each checked against its field's type."""
+    if not isinstance(value, dict):
+        errors.append(f"{path or 'top level'}: expected a mapping")
+        return
+    fields = {f.name: f for f in dc.fields(schema) if f.name != "source"}
+    for key, item in value.items():
+        sub = f"{path}.{key}" if path else str(key)
+        if key not in fields:
+            errors.append(f"{sub}: unknown key (known: {', '.join(fields)})")
+        else:
+            _check(item, typing.get_type_hints(schema)[key], sub, errors)
 
 
 def _check(value, schema, path, errors):
     """Walk raw YAML against the dataclass schema, collecting 'key.path: problem' strings."""
     origin = typing.get_origin(schema)
     if dc.is_dataclass(schema):
-        if not isinstance(value, dict):
-            errors.append(f"{path or 'top level'}: expected a mapping")
-            return
-        fields = {f.name: f for f in dc.fields(schema) if f.name != "source"}
-        for key, item in value.items():
-            sub = f"{path}.{key}" if path else str(key)
-            if key not in fields:
-                errors.append(f"{sub}: unknown key (known: {', '.join(fields)})")
-            else:
-                _check(item, typing.get_type_hints(schema)[key], sub, errors)
+        _check_section(value, schema, path, errors)
     elif origin in (list, List):
         if not isinstance(value, list):
             errors.append(f"{path}: expected a list")
@@ -110,17 +67,19 @@ def _check(value, schema, path, errors):
         inner = [a for a in typing.get_args(schema) if a is not type(None)][0]
         if value is not None:
             _check(value, inner, path, errors)
-    elif schema is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            errors.append(f"{path}: expected a number, got {value!r}")
-    elif schema is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            errors.append(f"{path}: expected an integer, got {value!r}")
-    elif schema is str:
-        if not isinstance(value, str):
-            errors.append(f"{path}: expected a string, got {value!r}")
-    elif schema is bool and not isinstance(value, bool):
-        errors.append(f"{path}: expected true/false, got {value!r}")
+    elif schema in _SCALARS:
+        accepts, expected = _SCALARS[schema]
+        if not accepts(value):
+            errors.append(f"{path}: expected {expected}, got {value!r}")
+
+
+# The scalar types of the schema: (accepts a YAML value, what the error says was expected).
+_SCALARS = {
+    float: (lambda v: not isinstance(v, bool) and isinstance(v, (int, float)), "a number"),
+    int: (lambda v: not isinstance(v, bool) and isinstance(v, int), "an integer"),
+    str: (lambda v: isinstance(v, str), "a string"),
+    bool: (lambda v: isinstance(v, bool), "true/false"),
+}
 
 
 def _joint_count(s: Scenario) -> int:
@@ -140,7 +99,7 @@ def _validate(s: Scenario, where):
         if not cond:
             raise ScenarioError(f"{where}: {field}: {msg}")
 
-    for key, allowed in _CHOICES.items():
+    for key, allowed in choices_of().items():
         obj = s
         for part in key.split("."):
             obj = getattr(obj, part)
@@ -161,6 +120,20 @@ def _validate(s: Scenario, where):
         "initial_interval",
         "needs lower <= nominal <= upper",
     )
+    _validate_plant(s, need)
+    _validate_estimator(s, need)
+    _validate_planner(s, need)
+    _validate_fourier(s, need)
+    for field, text in (("robot.params", s.robot.params), ("payload.dumbbells_file", s.payload.dumbbells_file)):
+        need(resolve_path(text, scenario_dir(s)).is_file(), field, f"file {text!r} not found")
+    if s.robot.model:
+        need(resolve_path(s.robot.model, scenario_dir(s)).is_file(), "robot.model", f"file {s.robot.model!r} not found")
+    _validate_task(s, need)
+    _validate_faults(s, need)
+    _validate_arm_and_payload(s, need)
+
+
+def _validate_plant(s: Scenario, need):
     # The tube's invariance is argued and measured for a controller step of at most 1 ms
     # (systems/controller/armour.py "Sampling"; docs/guarantees.md).
     need(
@@ -176,6 +149,9 @@ def _validate(s: Scenario, where):
     need(all(fs >= 0 for fs in eff.stribeck_friction_Nm), "plant.effects.stribeck_friction_Nm", "values must be >= 0")
     need(eff.stribeck_velocity_rad_s > 0, "plant.effects.stribeck_velocity_rad_s", "must be > 0")
     need(eff.velocity_noise_rad_s >= 0, "plant.effects.velocity_noise_rad_s", "must be >= 0")
+
+
+def _validate_estimator(s: Scenario, need):
     need(s.estimator.horizon_s > 0, "estimator.horizon_s", "must be > 0")
     need(s.estimator.quadrature_safety >= 2, "estimator.quadrature_safety", "must be >= 2")
     need(s.estimator.hold_period_s >= 0, "estimator.hold_period_s", "must be >= 0")
@@ -192,6 +168,10 @@ def _validate(s: Scenario, where):
             f"estimator.{key}",
             "needs estimator.torque_signal: held (the time law of a held torque is undone exactly)",
         )
+
+
+def _validate_planner(s: Scenario, need):
+    """The payload's bounding volume, the noise and the planner's settings."""
     vol = s.payload.bounding_volume
     for key in ("centre_m", "half_extent_m", "rpy_rad"):
         need(len(getattr(vol, key)) == 3, f"payload.bounding_volume.{key}", "needs 3 values")
@@ -214,18 +194,18 @@ def _validate(s: Scenario, where):
         "planner.exciting_weighting",
         "noise needs noise.declared_torque_floor_Nm > 0 (a row with zero torque would weigh infinitely)",
     )
+
+
+def _validate_fourier(s: Scenario, need):
     f = s.fourier
     need(f.period_s > 0, "fourier.period_s", "must be > 0")
     need(f.num_harmonics >= 2, "fourier.num_harmonics", "must be >= 2 (rest at both ends uses one harmonic)")
     acc = f.acceleration_limit_rad_s2
     need(len(acc) == len(s.q0_rad) and min(acc) > 0, "fourier.acceleration_limit_rad_s2", "one value > 0 per joint")
     need(f.num_cost_samples >= 2 and f.max_iterations >= 0, "fourier", "num_cost_samples >= 2, max_iterations >= 0")
-    for field, text in (("robot.params", s.robot.params), ("payload.dumbbells_file", s.payload.dumbbells_file)):
-        need(resolve_path(text, scenario_dir(s)).is_file(), field, f"file {text!r} not found")
-    if s.robot.model:
-        need(resolve_path(s.robot.model, scenario_dir(s)).is_file(), "robot.model", f"file {s.robot.model!r} not found")
-    _validate_task(s, need)
-    _validate_faults(s, need)
+
+
+def _validate_arm_and_payload(s: Scenario, need):
     for key in ("watchdog_ms", "status_timeout_ms"):
         need(getattr(s.arm, key) > 0, f"arm.{key}", "must be > 0")
     need(s.arm.lcm_url.startswith(("udpm://", "memq://")), "arm.lcm_url", "must be an LCM url (udpm://... or memq://)")

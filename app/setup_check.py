@@ -11,8 +11,9 @@ from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
-from safesysid.scenario import Scenario, ScenarioError, robot_from_scenario
+from safesysid.systems.config import Scenario, ScenarioError
 from safesysid.systems.model import inertial
+from safesysid.systems.model.loading import robot_from_scenario
 
 if TYPE_CHECKING:
     from safesysid.systems.model.robot_model import RobotModel

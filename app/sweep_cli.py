@@ -30,7 +30,7 @@ from safesysid.cli import BadInput, require_positive
 from safesysid.pool import read_jsonl
 
 if TYPE_CHECKING:
-    from safesysid.scenario import Scenario
+    from safesysid.systems.config import Scenario
 
 LIMIT_KEYS = ("max_commanded_torque_ratio", "max_joint_limit_ratio", "max_velocity_ratio")
 PARAMETERS = ("m", "mcx", "mcy", "mcz", "Ixx", "Iyy", "Izz", "Ixy", "Iyz", "Ixz")
@@ -172,7 +172,7 @@ def _flagged(agg):
     )
 
 
-def report_markdown(agg: dict, scenario: str, methods: Sequence[str], replays: Sequence[str] = ()) -> str:
+def report_markdown(agg: dict, scenario: str, methods: Sequence[str], *, replays: Sequence[str] = ()) -> str:
     """report.md: the counts, the widths and a `safesysid run` line per flagged trial."""
     timing = (
         f"{agg['trials_run']} run now in {agg['wall_time_s']:.0f} s on {agg['workers']} {agg['executor']} worker(s): "
@@ -260,7 +260,7 @@ def ray_results(jobs: list[tuple], address: str, workers: int) -> Generator[dict
 
 
 def _methods(text, default):
-    from safesysid.scenario import METHODS
+    from safesysid.systems.config import METHODS
 
     methods = list(METHODS) if text == "all" else [m.strip() for m in (text or default).split(",") if m.strip()]
     for m in methods:
@@ -328,7 +328,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     (out / "aggregate.json").write_text(json.dumps(agg, indent=2, default=float))
     flagged = set(_flagged(agg))
     replays = [replay_command(path, s, texts) for s in trials if s["trial_seed"] in flagged and "error" not in s]
-    text = report_markdown(agg, scenario.name, methods, replays)
+    text = report_markdown(agg, scenario.name, methods, replays=replays)
     (out / "report.md").write_text(text)
     print(text)
     if interrupted:

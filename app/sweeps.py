@@ -9,8 +9,9 @@ from __future__ import annotations
 import copy
 
 import numpy as np
-from safesysid.scenario import Obstacle, Scenario, robot_from_scenario
 from safesysid.setup_check import payloads_inside_prior
+from safesysid.systems.config import Obstacle, Scenario
+from safesysid.systems.model.loading import robot_from_scenario
 
 PAYLOADS = ("none", "4lb", "5lb", "6lb", "7lb", "8lb")
 
@@ -51,7 +52,7 @@ def _random_direction(rng):
 
 
 def near_box(
-    points: np.ndarray, radii: np.ndarray, rng: np.random.Generator, clearance_m: float, attempts: int = 50
+    points: np.ndarray, radii: np.ndarray, rng: np.random.Generator, *, clearance_m: float, attempts: int = 50
 ) -> Obstacle | None:
     """A random box whose clearance from the spheres (points, radii) is clearance_m (to 0.1 mm):
     pushed out from a random sphere along a random direction, the distance found by bisection."""
@@ -81,6 +82,7 @@ def random_scene(
     base: Scenario,
     rng: np.random.Generator,
     start_spread_rad: float = 0.15,
+    *,
     min_start_clearance_m: float = 0.08,
     seed: int | None = None,
     near_clearance_m: tuple[float, float] | None = None,
@@ -100,7 +102,8 @@ def random_scene(
     if near_clearance_m is not None:
         from safesysid.systems.plant.arm_plant import scenario_dumbbell
 
-        near = near_box(*_sphere_centres(robot, q0, scenario_dumbbell(scene)), rng, rng.uniform(*near_clearance_m))
+        held_points, held_radii = _sphere_centres(robot, q0, scenario_dumbbell(scene))  # with the payload's
+        near = near_box(held_points, held_radii, rng, clearance_m=rng.uniform(*near_clearance_m))
         boxes += [] if near is None else [near]
     for _ in range(200):
         if len(boxes) >= rng.integers(1, 5):

@@ -30,15 +30,8 @@ from pathlib import Path
 import numpy as np
 from safesysid.cli import BadInput
 from safesysid.joint_bag import read_log
-from safesysid.scenario import (
-    Scenario,
-    ScenarioError,
-    check_starting_scenario,
-    load_scenario,
-    resolve_path,
-    robot_from_scenario,
-    scenario_dir,
-)
+from safesysid.scenario import check_starting_scenario, load_scenario
+from safesysid.systems.config import Scenario, ScenarioError
 from safesysid.systems.estimation import (
     EstimatorError,
     EstimatorSettings,
@@ -49,6 +42,7 @@ from safesysid.systems.estimation import (
 from safesysid.systems.estimation.settings import EPS, lag_interval
 from safesysid.systems.model import inertial
 from safesysid.systems.model.joint_data import JointLog
+from safesysid.systems.model.loading import resolve_path, robot_from_scenario, scenario_dir
 from safesysid.systems.model.robot_model import RobotModel
 
 
@@ -67,7 +61,7 @@ def payload_truth(scenario: Scenario, robot: RobotModel) -> np.ndarray | None:
 
 
 def undo_torque_lag(
-    rows: SegmentRows, tau_meas: np.ndarray, lag_s: float | list[float], settings: EstimatorSettings, first: int = 0
+    rows: SegmentRows, tau_meas: np.ndarray, lag_s: float | list[float], *, settings: EstimatorSettings, first: int = 0
 ) -> None:
     """Rows `first`.. of the estimator's segments (SegmentRows, indices into tau_meas) for a
     torque signal logged through a first-order lag d: int tau = int tau_meas + d (tau_meas(b) -
@@ -87,6 +81,7 @@ def run_sysid(
     log: JointLog,
     robot: RobotModel,
     settings: EstimatorSettings,
+    *,
     period_s: float,
     prior: tuple[np.ndarray, np.ndarray] | None = None,
     prior_nominal: np.ndarray | None = None,
@@ -104,7 +99,7 @@ def run_sysid(
             done = len(est.rows)
             est.add(t[start:stop], log.q[start:stop], log.v[start:stop], log.tau[start:stop])
             if np.any(torque_lag_s):
-                undo_torque_lag(est.rows, log.tau, torque_lag_s, settings, done)
+                undo_torque_lag(est.rows, log.tau, torque_lag_s, settings=settings, first=done)
             start = stop
         try:
             e = est.update()
@@ -127,7 +122,7 @@ def run_sysid(
 
 
 def plot_intervals(
-    path: str | Path, est: IncrementalEstimator, prior_nominal: np.ndarray, truth: np.ndarray | None, title: str
+    path: str | Path, est: IncrementalEstimator, prior_nominal: np.ndarray, *, truth: np.ndarray | None, title: str
 ) -> None:
     import matplotlib
 
@@ -201,14 +196,10 @@ def corrected_model(path: str | Path) -> tuple[RobotModel, float, float, dict]:
     return robot, lag, shift, summary
 
 
-def cmd_sysid(args: argparse.Namespace) -> int:
-    scenario = load_scenario(args.scenario, overrides=args.scenario_text)
-    lag, shift, corrections = 0.0, 0.0, None
-    if args.model:
-        robot, lag, shift, corrections = corrected_model(args.model)
-    else:
-        robot = robot_from_scenario(scenario)
-    log = read_log(args.log, robot.n, args.topic, args.joints or list(robot.joint_params.names))
+def _sysid_settings(
+    args: argparse.Namespace, scenario: Scenario, log: JointLog, *, lag, shift: float
+) -> EstimatorSettings:
+    """The scenario's estimator settings with the --model's torque time law and the log's hold period."""
     settings = EstimatorSettings.from_scenario(scenario)
     if np.any(lag) and (np.any(settings.torque_lag_s) or settings.torque_delay_s):
         key = "torque_lag_s" if np.any(settings.torque_lag_s) else "torque_delay_s"
@@ -224,26 +215,24 @@ def cmd_sysid(args: argparse.Namespace) -> int:
         # A log's torque is held for the log's own sample period; the scenario's plant step only
         # describes the simulator's logs (a 100 Hz robot log would otherwise be all gaps).
         settings = dataclasses.replace(settings, hold_period_s=float(np.median(np.diff(log.t))))
-    ii = scenario.initial_interval
-    prior = (np.array(ii.lower, float), np.array(ii.upper, float))
-    prior_nominal = np.array(ii.nominal, float)
-    if args.model and not args.scenario:  # the default scenario's prior is about its own robot and payload
-        prior, prior_nominal = None, robot.theta_e
-    # Only a scenario the user gives says what the log holds; the default one's dumbbell does not.
-    truth = payload_truth(scenario, robot) if args.scenario else None
-    try:
-        est, history = run_sysid(log, robot, settings, scenario.planner.replan_period_s, prior, prior_nominal, lag)
-    except EstimatorError as err:
-        raise BadInput(f"{args.log}: {err}") from err
-    if not history:
-        span = float(log.t[-1] - log.t[0])
-        raise BadInput(
-            f"{args.log}: too little data: {len(log)} samples over {span:.3g} s do not make two gap-free "
-            f"segments of estimator.horizon_s = {settings.horizon_s} s (gaps > {settings.max_gap_s} s split them)"
-        )
+    return settings
+
+
+def _estimate_doc(
+    args: argparse.Namespace,
+    scenario: Scenario,
+    log: JointLog,
+    est,
+    *,
+    history: list[dict],
+    settings,
+    prior,
+    prior_nominal,
+    truth,
+    corrections,
+) -> dict:
+    """estimate.json: the final estimate, its inputs and the update history."""
     final = est.estimate
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     doc = final.to_json()
     doc.update(
         {
@@ -267,11 +256,11 @@ def cmd_sysid(args: argparse.Namespace) -> int:
             "messages": est.messages,
         }
     )
-    (out / "estimate.json").write_text(json.dumps(doc, indent=2, default=float))
-    title = f"{Path(args.log).name}: {len(history)} updates, cond(Y) = {final.cond_Y:.3g}, case {final.case}"
-    plot_intervals(out / "intervals.png", final, prior_nominal, truth, title)
-    plot_history(out / "history.png", history, truth)
-    verdict = "truth: unknown (no payload given)" if truth is None else f"truth inside: {final.contains(truth)}"
+    return doc
+
+
+def _print_corrections(corrections: dict | None) -> None:
+    """The --model's corrections: what was applied, what the estimator's model has no term for."""
     if corrections:
         print(
             f"model: {corrections['starting_model']} corrected by {', '.join(corrections['applied']) or 'nothing'}"
@@ -281,6 +270,63 @@ def cmd_sysid(args: argparse.Namespace) -> int:
                 else ""
             )
         )
+
+
+def cmd_sysid(args: argparse.Namespace) -> int:
+    scenario = load_scenario(args.scenario, overrides=args.scenario_text)
+    lag, shift, corrections = 0.0, 0.0, None
+    if args.model:
+        robot, lag, shift, corrections = corrected_model(args.model)
+    else:
+        robot = robot_from_scenario(scenario)
+    log = read_log(args.log, robot.n, args.topic, joints=args.joints or list(robot.joint_params.names))
+    settings = _sysid_settings(args, scenario, log, lag=lag, shift=shift)
+    ii = scenario.initial_interval
+    prior = (np.array(ii.lower, float), np.array(ii.upper, float))
+    prior_nominal = np.array(ii.nominal, float)
+    if args.model and not args.scenario:  # the default scenario's prior is about its own robot and payload
+        prior, prior_nominal = None, robot.theta_e
+    # Only a scenario the user gives says what the log holds; the default one's dumbbell does not.
+    truth = payload_truth(scenario, robot) if args.scenario else None
+    try:
+        est, history = run_sysid(
+            log,
+            robot,
+            settings,
+            period_s=scenario.planner.replan_period_s,
+            prior=prior,
+            prior_nominal=prior_nominal,
+            torque_lag_s=lag,
+        )
+    except EstimatorError as err:
+        raise BadInput(f"{args.log}: {err}") from err
+    if not history:
+        span = float(log.t[-1] - log.t[0])
+        raise BadInput(
+            f"{args.log}: too little data: {len(log)} samples over {span:.3g} s do not make two gap-free "
+            f"segments of estimator.horizon_s = {settings.horizon_s} s (gaps > {settings.max_gap_s} s split them)"
+        )
+    final = est.estimate
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    doc = _estimate_doc(
+        args,
+        scenario,
+        log,
+        est,
+        history=history,
+        settings=settings,
+        prior=prior,
+        prior_nominal=prior_nominal,
+        truth=truth,
+        corrections=corrections,
+    )
+    (out / "estimate.json").write_text(json.dumps(doc, indent=2, default=float))
+    title = f"{Path(args.log).name}: {len(history)} updates, cond(Y) = {final.cond_Y:.3g}, case {final.case}"
+    plot_intervals(out / "intervals.png", final, prior_nominal, truth=truth, title=title)
+    plot_history(out / "history.png", history, truth)
+    verdict = "truth: unknown (no payload given)" if truth is None else f"truth inside: {final.contains(truth)}"
+    _print_corrections(corrections)
     print(
         f"m = {final.theta_e[0]:.4g} kg in [{final.lower[0]:.4g}, {final.upper[0]:.4g}], "
         f"{'consistent' if final.consistent else 'INCONSISTENT with the declared bounds'}; {verdict}; "

@@ -153,6 +153,6 @@ def write_identification_results(
             title = f"{scenario_name}, {d}, trial {ours['trial']}: intervals after identification (Fig. 5)"
             path = out / f"fig5_{d}.png"
             written.append(
-                plot_intervals_side_by_side(path, estimates, ours["payload_true"]["theta"], title, prior=prior)
+                plot_intervals_side_by_side(path, estimates, ours["payload_true"]["theta"], title=title, prior=prior)
             )
     return written

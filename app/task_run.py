@@ -10,7 +10,7 @@ import numpy as np
 
 if TYPE_CHECKING:
     from pydrake.systems.analysis import Simulator
-    from safesysid.online import OnlineDiagram
+    from safesysid.online_diagram import OnlineDiagram
     from safesysid.systems.config import Scenario, Task
     from safesysid.systems.model.payload import Dumbbell
     from safesysid.systems.model.robot_model import RobotModel
@@ -42,10 +42,10 @@ def make_task_source(
     robot: RobotModel,
     scenario: Scenario,
     switch_time_s: float,
+    *,
     problem: TaskProblem,
     plan: TaskResult,
     held: Dumbbell | None = None,
-    *,
     certify: bool = False,
 ) -> TaskPhaseSource:
     """The TaskPhaseSource of a scenario whose task trajectory `plan` (TaskResult) solves `problem`;
@@ -68,7 +68,7 @@ def make_task_source(
         curves.append(plan.trajectory)
         report, certified = {"time_scale": 1.0}, ""  # another controller than ARMOUR claims no certificate
         if certify:
-            curves, report, certified = certify_task(problem, curves, thetas, scenario.task)
+            curves, report, certified = certify_task(problem, curves, thetas, task=scenario.task)
             if not curves:
                 return [], events + [dict(kind="task_uncertified", detail=certified)], report
         cache = plan.details.get("cache", "")
@@ -79,7 +79,7 @@ def make_task_source(
     return TaskPhaseSource(robot.n, 14 * robot.n, scenario.q0_rad, switch_time_s=switch_time_s, make_task=make_task)
 
 
-def certify_task(problem: TaskProblem, curves: list, thetas: tuple, task: Task) -> tuple[list, dict, str]:
+def certify_task(problem: TaskProblem, curves: list, thetas: tuple, *, task: Task) -> tuple[list, dict, str]:
     """ARMOUR's certificate of the task phase's curves (the return move, the task trajectory)
     with the box latched at the switch (task_check.phase_certificate: sup |u| / limit over the
     tube and the box): the curves played at the smallest scale of the grid 1 .. task.max_time_scale
@@ -112,6 +112,7 @@ def judge(
     record: SafetyRecord,
     plans: list[dict],
     t: np.ndarray,
+    *,
     tracking_ratio: np.ndarray,
     task: dict | None,
     t_switch: float,
@@ -189,7 +190,7 @@ class GuardedSimulator:
             self.failure = dict(t=now, kind="simulation_failed", detail=detail)
 
 
-def run_task_phase(built: OnlineDiagram, sim: Simulator, scenario: Scenario, method: str) -> dict:
+def run_task_phase(built: OnlineDiagram, sim: Simulator, scenario: Scenario, *, method: str) -> dict:
     """Advance a built run through identification, the task phase, the release and the settling;
     returns the task's summary (placement measured on the simulated payload pose)."""
     from safesysid.systems.task.phase import placement_target

@@ -60,6 +60,7 @@ def draw_plan(
     meshcat: Meshcat,
     points_world: np.ndarray,
     index: int,
+    *,
     rgba: tuple[float, float, float, float] = (0.1, 0.4, 1.0, 1.0),
 ) -> None:
     """Polyline of the planned end-effector path (3 x N points in world)."""
@@ -68,7 +69,7 @@ def draw_plan(
     meshcat.SetLine(f"{PLAN_PATH}/{index}", np.asarray(points_world, float).T, 3.0, Rgba(*rgba))
 
 
-def draw_swept_spheres(meshcat: Meshcat, centres: np.ndarray, radii: np.ndarray, index: int, every: int = 4) -> None:
+def draw_swept_spheres(meshcat: Meshcat, centres: np.ndarray, radii: np.ndarray, *, index: int, every: int = 4) -> None:
     """The planner's certified spheres (a subset of time intervals), hidden by default."""
     from pydrake.geometry import Rgba, Sphere
     from pydrake.math import RigidTransform
@@ -127,6 +128,7 @@ def frame_camera(
     meshcat: Meshcat,
     points: np.ndarray,
     direction: tuple[float, float, float] = (1.0, -1.1, 0.75),
+    *,
     fov_deg: float = 75.0,
     margin: float = 1.0,
 ) -> tuple[np.ndarray, float]:
@@ -158,7 +160,7 @@ def _grasp_path(robot: RobotModel, q: np.ndarray) -> np.ndarray:
 
 
 def decorate(
-    meshcat: Meshcat | None, visualizer: MeshcatVisualizer | None, scene: ReplayScene, samples: int = 200
+    meshcat: Meshcat | None, visualizer: MeshcatVisualizer | None, scene: ReplayScene, *, samples: int = 200
 ) -> None:
     """Camera on the arm's swept workspace, the task path (desired gripper centre over the task
     phase, shown from the task's start in the recording). No-op without a visualizer."""

@@ -14,8 +14,9 @@ from pathlib import Path
 
 import numpy as np
 from safesysid.benchmarks.scaling import load_average, plot, png, timed
-from safesysid.joint_log import JointLog, read_joint_log
+from safesysid.joint_log import read_joint_log
 from safesysid.systems import diagnosis as dg
+from safesysid.systems.model.joint_data import JointLog
 from safesysid.systems.model.robot_model import load_robot
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"

@@ -167,8 +167,9 @@ def update_cost(log_path: str, scenario_path: str) -> dict:
     estimator.set_membership mass and all (the scenario's other estimator settings and prior;
     one BLAS thread), and the final widths of each."""
     from safesysid.joint_log import read_joint_log
-    from safesysid.scenario import load_scenario, robot_from_scenario
+    from safesysid.scenario import load_scenario
     from safesysid.systems.math.blas import single_threaded_blas
+    from safesysid.systems.model.loading import robot_from_scenario
 
     scene = load_scenario(scenario_path)
     robot = robot_from_scenario(scene)

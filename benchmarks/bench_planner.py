@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 from safesysid.benchmarks.scaling import load_average, plot, png, stats
-from safesysid.scenario import Obstacle, Planner
+from safesysid.systems.config import Obstacle, Planner
 from safesysid.systems.model.payload import load_dumbbells
 from safesysid.systems.model.robot_model import MODELS_DIR, load_robot
 from safesysid.systems.planner import reachability as reach
@@ -44,7 +44,7 @@ def parameter_box(robot, payload, ee_ratio=0.2):
 
 def table_ii_box(robot):
     """The paper's Table II end-effector interval (what `safesysid run` starts from), rest +-5 %."""
-    from safesysid.scenario import InitialInterval
+    from safesysid.systems.config import InitialInterval
     from safesysid.systems.model.uncertainty import parameter_box as box_of
 
     ii = InitialInterval()

@@ -68,7 +68,7 @@ def filtered_error(rng, kr, eps, steady=None):
 
 def margins(V_max: float, starts: int = 10, samples: int = 40) -> dict:
     from safesysid.benchmarks.bench_planner import Q0, near_boxes, table_ii_box
-    from safesysid.scenario import Planner
+    from safesysid.systems.config import Planner
     from safesysid.systems.controller import armour as ctl
     from safesysid.systems.math.intervals import Interval
     from safesysid.systems.model.payload import load_dumbbells

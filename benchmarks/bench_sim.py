@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from safesysid.benchmarks.scaling import load_average, png
 from safesysid.closed_loop import build_closed_loop
-from safesysid.scenario import load_scenario, robot_from_scenario
+from safesysid.scenario import load_scenario
 from safesysid.systems.config import METHODS
 from safesysid.systems.controller import armour as C
 from safesysid.systems.controller import systems as controller_systems
@@ -27,6 +27,7 @@ from safesysid.systems.controller.armour_fast import FastArmourLaw, FastControll
 from safesysid.systems.math.bezier import QuinticBezier
 from safesysid.systems.math.intervals import Interval
 from safesysid.systems.model import uncertainty
+from safesysid.systems.model.loading import robot_from_scenario
 
 TARGET_RTF = 4.0
 
@@ -126,7 +127,7 @@ def loop_rtf(s, robot, theta0, box, kind, sim_s, repeat):
     q0, trajectory = _trajectory(s, robot)
 
     def prepare():
-        loop = build_closed_loop(s, trajectory, theta0, box, kind=kind, robot=robot)
+        loop = build_closed_loop(s, trajectory, theta0, theta_box=box, kind=kind, robot=robot)
         return _simulator(loop.diagram, loop.arm, q0)
 
     return _best_rtf(prepare, sim_s, repeat)
@@ -137,7 +138,9 @@ def loop_command(s, robot, theta0, box, sim_s):
     from safesysid.closed_loop import simulate_closed_loop
 
     q0, trajectory = _trajectory(s, robot)
-    logs = simulate_closed_loop(build_closed_loop(s, trajectory, theta0, box, kind="armour", robot=robot), q0, sim_s)
+    logs = simulate_closed_loop(
+        build_closed_loop(s, trajectory, theta0, theta_box=box, kind="armour", robot=robot), q0, sim_s
+    )
     return logs["torque"]
 
 
@@ -303,7 +306,7 @@ def advance_loop(sim_s: float) -> None:
     ii = s.initial_interval
     theta0, box = uncertainty.parameter_box(robot, ii.nominal, ii.lower, ii.upper)
     q0, trajectory = _trajectory(s, robot)
-    loop = build_closed_loop(s, trajectory, theta0, box, kind="armour", robot=robot)
+    loop = build_closed_loop(s, trajectory, theta0, theta_box=box, kind="armour", robot=robot)
     _simulator(loop.diagram, loop.arm, q0).AdvanceTo(sim_s)
 
 

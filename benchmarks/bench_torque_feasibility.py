@@ -18,7 +18,7 @@ import sys
 def run(quick: bool = False) -> dict:
     import numpy as np
     from safesysid.benchmarks.bench_planner import Q0, near_boxes, table_ii_box
-    from safesysid.scenario import Planner
+    from safesysid.systems.config import Planner
     from safesysid.systems.controller import armour as ctl
     from safesysid.systems.model.payload import load_dumbbells
     from safesysid.systems.model.robot_model import MODELS_DIR, load_robot

@@ -25,6 +25,14 @@ MAX_CONTROL_STEP_S = 0.001
 METHODS = tuple(METHODS_SPEC)  # the paper's table of comparisons, in its order
 
 
+def one_of(*allowed: str, default: str | None = None) -> str:
+    """A string field that takes one of `allowed` (default: the first), listed in its metadata
+    "choices": the loader checks it (app/scenario.py), the scenario reference lists it."""
+    value = allowed[0] if default is None else default
+    assert value in allowed, (value, allowed)
+    return dc.field(default=value, metadata={"choices": allowed})
+
+
 class ScenarioError(ValueError):
     """Bad scenario input; the message names the file and the field."""
 
@@ -67,7 +75,7 @@ class BoundingVolume:
     ellipsoid (half_extent_m = semi-axes) or a box (half side lengths), centre_m and rpy_rad of its
     axes. Used by estimator.physical_pruning (systems/estimation/physical.py)."""
 
-    shape: str = "none"  # none | ellipsoid | box
+    shape: str = one_of("none", "ellipsoid", "box")
     centre_m: List[float] = dc.field(default_factory=lambda: [0.0, 0.0, 0.0])
     half_extent_m: List[float] = dc.field(default_factory=lambda: [0.0, 0.0, 0.0])
     rpy_rad: List[float] = dc.field(default_factory=lambda: [0.0, 0.0, 0.0])
@@ -96,7 +104,7 @@ class Noise:
 
     torque_ratio: float = 0.025
     torque_floor_Nm: float = 0.0
-    distribution: str = "uniform"  # uniform inside the declared bound | none
+    distribution: str = one_of("uniform", "none")  # uniform: inside the declared bound
     # Declared bound the estimator uses (may differ from the simulated noise, to test).
     declared_torque_ratio: float = 0.025
     declared_torque_floor_Nm: float = 0.05
@@ -140,7 +148,7 @@ class Plant:
     # The real arm's robot parameters (links, friction, armature, offsets): the model's nominal
     # values, drawn uniformly inside the declared box (seeded; links kept physically consistent),
     # or at a random vertex of it (pulled inside where a vertex is not physically consistent).
-    robot_parameters: str = "nominal"  # nominal | drawn | corner
+    robot_parameters: str = one_of("nominal", "drawn", "corner")
     effects: PlantEffects = dc.field(default_factory=PlantEffects)
 
 
@@ -154,9 +162,9 @@ class Controller:
     # planner certifies the wrist torque through the affine tube enclosure (interval_dynamics.py):
     # 10/10 random starts plannable (0/10 with the interval boxes, which is why 0.005 was used).
     V_max: float = 0.02
-    # armour | pid | adaptive | adaptive_robust: closed_loop.build_closed_loop's controller; an
-    # online run's controllers are its method's (systems/methods.py).
-    kind: str = "armour"
+    # closed_loop.build_closed_loop's controller; an online run's controllers are its method's
+    # (systems/methods.py).
+    kind: str = one_of("armour", "pid", "adaptive", "adaptive_robust")
     # Baselines (systems/controller/systems.py), per joint; Gen3 inertia with armature is ~9-14 kg m^2,
     # so Kp ~ M (10 rad/s)^2 and Kd ~ 2 M 10 rad/s.
     pid_kp_Nm_rad: List[float] = dc.field(default_factory=lambda: [1000.0] * 7)
@@ -177,23 +185,23 @@ class Planner:
     k_range_rad: List[float] = dc.field(default_factory=lambda: [np.pi / 48] * 4 + [np.pi / 20] * 3)
     num_time_intervals: int = 128  # reachability over-approximation
     num_cost_samples: int = 128  # N_s of the exciting cost
-    cost: str = "exciting"  # exciting | goal | random
+    cost: str = one_of("exciting", "goal", "random")
     # Columns of W_e whose log cond the exciting cost minimises: all ten (the paper) or the six
     # rotational inertias only (the directions the paper's cost leaves poorly excited).
-    exciting_columns: str = "all"  # all | inertia
+    exciting_columns: str = one_of("all", "inertia")
     # What the exciting cost minimises: cond, the paper's log cond(W_e); a_optimal, log of the sum
     # over parameters of the least-squares variance the plan would leave, each relative to its
     # current interval width squared (the widths the estimator publishes, not the ratio of extremes);
     # e_optimal, -log sigma_min, and cond_interval, log cond, of W_e with each column times its
     # parameter's current interval width; d_optimal, -1/2 log det W_e^T W_e, the classic D-optimal
     # design, blind to column scales (README "Tried and no better": all four narrow less than cond).
-    exciting_criterion: str = "cond"  # cond | a_optimal | e_optimal | cond_interval | d_optimal
+    exciting_criterion: str = one_of("cond", "a_optimal", "e_optimal", "cond_interval", "d_optimal")
     # Rows of W_e the exciting cost sees: none, as they are (the paper); noise, each divided by
     # the declared torque-noise bound of its joint and instant (noise.declared_*, on the nominal
     # torque of the plan that keeps k = 0), the scale of the rows the estimator's intervals are
     # made of: a direction seen only on a noisy joint (joint 2's gravity load, joint 7's
     # armature) counts for what it is worth there.
-    exciting_weighting: str = "none"  # none | noise
+    exciting_weighting: str = one_of("none", "noise")
     # true (default): the exciting cost conditions the motion executed so far stacked with the
     # candidate plan, so each plan excites what the data still lack (cond(Y) well below random
     # plans'); false: the plan alone, the paper's cost, whose data are no better conditioned than
@@ -213,14 +221,14 @@ class Planner:
     # leaves the arm where nothing can be certified and it must brake. Needs point_refinement.
     continuation: bool = False
     goal_q_rad: List[float] = dc.field(default_factory=list)
-    solver: str = "ipopt"  # ipopt | snopt
+    solver: str = one_of("ipopt", "snopt")
     max_solve_time_s: float = 1.2  # wall cap inside t_p (budget: wall_time only)
     max_iterations: int = 100
     # What stops a planning call's solver. iterations: max_iterations alone, so the same scenario
     # and seed give the same plans (and summary.json) under any machine load; the default, used
     # by run, compare, sweep and the tests. wall_time: also max_solve_time_s, the real-time mode
     # (the deadline benchmark): which iterate is kept then depends on the machine's speed and load.
-    budget: str = "iterations"  # iterations | wall_time
+    budget: str = one_of("iterations", "wall_time")
     floor_z_m: float = 0.0  # floor plane height (an obstacle)
 
 
@@ -242,15 +250,15 @@ class FourierExcitation:
 @dc.dataclass
 class Estimator:
     horizon_s: float = 0.1  # segment length h
-    integration: str = "trapezoid"  # trapezoid | euler (paper)
-    solver: str = "ipopt"  # ipopt | snopt
+    integration: str = one_of("trapezoid", "euler")  # euler: the paper's
+    solver: str = one_of("ipopt", "snopt")
     max_gap_s: float = 0.05  # a segment never spans a time step longer than this
-    # LP refinement of [θ_e] (estimation/enclosure.py): none | mass | all; all, the default, bounds
+    # LP refinement of [θ_e] (estimation/enclosure.py) of nothing, the mass or all; all, the default, bounds
     # each of the ten parameters as the paper's Fig. 5 does (~2x the update's CPU: docs/identification.md)
-    set_membership: str = "all"
-    point_estimate: str = "map"  # θ0: map (θ_r marginalised) | paper (plain least squares)
-    # Logged torque: held (zero-order hold, exact left sum) | continuous (trapezoid + rate bound).
-    torque_signal: str = "held"
+    set_membership: str = one_of("none", "mass", "all", default="all")
+    point_estimate: str = one_of("map", "paper")  # θ0: map (θ_r marginalised), paper (plain least squares)
+    # Logged torque: held (zero-order hold, exact left sum), continuous (trapezoid + rate bound).
+    torque_signal: str = one_of("held", "continuous")
     hold_period_s: float = 0.0  # held: the hold period; 0 = plant.time_step_s
     torque_rate_limit_Nm_s: float = 200.0  # continuous: declared |dtau/dt|, checked on the data
     # held: the torque sensor's first-order lag (time constant; 0 = none), undone exactly
@@ -326,7 +334,7 @@ class Task:
     collision_samples: int = 200  # sphere/obstacle checks (+ a margin for the motion in between)
     torque_samples: int = 41  # inverse-dynamics checks
     torque_margin_ratio: float = 0.2  # nominal torque <= (1 - ratio) * limit (room for the tube)
-    solver: str = "snopt"  # snopt (Ipopt as fallback) | ipopt
+    solver: str = one_of("snopt", "ipopt")  # snopt: Ipopt as its fallback
     max_iterations: int = 500
     max_solve_time_s: float = 120.0  # wall-time cap per solver (offline; the result is cached)
     # Certificate (app/task_run.py): ARMOUR's torque bound over the tube and the box latched at the
@@ -367,7 +375,7 @@ class Faults:
     sample_nan_rate_per_s: float = 0.0
     # Planner: the planning calls (0-based) whose solver fails or times out (no verified plan).
     planner_failure_calls: List[int] = dc.field(default_factory=list)
-    planner_failure_kind: str = "solver_failed"  # solver_failed | timeout
+    planner_failure_kind: str = one_of("solver_failed", "timeout")
     appearing_obstacles: List[ScheduledObstacle] = dc.field(default_factory=list)
     # The real payload is heavier than the scenario's dumbbell by this much (same shape, denser).
     payload_extra_mass_kg: float = 0.0
@@ -392,7 +400,7 @@ class Arm:
     arm reached over LCM (Drake's lcmt_panda_command / lcmt_panda_status, torque mode), answered by
     `safesysid arm-sim` or a hardware driver."""
 
-    driver: str = "simulated"  # simulated | lcm
+    driver: str = one_of("simulated", "lcm")
     lcm_url: str = "udpm://239.241.129.92:20185?ttl=0"  # ttl=0: this machine only
     command_channel: str = "SAFESYSID_ARM_COMMAND"
     status_channel: str = "SAFESYSID_ARM_STATUS"
@@ -417,7 +425,7 @@ class Scenario:
     task: Task = dc.field(default_factory=Task)
     faults: Faults = dc.field(default_factory=Faults)
     arm: Arm = dc.field(default_factory=Arm)
-    method: str = "ours"  # a name of METHODS (systems/methods.py: the paper's table of comparisons)
+    method: str = one_of(*METHODS, default="ours")  # systems/methods.py: the paper's table of comparisons
     seed: int = 0
     # Where the loader found the file (not a YAML field).
     source: str = ""

@@ -1,7 +1,15 @@
 """Fixtures shared by the tests (plain helpers are in helpers.py). A module that defines a
 fixture of the same name uses its own."""
 
+import sys
+from pathlib import Path
+
 import pytest
+
+# The experiment scripts (experiments/, not installed) import as top-level modules, as when run
+# with `python experiments/NAME.py`.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
+
 from helpers import FULL, n_trials, params_with_spheres, shared_path  # noqa: F401 (test_gap.py still imports them from here)
 
 

@@ -179,7 +179,8 @@ def test_replayed_law_gives_the_plant_the_same_torques_without_computing_the_law
     around the law (freezing the law's first output instead changed the plant's work)."""
     from safesysid.benchmarks import bench_sim
     from safesysid.closed_loop import build_closed_loop, simulate_closed_loop
-    from safesysid.scenario import load_scenario, robot_from_scenario
+    from safesysid.scenario import load_scenario
+    from safesysid.systems.model.loading import robot_from_scenario
 
     s = load_scenario(overrides={"payload": {"dumbbell": "8lb"}})
     robot = robot_from_scenario(s)
@@ -192,7 +193,7 @@ def test_replayed_law_gives_the_plant_the_same_torques_without_computing_the_law
     monkeypatch.setattr(FastArmourLaw, "__call__", lambda self, *inputs: calls.append(1) or call(self, *inputs))
 
     def torques():
-        loop = build_closed_loop(s, trajectory, theta0, box, kind="armour", robot=robot)
+        loop = build_closed_loop(s, trajectory, theta0, theta_box=box, kind="armour", robot=robot)
         return simulate_closed_loop(loop, q0, 0.2)["torque"]
 
     with bench_sim._replayed_law():
@@ -204,10 +205,10 @@ def test_replayed_law_gives_the_plant_the_same_torques_without_computing_the_law
 
 
 def test_grasp_load_of_a_steady_rotation_about_the_base(tmp_path):
-    """benchmarks/grasp_load.py: joint 1 turning at a constant w, the other joints still, so the grasp
+    """experiments/grasp_load.py: joint 1 turning at a constant w, the other joints still, so the grasp
     point circles the base axis: the dumbbell needs m sqrt(g^2 + (w^2 r)^2), r its distance from the
     axis; no angular acceleration."""
-    from safesysid.benchmarks.grasp_load import grasp_load
+    from grasp_load import grasp_load
 
     robot = load_robot()
     q0 = np.array([0.0, 0.4, 0.0, 1.2, 0.0, 0.6, 0.0])

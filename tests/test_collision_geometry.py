@@ -157,7 +157,7 @@ def test_the_planner_checks_obstacles_against_the_fixed_base(robot):
     """The base cannot move, yet it has (world-fixed) planner spheres: a box 1 cm from the base
     capsule, inside those spheres and clear of every moving one, makes the planner refuse to
     start, naming the base; 5 cm away (outside them) it plans."""
-    from safesysid.scenario import Obstacle, Planner
+    from safesysid.systems.config import Obstacle, Planner
     from safesysid.systems.planner.safe_planner import SafePlanner
 
     q0 = np.array([0.0, 0.26, 0.0, 2.0, 0.0, 0.9, 1.57])

@@ -8,7 +8,8 @@ import re
 import pytest
 from safesysid.cli import BadInput, main
 from safesysid.compare_cli import cell, parse_dumbbells, parse_methods, stack_layer, table
-from safesysid.scenario import METHODS, SCENARIOS_DIR
+from safesysid.scenario import SCENARIOS_DIR
+from safesysid.systems.config import METHODS
 
 CATALOGUE = {"4lb": 1.814, "5lb": 2.268, "6lb": 2.722, "7lb": 3.175, "8lb": 3.629}
 ALL = list(CATALOGUE)

@@ -6,8 +6,10 @@ and the simulated arm built from it, driven by the same commanded trajectory as 
 import numpy as np
 import pytest
 import yaml
-from safesysid.scenario import ScenarioError, load_scenario, robot_from_scenario
+from safesysid.scenario import load_scenario
 from safesysid.systems import diagnosis as dg
+from safesysid.systems.config import ScenarioError
+from safesysid.systems.model.loading import robot_from_scenario
 from safesysid.systems.model.robot_model import MODELS_DIR, load_robot
 from safesysid.systems.plant.arm_tracking import track_trajectory
 

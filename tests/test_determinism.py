@@ -13,7 +13,8 @@ import sys
 
 import numpy as np
 from safesysid.cli import main
-from safesysid.scenario import SCENARIOS_DIR, Obstacle, Planner
+from safesysid.scenario import SCENARIOS_DIR
+from safesysid.systems.config import Obstacle, Planner
 from safesysid.systems.controller import armour as ctl
 from safesysid.systems.planner.safe_planner import SafePlanner
 

@@ -6,8 +6,9 @@ import json
 import numpy as np
 import pytest
 from safesysid.cli import main
-from safesysid.joint_log import JointLog, write_joint_log
+from safesysid.joint_log import write_joint_log
 from safesysid.systems import diagnosis as dg
+from safesysid.systems.model.joint_data import JointLog
 from safesysid.systems.model.robot_model import load_robot
 from test_gap import TWO_LINK
 

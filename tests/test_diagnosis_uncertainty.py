@@ -4,9 +4,9 @@ report (selection.equally_good) and the self-check's hard mode."""
 import numpy as np
 import pytest
 import yaml
-from safesysid.joint_log import JointLog
 from safesysid.systems import diagnosis as dg
 from safesysid.systems.diagnosis import intervals as iv
+from safesysid.systems.model.joint_data import JointLog
 from safesysid.systems.model.robot_model import load_robot
 from test_gap import TWO_LINK
 

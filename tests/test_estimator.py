@@ -423,8 +423,8 @@ def test_bad_input_is_rejected(robot):
 
 def test_table_v_observation_matrix_tends_to_dt_times_w(robot):
     """Table V's construction: with h = 1 sample, Y ≈ Δt·W (end-effector columns)."""
-    from safesysid.benchmarks.table_v import observation_matrix
     from safesysid.systems.model import regressors
+    from table_v import observation_matrix
 
     rng = np.random.default_rng(81)
     t, q, v, a = E.fourier_trajectory(rng, robot, 0.5, rate_hz=1000.0, period_s=1.0, centre=CENTRE)

@@ -241,7 +241,7 @@ def test_offline_lag_undo_encloses_every_lag_in_the_interval(robot, dumbbells):
 
     def undone(lag):
         rows = copy.deepcopy(est.rows)
-        undo_torque_lag(rows, tau_meas, lag, est.settings)
+        undo_torque_lag(rows, tau_meas, lag, settings=est.settings)
         return rows
 
     interval = undone([0.09, 0.13])

@@ -170,7 +170,8 @@ def test_scenario_volumes_contain_their_dumbbells(robot, dumbbells, scenario, pa
     ],
 )
 def test_a_bad_bounding_volume_is_refused_naming_the_field(text, field):
-    from safesysid.scenario import SCENARIOS_DIR, ScenarioError, load_scenario
+    from safesysid.scenario import SCENARIOS_DIR, load_scenario
+    from safesysid.systems.config import ScenarioError
 
     with pytest.raises(ScenarioError, match=field):
         load_scenario(SCENARIOS_DIR / "identify_all.yaml", overrides=[text])

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 from helpers import FULL, assert_safe, event_kinds
 from safesysid.online import build_online, run_online
-from safesysid.scenario import SCENARIOS_DIR, ScenarioError, load_scenario
+from safesysid.scenario import SCENARIOS_DIR, load_scenario
+from safesysid.systems.config import ScenarioError
 
 
 def scenario(faults, plans=1, *more):
@@ -141,8 +142,8 @@ def _box_in_the_margin(plan, q, arm, t_s, depth=0.002, size=0.1):
     """An axis-aligned box reaching `depth` into one certified swept sphere after t_s, whose
     clearance from the planner spheres at every executed configuration (they enclose the link
     shapes) is at least 3 mm: inside the plan's margin, off its actual path."""
-    from safesysid.scenario import Obstacle
     from safesysid.sweeps import _clearance, _sphere_centres
+    from safesysid.systems.config import Obstacle
 
     edges = plan.details["interval_edges_s"]
     centres, radii = plan.details["sphere_centres"], plan.details["sphere_radii"]

@@ -4,9 +4,9 @@ and the withheld-effect self-check (diagnosis/simulate.py, self_check.py, detect
 import numpy as np
 import pytest
 from helpers import n_trials, shared_path
-from safesysid.joint_log import JointLog
 from safesysid.systems import diagnosis as dg
 from safesysid.systems.model import inertial
+from safesysid.systems.model.joint_data import JointLog
 from safesysid.systems.model.robot_model import load_robot
 
 TWO_LINK = """<robot name="two"><link name="base"/>

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 from safesysid.cli import main
 from safesysid.joint_bag import read_joint_bag
-from safesysid.joint_log import JointLog, LogError, read_joint_log, write_joint_log
+from safesysid.joint_log import LogError, read_joint_log, write_joint_log
+from safesysid.systems.model.joint_data import JointLog
 from safesysid.systems.model.robot_model import load_robot
 from test_gap import TWO_LINK, _logs
 
@@ -91,13 +92,13 @@ def test_bag_reads_back_the_csv_floats(logs, fmt):
     log = read[0]
     (root / fmt).mkdir()
     path = write_bag(bag_path(root / fmt, fmt, "one"), fmt, log, model.joint_params.names)
-    back = read_joint_bag(path, TOPIC, model.joint_params.names, 2)
+    back = read_joint_bag(path, TOPIC, model.joint_params.names, n_joints=2)
     for name in ("t", "q", "v", "tau"):
         assert np.array_equal(getattr(back, name), getattr(log, name)), name
     assert back.a is None
     # Zero header stamps: the bag's receive time is used instead (the same instants here).
     zero = write_bag(bag_path(root / fmt, fmt, "zero"), fmt, log, model.joint_params.names, zero_stamps=True)
-    assert np.array_equal(read_joint_bag(zero, TOPIC, model.joint_params.names, 2).t, log.t)
+    assert np.array_equal(read_joint_bag(zero, TOPIC, model.joint_params.names, n_joints=2).t, log.t)
 
 
 def _same_up_to_timing(a, b, rename):

@@ -1,6 +1,7 @@
 import numpy as np
 import pytest
-from safesysid.joint_log import JointLog, LogError, read_joint_log, write_joint_log
+from safesysid.joint_log import LogError, read_joint_log, write_joint_log
+from safesysid.systems.model.joint_data import JointLog
 
 
 def make_log(n=3, rows=5, with_a=True):

@@ -229,7 +229,6 @@ def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 
 # Cycles made only of annotations (TYPE_CHECKING imports; nothing runs them), each with its reason.
 TYPE_ONLY_CYCLES = [
-    ["safesysid.online", "safesysid.task_run"],  # the task phase runs on an OnlineDiagram
 ]
 
 

@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 from helpers import leaves, simulate_online
 from safesysid.online import build_online, run_online
-from safesysid.scenario import METHODS, SCENARIOS_DIR, load_scenario, robot_from_scenario
+from safesysid.scenario import SCENARIOS_DIR, load_scenario
 from safesysid.systems import methods
+from safesysid.systems.config import METHODS
 from safesysid.systems.controller.armour import ControllerDynamics
 from safesysid.systems.controller.systems import (
     AdaptiveController,
@@ -30,6 +31,7 @@ from safesysid.systems.excitation.fourier import (
     optimize_fourier,
 )
 from safesysid.systems.model import parameter_sources
+from safesysid.systems.model.loading import robot_from_scenario
 
 PAPER_TABLE = {
     # method: (first controller, task controller, start model, task model, identification)
@@ -281,7 +283,7 @@ def test_every_method_name_is_accepted(scenario):
     [("{period_s: 0.0}", "fourier.period_s"), ("{acceleration_limit_rad_s2: [5.0]}", "acceleration_limit_rad_s2")],
 )
 def test_bad_fourier_field_is_named(override, field):
-    from safesysid.scenario import ScenarioError
+    from safesysid.systems.config import ScenarioError
 
     with pytest.raises(ScenarioError, match=field):
         load_scenario(SCENARIOS_DIR / "quickstart.yaml", overrides=f"fourier: {override}")

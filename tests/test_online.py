@@ -77,7 +77,7 @@ def test_quickstart_outputs(quickstart, tmp_path):
 
 
 def test_robust_input_summary_splits_the_armour_steps_by_phase():
-    from safesysid.online import robust_input_summary
+    from safesysid.summary import robust_input_summary
 
     # rows [V_bar, h, lambda, |r|, |w_bar|]; ARMOUR runs steps 0-3 (identification 0-1, task 2-3)
     diag = np.array([[0, 0.02, 0, 0, 5], [0, 0.01, 2, 0, 6], [0, 0.03, 0, 0, 1], [0, 0.04, 0, 0, 2], [0, -1, 9, 0, 9]])

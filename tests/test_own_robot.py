@@ -11,7 +11,8 @@ import pytest
 from pydrake.geometry import Box, Capsule, Cylinder, Sphere
 from pydrake.math import RigidTransform, RollPitchYaw
 from safesysid.models import cover_spheres, make_panda_urdf, make_ur5e_urdf
-from safesysid.scenario import SCENARIOS_DIR, ScenarioError, load_scenario
+from safesysid.scenario import SCENARIOS_DIR, load_scenario
+from safesysid.systems.config import ScenarioError
 from safesysid.systems.estimation.prior import payload_range_prior
 from safesysid.systems.model import inertial
 from safesysid.systems.model.payload import load_dumbbells

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from helpers import n_trials
 from safesysid.benchmarks.bench_planner import parameter_box as theta_box  # one definition of the test prior
-from safesysid.scenario import Obstacle, Planner
+from safesysid.systems.config import Obstacle, Planner
 from safesysid.systems.controller import armour as ctl
 from safesysid.systems.math.intervals import Interval
 from safesysid.systems.model import uncertainty
@@ -489,7 +489,8 @@ def test_wall_time_cap_stops_the_solver_and_keeps_a_verified_point(robot, payloa
 
 def _table_ii_planner(robot, payload, obstacles, **cfg):
     """A planner with the paper's Table II end-effector interval and the scenario's V_max."""
-    from safesysid.scenario import InitialInterval, load_scenario
+    from safesysid.scenario import load_scenario
+    from safesysid.systems.config import InitialInterval
 
     ii = InitialInterval()
     theta0, box = uncertainty.parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper))

@@ -5,7 +5,7 @@ import pytest
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
-from safesysid.scenario import Planner
+from safesysid.systems.config import Planner
 from safesysid.systems.controller import armour as ctl
 from safesysid.systems.model.robot_model import load_robot
 from safesysid.systems.planner.safe_planner import PlanResult, SafePlanner

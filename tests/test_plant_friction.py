@@ -6,8 +6,10 @@ import numpy as np
 import pytest
 from helpers import FULL
 from pydrake.systems.framework import DiagramBuilder
-from safesysid.scenario import ScenarioError, load_scenario, robot_from_scenario
+from safesysid.scenario import load_scenario
 from safesysid.systems import diagnosis as dg
+from safesysid.systems.config import ScenarioError
+from safesysid.systems.model.loading import robot_from_scenario
 from safesysid.systems.model.regressors import coulomb_shape, friction_columns
 from safesysid.systems.plant.station import add_real_arm
 

@@ -29,9 +29,9 @@ def test_the_identified_body_is_named():
 
 def test_intervals_and_mass_show_the_prior(figures):
     nominal, lo, hi = np.full(10, 0.1), PRIOR[0] / 2, PRIOR[1] / 2
-    report.plot_intervals("x.png", nominal, lo, hi, nominal, "t", prior=PRIOR)
+    report.plot_intervals("x.png", nominal, lo, upper=hi, truth=nominal, title="t", prior=PRIOR)
     report.plot_estimate_history(
-        "m.png", [0.0, 1.5], [nominal] * 2, [PRIOR[0], lo], [PRIOR[1], hi], prior=PRIOR, title="body"
+        "m.png", [0.0, 1.5], [nominal] * 2, lower=[PRIOR[0], lo], upper=[PRIOR[1], hi], prior=PRIOR, title="body"
     )
     assert all("prior" in _labels(fig) for fig in figures)
     assert figures[1].axes[0].get_title() == "body"
@@ -39,7 +39,7 @@ def test_intervals_and_mass_show_the_prior(figures):
 
 def test_clearance_names_what_it_measures_and_shades_the_phases(figures):
     phases = [("identification", 0.0, 7.5), ("task", 7.5, 10.0)]
-    report.plot_clearance("c.png", np.linspace(0, 10, 50), np.full(50, 0.1), phases)
+    report.plot_clearance("c.png", np.linspace(0, 10, 50), np.full(50, 0.1), phases=phases)
     ax = figures[0].axes[0]
     assert "links' own shapes" in ax.get_title() and "obstacles" in ax.get_title()
     assert len([p for p in ax.patches if p.get_alpha() is not None]) == len(phases)

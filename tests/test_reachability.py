@@ -352,7 +352,7 @@ def test_body_jacobians_rebuild_the_mass_matrix(robot):
 def test_interval_mass_spread_encloses_the_point_spread(robot):
     """interval_mass_spread over a configuration box >= controller.mass_spread at every sampled
     configuration of it (corners included); equal to it on degenerate boxes; tight on small boxes."""
-    from safesysid.scenario import InitialInterval
+    from safesysid.systems.config import InitialInterval
     from safesysid.systems.controller import armour as ctl
     from safesysid.systems.model import uncertainty
 
@@ -404,7 +404,7 @@ def test_local_spread_bounds_sphere_motion_on_joint_boxes(robot, spheres):
 def test_vertex_robust_bound_is_sound_and_tighter(robot):
     """w_bar from the aa-vertex refinement >= sum_k |Wp_ik| d_k at sampled points (aa at box
     vertices, where the maximum sits) and <= the plain interval bound."""
-    from safesysid.scenario import InitialInterval
+    from safesysid.systems.config import InitialInterval
 
     rng = np.random.default_rng(9)
     n = robot.n

@@ -6,8 +6,9 @@ import pytest
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
-from safesysid.scenario import load_scenario, robot_from_scenario
+from safesysid.scenario import load_scenario
 from safesysid.systems.controller.armour import ControllerDynamics
+from safesysid.systems.model.loading import robot_from_scenario
 from safesysid.systems.model.regressors import friction_columns
 from safesysid.systems.plant.arm_plant import scenario_dumbbell, true_theta
 from safesysid.systems.plant.station import add_real_arm

@@ -92,7 +92,7 @@ def test_no_robot_limit_is_written_in_systems_or_app():
 
 
 def test_the_known_exceptions_are_exactly_the_gen3_defaults_of_the_schema():
-    from safesysid.scenario import Scenario
+    from safesysid.systems.config import Scenario
 
     s = Scenario()
     assert len(s.q0_rad) == len(s.controller.Kr) == len(s.planner.k_range_rad) == 7

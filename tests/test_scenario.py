@@ -1,6 +1,8 @@
 import numpy as np
 import pytest
-from safesysid.scenario import SCENARIOS_DIR, ScenarioError, load_scenario, robot_from_scenario
+from safesysid.scenario import SCENARIOS_DIR, load_scenario
+from safesysid.systems.config import ScenarioError
+from safesysid.systems.model.loading import robot_from_scenario
 
 
 def test_defaults_and_robot():
@@ -117,7 +119,7 @@ def test_one_of_everything_names_every_field_and_every_effect():
     import dataclasses
 
     import yaml
-    from safesysid.scenario import PlantEffects, Scenario
+    from safesysid.systems.config import PlantEffects, Scenario
 
     raw = yaml.safe_load((SCENARIOS_DIR / "one_of_everything.yaml").read_text())
     for key in _leaf_keys(Scenario):

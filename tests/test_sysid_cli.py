@@ -7,8 +7,9 @@ import pytest
 import yaml
 from helpers import shared_path
 from safesysid.cli import main
-from safesysid.joint_log import JointLog, read_joint_log, write_joint_log
+from safesysid.joint_log import read_joint_log, write_joint_log
 from safesysid.systems import estimation as E
+from safesysid.systems.model.joint_data import JointLog
 from safesysid.systems.model.payload import load_dumbbells, payload_theta_in_end_effector
 from safesysid.systems.model.robot_model import MODELS_DIR, load_robot
 

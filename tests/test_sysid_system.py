@@ -193,8 +193,8 @@ def test_samples_are_what_the_discrete_arm_applies():
     state is already advanced) with the command of t_k."""
     from pydrake.systems.primitives import VectorLogSink
     from safesysid.online import make_estimator_system
-    from safesysid.scenario import robot_from_scenario
     from safesysid.systems.controller.armour import ControllerDynamics
+    from safesysid.systems.model.loading import robot_from_scenario
     from safesysid.systems.plant.station import add_real_arm
 
     s = load_scenario(overrides={"payload": {"dumbbell": "none"}})

@@ -11,9 +11,9 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import BasicVector, DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import ConstantVectorSource
 from safesysid.online import run_online
-from safesysid.scenario import robot_from_scenario
 from safesysid.systems import methods
 from safesysid.systems.model import parameter_sources
+from safesysid.systems.model.loading import robot_from_scenario
 from safesysid.systems.planner.trajectory_source import TaskPhaseSource
 from safesysid.systems.task import phase as task_phase
 from safesysid.systems.task.check import (
@@ -48,7 +48,7 @@ def test_a_certificate_above_one_is_played_slower_on_the_same_path_until_it_hold
         methods.method_spec("conservative"), robot_from_scenario(scene), scene
     )
     thetas = (theta0, box.lo, box.hi)
-    curves, report, text = certify_task(problem, [plan.trajectory], thetas, scene.task)
+    curves, report, text = certify_task(problem, [plan.trajectory], thetas, task=scene.task)
     (played,) = curves
     scale = report["time_scale"]
     assert report["certified_torque_ratio_unscaled"] > 1.0 and 1.0 < scale <= scene.task.max_time_scale
@@ -127,7 +127,13 @@ def test_compare_table_shows_each_tasks_duration_scale_certificate_and_refusal(t
     blind = dict(played, duration_s=2.0, time_scale=1.0, certified_torque_ratio=0.371)
     blind["certificate_box_contains_payload"] = False
     done = [run("ours", played), run("conservative", refused), run("wrong", blind), run("grav-pid", None)]
-    write_tables(tmp_path, "a", table(done, ["ours", "conservative", "wrong", "grav-pid"], ["4lb"], 1), ["4lb"], 1)
+    write_tables(
+        tmp_path,
+        "a",
+        table(done, ["ours", "conservative", "wrong", "grav-pid"], ["4lb"], trials=1),
+        dumbbells=["4lb"],
+        trials=1,
+    )
     md = (tmp_path / "table.md").read_text()
     assert "| ours | 2.50 s (1.25x, certificate 0.958) |" in md
     assert "| conservative | refused: task_uncertified (certificate 1.075 at the cap) |" in md

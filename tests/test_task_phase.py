@@ -10,7 +10,8 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource
 from safesysid.online import run_online
-from safesysid.scenario import SCENARIOS_DIR, Obstacle, load_scenario
+from safesysid.scenario import SCENARIOS_DIR, load_scenario
+from safesysid.systems.config import Obstacle
 from safesysid.systems.math.piecewise_bezier import Parametrization, PiecewiseBezier
 from safesysid.systems.planner.trajectory_source import TaskPhaseSource
 from safesysid.systems.task import phase as task_phase
@@ -211,7 +212,7 @@ def test_stacking_puts_the_placed_dumbbells_on_the_platform_and_the_payload_on_t
     """task.stack_on: each placed dumbbell becomes a box on the previous one (2 x head radius
     high, wide enough for any yaw), the payload's platform is the top box and its target rests on
     it; a name outside the dumbbell set or a stack without a platform is a one-line error."""
-    from safesysid.scenario import ScenarioError
+    from safesysid.systems.config import ScenarioError
     from safesysid.systems.model.payload import load_dumbbells
     from safesysid.systems.model.robot_model import MODELS_DIR
 

@@ -6,7 +6,8 @@ import dataclasses as dc
 
 import numpy as np
 import pytest
-from safesysid.scenario import SCENARIOS_DIR, ScenarioError, load_scenario
+from safesysid.scenario import SCENARIOS_DIR, load_scenario
+from safesysid.systems.config import ScenarioError
 from safesysid.systems.controller.armour import TrackingBounds
 from safesysid.systems.math.piecewise_bezier import Parametrization, PiecewiseBezier, jerk_gram
 from safesysid.systems.model.uncertainty import parameter_box
@@ -276,7 +277,7 @@ def test_solver_giving_up_is_reported_not_raised():
 
 # ---- scenario section (bad task fields: tests/test_scenario.py) -----------------------------------
 def test_scenario_without_task_has_no_task_phase():
-    from safesysid.scenario import task_enabled
+    from safesysid.systems.config import task_enabled
 
     s = load_scenario(SCENARIOS_DIR / "quickstart.yaml")
     assert not task_enabled(s)

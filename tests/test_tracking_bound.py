@@ -12,11 +12,12 @@ import numpy as np
 import pytest
 from helpers import n_trials
 from safesysid.closed_loop import build_closed_loop, simulate_closed_loop
-from safesysid.scenario import load_scenario, robot_from_scenario
+from safesysid.scenario import load_scenario
 from safesysid.systems.controller import armour as C
 from safesysid.systems.math.bezier import QuinticBezier
 from safesysid.systems.math.intervals import Interval
 from safesysid.systems.model import uncertainty
+from safesysid.systems.model.loading import robot_from_scenario
 from safesysid.systems.plant.arm_plant import scenario_dumbbell, true_theta
 
 PAYLOADS = ["none", "4lb", "5lb", "6lb", "7lb", "8lb"]
@@ -90,7 +91,7 @@ def boundary_start(robot, s, theta_true, rng, ee_ratio):
 def run(s, robot, theta0, box, q0, trajectory, kind="armour", duration=None, theta_true=None, v0=None):
     """Simulate; returns per-step ratios |e_i| / (eps/Kr_i), |r| / eps, |u_i| / limit_i (and the
     true Lyapunov value 1/2 r^T M(q; theta_true) r / V_max when theta_true is given)."""
-    loop = build_closed_loop(s, trajectory, theta0, box, kind=kind, robot=robot)
+    loop = build_closed_loop(s, trajectory, theta0, theta_box=box, kind=kind, robot=robot)
     logs = simulate_closed_loop(loop, q0, duration or s.planner.duration_s, v0=v0)
     x, d, u = logs["state"][1], logs["desired"][1], logs["torque"][1]
     n = robot.n
@@ -258,7 +259,7 @@ def test_adaptive_estimate_moves_toward_the_payload(robot):
     ii = s.initial_interval
     theta0, box = uncertainty.parameter_box(robot, robot.theta_e, ii.lower, ii.upper)
     trajectory = random_trajectory(s, np.random.default_rng(11))
-    loop = build_closed_loop(s, trajectory, theta0, box, kind="adaptive", robot=robot, log=False)
+    loop = build_closed_loop(s, trajectory, theta0, theta_box=box, kind="adaptive", robot=robot, log=False)
     from pydrake.systems.analysis import Simulator
 
     sim = Simulator(loop.diagram)

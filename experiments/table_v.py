@@ -5,7 +5,7 @@ regressor stacked over all samples; Y_h = the momentum observation matrix (end-e
 columns) with segments of h samples (trapezoid integral of Wc). Then, for each h, the Pearson
 correlation across trajectories of cond(W) and cond(Y_h).
 
-    python benchmarks/table_v.py [--trajectories 60] [--seed 0] [--out table_v.md]
+    python experiments/table_v.py [--trajectories 60] [--seed 0] [--out table_v.md]
 """
 
 from __future__ import annotations

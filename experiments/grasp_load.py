@@ -1,4 +1,4 @@
-"""Peak load on the grasp of the held dumbbell over runs: `python -m safesysid.benchmarks.grasp_load
+"""Peak load on the grasp of the held dumbbell over runs: `python experiments/grasp_load.py
 RUN_DIR ...` (folders of `safesysid run`, their log.csv and summary.json).
 
 The authors' public experiment README says the stock Gen3 gripper cannot hold dumbbells over 7 lb

@@ -1,6 +1,6 @@
 """Can the planner certify holding still at q0? Prints its answer for a scenario and layers.
 
-    python -m safesysid.benchmarks.start_bound SCENARIO.yaml [--scenario-text YAML ...]
+    python experiments/start_bound.py SCENARIO.yaml [--scenario-text YAML ...]
 
 Builds the planner exactly as a run does (prior box, tracking tube from the controller's V_max,
 Kr and alpha, obstacles, payload spheres) and asks for the plan at rest at q0 (k = 0): prints
@@ -16,8 +16,8 @@ import numpy as np
 
 
 def start_reason(scenario) -> str:
-    from safesysid.scenario import robot_from_scenario
     from safesysid.systems.controller.armour import ArmourGains, tracking_bounds_for
+    from safesysid.systems.model.loading import robot_from_scenario
     from safesysid.systems.model.uncertainty import prior_box
     from safesysid.systems.planner.safe_planner import SafePlanner
     from safesysid.systems.plant.arm_plant import scenario_dumbbell

@@ -3,7 +3,7 @@ explains part of it: nested leave-one-run-out on the shared real runs (the diagn
 reports, each with its residual map in report.html), then each candidate of
 systems/diagnosis/candidates.py fitted on each fold's fit logs and scored on its held-out run.
 
-    python -m safesysid.benchmarks.real_residual_map [--out out/real_map]
+    python experiments/real_residual_map.py [--out out/real_map]
 
 Skips (exit 0) when ../shared/data/kinova_gen3_real is absent.
 """
@@ -33,7 +33,7 @@ def main(argv: list[str] | None = None) -> int:
     from safesysid.systems.model.robot_model import load_robot
 
     out = Path(args.out)
-    folds, pooled = leave_one_out_folds(load_robot(model_path=URDF), RUNS, out, URDF)
+    folds, pooled = leave_one_out_folds(load_robot(model_path=URDF), RUNS, out, model_path=URDF)
     p = pooled["pooled"]
     print(f"held-out RMS pooled over the folds {p['rms_before']:.3f} -> {p['rms_after']:.3f} N·m")
     print("\n".join(residual_map_lines(pooled["residual_map_after"])))

@@ -5,7 +5,7 @@ every scale of the grid 1 .. task.max_time_scale, the scale the task is played a
 ours and random latch the estimator's box at the switch, so theirs is per run (summary.json
 task.time_scales_tried; `safesysid compare`'s table).
 
-    python benchmarks/task_time_scales.py     # prints a markdown table (docs/task-phase.md)
+    python experiments/task_time_scales.py     # prints a markdown table (docs/task-phase.md)
 """
 
 from __future__ import annotations
@@ -16,9 +16,10 @@ METHODS = ("conservative", "wrong")
 def certificates(name: str, method: str, scales=None) -> tuple[float, list[tuple[float, float]]]:
     """(the task trajectory's duration at 1x, [(scale, certificate)] over `scales`, by default the
     scenario's whole grid) of experiment `name` with `method`'s task box."""
-    from safesysid.scenario import SCENARIOS_DIR, load_scenario, robot_from_scenario
+    from safesysid.scenario import SCENARIOS_DIR, load_scenario
     from safesysid.systems import methods
     from safesysid.systems.model import parameter_sources
+    from safesysid.systems.model.loading import robot_from_scenario
     from safesysid.systems.task.check import phase_certificate, time_scale_grid
     from safesysid.systems.task.phase import task_plan
 

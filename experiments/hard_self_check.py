@@ -3,7 +3,7 @@ library effect), ambiguity reports, and the statistical intervals' coverage with
 factors chosen on the even cases and scored on the odd ones.
 
     safesysid diagnose --self-check --hard --cases 200 --seed 301 --workers 2 --out DIR
-    python -m safesysid.benchmarks.hard_self_check DIR/cases.jsonl   (also reads a partial run)
+    python experiments/hard_self_check.py DIR/cases.jsonl   (also reads a partial run)
 """
 
 from __future__ import annotations
