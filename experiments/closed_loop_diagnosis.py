@@ -298,29 +298,32 @@ def diagnosis_table(by_effect: dict[str, list[dict]]) -> list[str]:
 
 
 def loop_table(by_effect: dict[str, list[dict]]) -> list[str]:
-    """Uncorrected -> corrected rerun on the same hidden-effect plant and seed (cases with a rerun)."""
+    """Uncorrected -> corrected rerun on the same hidden-effect plant and seed. A seed whose
+    correction has no term above the plant was not rerun: its corrected run is the run itself."""
     lines = [
-        "| effect injected (seeds) | correction the loop uses | RMS tracking error [mrad] | robust input active "
-        "| mass interval width [kg] | inconsistent runs | interval holds the truth |",
+        "| effect injected (seeds) | correction the loop uses (seeds) | RMS tracking error [mrad] "
+        "| robust input active | mass interval width [kg] | inconsistent runs | interval holds the truth |",
         "|---|---|---|---|---|---|---|",
     ]
     for effect, cases in by_effect.items():
-        both = [c for c in cases if c["corrected"]]
-        # Without a loop-side term the rerun would be the same run: its row shows the run alone.
-        shown = both or cases
-        unc, cor = [c["uncorrected"] for c in shown], [c["corrected"] for c in both]
+        unc = [c["uncorrected"] for c in cases]
+        cor = [c["corrected"] or c["uncorrected"] for c in cases]
+        rerun = any(c["corrected"] for c in cases)
 
-        def pair(key, fmt, unc=unc, cor=cor):
+        def pair(key, fmt, unc=unc, cor=cor, rerun=rerun):
             before = _each([m[key] for m in unc], fmt)
-            return f"{before} → {_each([m[key] for m in cor], fmt)}" if cor else before
+            return f"{before} → {_each([m[key] for m in cor], fmt)}" if rerun else before
 
-        def count(key, want, unc=unc, cor=cor):
+        def count(key, want, unc=unc, cor=cor, rerun=rerun):
             before = f"{sum(m[key] == want for m in unc)}/{len(unc)}"
-            return f"{before} → {sum(m[key] == want for m in cor)}/{len(cor)}" if cor else before
+            return f"{before} → {sum(m[key] == want for m in cor)}/{len(cor)}" if rerun else before
 
-        terms = ", ".join(sorted({t for c in both for t in c["loop_terms"]})) or "none: no term above the plant"
+        groups: dict[str, list[str]] = {}
+        for c in cases:
+            groups.setdefault(", ".join(c["loop_terms"]) or "none", []).append(str(c["seed"]))
+        terms = "; ".join(f"{t} ({', '.join(seeds)})" for t, seeds in groups.items())
         lines.append(
-            f"| {effect} ({', '.join(str(c['seed']) for c in shown)}) | {terms} "
+            f"| {effect} ({', '.join(str(c['seed']) for c in cases)}) | {terms} "
             f"| {pair('rms_tracking_error_rad', lambda v: f'{1e3 * v:.2f}')} "
             f"| {pair('robust_active_fraction', lambda v: f'{100 * v:.0f} %')} "
             f"| {pair('mass_width_kg', lambda v: f'{v:.3f}')} | {count('consistent', False)} "

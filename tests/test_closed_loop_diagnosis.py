@@ -88,9 +88,10 @@ def test_the_tables_count_names_and_show_the_rerun(tmp_path):
             "effect": "torque_sensor_offset",
             "seed": seed,
             "diagnosis": cld.naming(result, injected) | {"held_out_reduction": 0.9},
-            "loop_terms": ["torque_offset"],
+            "loop_terms": ["torque_offset"] if named else [],
             "uncorrected": metrics,
-            "corrected": metrics | {"consistent": True, "contains_truth": True},
+            # nothing named, nothing to rerun: the corrected run is the run itself
+            "corrected": metrics | {"consistent": True, "contains_truth": True} if named else None,
         }
         (tmp_path / f"c{seed}").mkdir()
         (tmp_path / f"c{seed}" / "case.json").write_text(json.dumps(case))
@@ -98,4 +99,5 @@ def test_the_tables_count_names_and_show_the_rerun(tmp_path):
     row = cld.diagnosis_table(by_effect)[2]
     assert "| 1/3 | armature ×1 | 1/3 |" in row and "7 % / 7 % / –" in row, row
     loop = cld.loop_table(by_effect)[2]
-    assert "2.00 / 2.00 / 2.00 → 2.00 / 2.00 / 2.00" in loop and "| 3/3 → 0/3 | 0/3 → 3/3 |" in loop, loop
+    assert "| torque_offset (0, 1); none (2) | 2.00 / 2.00 / 2.00 → 2.00 / 2.00 / 2.00 |" in loop, loop
+    assert "| 3/3 → 1/3 | 0/3 → 2/3 |" in loop, loop
