@@ -277,13 +277,16 @@ def diagnosis_table(by_effect: dict[str, list[dict]]) -> list[str]:
     """Effect injected -> named (exact / spurious / missed), value error, held-out reduction."""
     lines = [
         "| effect injected (seeds) | diagnosis' name | exact | spurious | missed | value error (relative) "
-        "| in 90 % interval | held-out reduction |",
-        "|---|---|---|---|---|---|---|---|",
+        "| in 90 % interval | held-out reduction | reported ambiguous with |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for effect, cases in by_effect.items():
         diags = [c["diagnosis"] for c in cases]
         spurious = sorted({s for d in diags for s in d["spurious"]})
         counts = ", ".join(f"{s} ×{sum(s in d['spurious'] for d in diags)}" for s in spurious) or "none"
+        others = [{e for sets in d.get("ambiguous", []) for s in sets for e in s} - set(d["named"]) for d in diags]
+        alternatives = sorted(set().union(*others))
+        ambiguous = ", ".join(f"{a} ×{sum(a in o for o in others)}" for a in alternatives) or "none"
         law = INJECTED[effect].time_law
         lines.append(
             f"| {effect} ({', '.join(str(c['seed']) for c in cases)}) "
@@ -292,7 +295,7 @@ def diagnosis_table(by_effect: dict[str, list[dict]]) -> list[str]:
             f"| {sum(not d['found'] for d in diags)}/{len(diags)} "
             f"| {_each([d['relative_error'] for d in diags], lambda v: f'{100 * v:.0f} %')} "
             f"| {_each([d['in_interval'] for d in diags], lambda v: 'yes' if v else 'no')} "
-            f"| {_each([d['held_out_reduction'] for d in diags], lambda v: f'{100 * v:.1f} %')} |"
+            f"| {_each([d['held_out_reduction'] for d in diags], lambda v: f'{100 * v:.1f} %')} | {ambiguous} |"
         )
     return lines
 
