@@ -276,6 +276,12 @@ def _each(values, fmt) -> str:
     return " / ".join("–" if v is None else fmt(v) for v in values)
 
 
+def _tally(per_case: list[set]) -> str:
+    """'name ×cases' for every name in any case's set."""
+    names = sorted(set().union(*per_case))
+    return ", ".join(f"{n} ×{sum(n in found for found in per_case)}" for n in names) or "none"
+
+
 def diagnosis_table(by_effect: dict[str, list[dict]]) -> list[str]:
     """Effect injected -> named (exact / spurious / missed), value error, held-out reduction."""
     lines = [
@@ -285,11 +291,8 @@ def diagnosis_table(by_effect: dict[str, list[dict]]) -> list[str]:
     ]
     for effect, cases in by_effect.items():
         diags = [c["diagnosis"] for c in cases]
-        spurious = sorted({s for d in diags for s in d["spurious"]})
-        counts = ", ".join(f"{s} ×{sum(s in d['spurious'] for d in diags)}" for s in spurious) or "none"
-        others = [{e for sets in d.get("ambiguous", []) for s in sets for e in s} - set(d["named"]) for d in diags]
-        alternatives = sorted(set().union(*others))
-        ambiguous = ", ".join(f"{a} ×{sum(a in o for o in others)}" for a in alternatives) or "none"
+        counts = _tally([set(d["spurious"]) for d in diags])
+        ambiguous = _tally([{e for sets in d["ambiguous"] for s in sets for e in s} - set(d["named"]) for d in diags])
         law = INJECTED[effect].time_law
         lines.append(
             f"| {effect} ({', '.join(str(c['seed']) for c in cases)}) "

@@ -87,7 +87,7 @@ def test_the_tables_count_names_and_show_the_rerun(tmp_path):
         case = {
             "effect": "torque_sensor_offset",
             "seed": seed,
-            "diagnosis": cld.naming(result, injected) | {"held_out_reduction": 0.9},
+            "diagnosis": cld.naming(result, injected) | {"held_out_reduction": 0.9, "ambiguous": []},
             "loop_terms": ["torque_offset"] if named else [],
             "uncorrected": metrics,
             # nothing named, nothing to rerun: the corrected run is the run itself
