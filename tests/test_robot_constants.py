@@ -206,6 +206,23 @@ def test_a_scenario_built_in_code_resolves_as_a_loaded_one():
         robot_from_scenario(Scenario(robot=Robot(params="builtin:ur5e_params.yaml")))
 
 
+def test_a_model_file_alone_takes_the_defaults_of_the_parameter_file_that_names_it(tmp_path):
+    """A diagnosis' corrected model starts from a URDF alone: the Gen3's URDF still has the Gen3's
+    defaults (kinova_gen3_params.yaml names it); a copy elsewhere has none to take, so its prior is
+    left out and the rest derived."""
+    import shutil
+
+    declared = yaml.safe_load((MODELS_DIR / PARAMS[0]).read_text())["defaults"]
+    values = rd.robot_defaults(load_robot(MODELS_DIR / "kinova_gen3.urdf"))
+    assert (
+        values["q0_rad"] == declared["q0_rad"]
+        and values["initial_interval.lower"] == declared["initial_interval"]["lower"]
+    )
+    shutil.copy(MODELS_DIR / "kinova_gen3.urdf", tmp_path / "arm.urdf")
+    copy = rd.robot_defaults(load_robot(tmp_path / "arm.urdf"))
+    assert "initial_interval.lower" not in copy and copy["controller.Kr"] == [rd.BANDWIDTH_RAD_S / 2] * 7
+
+
 def test_a_scenario_that_sets_the_lists_keeps_them():
     from safesysid.scenario import SCENARIOS_DIR, load_scenario
 

@@ -1,5 +1,7 @@
 """A scenario's robot-specific values: what the robot's parameter file declares in its `defaults:`
 section, else what the rules below derive from the robot model (docs/own-robot.md, "Defaults").
+A model file loaded alone (a diagnosis' corrected model) takes the `defaults:` of the parameter
+file beside it that names it.
 
 The scenario fields keep their names; an empty one is unset. fill_robot_defaults fills the unset
 ones of a scenario: the scenario loader calls it through robot_from_scenario, and so does every
@@ -22,9 +24,11 @@ Rules (a robot file without a value):
 from __future__ import annotations
 
 from collections.abc import Iterable
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+import yaml
 from safesysid.systems.config import Scenario, ScenarioError
 
 if TYPE_CHECKING:
@@ -59,8 +63,25 @@ def _flatten(section: dict, prefix: str = "") -> dict:
     return flat
 
 
+def _declaring_file(robot: RobotModel) -> tuple[dict | None, str]:
+    """(document, path) of the parameter file whose `defaults:` apply: the robot's own, or for a
+    model file loaded alone (a diagnosis' corrected model) the parameter YAML beside it that names
+    it (models/kinova_gen3_params.yaml for models/kinova_gen3.urdf)."""
+    if robot.extra.get("params_doc") is not None:
+        return robot.extra["params_doc"], robot.extra.get("params_path") or robot.source
+    model = Path(robot.source)
+    for path in sorted(model.parent.glob("*.yaml")) if model.is_file() else ():
+        try:
+            doc = yaml.safe_load(path.read_text())
+        except (OSError, yaml.YAMLError):
+            continue
+        if isinstance(doc, dict) and doc.get("urdf") == model.name:
+            return doc, str(path)
+    return None, robot.source
+
+
 def _params_file(robot: RobotModel) -> str:
-    return robot.extra.get("params_path") or robot.source
+    return _declaring_file(robot)[1]
 
 
 def declared_defaults(doc: dict | None, *, n: int, where: str) -> dict[str, list[float]]:
@@ -138,7 +159,8 @@ def robot_defaults(robot: RobotModel, fields: Iterable[str] = FIELDS) -> dict[st
     fields = list(fields)
     if not fields:
         return {}
-    declared = declared_defaults(robot.extra.get("params_doc"), n=robot.n, where=_params_file(robot))
+    doc, where = _declaring_file(robot)
+    declared = declared_defaults(doc, n=robot.n, where=where)
     values = {f: declared[f] for f in fields if f in declared}
     return values | derived_defaults(robot, [f for f in fields if f not in values])
 
@@ -151,18 +173,19 @@ def _section_and_name(scenario: Scenario, field: str):
     return obj, name
 
 
-def unset_fields(scenario: Scenario) -> list[str]:
-    """The robot-specific fields a scenario leaves empty (the prior only without a payload range,
-    from which the scenario loader derives it)."""
+def unset_fields(scenario: Scenario, fields: Iterable[str] = FIELDS) -> list[str]:
+    """Of `fields`, the robot-specific ones a scenario leaves empty (the prior only without a
+    payload range, from which the scenario loader derives it)."""
     derived_prior = np.size(scenario.initial_interval.payload_mass_kg) > 0
-    unset = [f for f in FIELDS if np.size(getattr(*_section_and_name(scenario, f))) == 0]
+    unset = [f for f in fields if np.size(getattr(*_section_and_name(scenario, f))) == 0]
     return [f for f in unset if not (derived_prior and f in PRIOR)]
 
 
-def fill_robot_defaults(scenario: Scenario, robot: RobotModel) -> list[str]:
-    """Set each unset robot-specific field of `scenario` (in place) to the robot's value; returns
-    the fields set. ScenarioError when the prior is unset and the robot's file declares none."""
-    unset = unset_fields(scenario)
+def fill_robot_defaults(scenario: Scenario, robot: RobotModel, fields: Iterable[str] = FIELDS) -> list[str]:
+    """Set each unset robot-specific field of `scenario` (in place; of `fields`) to the robot's
+    value; returns the fields set. ScenarioError when the prior is unset and the robot's file
+    declares none."""
+    unset = unset_fields(scenario, fields)
     if not unset:
         return []
     values = robot_defaults(robot, unset)

@@ -72,7 +72,7 @@ from pydrake.systems.primitives import RandomSource, Saturation
 from safesysid.systems.config import Scenario, ScenarioError
 from safesysid.systems.model.loading import robot_from_scenario
 from safesysid.systems.model.payload import Dumbbell
-from safesysid.systems.model.robot_defaults import fill_robot_defaults
+from safesysid.systems.model.robot_defaults import PER_JOINT, fill_robot_defaults
 from safesysid.systems.model.robot_model import RobotModel
 from safesysid.systems.plant import faults
 from safesysid.systems.plant.arm_plant import (  # re-exported: callers import them from here
@@ -362,7 +362,7 @@ def add_real_arm(
     """
 
     robot = robot or robot_from_scenario(scenario)
-    fill_robot_defaults(scenario, robot)  # a Scenario made in code, with the robot given
+    fill_robot_defaults(scenario, robot, PER_JOINT)  # a Scenario made in code (the arm needs no prior)
     n = robot.n
     h = scenario.plant.time_step_s
     eff = scenario.plant.effects
