@@ -144,7 +144,7 @@ def test_every_robot_value_of_the_shipped_scenarios_names_its_file(name):
     loaded = load_scenario(SCENARIOS_DIR / name)
     table = {}
     for field in rd.FIELDS:
-        value = getattr(*rd._section_and_name(loaded, field))
+        value = rd.field_value(loaded, field)
         if _given(doc, field) is not None:
             table[field] = (f"scenarios/{name}", _given(doc, field))
         elif field in declared:
@@ -201,7 +201,7 @@ def test_a_scenario_built_in_code_resolves_as_a_loaded_one():
         layer = {"robot": {"params": f"builtin:{params}"}, "initial_interval": dc.asdict(prior)}
         loaded = load_scenario(text=yaml.safe_dump(layer))
         for field in rd.PER_JOINT:
-            assert getattr(*rd._section_and_name(s, field)) == getattr(*rd._section_and_name(loaded, field)), field
+            assert rd.field_value(s, field) == rd.field_value(loaded, field), field
     with pytest.raises(ScenarioError, match=r"initial_interval: .*ur5e_params.yaml declares no prior"):
         robot_from_scenario(Scenario(robot=Robot(params="builtin:ur5e_params.yaml")))
 

@@ -4,8 +4,9 @@ A model file loaded alone (a diagnosis' corrected model) takes the `defaults:` o
 file beside it that names it.
 
 The scenario fields keep their names; an empty one is unset. fill_robot_defaults fills the unset
-ones of a scenario: the scenario loader calls it through robot_from_scenario, and so does every
-path that builds the systems from a Scenario made in code, so both resolve alike.
+ones of a scenario: robot_from_scenario calls it, and so does the arm station with the robot it
+is given, so a Scenario made in code resolves as a loaded one; the scenario loader goes through
+robot_from_scenario too, or through fill_declared_defaults when the file declares every value.
 
 Rules (a robot file without a value):
 - q0_rad: the middle of the joint box (0 on a joint without both limits, kept inside the one it has).
@@ -173,11 +174,16 @@ def _section_and_name(scenario: Scenario, field: str):
     return obj, name
 
 
+def field_value(scenario: Scenario, field: str):
+    """The value of a dotted field path (e.g. "controller.Kr") of a scenario."""
+    return getattr(*_section_and_name(scenario, field))
+
+
 def unset_fields(scenario: Scenario, fields: Iterable[str] = FIELDS) -> list[str]:
     """Of `fields`, the robot-specific ones a scenario leaves empty (the prior only without a
     payload range, from which the scenario loader derives it)."""
     derived_prior = np.size(scenario.initial_interval.payload_mass_kg) > 0
-    unset = [f for f in fields if np.size(getattr(*_section_and_name(scenario, f))) == 0]
+    unset = [f for f in fields if np.size(field_value(scenario, f)) == 0]
     return [f for f in unset if not (derived_prior and f in PRIOR)]
 
 
