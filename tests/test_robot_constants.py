@@ -204,6 +204,8 @@ def test_a_scenario_built_in_code_resolves_as_a_loaded_one():
             assert rd.field_value(s, field) == rd.field_value(loaded, field), field
     with pytest.raises(ScenarioError, match=r"initial_interval: .*ur5e_params.yaml declares no prior"):
         robot_from_scenario(Scenario(robot=Robot(params="builtin:ur5e_params.yaml")))
+    with pytest.raises(ScenarioError, match=r"defaults: initial_interval: .*ur5e_params.yaml declares no prior"):
+        load_scenario(text="robot: {params: 'builtin:ur5e_params.yaml'}")
 
 
 def test_a_model_file_alone_takes_the_defaults_of_the_parameter_file_that_names_it(tmp_path):
