@@ -174,7 +174,7 @@ def _section_and_name(scenario: Scenario, field: str):
     return obj, name
 
 
-def field_value(scenario: Scenario, field: str):
+def field_value(scenario: Scenario, field: str) -> object:
     """The value of a dotted field path (e.g. "controller.Kr") of a scenario."""
     return getattr(*_section_and_name(scenario, field))
 
