@@ -16,6 +16,7 @@ from safesysid.systems.config import (
     task_enabled,
 )
 from safesysid.systems.model.loading import resolve_path, robot_from_scenario, scenario_dir
+from safesysid.systems.model.robot_defaults import fill_declared_defaults
 
 if typing.TYPE_CHECKING:
     from safesysid.systems.model.corrected_model import CorrectedModel
@@ -82,15 +83,22 @@ _SCALARS = {
 }
 
 
-def _joint_count(s: Scenario) -> int:
-    """The joint count the robot's parameter file names (0 when it cannot tell: a corrected model,
-    or a file the robot loader will reject with its own message)."""
+def _params_doc(s: Scenario) -> dict | None:
+    """The robot's parameter file, read (None when it cannot tell: a corrected model, or a file
+    the robot loader will reject with its own message)."""
     if s.robot.corrected_model:
-        return 0
+        return None
     try:
-        doc = yaml.safe_load(resolve_path(s.robot.params, scenario_dir(s)).read_text()) or {}
-        return len(doc["joints"]["names"])
-    except (OSError, yaml.YAMLError, KeyError, TypeError):
+        return yaml.safe_load(resolve_path(s.robot.params, scenario_dir(s)).read_text()) or {}
+    except (OSError, yaml.YAMLError):
+        return None
+
+
+def _joint_count(s: Scenario) -> int:
+    """The joint count the robot's parameter file names (0 when it cannot tell)."""
+    try:
+        return len(_params_doc(s)["joints"]["names"])
+    except (KeyError, TypeError):
         return 0
 
 
@@ -305,10 +313,24 @@ def load_scenario(
     scenario.source = str(Path(path).resolve()) if path is not None else str(SCENARIOS_DIR / "defaults")
     _apply_corrected_model(scenario, _given_keys([text, *overrides]), where)
     label = where if path is not None else str(SCENARIOS_DIR / "defaults.yaml")
-    _validate(scenario, f"{label} with --scenario-text" if overrides else label)
-    _derive_prior(scenario, _given_keys([text, *overrides]), f"{label} with --scenario-text" if overrides else label)
+    label = f"{label} with --scenario-text" if overrides else label
+    _resolve_robot(scenario, _given_keys([text, *overrides]), label)
+    _validate(scenario, label)
     _stack_on_platform(scenario)
     return scenario
+
+
+def _resolve_robot(s: Scenario, given, where) -> None:
+    """The robot's values of the fields the layers left unset (systems/model/robot_defaults.py,
+    through robot_from_scenario) and a prior derived from a payload range; _validate checks the
+    result. A robot file that is not there is named first, before anything reads it."""
+    for field, text in (("robot.params", s.robot.params), ("robot.model", s.robot.model)):
+        if text and not s.robot.corrected_model and not resolve_path(text, scenario_dir(s)).is_file():
+            raise ScenarioError(f"{where}: {field}: file {text!r} not found")
+    where_params = str(resolve_path(s.robot.params, scenario_dir(s)))
+    if s.robot.model or not fill_declared_defaults(s, _params_doc(s), where=where_params):
+        robot_from_scenario(s)  # fills what the file does not declare from the model
+    _derive_prior(s, given, where)
 
 
 def _derive_prior(s: Scenario, given, where) -> None:

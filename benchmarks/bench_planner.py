@@ -44,10 +44,10 @@ def parameter_box(robot, payload, ee_ratio=0.2):
 
 def table_ii_box(robot):
     """The paper's Table II end-effector interval (what `safesysid run` starts from), rest +-5 %."""
-    from safesysid.systems.config import InitialInterval
+    from safesysid.scenario import load_scenario
     from safesysid.systems.model.uncertainty import parameter_box as box_of
 
-    ii = InitialInterval()
+    ii = load_scenario().initial_interval  # the Gen3's declared prior: Table II
     theta0, box = box_of(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper))
     return theta0, box.lo, box.hi
 

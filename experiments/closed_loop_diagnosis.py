@@ -215,7 +215,7 @@ def run_case(effect: str, seed: int, out: str | Path, *, overrides: list | tuple
     split = split_log(folder / "run" / "log.csv", fit, check)
     robot = robot_from_scenario(load_scenario(base, overrides=list(overrides)))
     model = robot.with_end_effector_theta(summary["payload_true"]["theta"])
-    d = run_diagnosis(model, [fit], [check], folder / "diagnosis", model_path=base, plots=False)
+    d = run_diagnosis(model, [fit], [check], out=folder / "diagnosis", model_path=base, plots=False)
     corrected, dropped = loop_corrected_model(
         folder / "diagnosis" / "corrected_model.yaml", folder / "corrected_model_loop.yaml"
     )

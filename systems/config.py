@@ -156,7 +156,9 @@ class Plant:
 class Controller:
     """ARMOUR robust passivity controller (systems/controller/armour.py) and the baselines."""
 
-    Kr: List[float] = dc.field(default_factory=lambda: [5.0, 5.0, 5.0, 5.0, 7.0, 7.0, 7.0])
+    # Per-joint lists left empty here are the robot's: its parameter file's `defaults:` or a rule
+    # (systems/model/robot_defaults.py, docs/own-robot.md "Defaults"), filled when loaded.
+    Kr: List[float] = dc.field(default_factory=list)
     alpha: float = 20.0
     # Lyapunov level of the tube [J]: the hardware value (eps = 0.072). With the Table II prior the
     # planner certifies the wrist torque through the affine tube enclosure (interval_dynamics.py):
@@ -165,12 +167,12 @@ class Controller:
     # closed_loop.build_closed_loop's controller; an online run's controllers are its method's
     # (systems/methods.py).
     kind: str = one_of("armour", "pid", "adaptive", "adaptive_robust")
-    # Baselines (systems/controller/systems.py), per joint; Gen3 inertia with armature is ~9-14 kg m^2,
-    # so Kp ~ M (10 rad/s)^2 and Kd ~ 2 M 10 rad/s.
-    pid_kp_Nm_rad: List[float] = dc.field(default_factory=lambda: [1000.0] * 7)
-    pid_ki_Nm_rad_s: List[float] = dc.field(default_factory=lambda: [1000.0] * 7)
-    pid_kd_Nms_rad: List[float] = dc.field(default_factory=lambda: [180.0] * 7)
-    adaptive_kd_Nms_rad: List[float] = dc.field(default_factory=lambda: [100.0] * 7)
+    # Baselines (systems/controller/systems.py), per joint; empty: the robot's (Kp ~ M (10 rad/s)^2,
+    # Kd ~ 2 M 10 rad/s by the rule, M the joint's largest inertia).
+    pid_kp_Nm_rad: List[float] = dc.field(default_factory=list)
+    pid_ki_Nm_rad_s: List[float] = dc.field(default_factory=list)
+    pid_kd_Nms_rad: List[float] = dc.field(default_factory=list)
+    adaptive_kd_Nms_rad: List[float] = dc.field(default_factory=list)
     # Adaptation gain per end-effector parameter [m, m c (3), I (6)] (units of theta_e^2 / (N m rad)).
     adaptive_gamma: List[float] = dc.field(default_factory=lambda: [5.0, 1.0, 1.0, 1.0, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1])
     adaptive_boundary_rad_s: float = 0.05  # boundary layer of the adaptive robust (adap-2) term
@@ -181,8 +183,9 @@ class Planner:
     duration_s: float = 3.0  # t_f
     replan_period_s: float = 1.5  # t_p
     num_plans: int = 4
-    k_center_rad: List[float] = dc.field(default_factory=lambda: [0.0] * 7)
-    k_range_rad: List[float] = dc.field(default_factory=lambda: [np.pi / 48] * 4 + [np.pi / 20] * 3)
+    # End positions q0 + k_center + k_range * k, k in [-1, 1]; empty: the robot's.
+    k_center_rad: List[float] = dc.field(default_factory=list)
+    k_range_rad: List[float] = dc.field(default_factory=list)
     num_time_intervals: int = 128  # reachability over-approximation
     num_cost_samples: int = 128  # N_s of the exciting cost
     cost: str = one_of("exciting", "goal", "random")
@@ -240,9 +243,8 @@ class FourierExcitation:
 
     period_s: float = 7.5  # as long as the planner's identification phase, (4 - 1) 1.5 s + 3 s
     num_harmonics: int = 5
-    # Gen3 joint acceleration limits of the authors' RAPTOR (KinovaConstants.h): 297.94 deg/s^2
-    # on joints 1-4, 572.95 deg/s^2 on joints 5-7.
-    acceleration_limit_rad_s2: List[float] = dc.field(default_factory=lambda: [5.2] * 4 + [10.0] * 3)
+    # Per joint; empty: the robot's (the Gen3's: its RAPTOR constants; a rule from the velocity limits).
+    acceleration_limit_rad_s2: List[float] = dc.field(default_factory=list)
     num_cost_samples: int = 64
     max_iterations: int = 60
 
@@ -278,11 +280,12 @@ class Estimator:
 
 @dc.dataclass
 class InitialInterval:
-    """End-effector prior (paper Table II): nominal and box, theta order of systems/model/inertial.py NAMES."""
+    """End-effector prior: nominal and box, theta order of systems/model/inertial.py NAMES. Empty:
+    the prior the robot's parameter file declares (the Gen3's: the paper's Table II)."""
 
-    nominal: List[float] = dc.field(default_factory=lambda: [3.2, 0.0, 0.0, -0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
-    lower: List[float] = dc.field(default_factory=lambda: [1.2, -0.4, -0.4, -1.0] + [-0.2] * 6)
-    upper: List[float] = dc.field(default_factory=lambda: [5.2, 0.4, 0.4, -0.1] + [0.2] * 6)
+    nominal: List[float] = dc.field(default_factory=list)
+    lower: List[float] = dc.field(default_factory=list)
+    upper: List[float] = dc.field(default_factory=list)
     # A robot without a declared prior: with payload_mass_kg [lo, hi] set, nominal/lower/upper are
     # derived at load from the end-effector body plus any payload of such mass lying in the box of
     # payload_half_extent_m about payload_centre_m (end-effector frame and axes; empty centre: the
@@ -412,7 +415,7 @@ class Arm:
 class Scenario:
     name: str = "scenario"
     robot: Robot = dc.field(default_factory=Robot)
-    q0_rad: List[float] = dc.field(default_factory=lambda: [0.0, 0.26, 0.0, 2.0, 0.0, 0.9, 1.57])
+    q0_rad: List[float] = dc.field(default_factory=list)  # start pose; empty: the robot's
     payload: Payload = dc.field(default_factory=Payload)
     obstacles: List[Obstacle] = dc.field(default_factory=list)
     noise: Noise = dc.field(default_factory=Noise)

@@ -490,9 +490,8 @@ def test_wall_time_cap_stops_the_solver_and_keeps_a_verified_point(robot, payloa
 def _table_ii_planner(robot, payload, obstacles, **cfg):
     """A planner with the paper's Table II end-effector interval and the scenario's V_max."""
     from safesysid.scenario import load_scenario
-    from safesysid.systems.config import InitialInterval
 
-    ii = InitialInterval()
+    ii = load_scenario().initial_interval  # the Gen3's declared prior: Table II
     theta0, box = uncertainty.parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper))
     gains = ctl.ArmourGains(GAINS.Kr, GAINS.alpha, load_scenario().controller.V_max)
     config = Planner(**{"num_cost_samples": 32, **cfg})

@@ -352,13 +352,13 @@ def test_body_jacobians_rebuild_the_mass_matrix(robot):
 def test_interval_mass_spread_encloses_the_point_spread(robot):
     """interval_mass_spread over a configuration box >= controller.mass_spread at every sampled
     configuration of it (corners included); equal to it on degenerate boxes; tight on small boxes."""
-    from safesysid.systems.config import InitialInterval
+    from safesysid.scenario import load_scenario
     from safesysid.systems.controller import armour as ctl
     from safesysid.systems.model import uncertainty
 
     rng = np.random.default_rng(11)
     n = robot.n
-    ii = InitialInterval()
+    ii = load_scenario().initial_interval  # the Gen3's declared prior: Table II
     _, box = uncertainty.parameter_box(robot, np.array(ii.nominal), np.array(ii.lower), np.array(ii.upper))
     centre = rng.uniform(-2, 2, (12, n))
     point = np.array([ctl.mass_spread(robot, q, box.lo, theta_hi=box.hi) for q in centre])
@@ -404,11 +404,11 @@ def test_local_spread_bounds_sphere_motion_on_joint_boxes(robot, spheres):
 def test_vertex_robust_bound_is_sound_and_tighter(robot):
     """w_bar from the aa-vertex refinement >= sum_k |Wp_ik| d_k at sampled points (aa at box
     vertices, where the maximum sits) and <= the plain interval bound."""
-    from safesysid.systems.config import InitialInterval
+    from safesysid.scenario import load_scenario
 
     rng = np.random.default_rng(9)
     n = robot.n
-    ii = InitialInterval()
+    ii = load_scenario().initial_interval  # the Gen3's declared prior: Table II
     theta0 = robot.theta.copy()
     rel = 0.05 * np.abs(theta0)
     lo, hi = theta0 - rel, theta0 + rel

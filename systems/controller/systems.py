@@ -56,6 +56,10 @@ class ControllerGains:
 
 def _fit(values, n, name):
     arr = np.asarray(values, float)
+    if arr.size == 0:
+        raise ScenarioError(
+            f"controller.{name}: unset (load_scenario, robot_from_scenario or add_real_arm fill it from the robot)"
+        )
     if arr.size == 1:
         return np.full(n, float(arr.reshape(-1)[0]))
     if arr.shape != (n,):

@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
+from safesysid.systems.model.robot_defaults import robot_defaults
 
 if TYPE_CHECKING:
     from safesysid.systems.config import Scenario
@@ -253,11 +254,15 @@ def fourier_settings(robot: RobotModel, scenario: Scenario) -> FourierSettings:
     from safesysid.systems.excitation.fourier import FourierSettings
 
     f = scenario.fourier
+    key = "fourier.acceleration_limit_rad_s2"
+    acceleration = (
+        f.acceleration_limit_rad_s2 if np.size(f.acceleration_limit_rad_s2) else robot_defaults(robot, [key])[key]
+    )  # unset: the robot's
     return FourierSettings(
         period_s=float(f.period_s),
         num_harmonics=int(f.num_harmonics),
         velocity_limit=np.asarray(robot.joint_params.velocity_limit, float),
-        acceleration_limit=np.asarray(f.acceleration_limit_rad_s2, float),
+        acceleration_limit=np.asarray(acceleration, float),
         num_cost_samples=int(f.num_cost_samples),
         max_iterations=int(f.max_iterations),
         seed=int(scenario.seed),

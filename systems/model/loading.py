@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING
 
 from safesysid.systems.config import Robot, Scenario, ScenarioError
 from safesysid.systems.model.corrections import CorrectionError, corrected_robot, read_correction
+from safesysid.systems.model.robot_defaults import fill_robot_defaults
 from safesysid.systems.model.robot_model import MODELS_DIR, ModelError, RobotModel, load_robot
 
 if TYPE_CHECKING:
@@ -27,8 +28,12 @@ def scenario_dir(s: Scenario) -> Path:
 
 
 def robot_from_scenario(s: Scenario) -> RobotModel:
-    """The RobotModel a scenario names (one source of truth for every system)."""
-    return _robot_of(s.robot, scenario_dir(s), s.source)
+    """The RobotModel a scenario names (one source of truth for every system). The scenario's unset
+    robot-specific fields are filled from it on the way (robot_defaults.fill_robot_defaults), so a
+    Scenario built in code resolves as a loaded one does."""
+    robot = _robot_of(s.robot, scenario_dir(s), s.source)
+    fill_robot_defaults(s, robot)
+    return robot
 
 
 def _robot_of(robot: Robot, base: Path, where: str) -> RobotModel:

@@ -398,7 +398,7 @@ def load_robot(
     grasp = np.asarray((doc or {}).get("grasp_point_m", [0, 0, 0]), float)
     if x_carrier_ee is not None:  # given in the frame of a link welded to the end-effector body
         grasp = x_carrier_ee @ grasp
-    extra = {"grasp_point": grasp, "params_doc": doc}
+    extra = {"grasp_point": grasp, "params_doc": doc, "params_path": str(params_path or "")}
     return RobotModel(
         tree=tree,
         joint_params=params,

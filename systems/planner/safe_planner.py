@@ -36,6 +36,7 @@ from safesysid.systems.config import Noise
 from safesysid.systems.controller.armour import TrackingBounds
 from safesysid.systems.math.bezier import QuinticBezier
 from safesysid.systems.math.blas import single_threaded_blas
+from safesysid.systems.model.robot_defaults import robot_defaults
 from safesysid.systems.model.torque_noise import DeclaredTorqueNoise
 from safesysid.systems.planner import reachability as reach
 from safesysid.systems.planner.ee_regressor import ee_standard_regressor
@@ -119,8 +120,12 @@ class SafePlanner:
         self.robot = robot
         self.config = config
         n = robot.n
-        self.k_center = np.broadcast_to(np.asarray(config.k_center_rad, float), (n,)).copy()
-        self.k_range = np.broadcast_to(np.asarray(config.k_range_rad, float), (n,)).copy()
+        k_lists = {"planner.k_center_rad": config.k_center_rad, "planner.k_range_rad": config.k_range_rad}
+        unset = [key for key, value in k_lists.items() if np.size(value) == 0]
+        if unset:  # the robot's (a Planner made in code)
+            k_lists |= robot_defaults(robot, unset)
+        self.k_center = np.broadcast_to(np.asarray(k_lists["planner.k_center_rad"], float), (n,)).copy()
+        self.k_range = np.broadcast_to(np.asarray(k_lists["planner.k_range_rad"], float), (n,)).copy()
         self.boxes = obstacles if isinstance(obstacles, reach.Boxes) else reach.Boxes.from_obstacles(list(obstacles))
         self.spheres = reach.arm_spheres(robot).concat(reach.payload_spheres(robot, payload))
         self.lipschitz = reach.sphere_lipschitz(robot.tree, self.spheres)

@@ -75,6 +75,7 @@ from pydrake.systems.primitives import RandomSource, Saturation
 from safesysid.systems.config import Scenario, ScenarioError
 from safesysid.systems.model.loading import robot_from_scenario
 from safesysid.systems.model.payload import Dumbbell
+from safesysid.systems.model.robot_defaults import PER_JOINT, fill_robot_defaults
 from safesysid.systems.model.robot_model import RobotModel
 from safesysid.systems.plant import faults
 from safesysid.systems.plant.arm_plant import (
@@ -182,6 +183,7 @@ def add_real_arm(
     releasable: add the free body RealArm.release hands the payload to (module docstring).
     """
     robot = robot or robot_from_scenario(scenario)
+    fill_robot_defaults(scenario, robot, PER_JOINT)  # a Scenario made in code (the arm needs no prior)
     n, h, eff = robot.n, scenario.plant.time_step_s, scenario.plant.effects
     db = scenario_dumbbell(scenario) if isinstance(dumbbell, str) and dumbbell == "scenario" else dumbbell
     db = faults.heavier_payload(db, scenario.faults.payload_extra_mass_kg)
