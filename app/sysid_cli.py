@@ -196,6 +196,12 @@ def corrected_model(path: str | Path) -> tuple[RobotModel, float, float, dict]:
     return robot, lag, shift, summary
 
 
+def _settings_record(settings: EstimatorSettings) -> dict:
+    """estimate.json's settings; the declared bound also under its earlier keys (readers rely on them)."""
+    noise = settings.declared_noise
+    return {**dataclasses.asdict(settings), "torque_ratio": noise.ratio, "torque_floor_Nm": noise.floor_Nm}
+
+
 def _sysid_settings(
     args: argparse.Namespace, scenario: Scenario, log: JointLog, *, lag, shift: float
 ) -> EstimatorSettings:
@@ -249,7 +255,7 @@ def _estimate_doc(
             "truth": None if truth is None else {"theta": truth.tolist(), "dumbbell": scenario.payload.dumbbell},
             "contains_truth": None if truth is None else final.contains(truth),
             "mass_error_rel": None if truth is None else float((final.theta_e[0] - truth[0]) / truth[0]),
-            "settings": dataclasses.asdict(settings),
+            "settings": _settings_record(settings),
             "update_period_s": scenario.planner.replan_period_s,
             "sysid": {"updates": len(history), "update_time_s": [h["update_time_s"] for h in history]},
             "history": history,
