@@ -191,7 +191,9 @@ def test_a_scenario_built_in_code_resolves_as_a_loaded_one():
     """The library path: Scenario() made in code gets the robot's values when the robot is read
     (robot_from_scenario, as every run does), the same as load_scenario's; a robot without a
     declared prior and no payload range is an error naming the field."""
-    from safesysid.scenario import Robot, Scenario, ScenarioError, load_scenario, robot_from_scenario
+    from safesysid.scenario import load_scenario
+    from safesysid.systems.config import Robot, Scenario, ScenarioError
+    from safesysid.systems.model.loading import robot_from_scenario
 
     prior = load_scenario().initial_interval  # the Gen3's Table II, given to both
     for params in PARAMS[:2]:
