@@ -112,7 +112,10 @@ def plant_of(true_scenario):
     original = station.add_real_arm
 
     def add_true_arm(builder, scenario, robot=None, **kwargs):
-        return original(builder, true_scenario, None, **kwargs)
+        arm = original(builder, true_scenario, None, **kwargs)
+        if robot is not None:  # the systems above the plant read the arm's model: the corrected one
+            arm.robot = robot
+        return arm
 
     station.add_real_arm = add_true_arm
     try:

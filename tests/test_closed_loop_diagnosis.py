@@ -50,6 +50,7 @@ fitted_on: [fit.csv]
 
 
 def test_the_rerun_builds_the_models_from_the_correction_and_the_arm_from_the_true_scenario(tmp_path):
+    from helpers import leaves
     from safesysid.online import build_online
     from safesysid.scenario import SCENARIOS_DIR, load_scenario
 
@@ -63,8 +64,11 @@ def test_the_rerun_builds_the_models_from_the_correction_and_the_arm_from_the_tr
     assert list(build_online(scenario).arm.robot.joint_params.offset[[1, 3]]) == [1.5, 1.0]
     with cld.plant_of(true_scenario):
         built = build_online(scenario)
-    # The arm: the true robot (no offset term: the hidden offset is the sensor's, on joint 2 only).
-    assert np.all(built.arm.robot.joint_params.offset == 0)
+    # The models above the plant: the corrected robot; the plant: the true one (no offset term: the
+    # hidden offset is the sensor's, on joint 2 only).
+    assert list(built.arm.robot.joint_params.offset[[1, 3]]) == [1.5, 1.0]
+    friction = [s for s in leaves(built.diagram) if s.GetSystemType().endswith("JointFriction")]
+    assert len(friction) == 1 and np.all(friction[0].offset == 0)
     assert list(true_scenario.plant.effects.torque_sensor_offset_Nm) == [0, 1.5, 0, 0, 0, 0, 0]
     assert list(build_online(scenario).arm.robot.joint_params.offset[[1, 3]]) == [1.5, 1.0]  # restored
 
