@@ -41,7 +41,8 @@ class SeriesElasticEncoders(LeafSystem):
     pushed by a periodic unrestricted update as StepDelay does): the deflection the last applied
     torque left in the spring. Reading the current step's torque would close an algebraic loop
     through the controller (encoders -> command -> transmitted torque -> encoders). The first
-    reading holds the torque transmitted at initialization (with the encoders reading q)."""
+    reading holds the torque transmitted at initialization (with the encoders reading q). Stable
+    under feedback while K exceeds the controller's position gain (station.py)."""
 
     def __init__(self, stiffness, time_step):
         super().__init__()

@@ -52,7 +52,10 @@ Unmodelled effects (scenario.plant.effects, each off by default):
   if rigid, but encoders sit on the motor side and read q + tau_s / K, tau_s = the torque the
   transmission carried over the last plant step (applied torque minus friction; one step behind,
   which keeps the controller's feedback free of an algebraic loop). Velocities are reported unchanged. This
-  captures the torque-proportional position offset of a stiff gearbox, not its resonance.
+  captures the torque-proportional position offset of a stiff gearbox, not its resonance. It needs
+  K above the controller's position gain: the offset feeds back one step late with gain
+  (position gain) / K per step, and beyond 1 the command flips sign every step and grows to the
+  torque limit (docs/diagnosis-closed-loop.md); softer joints need joint_elasticity: dynamic.
   With joint_elasticity: dynamic (and joint_damping_Nms_rad) it is the flexible-joint model
   instead (ElasticTransmission): the armature becomes a motor of its own, driven by the applied
   torque against its friction, and a spring-damper carries the torque to the link; encoders and
