@@ -126,7 +126,8 @@ class PlantEffects:
     torque_sensor_delay_s: float = 0.0  # the sensor reading arrives late (torque lags the motion)
     base_tilt_rad: List[float] = dc.field(default_factory=lambda: [0.0, 0.0])
     joint_stiffness_Nm_rad: List[float] = dc.field(default_factory=list)
-    # quasi_static: the link moves as if rigid and motor-side encoders read q + tau / K;
+    # quasi_static: the link moves as if rigid and motor-side encoders read q + tau / K (tau of the
+    # last plant step);
     # dynamic: a motor (inertia = the armature) drives each link through the spring and a damper
     # (joint_damping_Nms_rad), the encoders read the link; systems/plant/stages.py ElasticTransmission.
     joint_elasticity: str = "quasi_static"

@@ -2,11 +2,14 @@
 load-dependent friction mu |tau| sgn v and Stribeck friction Fs sgn v exp(-(v/vs)^2), both in the
 diagnosis' law (systems/dg.py), and a late torque reading, as plant.effects of the real arm."""
 
+import json
+
 import numpy as np
 import pytest
 from helpers import FULL
 from pydrake.systems.framework import DiagramBuilder
-from safesysid.scenario import load_scenario
+from safesysid.cli import main
+from safesysid.scenario import SCENARIOS_DIR, load_scenario
 from safesysid.systems import diagnosis as dg
 from safesysid.systems.config import ScenarioError
 from safesysid.systems.model.loading import robot_from_scenario
@@ -91,14 +94,41 @@ def test_late_actuation(robot):
     under a state-feedback command."""
     for delay in (0.001, 0.003):
         steps = int(round(delay / 0.001))
-        _, _, (motor, applied) = _feedback_run(robot, {"time_delay_s": delay})
+        _, _, (motor, applied, _) = _feedback_run(robot, {"time_delay_s": delay})
         np.testing.assert_array_equal(applied[steps:], motor[:-steps])
         assert np.all(applied[:steps] == 0)
 
 
+def test_quasi_static_elasticity_under_state_feedback(robot):
+    """joint_stiffness_Nm_rad (quasi_static) under a command that feeds back the encoders: no
+    algebraic loop, and the encoders read q + tau_s / K with tau_s the torque the transmission
+    carried over the step that just ended (applied torque minus the model's friction law); the
+    first reading holds the torque transmitted at initialization (commanded from q itself)."""
+    stiffness = np.array([1e4] * 4 + [4e3] * 3)
+    jp = robot.joint_params
+    _, encoders, (_, applied, plant_state) = _feedback_run(robot, {"joint_stiffness_Nm_rad": stiffness.tolist()})
+    v = plant_state[:, 7:]
+    transmitted = applied - (jp.coulomb * np.tanh(v / robot.coulomb_smoothing) + jp.viscous * v + jp.offset)
+    np.testing.assert_array_equal(encoders[:, 7:], v)
+    offset = encoders[:, :7] - plant_state[:, :7]
+    np.testing.assert_allclose(offset[1:], transmitted[:-1] / stiffness, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(offset[0], transmitted[0] / stiffness, rtol=0.01, atol=1e-12)
+    assert np.abs(np.diff(transmitted, axis=0)).max() > 0.05  # the torque changes: one step late is seen
+
+
+def test_quickstart_runs_with_quasi_static_elasticity(tmp_path):
+    """The app's own loop (ARMOUR feeding back the motor-side encoders) with quasi-static series
+    elasticity runs to the end (it was an algebraic loop), one plan."""
+    stiffness = "plant: {effects: {joint_stiffness_Nm_rad: [1.0e+4, 1.0e+4, 1.0e+4, 1.0e+4, 4.0e+3, 4.0e+3, 4.0e+3]}}"
+    args = ["--scenario-text", stiffness, "--scenario-text", "planner: {num_plans: 1}"]
+    assert main(["run", str(SCENARIOS_DIR / "quickstart.yaml"), "--out", str(tmp_path), *args]) == 0
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["success"] and summary["collisions"] == 0
+
+
 def _feedback_run(robot, effects):
     """0.03 s of the arm (no payload, noisy sensor, fixed seed) under u = g(q0) - 5 v + 20 (q0 - q)
-    + 3 sin(30 t): logs (measured torque, state, (motor, applied torque)), one row per step."""
+    + 3 sin(30 t): logs (measured torque, state, (motor, applied torque, plant state)), one row per step."""
     from pydrake.systems.analysis import Simulator
     from pydrake.systems.framework import BasicVector, LeafSystem
     from pydrake.systems.primitives import VectorLogSink
@@ -124,6 +154,7 @@ def _feedback_run(robot, effects):
     b.Connect(arm.state_output, law.state)
     b.Connect(law.get_output_port(), arm.commanded_torque_input)
     ports = (arm.measured_torque_output, arm.state_output, arm.motor_torque_output, arm.applied_torque_output)
+    ports += (arm.plant_state_output,)
     sinks = [b.AddSystem(VectorLogSink(p.size(), 0.001)) for p in ports]
     for port, sink in zip(ports, sinks):
         b.Connect(port, sink.get_input_port())
@@ -131,5 +162,5 @@ def _feedback_run(robot, effects):
     arm.set_state(sim.get_mutable_context(), q0)
     arm.seed_noise(sim.get_mutable_context())  # the same noise in every run
     sim.AdvanceTo(0.03)
-    measured, state, motor, applied = (k.FindLog(sim.get_context()).data().T for k in sinks)
-    return measured, state, (motor, applied)
+    measured, state, motor, applied, plant_state = (k.FindLog(sim.get_context()).data().T for k in sinks)
+    return measured, state, (motor, applied, plant_state)

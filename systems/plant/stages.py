@@ -36,20 +36,34 @@ class JointFriction(LeafSystem):
 
 
 class SeriesElasticEncoders(LeafSystem):
-    """Motor-side encoders: q + tau_s / K (quasi-static series elasticity), v unchanged."""
+    """Motor-side encoders: q + tau_s / K (quasi-static series elasticity), v unchanged. tau_s is
+    the transmitted torque of the plant step that just ended (one step behind, held in a state
+    pushed by a periodic unrestricted update as StepDelay does): the deflection the last applied
+    torque left in the spring. Reading the current step's torque would close an algebraic loop
+    through the controller (encoders -> command -> transmitted torque -> encoders). The first
+    reading holds the torque transmitted at initialization (with the encoders reading q). Stable
+    under feedback while K exceeds the controller's position gain (station.py)."""
 
-    def __init__(self, stiffness):
+    def __init__(self, stiffness, time_step):
         super().__init__()
         self.stiffness = np.asarray(stiffness, float)
         n = self.n = len(self.stiffness)
         self.state = self.DeclareVectorInputPort("state", 2 * n)
         self.transmitted = self.DeclareVectorInputPort("transmitted_torque", n)
-        self.DeclareVectorOutputPort("measured_state", BasicVector(2 * n), self._calc)
+        self._last = self.DeclareDiscreteState(n)  # transmitted torque of the last plant step
+        self.DeclareVectorOutputPort(
+            "measured_state", BasicVector(2 * n), self._calc, {self.state.ticket(), self.xd_ticket()}
+        )
+        self.DeclareInitializationUnrestrictedUpdateEvent(self._hold)
+        self.DeclarePeriodicUnrestrictedUpdateEvent(time_step, 0.0, self._hold)
 
     def _calc(self, context, output):
         x = self.state.Eval(context).copy()
-        x[: self.n] += self.transmitted.Eval(context) / self.stiffness
+        x[: self.n] += context.get_discrete_state(self._last).get_value() / self.stiffness
         output.SetFromVector(x)
+
+    def _hold(self, context, state):
+        state.get_mutable_discrete_state(self._last).SetFromVector(self.transmitted.Eval(context))
 
 
 class ElasticTransmission(LeafSystem):

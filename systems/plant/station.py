@@ -50,8 +50,12 @@ Unmodelled effects (scenario.plant.effects, each off by default):
   Both use the model's Coulomb shape for sgn v (tanh(v/vs_c) with the scenario's smoothing).
 - joint_stiffness_Nm_rad: series elasticity, quasi-static approximation: the link is driven as
   if rigid, but encoders sit on the motor side and read q + tau_s / K, tau_s = the torque the
-  transmission carries (applied torque minus friction). Velocities are reported unchanged. This
-  captures the torque-proportional position offset of a stiff gearbox, not its resonance.
+  transmission carried over the last plant step (applied torque minus friction; one step behind,
+  which keeps the controller's feedback free of an algebraic loop). Velocities are reported unchanged. This
+  captures the torque-proportional position offset of a stiff gearbox, not its resonance. It needs
+  K above the controller's position gain: the offset feeds back one step late with gain
+  (position gain) / K per step, and beyond 1 the command flips sign every step and grows to the
+  torque limit (docs/diagnosis-closed-loop.md); softer joints need joint_elasticity: dynamic.
   With joint_elasticity: dynamic (and joint_damping_Nms_rad) it is the flexible-joint model
   instead (ElasticTransmission): the armature becomes a motor of its own, driven by the applied
   torque against its friction, and a spring-damper carries the torque to the link; encoders and
@@ -376,7 +380,7 @@ def _apply_encoders(station, plant, instance, chain, *, stiffness, eff, n):
     velocities noisy under plant.effects.velocity_noise_rad_s. (state port, its RandomSource or None)."""
     state_out = plant.get_state_output_port(instance)
     if stiffness is not None:
-        encoders = station.AddSystem(SeriesElasticEncoders(stiffness))
+        encoders = station.AddSystem(SeriesElasticEncoders(stiffness, plant.time_step()))
         encoders.set_name("motor_side_encoders")
         station.Connect(plant.get_state_output_port(instance), encoders.state)
         station.Connect(chain.friction.get_output_port(), encoders.transmitted)
