@@ -21,6 +21,7 @@ SafetyMonitor referees the whole run, both phases.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -203,15 +204,23 @@ class _Excitation:
     thetas: list[OutputPort]
 
 
-def _add_arm(builder, scenario: Scenario, robot: RobotModel, *, seed: int | None, task: bool) -> RealArm:
-    """The simulated station, or the arm over LCM (systems/hardware/lcm_arm.py)."""
+def _add_arm(
+    builder, scenario: Scenario, robot: RobotModel, *, seed: int | None, task: bool, true_scenario: Scenario | None
+) -> RealArm:
+    """The simulated station, or the arm over LCM (systems/hardware/lcm_arm.py). true_scenario: the
+    simulated arm's own robot, payload and plant effects; the systems above it read arm.robot, the
+    model `scenario` gives them."""
     from safesysid.systems.plant.station import add_real_arm
 
     if scenario.arm.driver == "lcm":
         from safesysid.systems.hardware.lcm_arm import add_lcm_arm, make_lcm
 
         return add_lcm_arm(builder, scenario, robot, lcm=make_lcm(scenario))
-    return add_real_arm(builder, scenario, robot=robot, seed=seed, releasable=task and not scenario.task.goal_q_rad)
+    releasable = task and not scenario.task.goal_q_rad
+    if true_scenario is None:
+        return add_real_arm(builder, scenario, robot=robot, seed=seed, releasable=releasable)
+    arm = add_real_arm(builder, true_scenario, seed=seed, releasable=releasable)
+    return dataclasses.replace(arm, robot=robot)
 
 
 def _add_estimator(builder, arm: RealArm, scenario: Scenario, *, stop_time_s: float, worker) -> SysIdEstimator:
@@ -318,10 +327,14 @@ def build_online(
     *,
     seed: int | None = None,
     worker: BackgroundWorker | None = None,
+    true_scenario: Scenario | None = None,
 ) -> OnlineDiagram:
     """worker: the wall-clock run's (app/online_lcm.py): planner and estimator calls run in it.
     scenario.arm.driver lcm: the arm is reached over LCM (systems/hardware/lcm_arm.py); the
-    referee and the payload's release are the arm's, so no SafetyMonitor and no task phase here."""
+    referee and the payload's release are the arm's, so no SafetyMonitor and no task phase here.
+    true_scenario: a simulated arm other than the models' (a sim-to-real study: the models above
+    the plant from `scenario`, e.g. a corrected model; the arm, its payload and hidden effects from
+    true_scenario); None: the scenario's own."""
     from pydrake.systems.framework import DiagramBuilder
     from safesysid.closed_loop import add_controller
     from safesysid.systems.controller.armour import tracking_bounds_for
@@ -332,7 +345,7 @@ def build_online(
     over_lcm = scenario.arm.driver == "lcm"
     task = task_enabled(scenario) and not over_lcm
     builder = DiagramBuilder()
-    arm = _add_arm(builder, scenario, robot, seed=seed, task=task)
+    arm = _add_arm(builder, scenario, robot, seed=seed, task=task, true_scenario=true_scenario)
     theta0, box = prior(robot, scenario, method)
     switches = task and spec.switches_controller  # grav-pid-ours: ARMOUR identifies, the PID runs the task
     controller, gains = add_controller(builder, arm, scenario, kind=spec.first_controller, connect=not switches)
@@ -412,9 +425,11 @@ def run_online(
     seed: int | None = None,
     live_meshcat: RunDisplay | bool = False,
     write: bool = True,
+    true_scenario: Scenario | None = None,
 ) -> dict:
     """Run Algorithm 2 on a scenario: build -> simulate -> summarize -> write (summary.json,
-    log.csv, plots, replay.html; nothing without `write`). Returns summary.json's dict."""
+    log.csv, plots, replay.html; nothing without `write`). Returns summary.json's dict.
+    true_scenario: the simulated arm's own scenario (build_online)."""
     from safesysid import viz
     from safesysid.outputs import write_outputs
 
@@ -425,7 +440,7 @@ def run_online(
         out.mkdir(parents=True, exist_ok=True)
     meshcat = viz.start_meshcat(live_meshcat) if write or live_meshcat else None
     wall0 = time.perf_counter()
-    built = build_online(scenario, method, meshcat=meshcat, seed=seed)
+    built = build_online(scenario, method, meshcat=meshcat, seed=seed, true_scenario=true_scenario)
     run = simulate(built, scenario, method, live_meshcat=live_meshcat)
     wall_s = time.perf_counter() - wall0
     logs = read_logs(built, run.context)

@@ -22,7 +22,6 @@ Each case writes OUT/EFFECT_sSEED/case.json; `table` prints both tables from the
 from __future__ import annotations
 
 import argparse
-import contextlib
 import csv
 import dataclasses
 import json
@@ -101,27 +100,6 @@ def split_log(log: Path, fit: Path, check: Path) -> float:
             w.writerow(rows[0])
             w.writerows(r for r, k in zip(rows[1:], keep) if k)
     return split
-
-
-@contextlib.contextmanager
-def plant_of(true_scenario):
-    """build_online builds the simulated arm from `true_scenario` (its robot and hidden effects)
-    whatever scenario the models above the plant come from."""
-    from safesysid.systems.plant import station
-
-    original = station.add_real_arm
-
-    def add_true_arm(builder, scenario, robot=None, **kwargs):
-        arm = original(builder, true_scenario, None, **kwargs)
-        if robot is not None:  # the systems above the plant read the arm's model: the corrected one
-            arm.robot = robot
-        return arm
-
-    station.add_real_arm = add_true_arm
-    try:
-        yield
-    finally:
-        station.add_real_arm = original
 
 
 def loop_metrics(summary: dict, log: Path) -> dict:
@@ -226,8 +204,7 @@ def run_case(effect: str, seed: int, out: str | Path, *, overrides: list | tuple
     rerun = None
     if loop_terms:
         corrected_scenario = load_scenario(base, overrides=[*overrides, {"robot": {"corrected_model": str(corrected)}}])
-        with plant_of(true_scenario):
-            rerun_summary = run_online(corrected_scenario, folder / "rerun", seed=seed)
+        rerun_summary = run_online(corrected_scenario, folder / "rerun", seed=seed, true_scenario=true_scenario)
         rerun = loop_metrics(rerun_summary, folder / "rerun" / "log.csv")
     test = d.result["test"]
     case = {
