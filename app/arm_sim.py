@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from pydrake.systems.framework import Context
+    from pydrake.systems.framework import Context, Diagram
     from safesysid.systems.config import Scenario
     from safesysid.systems.hardware.lcm_systems import ArmDriver
     from safesysid.systems.plant.arm_plant import RealArm
@@ -43,7 +43,8 @@ def build_arm_side(scenario: Scenario, seed: int | None = None) -> tuple:
     arm = add_real_arm(builder, scenario, seed=seed)
     driver = add_arm_driver(builder, arm, scenario, lcm=make_lcm(scenario))
     h = scenario.plant.time_step_s
-    monitor = builder.AddNamedSystem("referee", SafetyMonitor(arm.plant, arm.scene_graph, arm.robot, period_s=h))
+    # The referee judges the log afterwards (safety_monitor.judge_log): not in the 1 kHz loop.
+    monitor = builder.AddNamedSystem("referee", SafetyMonitor(arm.plant, arm.scene_graph, arm.robot, period_s=None))
     builder.Connect(arm.query_output, monitor.query_port)
     builder.Connect(arm.plant_state_output, monitor.state_port)
     builder.Connect(arm.motor_torque_output, monitor.torque_port)
@@ -52,6 +53,8 @@ def build_arm_side(scenario: Scenario, seed: int | None = None) -> tuple:
         "state": LogVectorOutput(arm.state_output, builder, h),
         "measured_torque": LogVectorOutput(arm.measured_torque_output, builder, h),
         "command": LogVectorOutput(driver.get_output_port(), builder, h),
+        "true_state": LogVectorOutput(arm.plant_state_output, builder, h),
+        "motor_torque": LogVectorOutput(arm.motor_torque_output, builder, h),
     }
     return builder.Build(), arm, driver, monitor, loggers
 
@@ -83,15 +86,33 @@ def run_arm_sim(
     while ctx.get_time() < duration_s and not stop:
         sim.AdvanceTo(min(duration_s, ctx.get_time() + 0.05))
     wall = time.perf_counter() - wall0
-    summary = arm_summary(ctx, arm, driver, monitor=monitor, loggers=loggers, out=out)
+    summary = arm_summary(
+        ctx, arm, driver, referee=judge_run(diagram, arm, monitor, loggers, ctx), loggers=loggers, out=out
+    )
     summary.update(scheduling=scheduling, wall_time_s=wall, arm_time_s=ctx.get_time(), stopped_by_signal=bool(stop))
     (out / "arm_summary.json").write_text(json.dumps(summary, indent=2, default=float))
     return summary
 
 
-def arm_summary(
-    ctx: Context, arm: RealArm, driver: ArmDriver, *, monitor: SafetyMonitor, loggers: dict, out: Path
-) -> dict:
+def judge_run(diagram: Diagram, arm: RealArm, monitor: SafetyMonitor, loggers: dict, ctx: Context) -> dict:
+    """The referee's judgement of the logged run, on a fresh context of the same diagram."""
+    from safesysid.systems.plant.safety_monitor import judge_log
+
+    log = {name: loggers[key].FindLog(ctx) for name, key in _REFEREE_LOGS.items()}
+    data = {name: entry.data().T for name, entry in log.items()}
+    data["t"] = log["command"].sample_times()
+    return judge_log(monitor, arm, diagram.CreateDefaultContext(), data).summary()
+
+
+# judge_log's names -> the loggers'
+_REFEREE_LOGS = {
+    "state": "true_state",
+    "motor_torque": "motor_torque",
+    "command": "command",
+}
+
+
+def arm_summary(ctx: Context, arm: RealArm, driver: ArmDriver, *, referee: dict, loggers: dict, out: Path) -> dict:
     """The referee's judgement and the driver's record; the ground truth into out/arm_log.csv."""
     from safesysid.joint_log import write_joint_log
     from safesysid.systems.model.joint_data import JointLog
@@ -104,7 +125,6 @@ def arm_summary(
         out / "arm_log.csv", JointLog(t, state[:, :n], state[:, n:], tau), {f"u{k + 1}": u[:, k] for k in range(n)}
     )
     guard = driver.guard(driver.GetMyContextFromRoot(ctx))
-    referee = monitor.record(monitor.GetMyContextFromRoot(ctx)).summary()
     return {
         "referee": referee,
         "safe": referee["collisions"] == 0 and referee["max_commanded_torque_ratio"] <= 1.0,

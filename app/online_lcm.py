@@ -12,6 +12,7 @@ arm_summary.json); lcm_run.json says what the run saw and how well it kept time.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import gc
 import json
 import resource
@@ -68,6 +69,7 @@ def run_wallclock(
 
     method = method or scenario.method
     seed = scenario.seed if seed is None else seed
+    scenario = wallclock_planner(scenario)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     scheduling = request_realtime() if fifo else {"scheduler": "normal", "warning": "real-time scheduling not asked"}
@@ -98,6 +100,12 @@ def run_wallclock(
     summary["events"] = merge_events(summary["events"])
     (out / "lcm_run.json").write_text(json.dumps(summary, indent=2, default=float))
     return summary
+
+
+def wallclock_planner(scenario: Scenario) -> Scenario:
+    """The planner's wall-time budget (planner.max_solve_time_s inside t_p): in wall-clock time an
+    iteration budget has no bound on a call's duration, and a call past t_p is a missed deadline."""
+    return dataclasses.replace(scenario, planner=dataclasses.replace(scenario.planner, budget="wall_time"))
 
 
 def _wait_for_arm(arm, scenario: Scenario) -> None:
@@ -171,8 +179,6 @@ def wallclock_summary(built: OnlineDiagram, ctx: Context, scenario: Scenario, *,
 
 def cmd_run_lcm(args: argparse.Namespace, scenario: Scenario, method: str) -> int:
     """`safesysid run --arm lcm`: one line of what the run saw; exit 1 when no arm answered."""
-    import dataclasses
-
     scenario = dataclasses.replace(scenario, arm=dataclasses.replace(scenario.arm, driver="lcm"))
     try:
         summary = run_wallclock(scenario, args.out, method, seed=args.seed, fifo=not args.no_fifo)

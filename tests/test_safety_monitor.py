@@ -140,3 +140,40 @@ def test_two_contexts_keep_their_own_record():
             alone.AdvanceTo(stop)
         assert len(record(sim).times) == 11 and record(sim) == record(alone)
     assert record(together[0]).clearance != record(together[1]).clearance
+
+
+def test_judging_the_log_afterwards_gives_the_in_loop_record():
+    """arm-sim's referee judges its log after the run (judge_log): sample for sample the record of
+    the same monitor in the loop, on experiment_a's station (an obstacle 4 cm from the arm)."""
+    from pydrake.systems.primitives import LogVectorOutput
+    from safesysid.scenario import load_scenario
+    from safesysid.systems.plant.safety_monitor import judge_log
+    from safesysid.systems.plant.station import add_real_arm
+
+    scenario = load_scenario("scenarios/experiment_a.yaml")
+    builder = DiagramBuilder()
+    arm = add_real_arm(builder, scenario, seed=0)
+    h = scenario.plant.time_step_s
+    monitor = builder.AddSystem(SafetyMonitor(arm.plant, arm.scene_graph, arm.robot, period_s=h))
+    torque = builder.AddSystem(ConstantVectorSource(np.linspace(-30.0, 30.0, arm.n)))  # falls and swings
+    builder.Connect(torque.get_output_port(), arm.commanded_torque_input)
+    ports = (arm.query_output, arm.plant_state_output, arm.motor_torque_output, torque.get_output_port())
+    for output, port in zip(ports, (monitor.query_port, monitor.state_port, monitor.torque_port, monitor.command_port)):
+        builder.Connect(output, port)
+    logs = {
+        key: LogVectorOutput(port, builder, h) for key, port in zip(("state", "motor_torque", "command"), ports[1:])
+    }
+    diagram = builder.Build()
+    sim = Simulator(diagram)
+    arm.set_state(sim.get_mutable_context(), np.asarray(scenario.q0_rad, float))
+    sim.AdvanceTo(0.2 + 0.5 * h)
+    ctx = sim.get_context()
+    data = {key: log.FindLog(ctx).data().T for key, log in logs.items()}
+    data["t"] = logs["command"].FindLog(ctx).sample_times()
+    live = monitor.record(monitor.GetMyContextFromRoot(ctx))
+    judged = judge_log(monitor, arm, diagram.CreateDefaultContext(), data)
+    assert len(judged.times) == len(live.times) == 201
+    for name in ("times", "clearance", "joint_ratio", "velocity_ratio", "torque_ratio", "commanded_ratio"):
+        np.testing.assert_allclose(getattr(judged, name), getattr(live, name), rtol=0, atol=1e-12, err_msg=name)
+    assert judged.closest_pair == live.closest_pair
+    assert np.ptp(judged.clearance) > 1e-3  # the arm moved: the geometry is each sample's, not one pose's

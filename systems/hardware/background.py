@@ -38,37 +38,51 @@ MAX_DETAIL_SIZE = 1000
 
 
 class BackgroundWorker:
-    """One forked worker process running jobs in order (planner and estimator share it)."""
+    """Two forked worker processes, one per lane, each running its jobs in order: the planner's
+    calls and the estimator's updates (in one process a planning call waited behind an update of
+    up to 1 s and missed t_p). The planner's lane runs ahead of the estimator's (LANE_NICE)."""
 
     def __init__(self) -> None:
-        self._pool = ProcessPoolExecutor(
-            max_workers=1, mp_context=multiprocessing.get_context("fork"), initializer=_worker_init
-        )
+        self._pools = {
+            lane: ProcessPoolExecutor(
+                max_workers=1,
+                mp_context=multiprocessing.get_context("fork"),
+                initializer=_worker_init,
+                initargs=(nice,),
+            )
+            for lane, nice in LANE_NICE.items()
+        }
         self._jobs = 0
         self.fault = os.environ.get(WORKER_FAULT_ENV, "")
 
     def start(self) -> None:
-        """Fork the worker now, before the clock starts (a fork stalls the loop for tens of ms). It
-        inherits every system registered so far (register): jobs name them instead of shipping them."""
-        if not self._jobs:
-            self._pool.submit(int).result()
+        """Fork the workers now, before the clock starts (a fork stalls the loop for tens of ms).
+        They inherit every system registered so far (register): jobs name them instead of shipping them."""
+        for pool in self._pools.values():
+            if not getattr(pool, "_processes", None):  # not forked yet (a job forks its lane)
+                pool.submit(int).result()
 
-    def submit(self, fn: Callable, *args: object) -> Future:
+    def submit(self, fn: Callable, *args: object, lane: str) -> Future:
         job, self._jobs = self._jobs, self._jobs + 1
-        return self._pool.submit(_timed, fn, time.time(), _fault_of(self.fault, job), *args)
+        return self._pools[lane].submit(_timed, fn, time.time(), _fault_of(self.fault, job), *args)
 
     def shutdown(self) -> None:
-        processes = list((getattr(self._pool, "_processes", None) or {}).values())
-        self._pool.shutdown(wait=False, cancel_futures=True)
-        for process in processes:
-            process.kill()  # a hung job must not outlive the run
+        for pool in self._pools.values():
+            processes = list((getattr(pool, "_processes", None) or {}).values())
+            pool.shutdown(wait=False, cancel_futures=True)
+            for process in processes:
+                process.kill()  # a hung job must not outlive the run
 
 
-def _worker_init() -> None:
-    """Below the loop's priority (realtime.lower_realtime) and one BLAS thread (2 cores)."""
+# Each lane's niceness (where the loops run SCHED_FIFO and may set it: realtime.lower_realtime).
+LANE_NICE = {"planner": -10, "estimator": 0}
+
+
+def _worker_init(nice: int) -> None:
+    """Below the loops' priority (realtime.lower_realtime) and one BLAS thread (2 cores)."""
     from threadpoolctl import threadpool_limits
 
-    lower_realtime()
+    lower_realtime(nice)
     threadpool_limits(1)
 
 
@@ -89,6 +103,7 @@ def _timed(fn, submitted: float, fault: str, *args):
 # Systems a forked worker inherits: a job names one by its key (pickling a planner's precomputed
 # tables on every call would hold this process's interpreter for tens of ms).
 _REGISTRY: dict[int, object] = {}
+_CAPS: dict[int, float] = {}  # in the worker: each planner's configured wall-time cap
 
 
 def register(system: object) -> int:
@@ -96,8 +111,13 @@ def register(system: object) -> int:
     return id(system)
 
 
-def _plan_job(key, t_start, q, v, a, thetas, k_init, rng, mode, past):
+def _plan_job(key, submitted, t_start, q, v, a, thetas, k_init, rng, mode, past):
     planner = ExcitingPlanner._planner_at(_REGISTRY[key], t_start)
+    # The wall-time cap counts from the submission at t_k, not from when the worker got to it.
+    waited = time.time() - submitted
+    planner.config = replace(
+        planner.config, max_solve_time_s=max(0.05, _CAPS.setdefault(key, planner.config.max_solve_time_s) - waited)
+    )
     res = planner.plan(q, v, a, *thetas, k_init=k_init, rng=rng, mode=mode, past=past)
     # Large details (the certified swept spheres, for drawing) stay here: unpickling them in the
     # run's process would hold its interpreter, and so the 1 kHz loop, for tens of ms.
@@ -156,8 +176,18 @@ class _PlanAhead:
     def _submit(self, res: PlanResult, thetas, rng, mode, past) -> None:
         system, t_next = self.system, self.t + self.system._period
         start = Piece(self.t, res.trajectory, res.q_end).evaluate(t_next)
-        args = (system.key, t_next, *start, tuple(np.array(x) for x in thetas), res.k, copy.deepcopy(rng), mode, past)
-        system.pending = (system.worker.submit(_plan_job, *args), t_next, start)
+        args = (
+            system.key,
+            time.time(),
+            t_next,
+            *start,
+            tuple(np.array(x) for x in thetas),
+            res.k,
+            copy.deepcopy(rng),
+            mode,
+            past,
+        )
+        system.pending = (system.worker.submit(_plan_job, *args, lane="planner"), t_next, start)
 
 
 class WallClockEstimator(SysIdEstimator):
@@ -187,7 +217,7 @@ class WallClockEstimator(SysIdEstimator):
         if not run.samples:
             return replace(run, history=run.history + ({"t": t, "skipped": "no valid samples"},))
         try:
-            future = self.worker.submit(_estimate_job, id(self), run.estimator, data_of(run), self.n)
+            future = self.worker.submit(_estimate_job, id(self), run.estimator, data_of(run), self.n, lane="estimator")
         except Exception as err:  # noqa: BLE001 -- the worker is gone: no more updates, the box kept
             detail = f"no estimator update: {type(err).__name__}: {err}"
             self.events_late.append(dict(t=t, kind="estimator_worker_failed", detail=detail))

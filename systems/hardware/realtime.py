@@ -17,16 +17,14 @@ def request_realtime(priority: int = FIFO_PRIORITY) -> dict:
         return {"scheduler": "normal", "warning": warning}
 
 
-WORKER_PRIORITY = 10  # a forked worker of a real-time loop: real-time, below the loops (50)
-
-
-def lower_realtime() -> None:
-    """A forked worker of a SCHED_FIFO loop: SCHED_FIFO WORKER_PRIORITY, so the loops preempt it and
-    the machine's other processes do not (at nice -20 it got ~12 % of a core under load 35: its
-    calls missed t_p). The kernel caps all real-time tasks together at sched_rt_runtime_us (95 %)
-    of the CPUs: the loops and the worker must fit in it (docs/hardware.md)."""
+def lower_realtime(nice: int) -> None:
+    """A forked worker of a SCHED_FIFO loop: back to normal scheduling at `nice`, so the
+    loops preempt it. Not real-time itself: the kernel caps real-time tasks at sched_rt_runtime_us
+    (95 %) of each second, and a CPU-bound real-time worker used it up and stalled the loops for
+    tens of ms (RT throttling, measured: docs/hardware.md)."""
     try:
         if os.sched_getscheduler(0) == os.SCHED_FIFO:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(WORKER_PRIORITY))
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+            os.setpriority(os.PRIO_PROCESS, 0, nice)
     except (PermissionError, OSError, AttributeError):
         pass

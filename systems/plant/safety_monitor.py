@@ -20,18 +20,24 @@ release it waits locked far below the floor, and the arm carries the welded payl
 monitor does check).
 
 The record lives in the Context (abstract state, appended by a periodic unrestricted update at
-t_k, which sees the state and inputs of t_k as a logger does): `record(context)`.
+t_k, which sees the state and inputs of t_k as a logger does): `record(context)`. With
+period_s None it records nothing itself: `judge_log` judges a logged run afterwards, sample by
+sample on the same geometry (a 1 kHz wall-clock loop must not spend its time on the referee).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
 from pydrake.common.value import AbstractValue
 from pydrake.geometry import QueryObject
 from pydrake.systems.framework import Context, EventStatus, LeafSystem
+
+if TYPE_CHECKING:
+    from safesysid.systems.plant.arm_plant import RealArm
 
 
 @dataclass
@@ -89,7 +95,7 @@ def limit_ratio(x: ArrayLike, lower: np.ndarray, upper: np.ndarray) -> np.ndarra
 
 class SafetyMonitor(LeafSystem):
     """Inputs: geometry query, plant state (q, v), applied (motor) torque, commanded torque.
-    Records every `period_s`."""
+    Records every `period_s` (None: never; `judge_log`)."""
 
     def __init__(
         self, plant, scene_graph, robot, period_s, *, max_distance_m=0.5, supports=("floor",), ignore_bodies=()
@@ -116,7 +122,8 @@ class SafetyMonitor(LeafSystem):
         self.command_port = self.DeclareVectorInputPort("commanded_torque", n)
         self._samples = self.DeclareAbstractState(AbstractValue.Make(_Samples()))
         self.DeclareInitializationUnrestrictedUpdateEvent(self._clear)
-        self.DeclarePeriodicUnrestrictedUpdateEvent(period_s, 0.0, self._record)
+        if period_s is not None:
+            self.DeclarePeriodicUnrestrictedUpdateEvent(period_s, 0.0, self._record)
 
     def record(self, context: Context) -> SafetyRecord:
         """Every sample of the run so far (this system's context)."""
@@ -156,18 +163,26 @@ class SafetyMonitor(LeafSystem):
     def measure(self, context: Context) -> tuple:
         """One sample (t, clearance, joint, velocity, torque and command ratios, closest pair),
         in SafetyRecord's field order."""
+        return self.judge(
+            context.get_time(),
+            self.query_port.Eval(context),
+            self.state_port.Eval(context),
+            self.torque_port.Eval(context),
+            self.command_port.Eval(context),
+        )
+
+    def judge(self, t: float, query: QueryObject, x: np.ndarray, u: np.ndarray, command: np.ndarray) -> tuple:
+        """`measure` of given values: the geometry in `query`, state x, motor torque u, command."""
         jp = self._robot.joint_params
         n = self._robot.n
-        x = self.state_port.Eval(context)
-        u = self.torque_port.Eval(context)
-        clearance, pair = self.min_clearance(self.query_port.Eval(context))
+        clearance, pair = self.min_clearance(query)
         return (
-            context.get_time(),
+            t,
             clearance,
             float(limit_ratio(x[:n], jp.position_lower, jp.position_upper)),
             float(np.max(np.abs(x[n:]) / jp.velocity_limit)),
             float(np.max(np.abs(u) / jp.torque_limit)),
-            float(np.max(np.abs(self.command_port.Eval(context)) / jp.torque_limit)),
+            float(np.max(np.abs(command) / jp.torque_limit)),
             pair,
         )
 
@@ -179,3 +194,19 @@ class SafetyMonitor(LeafSystem):
         old = context.get_abstract_state(int(self._samples)).get_value()
         state.get_mutable_abstract_state(int(self._samples)).set_value(_Samples((self.measure(context), old.head)))
         return EventStatus.Succeeded()
+
+
+def judge_log(monitor: SafetyMonitor, arm: RealArm, root_context: Context, log: dict) -> SafetyRecord:
+    """The record of a logged run of `arm` (a RealArm): log's "state" (the arm's true q, v),
+    "motor_torque", "command" (arrays, one row per sample) and "t". Each sample's geometry is set
+    in root_context (a context of the arm's diagram used for nothing else). The arm's joints only:
+    the payload is welded to it, and a released payload is the monitor's ignore_bodies."""
+    plant_context = arm.plant.GetMyMutableContextFromRoot(root_context)
+    monitor_context = monitor.GetMyContextFromRoot(root_context)
+    rows = []
+    for i, t in enumerate(log["t"]):
+        arm.plant.SetPositionsAndVelocities(plant_context, arm.instance, log["state"][i])
+        query = monitor.query_port.Eval(monitor_context)
+        rows.append(monitor.judge(float(t), query, log["state"][i], log["motor_torque"][i], log["command"][i]))
+    columns = zip(*rows) if rows else [[] for _ in fields(SafetyRecord)]
+    return SafetyRecord(*(list(c) for c in columns))
