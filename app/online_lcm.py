@@ -141,6 +141,8 @@ def _request_hold(arm, t_s: float) -> None:
 
 
 def wallclock_summary(built: OnlineDiagram, ctx: Context, scenario: Scenario, *, method: str, seed: int) -> dict:
+    from safesysid.systems.hardware.lcm_systems import with_events
+
     planner, est = built.planner, built.estimator
     records = planner.records(planner.GetMyContextFromRoot(ctx)) if planner is not None else []
     events = list(built.arm.fault_events(ctx))
@@ -157,6 +159,7 @@ def wallclock_summary(built: OnlineDiagram, ctx: Context, scenario: Scenario, *,
         "method": method,
         "seed": seed,
         "arm": {"driver": "lcm", "lcm_url": scenario.arm.lcm_url, "status_channel": scenario.arm.status_channel},
+        "status_stream": with_events(built.arm.receiver.guard(built.arm.receiver.GetMyContextFromRoot(ctx))),
         "estimate": estimate,
         "sysid": {"updates": len(history), "update_time_s": [h["update_time_s"] for h in history]},
         "planner": {

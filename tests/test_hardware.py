@@ -188,11 +188,11 @@ def test_the_driver_holds_on_a_clock_jump_of_the_commands(multicast, tmp_path):
 SHORT_RUN = "planner: {num_plans: 2}"  # identification 4.5 s: the run lasts 6 s of wall clock
 
 
-def _run_lcm(tmp_path, command, status, env_extra=None):
+def _run_lcm(tmp_path, command, status, env_extra=None, *, extra=""):
     """`safesysid run --arm lcm` as a process; (return code, lcm_run.json or None, its output)."""
     out = tmp_path / "run"
     env = dict(os.environ, **(env_extra or {}))
-    text = _arm_overrides(command, status)
+    text = _arm_overrides(command, status, extra)
     proc = subprocess.run(
         [sys.executable, "-m", "safesysid.cli", "run", str(SCENARIO), "--arm", "lcm", "--no-fifo", "--out", str(out)]
         + ["--scenario-text", text, "--scenario-text", SHORT_RUN],
@@ -263,3 +263,76 @@ def test_the_run_holds_the_arm_when_its_status_stops(multicast, tmp_path):
     _finish(proc, out)
     assert code == 0 and run is not None, text
     assert "status_lost" in _kinds(run), run["events"]
+
+
+class _FakeArm:
+    """This process as the arm, for the run's side of the rules: a thread publishing a status at
+    rest at q0 every ms of its own clock; `script(t)` may change what it sends (duplicates, older
+    stamps, a jump); the commands it receives are kept."""
+
+    def __init__(self, command, status, script):
+        import threading
+
+        from drake import lcmt_panda_command
+        from pydrake.lcm import DrakeLcm
+        from safesysid.scenario import load_scenario
+
+        self.lcm, self.channel, self.script = DrakeLcm(URL), status, script
+        self.q0 = np.asarray(load_scenario(SCENARIO).q0_rad, float)
+        self.commands = []  # (arrival on this clock [s], message)
+        self.start = time.monotonic()
+        self.lcm.Subscribe(
+            command, lambda data: self.commands.append((time.monotonic() - self.start, lcmt_panda_command.decode(data)))
+        )
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._serve, daemon=True)
+        self.thread.start()
+
+    def _serve(self):
+        from safesysid.systems.hardware.messages import Status, status_message
+
+        n = len(self.q0)
+        while not self.stop.is_set():
+            t = time.monotonic() - self.start
+            torque = np.array(self.commands[-1][1].joint_torque) if self.commands else np.zeros(n)
+            for stamp in self.script(t, bool(self.commands)):
+                status = Status(stamp, self.q0, np.zeros(n), torque, torque)
+                self.lcm.Publish(self.channel, status_message(status).encode())
+            self.lcm.HandleSubscriptions(0)
+            time.sleep(0.001)
+
+    def close(self):
+        self.stop.set()
+        self.thread.join(timeout=5)
+
+
+def test_the_run_ignores_late_and_duplicated_statuses_and_holds_on_their_clock_jump(multicast, tmp_path):
+    """The status stream's faults on the run's side: once the run commands, for 0.3 s each status
+    is sent again (a duplicate) and followed by one 5 ms older (out of order); then the arm's clock
+    jumps 1 s. The run counts the ignored statuses, trips on the jump and asks the arm to hold."""
+    first = []
+
+    def script(t, commanded):
+        if commanded and not first:
+            first.append(t)
+        if not first or t < first[0] + 0.5:
+            return [t]
+        if t < first[0] + 0.8:
+            return [t, t, t - 0.005]
+        return [t + 1.0]
+
+    command, status = _channels()
+    arm = _FakeArm(command, status, script)
+    try:
+        code, run, text = _run_lcm(tmp_path, command, status, extra=", status_timeout_ms: 150")
+    finally:
+        arm.close()
+    assert code == 0 and run is not None, text
+    receiver = run["status_stream"]
+    assert receiver["tripped"] == "status_clock_jump", receiver
+    assert receiver["ignored_messages"] >= 1, receiver
+    assert "status_clock_jump" in _kinds(run)
+    jump = first[0] + 0.8
+    holds = [t for t, msg in arm.commands if msg.control_mode_expected == 0]  # kNone: brake and hold
+    assert holds and jump <= holds[0] < jump + 0.5, (jump, holds[:1])  # asked at the jump, not at the end
+    assert all(msg.control_mode_expected == 0 for t, msg in arm.commands if t > holds[0])
