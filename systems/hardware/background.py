@@ -75,7 +75,7 @@ class BackgroundWorker:
 
 
 # Each lane's niceness (where the loops run SCHED_FIFO and may set it: realtime.lower_realtime).
-LANE_NICE = {"planner": -10, "estimator": 0}
+LANE_NICE = {"planner": -10, "estimator": -5}
 
 
 def _worker_init(nice: int) -> None:
