@@ -88,6 +88,7 @@ def run_wallclock(
         gc.freeze()  # the set-up's objects out of the collector: a full collection stalls the loop
         sys.setswitchinterval(SWITCH_INTERVAL_S)  # the worker's result thread must not hold the loop 5 ms
         sim.ResetStatistics()  # real-time pacing from here, not from before the set-up
+        worker.clock_started()
         spec = methods.method_spec(method)
         horizon = config.excitation_duration_s(spec, scenario) or config.planner_horizon_s(scenario)
         # one more t_p: the estimator's last update (its samples end at the horizon) is published then
@@ -161,7 +162,11 @@ def wallclock_summary(built: OnlineDiagram, ctx: Context, scenario: Scenario, *,
         "arm": {"driver": "lcm", "lcm_url": scenario.arm.lcm_url, "status_channel": scenario.arm.status_channel},
         "status_stream": with_events(built.arm.receiver.guard(built.arm.receiver.GetMyContextFromRoot(ctx))),
         "estimate": estimate,
-        "sysid": {"updates": len(history), "update_time_s": [h["update_time_s"] for h in history]},
+        "sysid": {
+            "updates": len(history),
+            "update_time_s": [h["update_time_s"] for h in history],
+            "skipped": [] if est is None else est.skipped(est.GetMyContextFromRoot(ctx)),
+        },
         "planner": {
             "iterations": len(records),
             "status": [r["status"] for r in records],

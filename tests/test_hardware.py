@@ -57,6 +57,22 @@ def test_the_grace_takes_the_backlog_without_tripping():
     assert guard.step(0.2, 5.3, "y", name="status").tripped == "status_lost"
 
 
+def test_every_status_since_the_last_step_reaches_the_estimator_once_and_in_order():
+    """A run's step that received several statuses hands each to the estimator (two free-running
+    1 kHz clocks often put two in one step: handing only the newest left a gap, and the estimator's
+    segments end at gaps); duplicates and older ones are dropped."""
+    from safesysid.systems.hardware.lcm_systems import _sample_rows
+    from safesysid.systems.hardware.messages import Status, status_message
+
+    def message(t):
+        return status_message(Status(t, np.full(7, t), np.zeros(7), np.full(7, 2 * t), np.zeros(7)))
+
+    received = [message(t) for t in (1.001, 1.002, 1.002, 0.999, 1.000, 1.003)]
+    rows = _sample_rows(received, 7, after=1.000, upto=1.002)
+    assert [row[0] for row in rows] == [1.001, 1.002]  # 1.003 is not yet the accepted newest
+    assert np.allclose(rows[1][1:8], 1.002) and np.allclose(rows[1][15:], 2.004)  # [t, q, v, τ]
+
+
 # -- over LCM between two processes ------------------------------------------------------------------
 def _multicast_reason():
     """Why UDP multicast on loopback cannot be used here (None: it can)."""

@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
-PACKET_ROWS = 2  # at most two samples reach the estimator per step (a late one and the current one)
+# At most this many samples reach the estimator per step: a late one beside the current one from a
+# faulty link; over LCM, every status that arrived since the last step (the run's loop lagging).
+PACKET_ROWS = 8
 
 
 def packet_size(n: int) -> int:

@@ -251,6 +251,10 @@ class SysIdEstimator(LeafSystem):
     def update_times_s(self, context: Context) -> list[float]:
         return [h["update_time_s"] for h in self.history(context)]
 
+    def skipped(self, context: Context) -> list[dict]:
+        """One dict per update instant that gave no estimate: {t, skipped: why}."""
+        return [h for h in self._get(context).history if "skipped" in h]
+
     def history(self, context: Context) -> list[dict]:
         """One dict per completed update (t, update_time_s, cond_Y, case, consistent, θ_e box)."""
         return self.history_of(self._get(context))

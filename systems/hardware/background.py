@@ -53,6 +53,7 @@ class BackgroundWorker:
             for lane, nice in LANE_NICE.items()
         }
         self._jobs = 0
+        self._clock_zero = 0.0
         self.fault = os.environ.get(WORKER_FAULT_ENV, "")
 
     def start(self) -> None:
@@ -64,7 +65,20 @@ class BackgroundWorker:
 
     def submit(self, fn: Callable, *args: object, lane: str) -> Future:
         job, self._jobs = self._jobs, self._jobs + 1
-        return self._pools[lane].submit(_timed, fn, time.time(), _fault_of(self.fault, job), *args)
+        submitted = time.time()
+        future = self._pools[lane].submit(_timed, fn, _fault_of(self.fault, job), *args)
+        future.submitted = submitted
+        return future
+
+    def clock_started(self) -> None:
+        """The run's clock starts now: a call submitted during the set-up is timed from here."""
+        self._clock_zero = time.time()
+
+    def latency(self, future: Future) -> tuple[object, float]:
+        """(the job's result, its latency [s] from its submission or the clock's start, whichever
+        is later: the time it took of the run's clock)."""
+        result, finished = future.result()
+        return result, finished - max(future.submitted, self._clock_zero)
 
     def shutdown(self) -> None:
         for pool in self._pools.values():
@@ -91,19 +105,20 @@ def _fault_of(text: str, job: int) -> str:
     return kind if kind in ("die", "hang") and index.isdigit() and int(index) == job else ""
 
 
-def _timed(fn, submitted: float, fault: str, *args):
-    """fn(*args) and its latency from submission (queueing included) [s]."""
+def _timed(fn, fault: str, *args):
+    """fn(*args) and the wall time it finished [s]."""
     if fault == "die":
         os._exit(3)
     if fault == "hang":
         time.sleep(3600.0)
-    return fn(*args), time.time() - submitted
+    return fn(*args), time.time()
 
 
 # Systems a forked worker inherits: a job names one by its key (pickling a planner's precomputed
 # tables on every call would hold this process's interpreter for tens of ms).
 _REGISTRY: dict[int, object] = {}
-_CAPS: dict[int, float] = {}  # in the worker: each planner's configured wall-time cap
+_CAPS: dict[int, float] = {}  # in the worker: each planner's configured wall-time cap [s]
+_OVERRUN: dict[int, float] = {}  # in the worker: each planner's longest call past its cap [s]
 
 
 def register(system: object) -> int:
@@ -113,12 +128,16 @@ def register(system: object) -> int:
 
 def _plan_job(key, submitted, t_start, q, v, a, thetas, k_init, rng, mode, past):
     planner = ExcitingPlanner._planner_at(_REGISTRY[key], t_start)
-    # The wall-time cap counts from the submission at t_k, not from when the worker got to it.
-    waited = time.time() - submitted
-    planner.config = replace(
-        planner.config, max_solve_time_s=max(0.05, _CAPS.setdefault(key, planner.config.max_solve_time_s) - waited)
-    )
+    configured = _CAPS.setdefault(key, planner.config.max_solve_time_s)
+    # The wall-time cap counts from the submission at t_k, not from when the worker got to it, and
+    # leaves room for the work after the solver stops (the certification of the point found), as
+    # long as the longest such overrun so far: with less than a core it took 0.2-0.4 s.
+    cap = configured - (time.time() - submitted) - _OVERRUN.get(key, 0.0)
+    planner.config = replace(planner.config, max_solve_time_s=max(0.05, cap))
+    started = time.perf_counter()
     res = planner.plan(q, v, a, *thetas, k_init=k_init, rng=rng, mode=mode, past=past)
+    overrun = time.perf_counter() - started - planner.config.max_solve_time_s
+    _OVERRUN[key] = max(_OVERRUN.get(key, 0.0), overrun)
     # Large details (the certified swept spheres, for drawing) stay here: unpickling them in the
     # run's process would hold its interpreter, and so the 1 kHz loop, for tens of ms.
     small = {k: v for k, v in res.details.items() if np.size(v) <= MAX_DETAIL_SIZE}
@@ -166,7 +185,7 @@ class _PlanAhead:
             future.cancel()
             reason = f"the call for the plan starting at {t_start:.3f} s had not returned by then"
             return PlanResult(ok=False, status="deadline_missed", reason=reason)
-        (res, rng_after), latency = future.result()  # a worker's death raises: that call's planner_error
+        (res, rng_after), latency = self.system.worker.latency(future)  # a dead worker raises: planner_error
         self.system.latencies_s.append(latency)
         if not all(np.allclose(x, y, atol=1e-9) for x, y in zip(start, (q, v, a))):
             return PlanResult(ok=False, status="start_mismatch", reason="the plan was computed from another state")
@@ -209,7 +228,7 @@ class WallClockEstimator(SysIdEstimator):
                 return run  # its samples and the new ones go to the next call
             self.pending = None
             try:
-                outcome, latency = future.result()
+                outcome, latency = self.worker.latency(future)
                 self.latencies_s.append(latency)
             except Exception as err:  # noqa: BLE001 -- a dead worker: the update is lost, the box kept
                 outcome = EstimatorError(f"worker failed: {type(err).__name__}: {err}")

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from drake import lcmt_panda_command, lcmt_panda_status
+from safesysid.systems.estimation.packets import PACKET_ROWS
 
 from .lcm_systems import ArmDriver, CommandEncoder, LatestMessage, StatusEncoder, StatusReceiver
 
@@ -75,7 +76,7 @@ def add_lcm_arm(builder: DiagramBuilder, scenario: Scenario, robot: RobotModel, 
 
     n, h, cfg = robot.n, scenario.plant.time_step_s, scenario.arm
     _interface(builder, lcm)
-    statuses = LatestMessage(lcm, cfg.status_channel, lcmt_panda_status)
+    statuses = LatestMessage(lcm, cfg.status_channel, lcmt_panda_status, backlog=4 * PACKET_ROWS)
     receiver = builder.AddSystem(
         StatusReceiver(
             n, statuses, h, status_timeout_s=cfg.status_timeout_ms * 1e-3, q_start=np.asarray(scenario.q0_rad)

@@ -7,12 +7,14 @@ Run side: StatusReceiver decodes the status into the station's outputs; CommandE
 
 from __future__ import annotations
 
+import collections
+
 import numpy as np
 from drake import lcmt_panda_command, lcmt_panda_status
 from pydrake.common.value import AbstractValue
 from pydrake.lcm import DrakeLcm
 from pydrake.systems.framework import Context, EventStatus, LeafSystem
-from safesysid.systems.estimation.packets import pack, packet_size
+from safesysid.systems.estimation.packets import PACKET_ROWS, pack, packet_size
 
 from .freshness import Freshness
 from .messages import Status, command_message, parse_command, parse_status, status_message
@@ -23,12 +25,21 @@ class LatestMessage:
     before each step's events). A subscriber system's abstract state, a Python lcmtype, is deep-
     copied at every step's unrestricted update (measured: most of the 1 kHz loop's time)."""
 
-    def __init__(self, lcm: DrakeLcm, channel: str, lcm_type: type) -> None:
+    def __init__(self, lcm: DrakeLcm, channel: str, lcm_type: type, *, backlog: int = 0) -> None:
+        """backlog: also keep up to this many of the latest messages for `drain` (0: none)."""
         self.lcm_type, self.count, self._data, self._decoded = lcm_type, 0, None, (0, lcm_type())
+        self._backlog: collections.deque = collections.deque(maxlen=backlog)
         lcm.Subscribe(channel, self._on_message)
 
     def _on_message(self, data: bytes) -> None:
         self._data, self.count = data, self.count + 1
+        self._backlog.append(data)
+
+    def drain(self) -> list:
+        """The messages received since the last drain (at most `backlog`, the newest), decoded."""
+        out = [self.lcm_type.decode(data) for data in self._backlog]
+        self._backlog.clear()
+        return out
 
     def message(self) -> object:
         if self._decoded[0] != self.count:  # decode once per new message
@@ -113,8 +124,10 @@ class StatusEncoder(LeafSystem):
 
 
 class StatusReceiver(LeafSystem):
-    """lcmt_panda_status -> state [q, v], measured_torque, the estimator's arm-timestamped samples
-    (systems/plant/faults.py packets: each new status once, at the arm's time), and hold (1.0 once the
+    """lcmt_panda_status -> state [q, v], measured_torque (the newest status), the estimator's
+    arm-timestamped samples (estimation/packets.py: every status newer than the last delivered one
+    that arrived since the last step, in the arm's time order, so a step that saw two statuses
+    leaves no gap in the estimator's data; `statuses` must keep a backlog), and hold (1.0 once the
     status stream stopped, jumped or stalled beyond status_timeout_s: the run must brake)."""
 
     def __init__(
@@ -123,7 +136,7 @@ class StatusReceiver(LeafSystem):
         super().__init__()
         self.n, self.statuses = n, statuses
         rest = Status(0.0, np.asarray(q_start, float), np.zeros(n), np.zeros(n), np.zeros(n))
-        self._memo = self.DeclareAbstractState(AbstractValue.Make((Freshness(status_timeout_s, payload=rest), False)))
+        self._memo = self.DeclareAbstractState(AbstractValue.Make((Freshness(status_timeout_s, payload=rest), ())))
         self.DeclarePeriodicUnrestrictedUpdateEvent(time_step_s, 0.0, self._tick)
         deps = {self.abstract_state_ticket(self._memo)}
         self.DeclareVectorOutputPort("state", 2 * n, self._state, prerequisites_of_calc=deps)
@@ -141,15 +154,20 @@ class StatusReceiver(LeafSystem):
         context = self.GetMyMutableContextFromRoot(root_context)
         guard = self.guard(context)
         fresh = Freshness(guard.limit_s, payload=guard.payload, grace_until_s=context.get_time() + grace_s)
-        context.get_mutable_abstract_state(int(self._memo)).set_value((fresh, False))
+        self.statuses.drain()  # the set-up's statuses: the estimator starts with the clock
+        context.get_mutable_abstract_state(int(self._memo)).set_value((fresh, ()))
 
     def _tick(self, context, state):
         guard = self.guard(context)
+        received = self.statuses.drain()
         status = parse_status(self.statuses.message(), self.n)
         t = context.get_time()
         new = guard.step(t, name="status") if status is None else guard.step(t, status.t_s, status, name="status")
-        fresh = new.last_sent_s != guard.last_sent_s
-        state.get_mutable_abstract_state(int(self._memo)).set_value((new, fresh))
+        rows = ()
+        if new.tripped is None and new.last_sent_s != guard.last_sent_s:  # a newer status was accepted
+            after = -np.inf if guard.last_sent_s is None else guard.last_sent_s
+            rows = _sample_rows(received, self.n, after=after, upto=new.last_sent_s)
+        state.get_mutable_abstract_state(int(self._memo)).set_value((new, rows))
         return EventStatus.Succeeded()
 
     def _status(self, context) -> Status:
@@ -163,13 +181,18 @@ class StatusReceiver(LeafSystem):
         output.SetFromVector(self._status(context).measured_torque)
 
     def _samples(self, context, output):
-        guard, fresh = context.get_abstract_state(int(self._memo)).get_value()
-        s = guard.payload
-        rows = [np.concatenate([[s.t_s], s.q, s.v, s.measured_torque])] if fresh and guard.tripped is None else []
-        output.SetFromVector(pack(rows, self.n))
+        output.SetFromVector(pack(list(context.get_abstract_state(int(self._memo)).get_value()[1]), self.n))
 
     def _hold(self, context, output):
         output.SetFromVector([0.0 if self.guard(context).tripped is None else 1.0])
+
+
+def _sample_rows(received: list, n: int, *, after: float, upto: float) -> tuple:
+    """The estimator's rows [t, q, v, τ] of the statuses with after < t <= upto, once each, in
+    time order, the newest PACKET_ROWS of them."""
+    statuses = {s.t_s: s for s in (parse_status(m, n) for m in received) if s is not None and after < s.t_s <= upto}
+    ordered = [statuses[t] for t in sorted(statuses)][-PACKET_ROWS:]
+    return tuple(np.concatenate([[s.t_s], s.q, s.v, s.measured_torque]) for s in ordered)
 
 
 class CommandEncoder(LeafSystem):
