@@ -29,21 +29,29 @@ if TYPE_CHECKING:
     from safesysid.systems.plant.safety_monitor import SafetyMonitor
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+CHUNK_S = 0.01  # between chunks the gripper acts (the release) and reports its status: at 100 Hz
 
 
 def build_arm_side(scenario: Scenario, seed: int | None = None) -> tuple:
-    """The station, its driver and referee and loggers: (diagram, arm, driver, monitor, loggers)."""
+    """The station, its driver, referee, loggers and gripper: (diagram, arm, driver, monitor, loggers, gripper)."""
     from pydrake.systems.framework import DiagramBuilder
     from pydrake.systems.primitives import LogVectorOutput
+    from safesysid.arm_gripper import ArmGripper
+    from safesysid.systems.config import task_enabled
     from safesysid.systems.hardware.lcm_arm import add_arm_driver, make_lcm
     from safesysid.systems.plant.safety_monitor import SafetyMonitor
     from safesysid.systems.plant.station import add_real_arm
 
     builder = DiagramBuilder()
-    arm = add_real_arm(builder, scenario, seed=seed)
-    driver = add_arm_driver(builder, arm, scenario, lcm=make_lcm(scenario))
+    # With a placement task the payload can be released (the gripper, app/arm_gripper.py).
+    arm = add_real_arm(builder, scenario, seed=seed, releasable=task_enabled(scenario) and not scenario.task.goal_q_rad)
+    lcm = make_lcm(scenario)
+    driver = add_arm_driver(builder, arm, scenario, lcm=lcm)
     h = scenario.plant.time_step_s
-    monitor = builder.AddNamedSystem("referee", SafetyMonitor(arm.plant, arm.scene_graph, arm.robot, period_s=h))
+    ignore = [arm.released_body] if arm.released_body is not None else []
+    monitor = builder.AddNamedSystem(
+        "referee", SafetyMonitor(arm.plant, arm.scene_graph, arm.robot, period_s=h, ignore_bodies=ignore)
+    )
     builder.Connect(arm.query_output, monitor.query_port)
     builder.Connect(arm.plant_state_output, monitor.state_port)
     builder.Connect(arm.motor_torque_output, monitor.torque_port)
@@ -53,7 +61,7 @@ def build_arm_side(scenario: Scenario, seed: int | None = None) -> tuple:
         "measured_torque": LogVectorOutput(arm.measured_torque_output, builder, h),
         "command": LogVectorOutput(driver.get_output_port(), builder, h),
     }
-    return builder.Build(), arm, driver, monitor, loggers
+    return builder.Build(), arm, driver, monitor, loggers, ArmGripper(scenario, arm, driver, lcm=lcm)
 
 
 def run_arm_sim(
@@ -65,7 +73,7 @@ def run_arm_sim(
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    diagram, arm, driver, monitor, loggers = build_arm_side(scenario, seed)
+    diagram, arm, driver, monitor, loggers, gripper = build_arm_side(scenario, seed)
     sim = Simulator(diagram)
     ctx = sim.get_mutable_context()
     arm.seed_noise(ctx)
@@ -81,9 +89,11 @@ def run_arm_sim(
     (out / "ready").write_text("")  # the arm answers from here on
     wall0 = time.perf_counter()
     while ctx.get_time() < duration_s and not stop:
-        sim.AdvanceTo(min(duration_s, ctx.get_time() + 0.05))
+        sim.AdvanceTo(min(duration_s, ctx.get_time() + CHUNK_S))
+        gripper.step(ctx)
     wall = time.perf_counter() - wall0
     summary = arm_summary(ctx, arm, driver, monitor=monitor, loggers=loggers, out=out)
+    summary.update(gripper.judgement(ctx, safe=summary["safe"]))
     summary.update(scheduling=scheduling, wall_time_s=wall, arm_time_s=ctx.get_time(), stopped_by_signal=bool(stop))
     (out / "arm_summary.json").write_text(json.dumps(summary, indent=2, default=float))
     return summary
@@ -124,4 +134,6 @@ def cmd_arm_sim(args: argparse.Namespace) -> int:
     scenario = _scenario(args)
     summary = run_arm_sim(scenario, args.out, duration_s=args.duration, seed=args.seed, fifo=not args.no_fifo)
     print(f"arm-sim: {'safe' if summary['safe'] else 'UNSAFE'}; referee {summary['referee']}")
+    if summary["placement"] is not None:
+        print(f"arm-sim: task {'succeeded' if summary['success'] else 'FAILED'}; placement {summary['placement']}")
     return 0

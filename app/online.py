@@ -253,10 +253,12 @@ def _add_excitation(
     )
 
 
-def _add_task_phase(builder, built: OnlineDiagram, scenario: Scenario, spec, excitation: _Excitation) -> tuple:
+def _add_task_phase(
+    builder, built: OnlineDiagram, scenario: Scenario, spec, *, excitation: _Excitation, worker
+) -> tuple:
     """The TaskPhaseSource between the excitation and the controller. Returns (source, (problem,
     plan), desired port, theta ports): identification: the parameters the executing plan was
-    certified with; task: the method's."""
+    certified with; task: the method's. worker: the wall-clock run's (the task is made there)."""
     from safesysid.systems.task.phase import task_plan
     from safesysid.task_run import make_task_source
 
@@ -267,7 +269,14 @@ def _add_task_phase(builder, built: OnlineDiagram, scenario: Scenario, spec, exc
     source = builder.AddNamedSystem(
         "task_phase_source",
         make_task_source(
-            robot, scenario, switch_s, problem=task_info[0], plan=task_info[1], held=built.arm.dumbbell, certify=certify
+            robot,
+            scenario,
+            switch_s,
+            problem=task_info[0],
+            plan=task_info[1],
+            held=built.arm.dumbbell,
+            certify=certify,
+            worker=worker,
         ),
     )
     if spec.model == methods.IDENTIFIED:
@@ -331,7 +340,8 @@ def build_online(
 ) -> OnlineDiagram:
     """worker: the wall-clock run's (app/online_lcm.py): planner and estimator calls run in it.
     scenario.arm.driver lcm: the arm is reached over LCM (systems/hardware/lcm_arm.py); the
-    referee and the payload's release are the arm's, so no SafetyMonitor and no task phase here.
+    referee and the payload's release are the arm's (no SafetyMonitor here; the task phase asks
+    the arm's gripper to release, app/task_lcm.py).
     true_scenario: a simulated arm other than the models' (a sim-to-real study: the models above
     the plant from `scenario`, e.g. a corrected model; the arm, its payload and hidden effects from
     true_scenario); None: the scenario's own."""
@@ -343,7 +353,7 @@ def build_online(
     spec = methods.method_spec(method)
     robot = robot_from_scenario(scenario)
     over_lcm = scenario.arm.driver == "lcm"
-    task = task_enabled(scenario) and not over_lcm
+    task = task_enabled(scenario)
     builder = DiagramBuilder()
     arm = _add_arm(builder, scenario, robot, seed=seed, task=task, true_scenario=true_scenario)
     theta0, box = prior(robot, scenario, method)
@@ -361,7 +371,9 @@ def build_online(
     built.planner = excitation.planner
     desired, thetas = excitation.desired, excitation.thetas
     if task:
-        built.source, built.task, desired, thetas = _add_task_phase(builder, built, scenario, spec, excitation)
+        built.source, built.task, desired, thetas = _add_task_phase(
+            builder, built, scenario, spec, excitation=excitation, worker=worker
+        )
     command = _connect_controllers(builder, built, scenario, spec, desired=desired, thetas=thetas, switches=switches)
     built.monitor = None if over_lcm else _add_monitor(builder, arm, robot, command)
     built.loggers = _add_loggers(builder, built, command=command, desired=desired, h=scenario.plant.time_step_s)

@@ -4,8 +4,8 @@ The same diagram as the simulated-clock run (app/online.py build_online) with th
 swapped for LCM interface systems (systems/hardware/lcm_arm.py), the planner and estimator
 calls in a worker process (systems/hardware/background.py), paced by the Simulator at real time.
 The 1 kHz loop (controller, status in, command out) stays in this process (docs/hardware.md
-says why). The identification phase only: the task phase's release of the payload is the arm
-side's (no message for it yet). The referee is the arm's (`safesysid arm-sim`'s
+says why). With a task, the task phase follows (app/task_lcm.py): the payload's release is a
+gripper message the arm side applies. The referee is the arm's (`safesysid arm-sim`'s
 arm_summary.json); lcm_run.json says what the run saw and how well it kept time.
 """
 
@@ -59,12 +59,13 @@ def _estimate(est, ctx):
 def run_wallclock(
     scenario: Scenario, out_dir: str | Path, method: str | None = None, *, seed: int | None = None, fifo: bool = True
 ) -> dict:
-    """Run Algorithm 2's identification phase against the arm on scenario.arm's channels."""
+    """Run Algorithm 2's identification phase (and the task phase) against the arm on scenario.arm's channels."""
     from pydrake.systems.analysis import Simulator
     from safesysid.online import build_online
     from safesysid.summary import merge_events
     from safesysid.systems.hardware.background import BackgroundWorker
     from safesysid.systems.hardware.realtime import request_realtime
+    from safesysid.task_lcm import run_task_lcm
 
     method = method or scenario.method
     seed = scenario.seed if seed is None else seed
@@ -88,13 +89,18 @@ def run_wallclock(
         sim.ResetStatistics()  # real-time pacing from here, not from before the set-up
         spec = methods.method_spec(method)
         horizon = config.excitation_duration_s(spec, scenario) or config.planner_horizon_s(scenario)
-        # one more t_p: the estimator's last update (its samples end at the horizon) is published then
-        timing = _pace(sim, ctx, horizon + scenario.planner.replan_period_s + scenario.plant.time_step_s)
+        task = None
+        if built.source is not None:  # the task phase, the release over LCM (app/task_lcm.py)
+            task, timing = run_task_lcm(built, sim, scenario, method=method, pace=_pace)
+        else:  # one more t_p: the estimator's last update (its samples end at the horizon) is published then
+            timing = _pace(sim, ctx, horizon + scenario.planner.replan_period_s + scenario.plant.time_step_s)
         _request_hold(built.arm, ctx.get_time())
     finally:
         worker.shutdown()
     summary = wallclock_summary(built, ctx, scenario, method=method, seed=seed)
     summary.update(timing=timing, scheduling=scheduling, identification_end_s=horizon)
+    if task is not None:
+        summary.update(task=task, events=summary["events"] + task["events"])
     summary["events"] = merge_events(summary["events"])
     (out / "lcm_run.json").write_text(json.dumps(summary, indent=2, default=float))
     return summary
@@ -185,4 +191,7 @@ def cmd_run_lcm(args: argparse.Namespace, scenario: Scenario, method: str) -> in
         f"in [{est['lower'][0]:.3f}, {est['upper'][0]:.3f}]; lag {summary['timing']['max_lag_s'] * 1e3:.1f} ms; "
         f"{len(summary['events'])} events (the referee's judgement: arm-sim's arm_summary.json)"
     )
+    if "task" in summary:
+        task = summary["task"]
+        print(f"task: executed {task['executed']}, hold {task['hold']}, release at {task['release_time_s']:.2f} s")
     return 0

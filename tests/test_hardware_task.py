@@ -1,0 +1,129 @@
+"""The task phase over LCM (docs/hardware.md): the payload's release as a gripper message between
+two processes, the arm's referee judging the placement, and a release that is not confirmed
+ending in a hold. Same conventions as tests/test_hardware.py (skips where multicast is missing).
+"""
+
+import json
+import os
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+import pytest
+from safesysid.systems.hardware.gripper import release_verdict
+
+SCENARIO = Path(__file__).resolve().parents[1] / "scenarios" / "experiment_a.yaml"
+URL = "udpm://239.241.129.92:20185?ttl=0"
+# Lenient timing: these processes run at normal priority on a shared 2-core machine.
+LENIENT = "watchdog_ms: 100, status_timeout_ms: 100"
+
+
+def test_the_release_is_confirmed_only_by_an_open_status_and_times_out():
+    assert release_verdict(confirmed=True, waited_s=9.0, timeout_s=0.5) == "open"
+    assert release_verdict(confirmed=False, waited_s=0.5, timeout_s=0.5) == "waiting"
+    assert release_verdict(confirmed=False, waited_s=0.51, timeout_s=0.5) == "lost"
+
+
+@pytest.fixture(scope="module")
+def multicast():
+    from tests.test_hardware import _multicast_reason
+
+    reason = _multicast_reason()
+    if reason:
+        pytest.skip(reason)
+
+
+def _channels(tag=None):
+    tag = tag or uuid.uuid4().hex[:8]
+    names = ("command_channel", "status_channel", "gripper_command_channel", "gripper_status_channel")
+    return {name: f"TT_{k}_{tag}" for k, name in enumerate(names)}
+
+
+def _arm_text(channels, extra=LENIENT):
+    return "arm: {" + ", ".join(f"{k}: {v}" for k, v in channels.items()) + f", {extra}}}"
+
+
+def _start_arm_sim(tmp_path, channels):
+    out = tmp_path / "arm"
+    args = ["arm-sim", str(SCENARIO), "--out", str(out), "--duration", "400", "--no-fifo"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "safesysid.cli", *args, "--scenario-text", _arm_text(channels)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
+    deadline = time.monotonic() + 120
+    while not (out / "ready").exists():
+        assert proc.poll() is None, proc.stdout.read().decode()
+        assert time.monotonic() < deadline, "arm-sim did not start"
+        time.sleep(0.2)
+    return proc, out
+
+
+def _stop(proc, out):
+    proc.send_signal(subprocess.signal.SIGINT)
+    proc.wait(timeout=120)
+    return json.loads((out / "arm_summary.json").read_text())
+
+
+def test_the_open_command_releases_the_payload_and_the_arm_judges_its_placement(multicast, tmp_path):
+    """This process plays the run: it holds the arm (echoing the driver's torque), asks the gripper
+    to open, sees the open status; the arm's referee measures the fallen payload."""
+    from drake import lcmt_schunk_wsg_status
+    from safesysid.systems.hardware.gripper import gripper_command, reports_open
+
+    from tests.test_hardware import _Link
+
+    channels = _channels()
+    proc, out = _start_arm_sim(tmp_path, channels)
+    link = _Link(channels["command_channel"], channels["status_channel"])
+    gripper = []
+    link.lcm.Subscribe(channels["gripper_status_channel"], lambda d: gripper.append(lcmt_schunk_wsg_status.decode(d)))
+    link.wait_status()
+    t = link.echo_for(0.3)
+    assert gripper and not reports_open(gripper[-1])  # closed on the payload before the request
+    for _ in range(20):  # LCM is best effort: the run repeats its request
+        link.lcm.Publish(channels["gripper_command_channel"], gripper_command(t, open_=True).encode())
+        t = link.echo_for(0.01, t0_s=t)
+    opened_at, deadline = link.status.utime * 1e-6, time.monotonic() + 30
+    while link.status.utime * 1e-6 < opened_at + 1.2 and time.monotonic() < deadline:  # settling, arm's clock
+        t = link.echo_for(0.05, t0_s=t)
+    arm = _stop(proc, out)
+    assert gripper and reports_open(gripper[-1])
+    place = arm["placement"]
+    assert place["released"] and place["settled_before_the_end"], place
+    centre, target = np.array(place["measured_m"]), np.array(place["target_m"])
+    assert place["error_m"] == pytest.approx(np.linalg.norm(centre - target))
+    assert centre[2] < np.array(place["release_m"])[2] - 0.05  # released where the arm held it: it fell
+    assert arm["success"] == (arm["safe"] and place["error_m"] <= place["tolerance_m"])
+    assert arm["safe"], arm["referee"]  # the released payload is no collision of the arm's
+
+
+@pytest.mark.parametrize("lost", ["gripper_command_channel", "gripper_status_channel"])
+def test_a_release_never_confirmed_ends_in_a_hold(multicast, tmp_path, lost):
+    """The run (grav-pid: no identification, the task at once) asks for the release on a channel
+    the arm does not hear, or listens where the arm does not report: it holds the arm."""
+    channels = _channels()
+    proc, out = _start_arm_sim(tmp_path, channels)
+    run_channels = dict(channels, **{lost: channels[lost] + "_ELSEWHERE"})
+    run_out = tmp_path / "run"
+    args = ["run", str(SCENARIO), "--arm", "lcm", "--method", "grav-pid", "--no-fifo", "--out", str(run_out)]
+    done = subprocess.run(
+        [sys.executable, "-m", "safesysid.cli", *args, "--scenario-text", _arm_text(run_channels)],
+        capture_output=True,
+        text=True,
+        env=dict(os.environ),
+        timeout=300,
+    )
+    arm = _stop(proc, out)
+    assert done.returncode == 0, done.stdout + done.stderr
+    run = json.loads((run_out / "lcm_run.json").read_text())
+    assert run["task"]["hold"] and "gripper_lost" in [e["kind"] for e in run["events"]], run["events"]
+    assert arm["driver"]["holding"] in ("hold_requested", "command_lost", "command_clock_jump"), arm["driver"]
+    if lost == "gripper_status_channel" and arm["placement"]["released"]:
+        # the arm did release (its status went unheard): the run held anyway, judged by the arm
+        assert arm["placement"]["error_m"] is not None
+    if lost == "gripper_command_channel":
+        assert not arm["placement"]["released"] and not arm["gripper"]["open"]
