@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
+    from pydrake.lcm import DrakeLcm
     from pydrake.systems.framework import Context
     from safesysid.systems.config import Scenario
     from safesysid.systems.hardware.lcm_systems import ArmDriver
@@ -23,7 +24,7 @@ if TYPE_CHECKING:
 
 
 class ArmGripper:
-    def __init__(self, scenario: Scenario, arm: RealArm, driver: ArmDriver, *, lcm) -> None:
+    def __init__(self, scenario: Scenario, arm: RealArm, driver: ArmDriver, *, lcm: DrakeLcm) -> None:
         from safesysid.systems.hardware.gripper import GripperServer
         from safesysid.systems.task.phase import placement_target
 

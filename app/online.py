@@ -377,7 +377,11 @@ def build_online(
     command = _connect_controllers(builder, built, scenario, spec, desired=desired, thetas=thetas, switches=switches)
     built.monitor = None if over_lcm else _add_monitor(builder, arm, robot, command)
     built.loggers = _add_loggers(builder, built, command=command, desired=desired, h=scenario.plant.time_step_s)
-    if meshcat is not None:
+    if meshcat is not None and over_lcm:  # the live arm from the received status (app/lcm_view.py)
+        from safesysid.lcm_view import add_status_view
+
+        built.visualizer = add_status_view(builder, arm.state_output, robot, scenario, meshcat).visualizer
+    elif meshcat is not None:
         from safesysid.viz import add_visualizer
 
         built.visualizer = add_visualizer(builder, arm.query_output, meshcat)

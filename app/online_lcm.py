@@ -25,6 +25,7 @@ from safesysid.systems import config, methods
 from safesysid.systems.config import Scenario
 
 if TYPE_CHECKING:
+    from pydrake.geometry import Meshcat
     from pydrake.systems.framework import Context
     from safesysid.online_diagram import OnlineDiagram
 
@@ -57,7 +58,13 @@ def _estimate(est, ctx):
 
 
 def run_wallclock(
-    scenario: Scenario, out_dir: str | Path, method: str | None = None, *, seed: int | None = None, fifo: bool = True
+    scenario: Scenario,
+    out_dir: str | Path,
+    method: str | None = None,
+    *,
+    seed: int | None = None,
+    fifo: bool = True,
+    meshcat: Meshcat | None = None,
 ) -> dict:
     """Run Algorithm 2's identification phase (and the task phase) against the arm on scenario.arm's channels."""
     from pydrake.systems.analysis import Simulator
@@ -74,7 +81,7 @@ def run_wallclock(
     scheduling = request_realtime() if fifo else {"scheduler": "normal", "warning": "real-time scheduling not asked"}
     worker = BackgroundWorker()
     try:
-        built = build_online(scenario, method, seed=seed, worker=worker)
+        built = build_online(scenario, method, meshcat=meshcat, seed=seed, worker=worker)
         sim = Simulator(built.diagram)
         sim.set_target_realtime_rate(1.0)
         ctx = sim.get_mutable_context()
@@ -180,8 +187,13 @@ def cmd_run_lcm(args: argparse.Namespace, scenario: Scenario, method: str) -> in
     import dataclasses
 
     scenario = dataclasses.replace(scenario, arm=dataclasses.replace(scenario.arm, driver="lcm"))
+    meshcat = None
+    if getattr(args, "meshcat", False):  # the live arm from the status messages (prints the URL)
+        from safesysid.viz import start_meshcat
+
+        meshcat = start_meshcat(True)
     try:
-        summary = run_wallclock(scenario, args.out, method, seed=args.seed, fifo=not args.no_fifo)
+        summary = run_wallclock(scenario, args.out, method, seed=args.seed, fifo=not args.no_fifo, meshcat=meshcat)
     except ArmNotAnswering as err:
         print(f"safesysid run: {err}", file=sys.stderr)
         return 1

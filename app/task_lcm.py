@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
+    from pydrake.systems.analysis import Simulator
     from safesysid.online_diagram import OnlineDiagram
     from safesysid.systems.config import Scenario
 
@@ -42,7 +43,9 @@ class _Clock:
         }
 
 
-def run_task_lcm(built: OnlineDiagram, sim, scenario: Scenario, *, method: str, pace: Callable) -> tuple[dict, dict]:
+def run_task_lcm(
+    built: OnlineDiagram, sim: Simulator, scenario: Scenario, *, method: str, pace: Callable
+) -> tuple[dict, dict]:
     """Advance the wall-clock run through identification, the task, the release and the settling.
     Returns (the task's summary, timing); the task's `hold` is True when the run must stop and
     ask the arm to hold at once (the gripper did not confirm the release)."""

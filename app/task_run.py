@@ -10,6 +10,7 @@ import numpy as np
 
 if TYPE_CHECKING:
     from pydrake.systems.analysis import Simulator
+    from pydrake.systems.framework import Context
     from safesysid.online_diagram import OnlineDiagram
     from safesysid.systems.config import Scenario, Task
     from safesysid.systems.hardware.background import BackgroundWorker
@@ -245,7 +246,7 @@ def _as_list(x) -> list | None:
 
 
 def switch_to_released(
-    built: OnlineDiagram, ctx, scenario: Scenario, *, method: str, t: float, where: np.ndarray | None
+    built: OnlineDiagram, ctx: Context, scenario: Scenario, *, method: str, t: float, where: np.ndarray | None
 ) -> None:
     """The payload has left the gripper at t: the controller gets the bare end effector's
     parameters (released_parameters), logged as the release event."""
@@ -259,7 +260,7 @@ def switch_to_released(
 
 def task_summary(
     built: OnlineDiagram,
-    ctx,
+    ctx: Context,
     scenario: Scenario,
     *,
     st: PhaseState,

@@ -127,3 +127,41 @@ def test_a_release_never_confirmed_ends_in_a_hold(multicast, tmp_path, lost):
         assert arm["placement"]["error_m"] is not None
     if lost == "gripper_command_channel":
         assert not arm["placement"]["released"] and not arm["gripper"]["open"]
+
+
+def _translation(packed: bytes) -> np.ndarray:
+    """The translation of a Meshcat set_transform message (msgpack: 16 big-endian doubles, column-major)."""
+    import struct
+
+    start = packed.index(b"matrix\xdc\x00\x10") + len(b"matrix\xdc\x00\x10")
+    values = [struct.unpack(">d", packed[start + 9 * k + 1 : start + 9 * k + 9])[0] for k in range(16)]
+    return np.array(values).reshape(4, 4).T[:3, 3]
+
+
+def test_meshcat_shows_the_arm_at_the_received_positions():
+    """`run --arm lcm --meshcat`: the view publishes the payload where forward kinematics at the fed
+    status puts it (no browser, no LCM: the status is a fixed input)."""
+    from pydrake.geometry import Meshcat
+    from pydrake.systems.framework import DiagramBuilder
+    from pydrake.systems.primitives import ConstantVectorSource
+    from safesysid.lcm_view import add_status_view
+    from safesysid.scenario import load_scenario
+    from safesysid.systems.model.loading import robot_from_scenario
+    from safesysid.viz import body_path
+
+    scenario = load_scenario(SCENARIO)
+    robot, meshcat = robot_from_scenario(scenario), Meshcat()
+    builder = DiagramBuilder()
+    source = builder.AddSystem(ConstantVectorSource(np.zeros(2 * robot.n)))
+    view = add_status_view(builder, source.get_output_port(), robot, scenario, meshcat)
+    diagram = builder.Build()
+    context = diagram.CreateDefaultContext()
+    plant, plant_context = view.plant, view.plant.CreateDefaultContext()
+    payload = plant.GetBodyByName("payload")
+    for q in (np.asarray(scenario.q0_rad), np.asarray(scenario.q0_rad) + 0.4):
+        source.get_mutable_source_value(source.GetMyMutableContextFromRoot(context)).SetFromVector(np.r_[q, 0 * q])
+        diagram.ForcedPublish(context)
+        plant.SetPositions(plant_context, q)
+        expected = payload.EvalPoseInWorld(plant_context).translation()
+        shown = _translation(meshcat._GetPackedTransform(body_path("payload::payload")))
+        np.testing.assert_allclose(shown, expected, atol=1e-9)

@@ -13,11 +13,15 @@ command unless its driver holds (a braked arm drops nothing), and reports the fi
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from drake import lcmt_schunk_wsg_command, lcmt_schunk_wsg_status
 
 from .lcm_systems import LatestMessage
 from .messages import utime_of
+
+if TYPE_CHECKING:
+    from pydrake.lcm import DrakeLcm
 
 OPEN_MM = 110.0  # the WSG 50's full opening: "open", release the payload
 CLOSED_MM = 0.0  # fingers on the payload's handle (the width is not modelled)
@@ -60,7 +64,7 @@ def release_verdict(*, confirmed: bool, waited_s: float, timeout_s: float) -> st
 class GripperLink:
     """The run's end of the gripper channels: open requests out, the newest status in."""
 
-    def __init__(self, lcm, command_channel: str, status_channel: str) -> None:
+    def __init__(self, lcm: DrakeLcm, command_channel: str, status_channel: str) -> None:
         self.lcm, self.command_channel = lcm, command_channel
         self.statuses = LatestMessage(lcm, status_channel, lcmt_schunk_wsg_status)
 
@@ -80,7 +84,7 @@ class GripperLink:
 class GripperServer:
     """The arm side: open commands in, the gripper's status out (stamped with the arm's clock)."""
 
-    lcm: object
+    lcm: DrakeLcm
     command_channel: str
     status_channel: str
     commands: LatestMessage = field(init=False)
