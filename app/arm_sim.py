@@ -6,7 +6,9 @@ torque, publishes its status on `arm.status_channel` every plant step with its o
 and holds (gravity + PD at the pose of the trip, latched) before the first command, on a hold
 request, or when no new command arrived for arm.watchdog_ms. It keeps its own ground truth
 (arm_log.csv) and its own referee (the SafetyMonitor on the links' geometry, the torque before
-saturation); arm_summary.json is the judgement of a run driving it.
+saturation); arm_summary.json is the judgement of a run driving it. With a placement task its
+gripper (app/arm_gripper.py) releases the payload on the run's open command and the referee
+judges the placement.
 """
 
 from __future__ import annotations

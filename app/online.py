@@ -157,12 +157,14 @@ def make_planner_system(
     )
 
 
-def task_switch_time_s(scenario: Scenario, spec: methods.MethodSpec) -> float:
+def task_switch_time_s(scenario: Scenario, spec: methods.MethodSpec, *, wall_clock: bool = False) -> float:
     """Start of the task phase: one plant step after the identification phase (so the
-    estimator's update due at its end is in the latched box), or 0 without identification."""
+    estimator's update due at its end is in the latched box), or 0 without identification.
+    wall_clock: one t_p later, when that update comes back from the worker (background.py)."""
     if spec.excitation is None:
         return 0.0
-    return config.excitation_duration_s(spec, scenario) + scenario.plant.time_step_s
+    late = scenario.planner.replan_period_s if wall_clock else 0.0
+    return config.excitation_duration_s(spec, scenario) + late + scenario.plant.time_step_s
 
 
 def make_estimator_system(
@@ -264,7 +266,7 @@ def _add_task_phase(
 
     robot = built.arm.robot
     task_info = task_plan(scenario)
-    switch_s = task_switch_time_s(scenario, spec)
+    switch_s = task_switch_time_s(scenario, spec, wall_clock=worker is not None)
     certify = spec.controller == "armour"  # ARMOUR runs the task: its certificate must hold
     source = builder.AddNamedSystem(
         "task_phase_source",
@@ -365,7 +367,7 @@ def build_online(
     built = OnlineDiagram(arm=arm, controller=controller, meshcat=meshcat, theta_prior=(theta0, box), tracking=tracking)
     if spec.identifies == methods.ESTIMATOR:
         # With a task phase the estimator stops at the switch: the task uses the box latched then.
-        stop = task_switch_time_s(scenario, spec) if task else np.inf
+        stop = task_switch_time_s(scenario, spec, wall_clock=worker is not None) if task else np.inf
         built.estimator = _add_estimator(builder, arm, scenario, stop_time_s=stop, worker=worker)
     excitation = _add_excitation(builder, built, scenario, spec, seed=seed, task=task, worker=worker)
     built.planner = excitation.planner

@@ -27,6 +27,72 @@ def test_the_release_is_confirmed_only_by_an_open_status_and_times_out():
     assert release_verdict(confirmed=False, waited_s=0.51, timeout_s=0.5) == "lost"
 
 
+class _Ramp:
+    """A stand-in task curve: q = q_start + 0.1 t per joint over 1 s."""
+
+    duration = 1.0
+
+    def evaluate(self, ts, orders=2):
+        t = np.asarray(ts, float)[:, None]
+        return 1.0 + 0.1 * t * np.ones(7), 0.1 * np.ones((len(t), 7)), np.zeros((len(t), 7))
+
+
+class _Worker:
+    """A worker whose jobs finish when the test says so."""
+
+    def __init__(self):
+        self.jobs = []
+
+    def submit(self, fn, *args):
+        from concurrent.futures import Future
+
+        self.jobs.append((Future(), fn, args))
+        return self.jobs[-1][0]
+
+
+def _task_source(worker):
+    from pydrake.systems.analysis import Simulator
+    from safesysid.systems.hardware.task_source import WallClockTaskSource
+
+    def make_task(q_now, thetas):
+        return [_Ramp()], [dict(kind="task_start", detail="ramp")], {}
+
+    source = WallClockTaskSource(7, 98, np.zeros(7), switch_time_s=0.1, make_task=make_task, worker=worker)
+    sim = Simulator(source)
+    ctx = sim.get_mutable_context()
+    source.GetInputPort("plan_desired").FixValue(ctx, np.r_[np.full(7, 0.5), np.zeros(14)])
+    for name in ("theta0", "theta_lower", "theta_upper"):
+        for prefix in ("plan_", "task_"):
+            source.GetInputPort(prefix + name).FixValue(ctx, np.zeros(98))
+    sim.Initialize()
+    return source, sim, ctx
+
+
+@pytest.mark.parametrize("outcome", ["made", "worker_died"])
+def test_the_wall_clock_task_holds_the_switch_pose_until_the_worker_has_made_it(outcome):
+    worker = _Worker()
+    source, sim, ctx = _task_source(worker)
+    sim.AdvanceTo(0.5)  # switched at 0.1; the worker has not answered
+    desired = source.GetOutputPort("desired").Eval(ctx)
+    np.testing.assert_array_equal(desired, np.r_[np.full(7, 0.5), np.zeros(14)])  # at rest where it was
+    assert source.pending is not None and not source.phase_state(ctx).ready
+    future, fn, args = worker.jobs[0]
+    if outcome == "made":
+        future.set_result((fn(*args), 0.4))
+    else:
+        future.set_exception(RuntimeError("worker died"))
+    sim.AdvanceTo(0.8)
+    st = source.phase_state(ctx)
+    if outcome == "made":
+        assert st.ready and 0.5 <= st.curves[0].t_start <= 0.5 + 0.011  # from the pick-up, not the switch
+        np.testing.assert_allclose(
+            source.GetOutputPort("desired").Eval(ctx)[:7], 1.0 + 0.1 * (0.8 - st.curves[0].t_start)
+        )
+    else:
+        assert not st.ready and [e["kind"] for e in st.events] == ["task_error"]
+        np.testing.assert_array_equal(source.GetOutputPort("desired").Eval(ctx)[:7], np.full(7, 0.5))
+
+
 @pytest.fixture(scope="module")
 def multicast():
     from tests.test_hardware import _multicast_reason

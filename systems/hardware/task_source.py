@@ -37,8 +37,12 @@ class WallClockTaskSource(TaskPhaseSource):
         desired = self._plan_desired.Eval(context) if self._plan_desired.HasValue(context) else None
         q_now = self._q0 if desired is None else np.array(desired[: self._n])
         thetas = tuple(np.array(port.Eval(context), float) for port in self._task_thetas)
-        self.pending = (self.worker.submit(_task_job, self.key, q_now, thetas), t)
-        waiting = PhaseState("task", t, q_now, (), False, thetas, (), {})
+        events = ()
+        try:
+            self.pending = (self.worker.submit(_task_job, self.key, q_now, thetas), t)
+        except Exception as err:  # noqa: BLE001 (the worker is gone: no task, the arm holds)
+            events = (dict(t=t, kind="task_error", detail=f"no worker to make the task ({err!r}): the arm holds"),)
+        waiting = PhaseState("task", t, q_now, (), False, thetas, events, {})
         state.get_mutable_abstract_state(int(self._state)).set_value(waiting)
 
     def _poll(self, context, state):
