@@ -16,6 +16,7 @@ from pydrake.systems.framework import EventStatus, LeafSystem
 
 if TYPE_CHECKING:
     from pydrake.geometry import Meshcat
+    from pydrake.systems.framework import DiagramBuilder, OutputPort
     from safesysid.systems.config import Scenario
     from safesysid.systems.model.robot_model import RobotModel
 
@@ -38,7 +39,7 @@ def _view_diagram(robot: RobotModel, scenario: Scenario, meshcat: Meshcat):
         from safesysid.systems.plant.arm_plant import dumbbell_spatial_inertia
 
         body = plant.AddRigidBody("payload", plant.AddModelInstance("payload"), dumbbell_spatial_inertia(dumbbell))
-        ee = plant.GetBodyByName(robot.ee_link, instance)
+        ee = plant.GetBodyByName(robot.body_names[robot.end_effector], instance)
         plant.WeldFrames(ee.body_frame(), body.body_frame(), RigidTransform(robot.extra["grasp_point"]))
         register_dumbbell_geometry(plant, body, dumbbell)
     plant.Finalize()
@@ -67,7 +68,9 @@ class StatusView(LeafSystem):
         return EventStatus.Succeeded()
 
 
-def add_status_view(builder, state_output, robot: RobotModel, scenario: Scenario, meshcat: Meshcat) -> StatusView:
+def add_status_view(
+    builder: DiagramBuilder, state_output: OutputPort, robot: RobotModel, scenario: Scenario, meshcat: Meshcat
+) -> StatusView:
     view = builder.AddNamedSystem("status_view", StatusView(robot, scenario, meshcat))
     builder.Connect(state_output, view.state)
     return view
