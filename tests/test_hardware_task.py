@@ -188,6 +188,7 @@ def test_a_release_never_confirmed_ends_in_a_hold(multicast, tmp_path, lost):
     run = json.loads((run_out / "lcm_run.json").read_text())
     assert run["task"]["hold"] and "gripper_lost" in [e["kind"] for e in run["events"]], run["events"]
     assert arm["driver"]["holding"] in ("hold_requested", "command_lost", "command_clock_jump"), arm["driver"]
+    assert arm["safe"], arm["referee"]
     if lost == "gripper_status_channel" and arm["placement"]["released"]:
         # the arm did release (its status went unheard): the run held anyway, judged by the arm
         assert arm["placement"]["error_m"] is not None
