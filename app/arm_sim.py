@@ -6,7 +6,9 @@ torque, publishes its status on `arm.status_channel` every plant step with its o
 and holds (gravity + PD at the pose of the trip, latched) before the first command, on a hold
 request, or when no new command arrived for arm.watchdog_ms. It keeps its own ground truth
 (arm_log.csv) and its own referee (the SafetyMonitor on the links' geometry, the torque before
-saturation); arm_summary.json is the judgement of a run driving it.
+saturation); arm_summary.json is the judgement of a run driving it. With a placement task its
+gripper (app/arm_gripper.py) releases the payload on the run's open command and the referee
+judges the placement.
 """
 
 from __future__ import annotations
@@ -29,22 +31,30 @@ if TYPE_CHECKING:
     from safesysid.systems.plant.safety_monitor import SafetyMonitor
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+CHUNK_S = 0.01  # between chunks the gripper acts (the release) and reports its status: at 100 Hz
 
 
 def build_arm_side(scenario: Scenario, seed: int | None = None) -> tuple:
-    """The station, its driver and referee and loggers: (diagram, arm, driver, monitor, loggers)."""
+    """The station, its driver, referee, loggers and gripper: (diagram, arm, driver, monitor, loggers, gripper)."""
     from pydrake.systems.framework import DiagramBuilder
     from pydrake.systems.primitives import LogVectorOutput
+    from safesysid.arm_gripper import ArmGripper
+    from safesysid.systems.config import task_enabled
     from safesysid.systems.hardware.lcm_arm import add_arm_driver, make_lcm
     from safesysid.systems.plant.safety_monitor import SafetyMonitor
     from safesysid.systems.plant.station import add_real_arm
 
     builder = DiagramBuilder()
-    arm = add_real_arm(builder, scenario, seed=seed)
-    driver = add_arm_driver(builder, arm, scenario, lcm=make_lcm(scenario))
+    # With a placement task the payload can be released (the gripper, app/arm_gripper.py).
+    arm = add_real_arm(builder, scenario, seed=seed, releasable=task_enabled(scenario) and not scenario.task.goal_q_rad)
+    lcm = make_lcm(scenario)
+    driver = add_arm_driver(builder, arm, scenario, lcm=lcm)
     h = scenario.plant.time_step_s
+    ignore = [arm.released_body] if arm.released_body is not None else []
     # The referee judges the log afterwards (safety_monitor.judge_log): not in the 1 kHz loop.
-    monitor = builder.AddNamedSystem("referee", SafetyMonitor(arm.plant, arm.scene_graph, arm.robot, period_s=None))
+    monitor = builder.AddNamedSystem(
+        "referee", SafetyMonitor(arm.plant, arm.scene_graph, arm.robot, period_s=None, ignore_bodies=ignore)
+    )
     builder.Connect(arm.query_output, monitor.query_port)
     builder.Connect(arm.plant_state_output, monitor.state_port)
     builder.Connect(arm.motor_torque_output, monitor.torque_port)
@@ -56,7 +66,7 @@ def build_arm_side(scenario: Scenario, seed: int | None = None) -> tuple:
         "true_state": LogVectorOutput(arm.plant_state_output, builder, h),
         "motor_torque": LogVectorOutput(arm.motor_torque_output, builder, h),
     }
-    return builder.Build(), arm, driver, monitor, loggers
+    return builder.Build(), arm, driver, monitor, loggers, ArmGripper(scenario, arm, driver, lcm=lcm)
 
 
 def run_arm_sim(
@@ -68,7 +78,7 @@ def run_arm_sim(
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    diagram, arm, driver, monitor, loggers = build_arm_side(scenario, seed)
+    diagram, arm, driver, monitor, loggers, gripper = build_arm_side(scenario, seed)
     sim = Simulator(diagram)
     ctx = sim.get_mutable_context()
     arm.seed_noise(ctx)
@@ -84,24 +94,28 @@ def run_arm_sim(
     (out / "ready").write_text("")  # the arm answers from here on
     wall0 = time.perf_counter()
     while ctx.get_time() < duration_s and not stop:
-        sim.AdvanceTo(min(duration_s, ctx.get_time() + 0.05))
+        sim.AdvanceTo(min(duration_s, ctx.get_time() + CHUNK_S))
+        gripper.step(ctx)
     wall = time.perf_counter() - wall0
-    summary = arm_summary(
-        ctx, arm, driver, referee=judge_run(diagram, arm, monitor, loggers, ctx), loggers=loggers, out=out
-    )
+    referee = judge_run(diagram, arm, monitor, loggers, ctx, released_at=gripper.t_release)
+    summary = arm_summary(ctx, arm, driver, referee=referee, loggers=loggers, out=out)
+    summary.update(gripper.judgement(ctx, safe=summary["safe"]))
     summary.update(scheduling=scheduling, wall_time_s=wall, arm_time_s=ctx.get_time(), stopped_by_signal=bool(stop))
     (out / "arm_summary.json").write_text(json.dumps(summary, indent=2, default=float))
     return summary
 
 
-def judge_run(diagram: Diagram, arm: RealArm, monitor: SafetyMonitor, loggers: dict, ctx: Context) -> dict:
-    """The referee's judgement of the logged run, on a fresh context of the same diagram."""
+def judge_run(
+    diagram: Diagram, arm: RealArm, monitor: SafetyMonitor, loggers: dict, ctx: Context, *, released_at: float | None
+) -> dict:
+    """The referee's judgement of the logged run, on a fresh context of the same diagram (the
+    payload let go at released_at, as the run's context did: judge_log)."""
     from safesysid.systems.plant.safety_monitor import judge_log
 
     log = {name: loggers[key].FindLog(ctx) for name, key in _REFEREE_LOGS.items()}
     data = {name: entry.data().T for name, entry in log.items()}
     data["t"] = log["command"].sample_times()
-    return judge_log(monitor, arm, diagram.CreateDefaultContext(), data).summary()
+    return judge_log(monitor, arm, diagram.CreateDefaultContext(), data, released_at=released_at).summary()
 
 
 # judge_log's names -> the loggers'
@@ -144,4 +158,6 @@ def cmd_arm_sim(args: argparse.Namespace) -> int:
     scenario = _scenario(args)
     summary = run_arm_sim(scenario, args.out, duration_s=args.duration, seed=args.seed, fifo=not args.no_fifo)
     print(f"arm-sim: {'safe' if summary['safe'] else 'UNSAFE'}; referee {summary['referee']}")
+    if summary["placement"] is not None:
+        print(f"arm-sim: task {'succeeded' if summary['success'] else 'FAILED'}; placement {summary['placement']}")
     return 0

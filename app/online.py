@@ -157,12 +157,14 @@ def make_planner_system(
     )
 
 
-def task_switch_time_s(scenario: Scenario, spec: methods.MethodSpec) -> float:
+def task_switch_time_s(scenario: Scenario, spec: methods.MethodSpec, *, wall_clock: bool = False) -> float:
     """Start of the task phase: one plant step after the identification phase (so the
-    estimator's update due at its end is in the latched box), or 0 without identification."""
+    estimator's update due at its end is in the latched box), or 0 without identification.
+    wall_clock: one t_p later, when that update comes back from the worker (background.py)."""
     if spec.excitation is None:
         return 0.0
-    return config.excitation_duration_s(spec, scenario) + scenario.plant.time_step_s
+    late = scenario.planner.replan_period_s if wall_clock else 0.0
+    return config.excitation_duration_s(spec, scenario) + late + scenario.plant.time_step_s
 
 
 def make_estimator_system(
@@ -253,21 +255,30 @@ def _add_excitation(
     )
 
 
-def _add_task_phase(builder, built: OnlineDiagram, scenario: Scenario, spec, excitation: _Excitation) -> tuple:
+def _add_task_phase(
+    builder, built: OnlineDiagram, scenario: Scenario, spec, *, excitation: _Excitation, worker
+) -> tuple:
     """The TaskPhaseSource between the excitation and the controller. Returns (source, (problem,
     plan), desired port, theta ports): identification: the parameters the executing plan was
-    certified with; task: the method's."""
+    certified with; task: the method's. worker: the wall-clock run's (the task is made there)."""
     from safesysid.systems.task.phase import task_plan
     from safesysid.task_run import make_task_source
 
     robot = built.arm.robot
     task_info = task_plan(scenario)
-    switch_s = task_switch_time_s(scenario, spec)
+    switch_s = task_switch_time_s(scenario, spec, wall_clock=worker is not None)
     certify = spec.controller == "armour"  # ARMOUR runs the task: its certificate must hold
     source = builder.AddNamedSystem(
         "task_phase_source",
         make_task_source(
-            robot, scenario, switch_s, problem=task_info[0], plan=task_info[1], held=built.arm.dumbbell, certify=certify
+            robot,
+            scenario,
+            switch_s,
+            problem=task_info[0],
+            plan=task_info[1],
+            held=built.arm.dumbbell,
+            certify=certify,
+            worker=worker,
         ),
     )
     if spec.model == methods.IDENTIFIED:
@@ -331,7 +342,8 @@ def build_online(
 ) -> OnlineDiagram:
     """worker: the wall-clock run's (app/online_lcm.py): planner and estimator calls run in it.
     scenario.arm.driver lcm: the arm is reached over LCM (systems/hardware/lcm_arm.py); the
-    referee and the payload's release are the arm's, so no SafetyMonitor and no task phase here.
+    referee and the payload's release are the arm's (no SafetyMonitor here; the task phase asks
+    the arm's gripper to release, app/task_lcm.py).
     true_scenario: a simulated arm other than the models' (a sim-to-real study: the models above
     the plant from `scenario`, e.g. a corrected model; the arm, its payload and hidden effects from
     true_scenario); None: the scenario's own."""
@@ -343,7 +355,7 @@ def build_online(
     spec = methods.method_spec(method)
     robot = robot_from_scenario(scenario)
     over_lcm = scenario.arm.driver == "lcm"
-    task = task_enabled(scenario) and not over_lcm
+    task = task_enabled(scenario)
     builder = DiagramBuilder()
     arm = _add_arm(builder, scenario, robot, seed=seed, task=task, true_scenario=true_scenario)
     theta0, box = prior(robot, scenario, method)
@@ -355,17 +367,23 @@ def build_online(
     built = OnlineDiagram(arm=arm, controller=controller, meshcat=meshcat, theta_prior=(theta0, box), tracking=tracking)
     if spec.identifies == methods.ESTIMATOR:
         # With a task phase the estimator stops at the switch: the task uses the box latched then.
-        stop = task_switch_time_s(scenario, spec) if task else np.inf
+        stop = task_switch_time_s(scenario, spec, wall_clock=worker is not None) if task else np.inf
         built.estimator = _add_estimator(builder, arm, scenario, stop_time_s=stop, worker=worker)
     excitation = _add_excitation(builder, built, scenario, spec, seed=seed, task=task, worker=worker)
     built.planner = excitation.planner
     desired, thetas = excitation.desired, excitation.thetas
     if task:
-        built.source, built.task, desired, thetas = _add_task_phase(builder, built, scenario, spec, excitation)
+        built.source, built.task, desired, thetas = _add_task_phase(
+            builder, built, scenario, spec, excitation=excitation, worker=worker
+        )
     command = _connect_controllers(builder, built, scenario, spec, desired=desired, thetas=thetas, switches=switches)
     built.monitor = None if over_lcm else _add_monitor(builder, arm, robot, command)
     built.loggers = _add_loggers(builder, built, command=command, desired=desired, h=scenario.plant.time_step_s)
-    if meshcat is not None:
+    if meshcat is not None and over_lcm:  # the live arm from the received status (app/lcm_view.py)
+        from safesysid.lcm_view import add_status_view
+
+        built.visualizer = add_status_view(builder, arm.state_output, robot, scenario, meshcat).visualizer
+    elif meshcat is not None:
         from safesysid.viz import add_visualizer
 
         built.visualizer = add_visualizer(builder, arm.query_output, meshcat)

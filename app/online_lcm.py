@@ -4,8 +4,8 @@ The same diagram as the simulated-clock run (app/online.py build_online) with th
 swapped for LCM interface systems (systems/hardware/lcm_arm.py), the planner and estimator
 calls in a worker process (systems/hardware/background.py), paced by the Simulator at real time.
 The 1 kHz loop (controller, status in, command out) stays in this process (docs/hardware.md
-says why). The identification phase only: the task phase's release of the payload is the arm
-side's (no message for it yet). The referee is the arm's (`safesysid arm-sim`'s
+says why). With a task, the task phase follows (app/task_lcm.py): the payload's release is a
+gripper message the arm side applies. The referee is the arm's (`safesysid arm-sim`'s
 arm_summary.json); lcm_run.json says what the run saw and how well it kept time.
 """
 
@@ -26,6 +26,7 @@ from safesysid.systems import config, methods
 from safesysid.systems.config import Scenario
 
 if TYPE_CHECKING:
+    from pydrake.geometry import Meshcat
     from pydrake.systems.framework import Context
     from safesysid.online_diagram import OnlineDiagram
 
@@ -58,14 +59,21 @@ def _estimate(est, ctx):
 
 
 def run_wallclock(
-    scenario: Scenario, out_dir: str | Path, method: str | None = None, *, seed: int | None = None, fifo: bool = True
+    scenario: Scenario,
+    out_dir: str | Path,
+    method: str | None = None,
+    *,
+    seed: int | None = None,
+    fifo: bool = True,
+    meshcat: Meshcat | None = None,
 ) -> dict:
-    """Run Algorithm 2's identification phase against the arm on scenario.arm's channels."""
+    """Run Algorithm 2's identification phase (and the task phase) against the arm on scenario.arm's channels."""
     from pydrake.systems.analysis import Simulator
     from safesysid.online import build_online
     from safesysid.summary import merge_events
     from safesysid.systems.hardware.background import BackgroundWorker
     from safesysid.systems.hardware.realtime import request_realtime
+    from safesysid.task_lcm import run_task_lcm
 
     method = method or scenario.method
     seed = scenario.seed if seed is None else seed
@@ -75,7 +83,7 @@ def run_wallclock(
     scheduling = request_realtime() if fifo else {"scheduler": "normal", "warning": "real-time scheduling not asked"}
     worker = BackgroundWorker()
     try:
-        built = build_online(scenario, method, seed=seed, worker=worker)
+        built = build_online(scenario, method, meshcat=meshcat, seed=seed, worker=worker)
         sim = Simulator(built.diagram)
         sim.set_target_realtime_rate(1.0)
         ctx = sim.get_mutable_context()
@@ -91,13 +99,18 @@ def run_wallclock(
         worker.clock_started()
         spec = methods.method_spec(method)
         horizon = config.excitation_duration_s(spec, scenario) or config.planner_horizon_s(scenario)
-        # one more t_p: the estimator's last update (its samples end at the horizon) is published then
-        timing = _pace(sim, ctx, horizon + scenario.planner.replan_period_s + scenario.plant.time_step_s)
+        task = None
+        if built.source is not None:  # the task phase, the release over LCM (app/task_lcm.py)
+            task, timing = run_task_lcm(built, sim, scenario, method=method, pace=_pace)
+        else:  # one more t_p: the estimator's last update (its samples end at the horizon) is published then
+            timing = _pace(sim, ctx, horizon + scenario.planner.replan_period_s + scenario.plant.time_step_s)
         _request_hold(built.arm, ctx.get_time())
     finally:
         worker.shutdown()
     summary = wallclock_summary(built, ctx, scenario, method=method, seed=seed)
     summary.update(timing=timing, scheduling=scheduling, identification_end_s=horizon)
+    if task is not None:
+        summary.update(task=task, events=summary["events"] + task["events"])
     summary["events"] = merge_events(summary["events"])
     (out / "lcm_run.json").write_text(json.dumps(summary, indent=2, default=float))
     return summary
@@ -188,8 +201,13 @@ def wallclock_summary(built: OnlineDiagram, ctx: Context, scenario: Scenario, *,
 def cmd_run_lcm(args: argparse.Namespace, scenario: Scenario, method: str) -> int:
     """`safesysid run --arm lcm`: one line of what the run saw; exit 1 when no arm answered."""
     scenario = dataclasses.replace(scenario, arm=dataclasses.replace(scenario.arm, driver="lcm"))
+    meshcat = None
+    if getattr(args, "meshcat", False):  # the live arm from the status messages (prints the URL)
+        from safesysid.viz import start_meshcat
+
+        meshcat = start_meshcat(True)
     try:
-        summary = run_wallclock(scenario, args.out, method, seed=args.seed, fifo=not args.no_fifo)
+        summary = run_wallclock(scenario, args.out, method, seed=args.seed, fifo=not args.no_fifo, meshcat=meshcat)
     except ArmNotAnswering as err:
         print(f"safesysid run: {err}", file=sys.stderr)
         return 1
@@ -199,4 +217,7 @@ def cmd_run_lcm(args: argparse.Namespace, scenario: Scenario, method: str) -> in
         f"in [{est['lower'][0]:.3f}, {est['upper'][0]:.3f}]; lag {summary['timing']['max_lag_s'] * 1e3:.1f} ms; "
         f"{len(summary['events'])} events (the referee's judgement: arm-sim's arm_summary.json)"
     )
+    if "task" in summary:
+        task = summary["task"]
+        print(f"task: executed {task['executed']}, hold {task['hold']}, release at {task['release_time_s']:.2f} s")
     return 0

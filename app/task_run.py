@@ -10,8 +10,10 @@ import numpy as np
 
 if TYPE_CHECKING:
     from pydrake.systems.analysis import Simulator
+    from pydrake.systems.framework import Context
     from safesysid.online_diagram import OnlineDiagram
     from safesysid.systems.config import Scenario, Task
+    from safesysid.systems.hardware.background import BackgroundWorker
     from safesysid.systems.model.payload import Dumbbell
     from safesysid.systems.model.robot_model import RobotModel
     from safesysid.systems.planner.trajectory_source import PhaseState, TaskPhaseSource
@@ -47,10 +49,13 @@ def make_task_source(
     plan: TaskResult,
     held: Dumbbell | None = None,
     certify: bool = False,
+    worker: BackgroundWorker | None = None,
 ) -> TaskPhaseSource:
     """The TaskPhaseSource of a scenario whose task trajectory `plan` (TaskResult) solves `problem`;
     held: the payload in the gripper (the return move's geometry, systems/task_phase.return_move).
-    certify: the task controller is ARMOUR, whose certificate the phase must carry (certify_task)."""
+    certify: the task controller is ARMOUR, whose certificate the phase must carry (certify_task).
+    worker: a wall-clock run's; the task is made there while the loop holds the arm
+    (systems/hardware/task_source.py)."""
     from safesysid.systems.planner.trajectory_source import TaskPhaseSource
     from safesysid.systems.task.phase import return_move
 
@@ -76,7 +81,12 @@ def make_task_source(
         events.append(dict(kind="task_start", detail=detail))
         return curves, events, report
 
-    return TaskPhaseSource(robot.n, 14 * robot.n, scenario.q0_rad, switch_time_s=switch_time_s, make_task=make_task)
+    args = (robot.n, 14 * robot.n, scenario.q0_rad)
+    if worker is not None:
+        from safesysid.systems.hardware.task_source import WallClockTaskSource
+
+        return WallClockTaskSource(*args, switch_time_s=switch_time_s, make_task=make_task, worker=worker)
+    return TaskPhaseSource(*args, switch_time_s=switch_time_s, make_task=make_task)
 
 
 def certify_task(problem: TaskProblem, curves: list, thetas: tuple, *, task: Task) -> tuple[list, dict, str]:
@@ -152,18 +162,22 @@ def judge(
     return first_failure(checks, t_switch)
 
 
-def task_certificate_summary(st: PhaseState, truth: np.ndarray, robot: RobotModel) -> dict:
+def task_certificate_summary(st: PhaseState, truth: np.ndarray | None, robot: RobotModel) -> dict:
     """summary.json task fields of the certificate (certify_task's report, PhaseState st): the
     scale played and the task trajectory's duration (None when refused or not found), and whether
-    the latched box holds the true payload (else its certificate certifies nothing real: wrong)."""
+    the latched box holds the true payload (else its certificate certifies nothing real: wrong;
+    None when the truth is not known here: an arm over LCM)."""
     keys = ("time_scale", "certified_torque_ratio", "certified_torque_ratio_unscaled")
     report = {**dict.fromkeys(keys), "uncertified": False, "time_scales_tried": [], **st.report}
-    lo, hi = (np.asarray(x, float)[robot.ee_slice] for x in st.thetas[1:])
-    ee = np.asarray(truth, float)[robot.ee_slice]
+    contains = None
+    if truth is not None and st.thetas:
+        lo, hi = (np.asarray(x, float)[robot.ee_slice] for x in st.thetas[1:])
+        ee = np.asarray(truth, float)[robot.ee_slice]
+        contains = bool(np.all((lo <= ee) & (ee <= hi)))
     return {
         **report,
         "duration_s": float(st.curves[-1].curve.duration) if st.ready else None,
-        "certificate_box_contains_payload": bool(np.all((lo <= ee) & (ee <= hi))),
+        "certificate_box_contains_payload": contains,
     }
 
 
@@ -197,31 +211,70 @@ def run_task_phase(built: OnlineDiagram, sim: Simulator, scenario: Scenario, *, 
 
     ctx = sim.get_mutable_context()
     arm, source = built.arm, built.source
-    source_ctx = source.GetMyMutableContextFromRoot(ctx)
     # The switch fires at switch_time_s; one step later its curves are in the context.
     sim.AdvanceTo(source.switch_time_s + scenario.plant.time_step_s)
-    st = source.phase_state(source_ctx)
+    st = source.phase_state(source.GetMyContextFromRoot(ctx))
     certificate = task_certificate_summary(st, arm.true_theta(), arm.robot)
     t_release = max(st.t_end, ctx.get_time())
     sim.AdvanceTo(t_release)
     release_xyz = None
     if arm.released_body is not None and st.ready:
         release_xyz = arm.release(ctx).translation()
-        detail = f"payload released at {np.round(release_xyz, 4).tolist()} m; controller: bare end effector"
-        event = dict(t=t_release, kind="release", detail=detail)
-        source.set_thetas(source_ctx, released_parameters(arm.robot, scenario, method), event)
+        switch_to_released(built, ctx, scenario, method=method, t=t_release, where=release_xyz)
     end = t_release + scenario.task.settle_time_s
     sim.AdvanceTo(end)
     target, kind = placement_target(scenario, arm.dumbbell)
     settled = arm.payload_pose(ctx).translation() if arm.dumbbell is not None else None
     measured = release_xyz if kind == "release" and release_xyz is not None else settled
     error = None if target is None else float(np.linalg.norm(measured - target))
-    problem, plan = built.task
-    as_list = lambda x: None if x is None else np.asarray(x, float).tolist()  # noqa: E731
+    placement = {
+        "kind": kind or None,
+        "target_m": _as_list(target),
+        "measured_m": _as_list(measured),
+        "release_m": _as_list(release_xyz),
+        "error_m": error,
+        "tolerance_m": scenario.task.placement_tolerance_m,
+        "speed_at_end_m_s": arm.payload_speed(ctx) if arm.dumbbell is not None else None,
+    }
+    return task_summary(
+        built, ctx, scenario, st=st, certificate=certificate, times=(t_release, end), placement=placement
+    )
+
+
+def _as_list(x) -> list | None:
+    return None if x is None else np.asarray(x, float).tolist()
+
+
+def switch_to_released(
+    built: OnlineDiagram, ctx: Context, scenario: Scenario, *, method: str, t: float, where: np.ndarray | None
+) -> None:
+    """The payload has left the gripper at t: the controller gets the bare end effector's
+    parameters (released_parameters), logged as the release event."""
+    source = built.source
+    at = "" if where is None else f" at {np.round(where, 4).tolist()} m"
+    event = dict(t=t, kind="release", detail=f"payload released{at}; controller: bare end effector")
+    source.set_thetas(
+        source.GetMyMutableContextFromRoot(ctx), released_parameters(built.arm.robot, scenario, method), event
+    )
+
+
+def task_summary(
+    built: OnlineDiagram,
+    ctx: Context,
+    scenario: Scenario,
+    *,
+    st: PhaseState,
+    certificate: dict,
+    times: tuple[float, float],
+    placement: dict,
+) -> dict:
+    """summary.json's task section: times (release, end), the trajectory, its certificate, the placement."""
+    _, plan = built.task
+    source = built.source
     return {
         "switch_time_s": float(st.t_switch),
-        "release_time_s": float(t_release),
-        "end_time_s": float(end),
+        "release_time_s": float(times[0]),
+        "end_time_s": float(times[1]),
         "executed": bool(st.ready),
         "return_move": len(st.curves) > 1,
         "trajectory": {
@@ -232,14 +285,6 @@ def run_task_phase(built: OnlineDiagram, sim: Simulator, scenario: Scenario, *, 
             "payload_model": scenario.task.payload_model,
         },
         **certificate,
-        "placement": {
-            "kind": kind or None,
-            "target_m": as_list(target),
-            "measured_m": as_list(measured),
-            "release_m": as_list(release_xyz),
-            "error_m": error,
-            "tolerance_m": scenario.task.placement_tolerance_m,
-            "speed_at_end_m_s": arm.payload_speed(ctx) if arm.dumbbell is not None else None,
-        },
-        "events": source.events(source_ctx),
+        "placement": placement,
+        "events": source.events(source.GetMyContextFromRoot(ctx)),
     }

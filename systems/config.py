@@ -410,6 +410,10 @@ class Arm:
     status_channel: str = "SAFESYSID_ARM_STATUS"
     watchdog_ms: float = 20.0  # the driver brakes when no new command arrived for this long
     status_timeout_ms: float = 20.0  # the run brakes when no new status arrived for this long
+    # The payload's release (lcmt_schunk_wsg_command / _status, systems/hardware/gripper.py).
+    gripper_command_channel: str = "SAFESYSID_GRIPPER_COMMAND"
+    gripper_status_channel: str = "SAFESYSID_GRIPPER_STATUS"
+    gripper_timeout_ms: float = 500.0  # no "open" status this long after asking: the run holds the arm
 
 
 @dc.dataclass

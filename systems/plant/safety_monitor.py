@@ -196,15 +196,21 @@ class SafetyMonitor(LeafSystem):
         return EventStatus.Succeeded()
 
 
-def judge_log(monitor: SafetyMonitor, arm: RealArm, root_context: Context, log: dict) -> SafetyRecord:
+def judge_log(
+    monitor: SafetyMonitor, arm: RealArm, root_context: Context, log: dict, *, released_at: float | None = None
+) -> SafetyRecord:
     """The record of a logged run of `arm` (a RealArm): log's "state" (the arm's true q, v),
     "motor_torque", "command" (arrays, one row per sample) and "t". Each sample's geometry is set
     in root_context (a context of the arm's diagram used for nothing else). The arm's joints only:
-    the payload is welded to it, and a released payload is the monitor's ignore_bodies."""
+    the payload is welded to it until released_at (then emptied, as RealArm.release does: no
+    collision role), and a released payload is the monitor's ignore_bodies."""
     plant_context = arm.plant.GetMyMutableContextFromRoot(root_context)
     monitor_context = monitor.GetMyContextFromRoot(root_context)
-    rows = []
+    rows, held = [], arm.dumbbell is not None
     for i, t in enumerate(log["t"]):
+        if held and released_at is not None and t >= released_at:
+            arm.set_payload(root_context, None)
+            held = False
         arm.plant.SetPositionsAndVelocities(plant_context, arm.instance, log["state"][i])
         query = monitor.query_port.Eval(monitor_context)
         rows.append(monitor.judge(float(t), query, log["state"][i], log["motor_torque"][i], log["command"][i]))

@@ -1,0 +1,114 @@
+"""The task phase of `safesysid run --arm lcm` (docs/hardware.md): after identification, the task
+trajectory as in the simulated clock (app/task_run.py's TaskPhaseSource, its certificate and its
+refusal), the task made in the worker while the loop holds the arm (systems/hardware/
+task_source.py), then the payload's release as a gripper "open" over LCM
+(systems/hardware/gripper.py) and the settling. The placement is judged by the arm's referee
+(`safesysid arm-sim`'s arm_summary.json), which alone sees the payload.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from pydrake.systems.analysis import Simulator
+    from safesysid.online_diagram import OnlineDiagram
+    from safesysid.systems.config import Scenario
+
+WAIT_CHUNK_S = 0.01  # the run advances this much between looks at the worker and the gripper
+
+
+class _Clock:
+    """The run's wall-clock advance (online_lcm._pace) over several segments, timing merged."""
+
+    def __init__(self, sim, ctx, pace: Callable) -> None:
+        self.sim, self.ctx, self.pace, self.parts = sim, ctx, pace, []
+
+    def now(self) -> float:
+        return self.ctx.get_time()
+
+    def to(self, t_s: float) -> None:
+        if t_s > self.now() + 1e-9:
+            self.parts.append(self.pace(self.sim, self.ctx, t_s))
+
+    def timing(self) -> dict:
+        parts = self.parts or [{"wall_time_s": 0.0, "max_lag_s": 0.0, "cpu_time_s": 0.0}]
+        return {
+            "wall_time_s": float(sum(p["wall_time_s"] for p in parts)),
+            "max_lag_s": float(max(p["max_lag_s"] for p in parts)),
+            "cpu_time_s": float(parts[-1]["cpu_time_s"]),
+        }
+
+
+def run_task_lcm(
+    built: OnlineDiagram, sim: Simulator, scenario: Scenario, *, method: str, pace: Callable
+) -> tuple[dict, dict]:
+    """Advance the wall-clock run through identification, the task, the release and the settling.
+    Returns (the task's summary, timing); the task's `hold` is True when the run must stop and
+    ask the arm to hold at once (the gripper did not confirm the release)."""
+    from safesysid.systems.hardware.gripper import GripperLink
+    from safesysid.task_run import task_certificate_summary
+
+    ctx = sim.get_mutable_context()
+    clock, source, arm, cfg = _Clock(sim, ctx, pace), built.source, built.arm, scenario.arm
+    gripper = GripperLink(arm.lcm, cfg.gripper_command_channel, cfg.gripper_status_channel)
+    clock.to(source.switch_time_s + scenario.plant.time_step_s)
+    while getattr(source, "pending", None) is not None:  # the worker makes the task; the arm holds
+        clock.to(clock.now() + WAIT_CHUNK_S)
+    st = source.phase_state(source.GetMyContextFromRoot(ctx))
+    certificate = task_certificate_summary(st, None, arm.robot)  # the truth is the arm's
+    clock.to(max(st.t_end, clock.now()))
+    t_release, events, hold = clock.now(), [], False
+    if st.ready:
+        hold, events = _release(built, clock, scenario, gripper=gripper, method=method)
+    end = clock.now() if hold else clock.now() + scenario.task.settle_time_s
+    clock.to(end)
+    return _summary(built, ctx, scenario, st=st, certificate=certificate, times=(t_release, end), events=events) | {
+        "hold": hold
+    }, clock.timing()
+
+
+def _release(built, clock: _Clock, scenario: Scenario, *, gripper, method: str) -> tuple[bool, list[dict]]:
+    """Ask the gripper to open (again every WAIT_CHUNK_S: LCM is best effort) until a new status
+    reports it open, then the controller gets the bare end effector. (hold, events)."""
+    from safesysid.systems.hardware.gripper import release_verdict
+    from safesysid.task_run import switch_to_released
+
+    timeout_s = scenario.arm.gripper_timeout_ms * 1e-3
+    mark, t_ask = gripper.mark(), clock.now()
+    verdict = "waiting"
+    while verdict == "waiting":
+        gripper.request_open(clock.now())
+        clock.to(clock.now() + WAIT_CHUNK_S)
+        verdict = release_verdict(
+            confirmed=gripper.confirmed_since(mark), waited_s=clock.now() - t_ask, timeout_s=timeout_s
+        )
+    if verdict == "open":
+        switch_to_released(built, clock.ctx, scenario, method=method, t=clock.now(), where=None)
+        detail = f"the gripper reported open {1e3 * (clock.now() - t_ask):.0f} ms after the request"
+        return False, [dict(t=clock.now(), kind="gripper_open", detail=detail)]
+    detail = (
+        f"no open status from {scenario.arm.gripper_status_channel!r} within {timeout_s * 1e3:g} ms "
+        "(arm.gripper_timeout_ms) of the release request: the payload may still be held; the arm is asked to hold"
+    )
+    return True, [dict(t=clock.now(), kind="gripper_lost", detail=detail)]
+
+
+def _summary(built, ctx, scenario: Scenario, *, st, certificate, times, events) -> dict:
+    from safesysid.systems.task.phase import placement_target
+    from safesysid.task_run import task_summary
+
+    target, kind = placement_target(scenario, built.arm.dumbbell)
+    placement = {
+        "kind": kind or None,
+        "target_m": None if target is None else np.asarray(target, float).tolist(),
+        "error_m": None,  # the arm's referee measures it (arm_summary.json's placement)
+        "tolerance_m": scenario.task.placement_tolerance_m,
+        "judged_by": "arm",
+    }
+    summary = task_summary(built, ctx, scenario, st=st, certificate=certificate, times=times, placement=placement)
+    summary["events"] = list(summary["events"]) + events
+    return summary
