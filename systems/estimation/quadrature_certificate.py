@@ -15,11 +15,15 @@ comparable with A5's ¼κh²·max(a) while resting on the acceleration bound onl
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 from safesysid.systems.math.intervals import Interval, _down, _up, dot_rounding
 from safesysid.systems.model import regressors
+
+from .segments import SegmentRows, _pair_factors, integrand_rates, neighbour_max, rate_regressor_samples
+from .settings import EstimatorSettings
 
 if TYPE_CHECKING:
     from safesysid.systems.model.robot_model import RobotModel
@@ -162,14 +166,17 @@ def interval_rate_regressor(robot: RobotModel, q: Interval, v: Interval) -> Inte
     m = len(q)
     lo, hi = np.zeros((m, n, 14 * n)), np.zeros((m, n, 14 * n))
     grav = np.concatenate([np.zeros(3), np.asarray(tree.gravity, float)])
-    for i in range(n):
-        vb = _to_body(R[i], p[i], V[i])
-        gb = _to_body(R[i], p[i], Interval(np.broadcast_to(grav, (m, 6))))
-        for j in np.flatnonzero(anc[:, i]):
-            sd, s = _to_body(R[i], p[i], Sd[j]), _to_body(R[i], p[i], S[j])
-            outer = (sd[:, :, None] * vb[:, None, :]) + (s[:, :, None] * gb[:, None, :])
-            block = _times_const(Interval(outer.lo.reshape(m, 36), outer.hi.reshape(m, 36)), _K)
-            lo[:, j, 10 * i : 10 * i + 10], hi[:, j, 10 * i : 10 * i + 10] = block.lo, block.hi
+    for i in range(n):  # all ancestor joints of body i at once: (M, k, 6)
+        js = np.flatnonzero(anc[:, i])
+        r, pos = R[i][:, None], p[i][:, None]
+        vb = _to_body(R[i], p[i], V[i])[:, None, None, :]
+        gb = _to_body(R[i], p[i], Interval(np.broadcast_to(grav, (m, 6))))[:, None, None, :]
+        sd = _to_body(r, pos, _stack([Sd[j] for j in js], 1))[..., :, None]
+        s = _to_body(r, pos, _stack([S[j] for j in js], 1))[..., :, None]
+        outer = sd * vb + s * gb  # (M, k, 6, 6): [a, b] = s_a x_b
+        k = len(js)
+        block = _times_const(Interval(outer.lo.reshape(m, k, 36), outer.hi.reshape(m, k, 36)), _K)
+        lo[:, js, 10 * i : 10 * i + 10], hi[:, js, 10 * i : 10 * i + 10] = block.lo, block.hi
     sgn = _coulomb(v, robot.coulomb_smoothing)
     for j in range(n):  # rate columns [Fc, Fv, Ia, beta] = −(sgn v, v, 0, 1)
         base = 10 * n + 4 * j
@@ -191,8 +198,6 @@ def _coulomb(v: Interval, smoothing: float) -> Interval:
 
 def point_rate_regressor(robot: RobotModel, q: np.ndarray, v: np.ndarray) -> np.ndarray:
     """W_c (N, n, 14 n) at the samples, as the rows use it (rigid + friction rate columns)."""
-    from .segments import _pair_factors, rate_regressor_samples
-
     fric = regressors.friction_columns(v, kind="rate", smoothing_velocity=robot.coulomb_smoothing)
     return np.concatenate([rate_regressor_samples(_pair_factors(robot.tree, q, v), robot.n), fric], -1)
 
@@ -239,3 +244,41 @@ def _sum_substeps(w: Interval, steps: int, substeps: int) -> Interval:
     lo = w.lo.reshape((steps, substeps) + w.shape[1:])
     hi = w.hi.reshape((steps, substeps) + w.shape[1:])
     return Interval(lo, hi).sum(1)
+
+
+def certify_rows(
+    rows: SegmentRows,
+    robot: RobotModel,
+    samples: tuple[np.ndarray, np.ndarray, np.ndarray],
+    bounds: np.ndarray,
+    settings: EstimatorSettings,
+    *,
+    theta_box: tuple[np.ndarray, np.ndarray],
+    accel: np.ndarray,
+) -> SegmentRows:
+    """The rows of `bounds` (built by segments.build_segment_rows on samples = (t, q, v)) with
+    each segment's quadrature term Σ_steps max(A5's bound, `certified_step_bounds`), valid with
+    A5 or without it given |q̈| ≤ accel (n,) between the samples, and never below the samples'
+    own term (equal to it where A5's bound dominates on every step: a5_shown; the increase is
+    added, so a continuous torque's own term stays). A step whose
+    samples contradict the bound certifies nothing: its segment keeps A5's term, accel_violated."""
+    lo, hi = int(bounds[:, 0].min()), int(bounds[:, 1].max())
+    tt, qq, vv = (x[lo : hi + 1] for x in samples)
+    loc = bounds - lo
+    steps = len(tt) - 1
+    accel = np.broadcast_to(np.asarray(accel, float), (steps, robot.n))
+    cert, contradicted = certified_step_bounds(robot, tt, qq, vv, accel, theta_box, integration=settings.integration)
+    fric = regressors.friction_columns(vv, kind="rate", smoothing_velocity=robot.coulomb_smoothing)
+    rates = integrand_rates(tt, _pair_factors(robot.tree, qq, vv), fric, *theta_box)
+    c = 0.5 if settings.integration == "euler" else 0.25
+    h2 = np.diff(tt) ** 2
+    quad = rows.quad.copy()
+    shown, bad = np.zeros(len(loc), bool), np.zeros(len(loc), bool)
+    for s, (a, b) in enumerate(loc):
+        a5 = c * settings.quadrature_safety * h2[a:b, None] * neighbour_max(rates[a:b])
+        bad[s] = bool(contradicted[a:b].any())
+        shown[s] = not bad[s] and bool(np.all(cert[a:b] <= a5))
+        if not (shown[s] or bad[s]):  # what the certificate adds over A5's term (a continuous torque's stays)
+            both = np.maximum(a5, cert[a:b]).sum(0)
+            quad[s] = np.maximum(both, quad[s] + np.maximum(0.0, both - a5.sum(0)))
+    return replace(rows, quad=quad, a5_certified=~bad, a5_shown=shown, accel_violated=bad)
