@@ -65,6 +65,8 @@ T_CTRL = "tests/test_controller.py"
 T_REACH = "tests/test_reachability.py"
 T_AFF = "tests/test_reachability_affine.py"
 T_EST = "tests/test_estimator.py"
+QCERT = "systems/estimation/quadrature_certificate.py"
+T_QCERT = "tests/test_quadrature_certificate.py"
 
 MUTANTS = [
     # -- 1. tracking tube ------------------------------------------------------------------------
@@ -370,6 +372,37 @@ MUTANTS = [
         "tests/test_scenario.py",
         "-k",
         "bad_keys",
+    ),
+    # -- 5. A5 certified from an acceleration bound ------------------------------------------------
+    m(
+        "quadrature certificate: velocity box without the acceleration widening (hull of the two samples)",
+        QCERT,
+        "step_boxes",
+        "    v_lo = _down(np.maximum(v0 - a * s_low, v1 - a * (h - s_low)) - _pad(v0, v1, a, h))",
+        "    v_lo = _down(np.minimum(v0, v1) + 0 * s_low)",
+        T_QCERT,
+        "-k",
+        "oscillation_between_samples",
+    ),
+    m(
+        "quadrature certificate × 0",
+        QCERT,
+        "certified_step_bounds",
+        "    bound = _up(h / substeps * _up(",
+        "    bound = 0 * _up(h / substeps * _up(",
+        T_QCERT,
+        "-k",
+        "oscillation_between_samples",
+    ),
+    m(
+        "an acceleration bound the samples contradict does not latch consistent off",
+        INCREMENTAL,
+        "IncrementalEstimator._update_box",
+        "        if np.any(self.rows.accel_violated):",
+        "        if False:",
+        T_QCERT,
+        "-k",
+        "contradicted_bound_latches",
     ),
 ]
 
