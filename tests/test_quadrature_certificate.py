@@ -81,6 +81,32 @@ def test_the_interval_rate_regressor_holds_every_state_of_its_boxes(robot):
         assert np.all(box.contains(qc.point_rate_regressor(robot, q, v)))
 
 
+def test_the_step_boxes_hold_the_motion_and_the_certificate_its_error(robot, case):
+    """Per step (the first 100 of the oscillating log): every dense state in its sub-step's box,
+    and the certificate above the step's true quadrature error (24-point Gauss)."""
+    t, logs, theta = case
+    motion, t = logs["moved"][0], t[:101]
+    q, v, _ = motion(t)
+    bound = acceleration_bound(motion, t)
+    qb, vb, bad = qc.step_boxes(t, q, v, np.broadcast_to(bound, (100, robot.n)), 4)
+    dense = t[:-1, None] + H * np.linspace(0, 1, 33)[None, :]
+    dq, dv, _ = motion(dense.ravel())
+    sub = np.minimum((np.linspace(0, 1, 33) * 4).astype(int), 3)  # the sub-step each instant is in
+    for box, x in ((qb, dq), (vb, dv)):
+        inside = box[:, sub].contains(x.reshape(100, 33, -1))
+        assert not bad.any() and inside.all()
+    cert, _ = qc.certified_step_bounds(
+        robot, t, q, v, np.broadcast_to(bound, (100, robot.n)), (theta, 0 * theta), integration="trapezoid"
+    )
+    nodes = t[:-1, None] + 0.5 * H * (1 + GAUSS[0][None, :])
+    f = qc.point_rate_regressor(robot, *motion(nodes.ravel())[:2]) @ theta
+    exact = 0.5 * H * np.tensordot(f.reshape(100, len(GAUSS[0]), -1), GAUSS[1], axes=([1], [0]))
+    fs = qc.point_rate_regressor(robot, q, v) @ theta
+    error = np.abs(exact - 0.5 * H * (fs[:-1] + fs[1:]))
+    print(f"\nper step: error at most {np.max(error / cert):.3f} of the certificate")
+    assert np.all(error <= cert)
+
+
 def test_an_oscillation_between_samples_under_the_bound_is_certified_not_assumed(robot, case):
     t, logs, theta = case
     moved = logs["moved"]
