@@ -159,6 +159,7 @@ class EstimatorSettings:
             **own
             | {
                 "hold_period_s": e.hold_period_s or s.plant.time_step_s,
+                "acceleration_bound_rad_s2": tuple(e.acceleration_bound_rad_s2) or None,
                 "declared_noise": DeclaredTorqueNoise.from_noise(s.noise),
                 "theta_r_ratio": s.noise.theta_r_ratio,
                 "theta_r_floor": s.noise.theta_r_floor,

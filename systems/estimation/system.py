@@ -39,8 +39,9 @@ from safesysid.systems.model.inertial import NAMES
 from safesysid.systems.model.robot_model import RobotModel
 
 # summary.json estimate fields besides nominal/lower/upper: the data-driven box before physical
-# pruning, and the paper's first-order interval on the same data (systems/estimation Estimate).
-ESTIMATE_EXTRA = ("data_lower", "data_upper", "first_order_lower", "first_order_upper")
+# pruning, the paper's first-order interval on the same data, and what A5 rested on
+# (systems/estimation Estimate).
+ESTIMATE_EXTRA = ("data_lower", "data_upper", "first_order_lower", "first_order_upper", "quadrature_assumption")
 
 
 def estimate_update(
