@@ -137,3 +137,18 @@ def test_a_smooth_motion_is_certified_without_false_alarm_and_a_contradicted_bou
     assert e.quadrature_assumption in ("checked", "certified") and e.consistent and e.contains(theta[robot.ee_slice])
     low, _ = estimator(robot, t, smooth, theta, 0.2 * bound)  # the samples' own mean accelerations exceed it
     assert low.rows.accel_violated.any() and not low.update().consistent
+
+
+def test_a_closed_loop_run_with_a_declared_bound_is_certified_without_false_alarm(tmp_path):
+    """The quickstart's first plan (3 s) with estimator.acceleration_bound_rad_s2 [0.5] (5× the
+    run's peak mean acceleration): summary.json says certified, consistent, the truth inside."""
+    import json
+
+    from safesysid.cli import main
+    from safesysid.scenario import SCENARIOS_DIR
+
+    text = "planner: {num_plans: 1}\nestimator: {acceleration_bound_rad_s2: [0.5]}"
+    assert main(["run", str(SCENARIOS_DIR / "quickstart.yaml"), "--out", str(tmp_path), "--scenario-text", text]) == 0
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["estimate"]["quadrature_assumption"] == "certified"
+    assert summary["estimate"]["consistent"] and summary["contains_truth"]
