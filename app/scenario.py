@@ -164,6 +164,9 @@ def _validate_estimator(s: Scenario, need):
     need(s.estimator.quadrature_safety >= 2, "estimator.quadrature_safety", "must be >= 2")
     need(s.estimator.hold_period_s >= 0, "estimator.hold_period_s", "must be >= 0")
     need(s.estimator.torque_rate_limit_Nm_s > 0, "estimator.torque_rate_limit_Nm_s", "must be > 0")
+    acc = s.estimator.acceleration_bound_rad_s2
+    need(len(acc) in (0, 1, len(s.q0_rad)), "estimator.acceleration_bound_rad_s2", "must be one value or one per joint")
+    need(all(a > 0 for a in acc), "estimator.acceleration_bound_rad_s2", "must be > 0")
     lag = s.estimator.torque_lag_s
     if isinstance(lag, list):
         need(len(lag) == 2, "estimator.torque_lag_s", "must be one number or [lo, hi]")

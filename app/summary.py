@@ -64,6 +64,8 @@ class EstimateSummary:
     data_upper: list[float] | None | Omitted = omitted()
     first_order_lower: list[float] | None | Omitted = omitted()
     first_order_upper: list[float] | None | Omitted = omitted()
+    # A5 at the last update: unverified | checked | certified | violated (docs/guarantees.md A5)
+    quadrature_assumption: str | Omitted = omitted()
     source: str  # estimator (Algorithm 1) | adaptation | none (the prior)
 
 

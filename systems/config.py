@@ -274,6 +274,10 @@ class Estimator:
     # plant's torque_sensor_delay_s / time_delay_s.
     torque_delay_s: float = 0.0
     quadrature_safety: float = 2.0  # kappa of the quadrature bound (estimation/segments.py), >= 2
+    # |q̈_j| between the samples never exceeds it (rad/s², one value or one per joint; empty: not
+    # declared): each step's quadrature term is then certified without A5, A5 checked against it,
+    # and samples that contradict it latch consistent off (estimation/quadrature_certificate.py).
+    acceleration_bound_rad_s2: list[float] = dc.field(default_factory=list)
     # Prune the published box with physical knowledge: J(theta_e) >= 0 and, with a
     # payload.bounding_volume, its density-realizability LMI (estimation/physical.py).
     physical_pruning: bool = False

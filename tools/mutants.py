@@ -65,6 +65,8 @@ T_CTRL = "tests/test_controller.py"
 T_REACH = "tests/test_reachability.py"
 T_AFF = "tests/test_reachability_affine.py"
 T_EST = "tests/test_estimator.py"
+QCERT = "systems/estimation/quadrature_certificate.py"
+T_QCERT = "tests/test_quadrature_certificate.py"
 
 MUTANTS = [
     # -- 1. tracking tube ------------------------------------------------------------------------
@@ -371,6 +373,37 @@ MUTANTS = [
         "-k",
         "bad_keys",
     ),
+    # -- 5. A5 certified from an acceleration bound ------------------------------------------------
+    m(
+        "quadrature certificate: the step's boxes without the acceleration widening",
+        QCERT,
+        "step_boxes",
+        "    a = np.asarray(accel, float)[:, None, :]",
+        "    a = 0 * np.asarray(accel, float)[:, None, :]",
+        T_QCERT,
+        "-k",
+        "boxes_hold",
+    ),
+    m(
+        "quadrature certificate × 0",
+        QCERT,
+        "certified_step_bounds",
+        "    bound = _up(h / substeps * _up(",
+        "    bound = 0 * _up(h / substeps * _up(",
+        T_QCERT,
+        "-k",
+        "oscillation_between_samples",
+    ),
+    m(
+        "an acceleration bound the samples contradict does not latch consistent off",
+        INCREMENTAL,
+        "IncrementalEstimator._update_box",
+        "        if np.any(self.rows.accel_violated):",
+        "        if False:",
+        T_QCERT,
+        "-k",
+        "contradicted_bound_latches",
+    ),
     m(
         "over LCM, the task's curves start at the switch, not when the worker's result is back",
         "systems/hardware/task_source.py",
@@ -410,6 +443,26 @@ MUTANTS = [
         "tests/test_hardware_task.py",
         "-k",
         "meshcat",
+    ),
+    m(
+        "the referee after the run judges every sample on one pose (the sample's state not set)",
+        "systems/plant/safety_monitor.py",
+        "judge_log",
+        '        arm.plant.SetPositionsAndVelocities(plant_context, arm.instance, log["state"][i])',
+        "        pass",
+        "tests/test_safety_monitor.py",
+        "-k",
+        "judging_the_log",
+    ),
+    m(
+        "over LCM, a message older than the last accepted one is taken (statuses out of order)",
+        "systems/hardware/freshness.py",
+        "Freshness.step",
+        "            if self.armed and sent_s <= self.last_sent_s:",
+        "            if False:",
+        "tests/test_hardware.py",
+        "-k",
+        "late_and_duplicated_statuses",
     ),
 ]
 

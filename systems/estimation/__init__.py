@@ -53,6 +53,8 @@ Error terms of the box, per parameter (all exact hulls of linear maps, then outw
              ∫W_c θ dt for every θ in the parameter box, under its stated assumption (on every
              step the integrand is monotone or its rate stays within κ = 2 times the mean rates
              of the step and its neighbours); plus, for a continuous torque, the trapezoid's.
+             With a declared acceleration bound each step's term is the larger of that and a
+             certificate resting on the bound alone (quadrature_certificate.py).
     rounding: L is a left inverse only up to E = LY − I: |E|(|centre| + radius) plus a relative
              pad for the float sums, then one ulp outward.
 Segments are cut by time (horizon_s) and never span a step longer than max_gap_s (for a held

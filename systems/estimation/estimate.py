@@ -39,8 +39,11 @@ class Estimate:
     problems: list = field(default_factory=list)  # this update's evidence that an assumption failed
     quadrature_ratio: float = 0.0  # max over rows of quadrature bound / torque radius
     # A5 (quadrature): "unverified" (assumed: the motion between the samples is unknown, e.g. a log
-    # offline), "checked" (on every segment, `segments.resolved_quadrature`), or "violated" (false
-    # on some segment, whose bound was re-derived on sub-steps).
+    # offline), "checked" (on every segment: `segments.resolved_quadrature`, or A5's bound is at
+    # least the certificate from an acceleration bound on every step, `segments.certified_rows`),
+    # "certified" (A5 not shown on some step: there the row carries the certificate instead, sound
+    # without A5 given the acceleration bound), or "violated" (proven false on some segment, whose
+    # bound was re-derived on sub-steps).
     quadrature_assumption: str = "unverified"
     update_time_s: float = 0.0
     # The data-driven box (data ∩ prior ∩ the previous data box) before physical pruning; equals
@@ -95,7 +98,11 @@ class Estimate:
 
 
 def quadrature_assumption(rows: SegmentRows) -> str:
-    """What A5 rests on for these rows: violated | checked | unverified (see Estimate)."""
+    """What A5 rests on for these rows: violated | checked | certified | unverified (see Estimate)."""
     if rows.a5_violated.any():
         return "violated"
-    return "checked" if len(rows) and rows.a5_checked.all() else "unverified"
+    if not len(rows):
+        return "unverified"
+    if np.all(rows.a5_checked | rows.a5_shown):
+        return "checked"
+    return "certified" if np.all(rows.a5_checked | rows.a5_certified) else "unverified"

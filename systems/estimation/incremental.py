@@ -19,6 +19,7 @@ from .estimate import Estimate, quadrature_assumption
 from .lag import LagInverse
 from .log_cholesky import cost_grad_hess, nearest_consistent, solve_log_cholesky
 from .physical import prune_box
+from .quadrature_certificate import certify_rows
 from .segments import Reference, SegmentRows, build_segment_rows, segment_bounds
 from .settings import EstimatorError, EstimatorSettings
 
@@ -97,10 +98,21 @@ class IncrementalEstimator:
 
     # -- data -------------------------------------------------------------------------------
     def add(
-        self, t: ArrayLike, q: ArrayLike, v: ArrayLike, tau: ArrayLike, *, reference: Reference | None = None
+        self,
+        t: ArrayLike,
+        q: ArrayLike,
+        v: ArrayLike,
+        tau: ArrayLike,
+        *,
+        reference: Reference | None = None,
+        acceleration_bound: ArrayLike | None = None,
     ) -> int:
         """Append samples (any chunk size); builds the segments that became complete. reference:
-        the motion between the samples, times -> (q, v, a), when known (A5 is then checked)."""
+        the motion between the samples, times -> (q, v, a), when known (A5 is then checked).
+        acceleration_bound: |q̈_j| ≤ it between these samples (rad/s², scalar or (n,); default
+        settings.acceleration_bound_rad_s2): the quadrature is then certified (`certified_rows`)."""
+        if acceleration_bound is None:
+            acceleration_bound = self.settings.acceleration_bound_rad_s2
         t = np.atleast_1d(np.asarray(t, float))
         q, v, tau = (np.atleast_2d(np.asarray(x, float)) for x in (q, v, tau))
         if q.shape != (len(t), self.n) or v.shape != q.shape or tau.shape != q.shape:
@@ -137,6 +149,16 @@ class IncrementalEstimator:
                 reading_radius=rho if rho.any() else None,
                 reference=reference,
             )
+            if acceleration_bound is not None:  # A5 certified from the bound (or the step flagged)
+                new = certify_rows(
+                    new,
+                    self.robot,
+                    (t, q, v),
+                    bounds,
+                    self.settings,
+                    theta_box=self.theta_box(),
+                    accel=acceleration_bound,
+                )
             if len(self.rows) and len(new) and new.start_index[0] == self.rows.end_index[-1]:
                 new.shared_prev[0] = True
             self.rows = self.rows.concat(new)
@@ -259,6 +281,11 @@ class IncrementalEstimator:
                 f"the measured torque changes faster than the declared {st.torque_rate_limit_Nm_s} N·m/s "
                 f"in {int(self.rows.violated.sum())} segment(s)"
             )
+        if np.any(self.rows.accel_violated):
+            problems.append(
+                f"the joint velocities change faster than the declared acceleration bound "
+                f"{self.settings.acceleration_bound_rad_s2} rad/s² in {int(self.rows.accel_violated.sum())} segment(s)"
+            )
         # The same hull with the other left inverse (rows scaled by their declared bound): also
         # an enclosure, often tighter on the mass; keep the intersection.
         if st.point_estimate == "map":
@@ -327,6 +354,11 @@ class IncrementalEstimator:
             notes.append(
                 f"A5 (quadrature) false on {int(self.rows.a5_violated.sum())} segment(s): the motion between the "
                 "samples is faster than they show; those rows are bounded on sub-steps"
+            )
+        elif a5 == "certified":
+            notes.append(
+                f"A5 (quadrature) not shown on {int((~self.rows.a5_shown & ~self.rows.a5_checked).sum())} segment(s): "
+                "their quadrature term is the certificate from the acceleration bound"
             )
         quad_ratio = float(np.max(self.rows.quad / np.maximum(torque_row_radius(self.rows), 1e-300)))
         if quad_ratio > self.settings.quadrature_warn_ratio:

@@ -315,9 +315,15 @@ class SegmentRows:
     # (S,) bool: A5 checked on the motion between the samples (`resolved_quadrature`), and found false
     a5_checked: np.ndarray | None = None
     a5_violated: np.ndarray | None = None
+    # (S,) bool: the quadrature certified from an acceleration bound (quadrature_certificate.py
+    # `certify_rows`); A5's own
+    # bound shown to hold on every step (it is >= the certificate); the samples contradict the bound
+    a5_certified: np.ndarray | None = None
+    a5_shown: np.ndarray | None = None
+    accel_violated: np.ndarray | None = None
 
     def __post_init__(self):
-        for name in ("a5_checked", "a5_violated"):
+        for name in ("a5_checked", "a5_violated", "a5_certified", "a5_shown", "accel_violated"):
             if getattr(self, name) is None:
                 setattr(self, name, np.zeros(len(self.t0), bool))
 

@@ -125,6 +125,10 @@ class EstimatorSettings:
     # Above this share of a row's torque radius the quadrature term is reported as "motion not
     # resolved by the sampling" (an event; the bound still holds under its assumption).
     quadrature_warn_ratio: float = 1.0
+    # |q̈_j| between the samples never exceeds this (rad/s², one value or one per joint; None: not
+    # known): each step's quadrature term is then certified without A5 and A5 checked against it
+    # (estimation/quadrature_certificate.py); samples that contradict it latch `consistent` off.
+    acceleration_bound_rad_s2: float | tuple[float, ...] | None = None
     newton_steps: int = 50  # max iterations of the exact-Hessian trust-region polish after the NLP
     max_condition: float = 1e10  # above: not identifiable yet, keep the previous estimate
     # Rows scaled by 1 / (their declared error bound) before the least squares ("bound"), or the
@@ -155,6 +159,7 @@ class EstimatorSettings:
             **own
             | {
                 "hold_period_s": e.hold_period_s or s.plant.time_step_s,
+                "acceleration_bound_rad_s2": tuple(e.acceleration_bound_rad_s2) or None,
                 "declared_noise": DeclaredTorqueNoise.from_noise(s.noise),
                 "theta_r_ratio": s.noise.theta_r_ratio,
                 "theta_r_floor": s.noise.theta_r_floor,

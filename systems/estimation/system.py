@@ -28,6 +28,7 @@ History, consistency, events and the final estimate are functions of the context
 from __future__ import annotations
 
 import copy
+import time
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -39,21 +40,27 @@ from safesysid.systems.model.inertial import NAMES
 from safesysid.systems.model.robot_model import RobotModel
 
 # summary.json estimate fields besides nominal/lower/upper: the data-driven box before physical
-# pruning, and the paper's first-order interval on the same data (systems/estimation Estimate).
-ESTIMATE_EXTRA = ("data_lower", "data_upper", "first_order_lower", "first_order_upper")
+# pruning, the paper's first-order interval on the same data, and what A5 rested on
+# (systems/estimation Estimate).
+ESTIMATE_EXTRA = ("data_lower", "data_upper", "first_order_lower", "first_order_upper", "quadrature_assumption")
 
 
 def estimate_update(
     estimator: IncrementalEstimator, data: np.ndarray, n: int
 ) -> tuple[IncrementalEstimator, Estimate | EstimatorError]:
     """Algorithm 1 on the rows [t, q, v, τ] of `data`, on a copy of `estimator` (the stored one is
-    shared): (the advanced copy, its Estimate or the EstimatorError that skipped the update)."""
+    shared): (the advanced copy, its Estimate or the EstimatorError that skipped the update). The
+    Estimate's update_time_s covers both the new rows (add: the quadrature certificate's cost sits
+    there) and the update."""
     estimator = copy.deepcopy(
         estimator, {id(estimator.robot): estimator.robot, id(estimator.settings): estimator.settings}
     )
     try:
+        start = time.perf_counter()
         estimator.add(data[:, 0], data[:, 1 : 1 + n], data[:, 1 + n : 1 + 2 * n], data[:, 1 + 2 * n :])
-        return estimator, estimator.update()
+        est = estimator.update()
+        est.update_time_s = time.perf_counter() - start
+        return estimator, est
     except EstimatorError as err:
         return estimator, err
 
