@@ -88,8 +88,8 @@ def run_wallclock(
         sim.set_target_realtime_rate(1.0)
         ctx = sim.get_mutable_context()
         _wait_for_arm(built.arm, scenario)
+        worker.start()  # every system is registered: the forks inherit them
         sim.Initialize()
-        worker.start()  # forks here if the first plan did not (a method without a planner)
         _warm_up(built, ctx)
         built.arm.receiver.rearm(ctx)
         gc.collect()

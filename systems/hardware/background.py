@@ -78,7 +78,7 @@ class BackgroundWorker:
         """(the job's result, its latency [s] from its submission or the clock's start, whichever
         is later: the time it took of the run's clock)."""
         result, finished = future.result()
-        return result, finished - max(future.submitted, self._clock_zero)
+        return result, max(0.0, finished - max(future.submitted, self._clock_zero))
 
     def shutdown(self) -> None:
         for pool in self._pools.values():
