@@ -78,13 +78,13 @@ def run_arm_sim(
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    scheduling = request_realtime() if fifo else {"scheduler": "normal", "warning": "real-time scheduling not asked"}
     diagram, arm, driver, monitor, loggers, gripper = build_arm_side(scenario, seed)
     sim = Simulator(diagram)
     ctx = sim.get_mutable_context()
     arm.seed_noise(ctx)
     arm.set_state(ctx, np.asarray(scenario.q0_rad, float))
     sim.set_target_realtime_rate(1.0)
-    scheduling = request_realtime() if fifo else {"scheduler": "normal", "warning": "real-time scheduling not asked"}
     stop = []
     for sig in STOP_SIGNALS:
         signal.signal(sig, lambda *_: stop.append(True))
