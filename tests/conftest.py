@@ -1,8 +1,16 @@
 """Fixtures shared by the tests (plain helpers are in helpers.py). A module that defines a
 fixture of the same name uses its own."""
 
+import os
 import sys
 from pathlib import Path
+
+# One BLAS/OpenMP/numba thread per xdist worker: CI has 2 cores and runs 2 workers, and a second
+# thread in each only oversubscribes them (serial runs keep the libraries' defaults). Set before
+# numpy or Drake is imported (helpers.py below) and inherited by the tests' subprocesses.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
+        os.environ.setdefault(_var, "1")
 
 import pytest
 

@@ -121,3 +121,16 @@ def assert_safe(summary: dict, *, complete: bool = True) -> None:
         assert summary["contains_truth"], "a consistent interval excludes the truth"
     else:
         assert "inconsistent_estimate" in event_kinds(summary)
+
+
+def mass_matrices(robot, q, theta):
+    """(N, n, n) robot.mass_matrix at each row of q (N, n) with its own theta (N, p), or one theta
+    (p,) for all: the same momentum-regressor columns, but every row and unit velocity in one batch
+    (robot.mass_matrix makes n regressor calls per q: the tests' per-state truths were most of
+    their run time). tests/test_reachability.py checks it against robot.mass_matrix."""
+    q = np.atleast_2d(q)
+    count, n = q.shape
+    theta = np.broadcast_to(theta, (count, np.shape(theta)[-1]))
+    eye = np.tile(np.eye(n), (count, 1))
+    wm = robot.momentum_regressor(np.repeat(q, n, axis=0), eye).reshape(count, n, n, -1)  # (row, column k, i, p)
+    return np.einsum("rkip,rp->rik", wm, theta)

@@ -4,7 +4,7 @@ vacuous, and the exciting cost is right."""
 
 import numpy as np
 import pytest
-from helpers import n_trials
+from helpers import mass_matrices, n_trials
 from safesysid.benchmarks.bench_planner import parameter_box as theta_box  # one definition of the test prior
 from safesysid.systems.config import Obstacle, Planner
 from safesysid.systems.controller import armour as ctl
@@ -120,9 +120,18 @@ def check_plan_densely(robot, planner, thetas, k, scene, rng, samples=400, gains
     dyn = ctl.ControllerDynamics(robot)
     box = Interval(lo, hi)
     stats = dict(samples=0, torque_samples=0, negative_h=0, min_distance=np.inf, max_torque_ratio=0.0)
-    for m in range(len(t)):
+    # The random draws first, in the order they always had (e, edot, theta_true, direction of r);
+    # the true mass matrices then in one batch (helpers.mass_matrices).
+    drawn = []
+    for _ in range(len(t)):
         e = rng.uniform(-1, 1, n) * b.position
         edot = rng.uniform(-1, 1, n) * b.velocity
+        theta_true = rng.uniform(lo, hi)
+        if rng.uniform() < 0.5:
+            theta_true = np.where(rng.uniform(size=lo.size) < 0.5, lo, hi)
+        drawn.append((e, edot, theta_true, rng.normal(size=n)))
+    m_true = mass_matrices(robot, qd - np.array([d[0] for d in drawn]), np.array([d[2] for d in drawn]))
+    for m, (e, edot, theta_true, direction) in enumerate(drawn):
         q, v = qd[m] - e, vd[m] - edot
         assert np.all(q >= jp.position_lower) and np.all(q <= jp.position_upper)
         assert np.all(np.abs(v) <= jp.velocity_limit)
@@ -132,11 +141,7 @@ def check_plan_densely(robot, planner, thetas, k, scene, rng, samples=400, gains
         stats["samples"] += 1
         # Torque: the ARMOUR command on the tube boundary: r in a random direction with the TRUE
         # 1/2 r^T M(q; theta_true) r = V_max (theta_true a box vertex half the time), edot = r - Kr e.
-        theta_true = rng.uniform(lo, hi)
-        if rng.uniform() < 0.5:
-            theta_true = np.where(rng.uniform(size=lo.size) < 0.5, lo, hi)
-        direction = rng.normal(size=n)
-        r = direction * np.sqrt(2 * gains.V_max / (direction @ robot.mass_matrix(q[None], theta_true)[0] @ direction))
+        r = direction * np.sqrt(2 * gains.V_max / (direction @ m_true[m] @ direction))
         v = vd[m] - (r - gains.Kr * e)
         out = ctl.armour_control(dyn, gains, q, v, qd[m], vd[m], ad[m], theta0, box)
         assert np.all(np.abs(out.u) <= jp.torque_limit)

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from helpers import mass_matrices
 from safesysid.systems.math.intervals import Interval
 from safesysid.systems.model.payload import load_dumbbells
 from safesysid.systems.model.robot_model import MODELS_DIR
@@ -216,9 +217,10 @@ def tube_boundary_states(robot, rng, desired, bounds, gains, box, count):
     time), theta_true in [theta] (a box vertex half the time), r in a random direction (along one
     joint half the time) scaled so that the TRUE Lyapunov value 1/2 r^T M(q; theta_true) r equals
     V_max, edot = r - Kr e.
-    Yields (row, q, qd, theta_true)."""
+    Returns [(row, q, qd, theta_true, M(q; theta_true))]."""
     n = robot.n
     qd, vd, _ = desired
+    drawn = []  # the random draws first, in the order they always had; the true M in one batch
     for row in range(len(qd)):
         for _ in range(count):
             e = rng.uniform(-1, 1, n)
@@ -226,13 +228,16 @@ def tube_boundary_states(robot, rng, desired, bounds, gains, box, count):
             theta_true = rng.uniform(box.lo, box.hi)
             if rng.uniform() < 0.5:
                 theta_true = np.where(rng.uniform(size=theta_true.size) < 0.5, box.lo, box.hi)
-            q = qd[row] - e
-            m_true = robot.mass_matrix(q[None], theta_true)[0]
             u = rng.normal(size=n)
             if rng.uniform() < 0.5:  # along one joint: |v_j| = lambda there
                 u = np.eye(n)[rng.integers(n)] * np.sign(u[0])
-            r = u * np.sqrt(2 * gains.V_max / (u @ m_true @ u))
-            yield row, q, vd[row] - (r - gains.Kr * e), theta_true
+            drawn.append((row, qd[row] - e, e, theta_true, u))
+    m_true = mass_matrices(robot, np.array([d[1] for d in drawn]), np.array([d[3] for d in drawn]))
+    states = []
+    for (row, q, e, theta_true, u), m in zip(drawn, m_true):
+        r = u * np.sqrt(2 * gains.V_max / (u @ m @ u))
+        states.append((row, q, vd[row] - (r - gains.Kr * e), theta_true, m))
+    return states
 
 
 def tube_boxes(desired, bounds):
@@ -293,9 +298,8 @@ def test_torque_bound_covers_the_controller_command_on_the_whole_tube(robot, V_m
     ]  # 40 desired states
     sup_tube, robust_tube, _ = planner_torque_bound(robot, tube_boxes(desired, bounds), theta0, box, bounds)
     rows, outs = [], []
-    for i, q, v, theta_true in tube_boundary_states(robot, rng, desired, bounds, gains, box, 12):
+    for i, q, v, _, m_true in tube_boundary_states(robot, rng, desired, bounds, gains, box, 12):
         out = ctl.armour_control(dyn, gains, q, v, desired[0][i], desired[1][i], desired[2][i], theta0, box)
-        m_true = robot.mass_matrix(q[None], theta_true)[0]
         assert 0.5 * out.err.r @ m_true @ out.err.r == pytest.approx(V_max, rel=1e-9)  # on the boundary
         rows.append(i)
         outs.append(out)
@@ -347,6 +351,13 @@ def test_body_jacobians_rebuild_the_mass_matrix(robot):
         )
         energy += robot.theta[10 * n + 2 :: 4] @ r**2
         assert energy == pytest.approx(r @ robot.mass_matrix(q[row][None])[0] @ r, rel=1e-12)
+    # The tests' batched truth (helpers.mass_matrices), per-row theta, is RobotModel.mass_matrix.
+    thetas = robot.theta * rng.uniform(0.5, 1.5, (len(q), robot.theta.size))
+    batched = mass_matrices(robot, q, thetas)
+    for row in range(len(q)):
+        np.testing.assert_allclose(
+            batched[row], robot.mass_matrix(q[row][None], thetas[row])[0], rtol=1e-12, atol=1e-12
+        )
 
 
 def test_interval_mass_spread_encloses_the_point_spread(robot):

@@ -6,6 +6,7 @@ so |Kr e|_2 <= kappa eps as the certificate assumes; certified >= sampled everyw
 
 import numpy as np
 import pytest
+from helpers import mass_matrices
 from safesysid.systems.math.intervals import Interval
 from safesysid.systems.planner import affine_forms as aff
 from safesysid.systems.planner import interval_dynamics as idyn
@@ -62,7 +63,7 @@ def tube_samples(robot, rng, plan, k_lo, k_hi, gains, bounds, box, count):
             u = u / np.linalg.norm(u)
             # |r| <= eps holds for a physically consistent truth (M >= sigma_min I); a box vertex may not
             # be one, so its V = V_max could need |r| > eps: capped there (still the tube's edge)
-            r = u * min(np.sqrt(2 * gains.V_max / (u @ robot.mass_matrix(q[None], theta_true)[0] @ u)), bounds.eps)
+            r = u * min(np.sqrt(2 * gains.V_max / (u @ mass_matrices(robot, q, theta_true)[0] @ u)), bounds.eps)
             yield i, q, qd_d - (r - gains.Kr * e), q_d, qd_d, qdd_d
 
 

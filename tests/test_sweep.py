@@ -3,6 +3,7 @@ survive a kill (SIGTERM halfway) and resume with nothing lost or duplicated; a r
 replays a trial exactly; Ray tasks give the pool's results for the same seeds."""
 
 import json
+import os
 import shlex
 import signal
 import subprocess
@@ -15,6 +16,7 @@ from safesysid.cli import main
 from safesysid.scenario import SCENARIOS_DIR, load_scenario
 from safesysid.sweep_cli import aggregate, read_trials, trial_scene
 from test_determinism import without_wall_time
+from threadpoolctl import threadpool_limits
 
 SCENARIO = str(SCENARIOS_DIR / "quickstart.yaml")
 SHORT = ["--scenario-text", "planner: {num_plans: 2}"]  # CI size: 4.5 s of simulation per trial
@@ -139,7 +141,10 @@ def test_a_report_line_replays_the_trial_exactly(pool_sweep, tmp_path):
     trial = _by_trial(out)[("ours", 1)]
     argv = shlex.split(replay_command(SCENARIO, trial, [SHORT[1]]))
     assert argv[:2] == ["safesysid", "run"]
-    assert main([*argv[1:], "--out", str(tmp_path)]) == 0
+    # Threaded BLAS here even in an xdist worker (conftest.py sets one thread there): the pool's
+    # trials ran single-threaded, and the replay must not depend on it.
+    with threadpool_limits(limits=max(2, os.cpu_count() or 2), user_api="blas"):
+        assert main([*argv[1:], "--out", str(tmp_path)]) == 0
     replayed = json.loads((tmp_path / "summary.json").read_text())
     assert _comparable(replayed) == _comparable(trial)
 
