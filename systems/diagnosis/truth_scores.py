@@ -132,7 +132,7 @@ def interval_coverage(name: str, truth: dict, intervals: dict) -> list[dict]:
                 "truth": float(t),
                 "lo": lo,
                 "hi": hi,
-                "covered": lo_f <= t <= hi_f,
+                "covered": bool(lo_f <= t <= hi_f),
             }
         )
     return out
