@@ -5,8 +5,9 @@ made), and with per-effect factors chosen on the even cases and scored on the od
 
     safesysid diagnose --self-check --hard --cases 200 --seed 301 --workers 2 --out DIR
     python experiments/hard_self_check.py DIR/cases.jsonl   (also reads a partial run)
-    python experiments/hard_self_check.py --factors CAL/cases.jsonl
-        the per-effect factors chosen on every case of a calibration run (intervals.CALIBRATION)
+    python experiments/hard_self_check.py DIR/cases.jsonl --calibration CAL/cases.jsonl
+        factors chosen on every case of another run (CAL) and the even cases of DIR, coverage on
+        DIR's odd cases; the factors printed are what intervals.CALIBRATION holds
 """
 
 from __future__ import annotations
@@ -44,6 +45,12 @@ def _false_naming(cases):
         f"non-null cases ({k} cases, {100 * sp['all_with_false_effect']:.1f} % of all, 95 % CI "
         f"{100 * lo:.1f}-{100 * hi:.1f} %); reported ambiguous: {sp['cases_reported_ambiguous']}"
     )
+    u = sp["false_not_flagged"]
+    print(
+        f"false and not flagged (no ambiguity report offering the injected set): {u} cases "
+        f"({100 * u / len(cases):.1f} %, 95 % CI {100 * clopper_pearson(u, len(cases))[0]:.1f}-"
+        f"{100 * clopper_pearson(u, len(cases))[1]:.1f} %)"
+    )
     missed = sum(len(c["missed"]) for c in cases)
     print(f"injected effects missed: {missed} of {sum(len(c['injected']) for c in cases)}")
     for c in cases:
@@ -56,11 +63,8 @@ def _false_naming(cases):
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    if argv[0] == "--factors":
-        factors = calibrated_coverage(read_cases(argv[1]), validation=lambda c: True)["factors"]
-        print("CALIBRATION = " + json.dumps({e: round(f, 2) for e, f in factors.items()}))
-        return 0
     cases = read_cases(argv[0])
+    calibration = read_cases(argv[argv.index("--calibration") + 1]) if "--calibration" in argv else []
     _false_naming(cases)
     rec = coverage_table(cases)
     rate = rec["rate"]
@@ -71,16 +75,19 @@ def main(argv: list[str] | None = None) -> int:
     print("| effect | values | coverage as recorded |\n|---|---|---|")
     for e, row in rec["per_effect"].items():
         print(f"| {e} | {row['values']} | {100 * row['rate']:.0f} % |")
-    cov = calibrated_coverage(cases)
+    cov = calibrated_coverage(cases, calibration_cases=calibration)
     rate = cov["held_out_rate"]
+    where = "the even cases" + (f" and {len(calibration)} cases of the calibration run" if calibration else "")
     print(
-        f"90 % intervals widened on the even cases, on held-out (odd) cases: {cov['held_out_values']} values in "
-        f"{cov['held_out_cases']} cases, coverage {'-' if rate is None else f'{100 * rate:.1f} %'}"
+        f"90 % intervals widened per effect as chosen on {where} ({cov['validation_values']} values), on "
+        f"held-out (odd) cases: {cov['held_out_values']} values in {cov['held_out_cases']} cases, coverage "
+        f"{'-' if rate is None else f'{100 * rate:.1f} %'}"
     )
-    print("| effect | factor (even cases) | held-out values | coverage |\n|---|---|---|---|")
+    print("| effect | factor | held-out values | coverage |\n|---|---|---|---|")
     for e, f in cov["factors"].items():
         row = cov["held_out_per_effect"].get(e, {"values": 0, "rate": float("nan")})
         print(f"| {e} | {f:.2f} | {row['values']} | {100 * row['rate']:.0f} % |")
+    print("CALIBRATION = " + json.dumps({e: round(f, 2) for e, f in cov["factors"].items()}))
     return 0
 
 

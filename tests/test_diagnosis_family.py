@@ -3,6 +3,7 @@ K candidates left, so its significance is judged at the family-wise level
 (selection.family_levels), not as if it were the only test."""
 
 import numpy as np
+import pytest
 from safesysid.systems.diagnosis import selection as S
 from safesysid.systems.diagnosis.effects import EFFECTS
 from scipy.stats import norm
@@ -79,3 +80,50 @@ def test_greedy_additions_are_judged_as_the_best_of_the_candidates_left(monkeypa
     sel = S.select_effects(_Evaluator(X, y), list(EFFECTS), max_effects=6)
     assert set(sel.effects) == {"viscous_friction", "armature"}
     assert calls.count(len(EFFECTS) - 2) == len(EFFECTS) - 2  # one greedy step, every candidate left
+
+
+def _case(k, *, fitted=0.9, ran_with=None, false=(), ambiguous=()):
+    """A coverage record: truth 1.0, interval fitted +- 0.05 (0.9 needs 2x widening)."""
+    rec = {"effect": "time_delay", "key": "delay_s", "index": None, "truth": 1.0}
+    c = {
+        "case": k,
+        "injected": ["time_delay", "armature"],
+        "false": list(false),
+        "ambiguous": [list(a) for a in ambiguous],
+        "fitted": {"time_delay": {"delay_s": fitted}},
+        "coverage": [{**rec, "lo": fitted - 0.05, "hi": fitted + 0.05}],
+    }
+    if ran_with is not None:
+        c["interval_calibration"] = {"time_delay": ran_with}
+    return c
+
+
+def test_factors_are_relative_to_the_raw_interval_and_may_come_from_another_run():
+    """A run made with a calibration factor records intervals already widened by it: the factor
+    chosen again is relative to the raw sandwich (not compounded), and a calibration run's cases
+    choose factors alongside the even cases without being scored."""
+    from safesysid.systems.diagnosis.truth_scores import calibrated_coverage
+
+    raw = [_case(k) for k in range(20)]  # each value needs 2x
+    widened = [_case(k, fitted=0.9, ran_with=2.0) for k in range(20)]  # recorded +- 0.05 after 2x: needs 4x raw
+    assert calibrated_coverage(raw)["factors"]["time_delay"] == pytest.approx(2.0)
+    assert calibrated_coverage(widened)["factors"]["time_delay"] == pytest.approx(4.0)
+    cov = calibrated_coverage([_case(k, fitted=0.98) for k in range(20)], calibration_cases=raw)
+    assert (
+        cov["factors"]["time_delay"] == pytest.approx(2.0)
+        and cov["held_out_values"] == 10
+        and cov["validation_values"] == 30
+    )
+
+
+def test_a_false_name_is_flagged_only_when_the_ambiguity_report_offers_the_truth():
+    from safesysid.systems.diagnosis.truth_scores import spurious_table
+
+    cases = [
+        _case(0, false=["torque_scale"], ambiguous=[["armature", "time_delay"]]),  # truth offered
+        _case(1, false=["torque_scale"], ambiguous=[["armature", "payload"]]),  # another set
+        _case(2, false=["torque_scale"]),
+        _case(3),
+    ]
+    sp = spurious_table(cases)
+    assert sp["cases_reported_ambiguous"] == 2 and sp["false_not_flagged"] == 2
