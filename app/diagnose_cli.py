@@ -88,6 +88,8 @@ def _clean(x):
         return float(x) if np.isfinite(x) else None
     if isinstance(x, np.integer):
         return int(x)
+    if isinstance(x, np.bool_):  # e.g. a coverage record's `covered` from numpy comparisons
+        return bool(x)
     if isinstance(x, np.ndarray):
         return _clean(x.tolist())
     return x

@@ -17,6 +17,8 @@ it is significant, i.e. all of
       least MIN_EFFECT_RATIO of the measured torque RMS (0.25 %, well below torque-sensor
       accuracy): a statistically clear but physically negligible mismatch, such as a
       simulator's own time discretisation, is not a cause.
+A greedy addition past the best pair is the best of the K candidates left, so (1) holds there
+at the family-wise level (family_levels): a larger library must not buy false positives.
 """
 
 from __future__ import annotations
@@ -39,6 +41,9 @@ MIN_BLOCKS = 12  # fewer blocks cannot reach P_BLOCKS reliably: the rank test th
 MIN_RELATIVE = 0.01
 MIN_NOISE_FRACTION = 0.05
 MIN_EFFECT_RATIO = 0.0025  # effect RMS / measured torque RMS on its most affected joint
+# The greedy step picks the best of K candidates, each passing (1) by either of two tests: its
+# z and rank-test p are held to P_BLOCKS / (2 K) (Bonferroni over both tests and the K tried).
+FAMILY_TESTS = 2
 Z_AMBIGUOUS = 2.0  # two admissible sets whose held-out difference is under 2 standard errors: ambiguous
 # What excites each effect (and not the others): the data that would tell two effect sets apart.
 EXCITED_BY = {
@@ -86,6 +91,18 @@ def _delay_of(params):
     return None
 
 
+def family_levels(k: int) -> tuple[float, float]:
+    """(z, p) thresholds of rule (1) for the best of k candidates tried at once: each at
+    P_BLOCKS / (FAMILY_TESTS k), so the chance that any of them passes on noise stays at
+    about P_BLOCKS; k = 0 is a single pre-planned test (Z_BLOCK, P_BLOCKS)."""
+    from scipy.stats import norm
+
+    if k <= 0:
+        return Z_BLOCK, P_BLOCKS
+    p = P_BLOCKS / (FAMILY_TESTS * k)
+    return float(norm.isf(p)), p
+
+
 def significance(
     problem: Evaluator,
     r0: np.ndarray,
@@ -95,6 +112,7 @@ def significance(
     k_added: int,
     *,
     joint: int | None = None,
+    family: int = 0,
 ) -> dict:
     """The significance rule of the module docstring. r0/r1: held-out residual vectors of
     `problem` (validation residuals of the inner folds in the honest protocol).
@@ -103,7 +121,8 @@ def significance(
     sum(r0^2 - r1^2) = sum(2 r1 c + c^2); only 2 r1 c is random (r1 estimates the noise), so its
     standard error is taken from block sums of 2 r1 c (blocks absorb autocorrelation) and
     z = gain / se. Effects acting in short bursts (Stribeck at reversals) are then judged by
-    how far each burst stands out of the noise, not by how many bursts a log happens to have."""
+    how far each burst stands out of the noise, not by how many bursts a log happens to have.
+    family: the number of candidates this one is the best of (family_levels; 0: one test)."""
     sel = slice(None) if joint is None else (problem.check_joint == joint)
     r0, r1 = r0[sel], r1[sel]
     blocks = problem.check_block[sel]
@@ -124,8 +143,9 @@ def significance(
     )
     m = problem.n_fit_rows
     bic = m * np.log(max(sse1_fit, 1e-300) / max(sse0_fit, 1e-300)) + k_added * np.log(m)
+    z_crit, p_crit = family_levels(family)
     ok = bool(
-        (z >= Z_BLOCK or p_blocks <= P_BLOCKS)
+        (z >= z_crit or p_blocks <= p_crit)
         and delta >= MIN_RELATIVE * mse0
         and delta >= MIN_NOISE_FRACTION * sigma2
         and relevance >= MIN_EFFECT_RATIO
@@ -188,12 +208,12 @@ def select_effects(ev: Evaluator, effects: Sequence[str], max_effects: int) -> S
     selected, cur_params, cur_sse, cur_r, steps, ambiguous = _best_small_set(ev, effects, single, r0, sse0)
     while len(selected) < max_effects:
         best = None
-        for e in effects:
-            if e in selected:
-                continue
+        left = [e for e in effects if e not in selected]
+        for e in left:
             params, sse = ev.fit_effects(selected + [e])
             r1 = ev.check_residual(params)
-            sig = significance(ev, cur_r, r1, cur_sse, sse, n_params(params) - n_params(cur_params))
+            k_added = n_params(params) - n_params(cur_params)
+            sig = significance(ev, cur_r, r1, cur_sse, sse, k_added, family=len(left))
             sig["significant"] &= resolvable(ev, params)
             if sig["significant"] and (best is None or sig["delta_mse"] > best[4]["delta_mse"]):
                 best = (e, params, sse, r1, sig)

@@ -19,6 +19,7 @@ from safesysid.systems.model.robot_model import RobotModel
 
 from .diagnose import Diagnosis, diagnose
 from .effects import EFFECTS, PER_JOINT
+from .intervals import CALIBRATION
 from .simulate import SNR_RANGE, make_case
 from .truth_scores import confusion, interval_coverage, summarize, value_errors
 
@@ -118,6 +119,7 @@ def _run_case(job):
         ],
     }
     case["ambiguous"] = [a["sets"][1]["effects"] for a in d.result["ambiguous"]]
+    case["interval_calibration"] = dict(CALIBRATION)  # what the recorded intervals were widened by
     if i % BOOTSTRAP_EVERY == 0 and named:
         case["bootstrap_over_sandwich"] = bootstrap_ratio(model, d, np.random.default_rng([seed, i, 1]))
     if "time_delay" in inj and "time_delay" in named:  # the right time law?

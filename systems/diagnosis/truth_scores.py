@@ -132,7 +132,7 @@ def interval_coverage(name: str, truth: dict, intervals: dict) -> list[dict]:
                 "truth": float(t),
                 "lo": lo,
                 "hi": hi,
-                "covered": lo_f <= t <= hi_f,
+                "covered": bool(lo_f <= t <= hi_f),
             }
         )
     return out
@@ -157,24 +157,34 @@ def coverage_table(cases: list[dict]) -> dict:
     }
 
 
-def _needed_factor(rec: dict, fitted: dict) -> float:
-    """Factor by which a coverage record's interval must widen (about the fitted value, from the
-    case's `fitted` params) to hold the truth."""
-    value = fitted[rec["effect"]][rec["key"]]
+def _needed_factor(rec: dict, case: dict) -> float:
+    """Factor by which the raw (uncalibrated) sandwich interval of a coverage record must widen
+    (about the fitted value, from the case's `fitted` params) to hold the truth: the widening
+    the recorded interval needs, times the calibration factor the case ran with (none recorded:
+    1)."""
+    value = case["fitted"][rec["effect"]][rec["key"]]
     t, f = rec["truth"], value if rec["index"] is None else value[rec["index"]]
     end = rec["hi"] if t >= f else rec["lo"]
     if end is None:  # unbounded on that side
         return 0.0
     side = abs(end - f)
-    return abs(t - f) / side if side > 0 else (0.0 if t == f else np.inf)
+    ran_with = case.get("interval_calibration", {}).get(rec["effect"], 1.0)
+    return ran_with * abs(t - f) / side if side > 0 else (0.0 if t == f else np.inf)
 
 
-def calibrated_coverage(cases: list[dict], validation: Callable[[dict], bool] | None = None) -> dict:
-    """Per-effect interval factors chosen on the validation cases (default: even case numbers:
-    the 90th percentile of the widening each value needed, at least 1; effects with fewer than
-    5 values take the pooled factor) and the coverage they give on the other (held-out) cases."""
+def calibrated_coverage(
+    cases: list[dict],
+    validation: Callable[[dict], bool] | None = None,
+    *,
+    calibration_cases: Sequence[dict] = (),
+) -> dict:
+    """Per-effect interval factors chosen on the validation cases (default: even case numbers)
+    and on `calibration_cases` (another run: all of them): the 90th percentile of the widening
+    each value needed, at least 1; effects with fewer than 5 values take the pooled factor. The
+    coverage they give on the other (held-out) cases of `cases`."""
     validation = validation or (lambda c: c["case"] % 2 == 0)
-    val = [(r["effect"], _needed_factor(r, c["fitted"])) for c in cases if validation(c) for r in c.get("coverage", [])]
+    chosen_on = [c for c in cases if validation(c)] + list(calibration_cases)
+    val = [(r["effect"], _needed_factor(r, c)) for c in chosen_on for r in c.get("coverage", [])]
     held = [c for c in cases if not validation(c)]
     pooled = max(1.0, float(np.quantile([f for _, f in val], 0.9))) if val else 1.0
     factors = {}
@@ -183,7 +193,7 @@ def calibrated_coverage(cases: list[dict], validation: Callable[[dict], bool] | 
         factors[e] = max(1.0, float(np.quantile(need, 0.9))) if len(need) >= 5 else pooled
     per, hits = {}, []
     for case, r in ((c, r) for c in held for r in c.get("coverage", [])):
-        ok = _needed_factor(r, case["fitted"]) <= factors[r["effect"]]
+        ok = _needed_factor(r, case) <= factors[r["effect"]]
         hits.append(ok)
         per.setdefault(r["effect"], []).append(ok)
     return {
@@ -215,7 +225,14 @@ def spurious_table(cases: list[dict], effects: Sequence[str] = EFFECTS) -> dict:
         "all_with_false_effect": rate(cases),
         "per_effect": per,
         "cases_reported_ambiguous": sum(bool(c.get("ambiguous")) for c in cases),
+        "false_not_flagged": sum(bool(c["false"]) and not truth_offered(c) for c in cases),
     }
+
+
+def truth_offered(case: dict) -> bool:
+    """Is the injected set among the sets the ambiguity report offers as explaining the logs as
+    well as the named one (a false name the report flags, not a confident one)?"""
+    return any(set(alt) == set(case["injected"]) for alt in case.get("ambiguous", []))
 
 
 def error_table(cases: list[dict]) -> list[dict]:
