@@ -134,3 +134,36 @@ def mass_matrices(robot, q, theta):
     eye = np.tile(np.eye(n), (count, 1))
     wm = robot.momentum_regressor(np.repeat(q, n, axis=0), eye).reshape(count, n, n, -1)  # (row, column k, i, p)
     return np.einsum("rkip,rp->rik", wm, theta)
+
+
+GAUSS = np.polynomial.legendre.leggauss(24)  # per step: exact enough for one oscillation period
+
+
+def held_torque(robot, motion, t, theta, *, h):
+    """τ̄_k = (1/h)∫τ_ID dt over each step of length h (24-point Gauss): the held torque that
+    produces the motion, so ∫τ is exact and only the quadrature errs."""
+    nodes = t[:, None] + 0.5 * h * (1 + GAUSS[0][None, :])
+    q, v, a = motion(nodes.ravel())
+    tau = robot.inverse_dynamics(q, v, a, theta=theta).reshape(len(t), len(GAUSS[0]), -1)
+    return 0.5 * np.tensordot(tau, GAUSS[1], axes=([1], [0]))
+
+
+def start_arm_sim(tmp_path, scenario, scenario_text, *, duration_s):
+    """`safesysid arm-sim` in a process of its own (normal priority), once it answers: (process, out dir)."""
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "arm"
+    args = ["arm-sim", str(scenario), "--out", str(out), "--duration", str(duration_s), "--no-fifo"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "safesysid.cli", *args, "--scenario-text", scenario_text],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
+    deadline = time.monotonic() + 120
+    while not (out / "ready").exists():
+        assert proc.poll() is None, proc.stdout.read().decode()
+        assert time.monotonic() < deadline, "arm-sim did not start"
+        time.sleep(0.2)
+    return proc, out

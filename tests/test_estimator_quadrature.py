@@ -5,6 +5,7 @@ smooth motion) violates A5 while the samples' own quadrature term stays small; t
 it false, says so, and the sub-step bound keeps the truth inside. Without the reference the
 estimate says A5 is unverified."""
 
+import helpers
 import numpy as np
 import pytest
 from helpers import CENTRE, PRIOR, PRIOR_NOMINAL
@@ -12,7 +13,6 @@ from safesysid.systems import estimation as E
 from safesysid.systems.model.payload import payload_theta_in_end_effector
 
 RATE_HZ = 1000.0
-GAUSS = np.polynomial.legendre.leggauss(24)  # per step: exact enough for one oscillation period
 
 
 def oscillating(motion, amplitude_rad):
@@ -32,12 +32,7 @@ def oscillating(motion, amplitude_rad):
 
 
 def held_torque(robot, motion, t, theta):
-    """τ̄_k = (1/h)∫τ_ID dt over each step (24-point Gauss): the held torque that produces the motion."""
-    h = 1.0 / RATE_HZ
-    nodes = t[:, None] + 0.5 * h * (1 + GAUSS[0][None, :])
-    q, v, a = motion(nodes.ravel())
-    tau = robot.inverse_dynamics(q, v, a, theta=theta).reshape(len(t), len(GAUSS[0]), -1)
-    return 0.5 * np.tensordot(tau, GAUSS[1], axes=([1], [0]))
+    return helpers.held_torque(robot, motion, t, theta, h=1.0 / RATE_HZ)
 
 
 @pytest.fixture(scope="module")

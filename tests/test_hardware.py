@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import start_arm_sim
 from safesysid.systems.hardware.freshness import Freshness
 
 SCENARIO = Path(__file__).resolve().parents[1] / "scenarios" / "quickstart.yaml"
@@ -111,19 +112,7 @@ def _arm_overrides(command, status, extra=""):
 
 
 def _start_arm_sim(tmp_path, command, status, duration_s, extra=""):
-    out = tmp_path / "arm"
-    args = ["arm-sim", str(SCENARIO), "--out", str(out), "--duration", str(duration_s), "--no-fifo"]
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "safesysid.cli", *args, "--scenario-text", _arm_overrides(command, status, extra)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-    )
-    deadline = time.monotonic() + 120
-    while not (out / "ready").exists():
-        assert proc.poll() is None, proc.stdout.read().decode()
-        assert time.monotonic() < deadline, "arm-sim did not start"
-        time.sleep(0.2)
-    return proc, out
+    return start_arm_sim(tmp_path, SCENARIO, _arm_overrides(command, status, extra), duration_s=duration_s)
 
 
 def _finish(proc, out):

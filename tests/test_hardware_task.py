@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import start_arm_sim
 from safesysid.systems.hardware.gripper import release_verdict
 
 SCENARIO = Path(__file__).resolve().parents[1] / "scenarios" / "experiment_a.yaml"
@@ -113,19 +114,7 @@ def _arm_text(channels, extra=LENIENT):
 
 
 def _start_arm_sim(tmp_path, channels):
-    out = tmp_path / "arm"
-    args = ["arm-sim", str(SCENARIO), "--out", str(out), "--duration", "400", "--no-fifo"]
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "safesysid.cli", *args, "--scenario-text", _arm_text(channels)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-    )
-    deadline = time.monotonic() + 120
-    while not (out / "ready").exists():
-        assert proc.poll() is None, proc.stdout.read().decode()
-        assert time.monotonic() < deadline, "arm-sim did not start"
-        time.sleep(0.2)
-    return proc, out
+    return start_arm_sim(tmp_path, SCENARIO, _arm_text(channels), duration_s=400)
 
 
 def _stop(proc, out):

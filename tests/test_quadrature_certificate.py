@@ -5,6 +5,7 @@ declared bound breaks A5's bound while its term stays below the warning; with th
 estimator says A5 is not shown ("certified"), every row holds its error and the box the truth.
 A bound the samples contradict latches `consistent` off. Printed with -s."""
 
+import helpers
 import numpy as np
 import pytest
 from helpers import CENTRE, PRIOR, PRIOR_NOMINAL
@@ -15,7 +16,7 @@ from safesysid.systems.model.payload import payload_theta_in_end_effector
 
 RATE_HZ = 1000.0
 H = 1.0 / RATE_HZ
-GAUSS = np.polynomial.legendre.leggauss(24)
+GAUSS = helpers.GAUSS
 
 
 def wobbling(motion, speed_rad_s):
@@ -41,11 +42,7 @@ def acceleration_bound(motion, t):
 
 
 def held_torque(robot, motion, t, theta):
-    """(1/h)∫τ_ID dt over each step (24-point Gauss): ∫τ is then exact, only the quadrature errs."""
-    nodes = t[:, None] + 0.5 * H * (1 + GAUSS[0][None, :])
-    q, v, a = motion(nodes.ravel())
-    tau = robot.inverse_dynamics(q, v, a, theta=theta).reshape(len(t), len(GAUSS[0]), -1)
-    return 0.5 * np.tensordot(tau, GAUSS[1], axes=([1], [0]))
+    return helpers.held_torque(robot, motion, t, theta, h=H)
 
 
 @pytest.fixture(scope="module")
