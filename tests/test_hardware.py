@@ -222,7 +222,8 @@ def test_two_processes_run_algorithm_2_and_the_arm_ends_holding(multicast, tmp_p
     arm = _finish(proc, out)
     assert code == 0 and run is not None, text
     assert arm["safe"], arm["referee"]  # the arm's own referee: links' geometry, torque before saturation
-    assert arm["driver"]["commands_received"] and arm["driver"]["holding"] in ("hold_requested", "command_lost")
+    holds = ("hold_requested", "command_lost", "command_clock_jump")  # asked, or a stall at normal priority
+    assert arm["driver"]["commands_received"] and arm["driver"]["holding"] in holds
     assert run["planner"]["iterations"] >= 1 and run["planner"]["status"][0] in ("solved", "best_feasible")
     if run["estimate"] is not None:  # identified: the interval holds the arm's true payload
         truth = np.array(arm["payload_true"]["theta"])

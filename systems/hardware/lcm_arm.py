@@ -86,7 +86,11 @@ def add_lcm_arm(builder: DiagramBuilder, scenario: Scenario, robot: RobotModel, 
     encoder = builder.AddSystem(CommandEncoder(n))
     encoder.set_name("command_encoder")
     builder.Connect(receiver.GetOutputPort("hold"), encoder.hold)
-    pub = builder.AddSystem(LcmPublisherSystem.Make(cfg.command_channel, lcmt_panda_command, lcm, publish_period=h))
+    # From the first step on, not at Initialize: the arm's watchdog counts from the first command,
+    # and the run's set-up after Initialize (the controller's kernels, the collector) takes longer.
+    pub = builder.AddSystem(
+        LcmPublisherSystem.Make(cfg.command_channel, lcmt_panda_command, lcm, publish_period=h, publish_offset=h)
+    )
     pub.set_name("command_publisher")
     builder.Connect(encoder.get_output_port(), pub.get_input_port())
     return LcmArm(

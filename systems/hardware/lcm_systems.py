@@ -125,10 +125,11 @@ class StatusEncoder(LeafSystem):
 
 class StatusReceiver(LeafSystem):
     """lcmt_panda_status -> state [q, v], measured_torque (the newest status), the estimator's
-    arm-timestamped samples (estimation/packets.py: every status newer than the last delivered one
-    that arrived since the last step, in the arm's time order, so a step that saw two statuses
-    leaves no gap in the estimator's data; `statuses` must keep a backlog), and hold (1.0 once the
-    status stream stopped, jumped or stalled beyond status_timeout_s: the run must brake)."""
+    arm-timestamped samples (estimation/packets.py: every status received since the last step and
+    newer than the last delivered one, in the arm's time order; `statuses` must keep a backlog),
+    and hold (1.0 once the status stream stopped, jumped or stalled beyond status_timeout_s: the
+    run must brake). pydrake's DrakeLcm hands a subscription only the newest message per pump, so
+    a step that two statuses reached still loses one (docs/hardware.md, Time)."""
 
     def __init__(
         self, n: int, statuses: LatestMessage, time_step_s: float, *, status_timeout_s: float, q_start: np.ndarray

@@ -12,6 +12,11 @@ def request_realtime(priority: int = FIFO_PRIORITY) -> dict:
     files. Every thread: the policy is per thread, and a thread started before (LCM's receive
     thread, started with the DrakeLcm) kept normal scheduling: under load it fell behind, its
     socket overflowed and the arm lost commands for 20-35 ms (the watchdog tripped)."""
+    from threadpoolctl import threadpool_limits
+
+    # One BLAS thread: an idle OpenBLAS thread spins after each call, and a spinning real-time
+    # thread starves every normal process on its CPU (the workers, a normal-priority receiver).
+    threadpool_limits(1)
     try:
         for thread in _threads():
             os.sched_setscheduler(thread, os.SCHED_FIFO, os.sched_param(priority))
