@@ -97,6 +97,24 @@ def multicast():
         pytest.skip(reason)
 
 
+def test_drake_lcm_hands_a_subscription_one_message_per_pump(multicast):
+    """Why a run step that two statuses reached loses one (docs/hardware.md, Time): pydrake's
+    DrakeLcm keeps one message per subscription between pumps (the first; later ones are dropped).
+    If this fails, Drake queues more,
+    and the statuses' 2 ms gaps over LCM should be gone: remeasure and rewrite that paragraph."""
+    from pydrake.lcm import DrakeLcm
+
+    lcm, got = DrakeLcm(URL), []
+    channel = f"PUMP_{uuid.uuid4().hex}"
+    lcm.Subscribe(channel, got.append)
+    for k in range(5):
+        lcm.Publish(channel, bytes([k]))
+    time.sleep(0.05)
+    lcm.HandleSubscriptions(10)
+    print(f"5 published between two pumps: {len(got)} handled")
+    assert got == [bytes([0])]
+
+
 def _channels():
     tag = uuid.uuid4().hex[:8]
     return f"TEST_CMD_{tag}", f"TEST_STATUS_{tag}"

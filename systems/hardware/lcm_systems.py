@@ -128,7 +128,7 @@ class StatusReceiver(LeafSystem):
     arm-timestamped samples (estimation/packets.py: every status received since the last step and
     newer than the last delivered one, in the arm's time order; `statuses` must keep a backlog),
     and hold (1.0 once the status stream stopped, jumped or stalled beyond status_timeout_s: the
-    run must brake). pydrake's DrakeLcm hands a subscription only the newest message per pump, so
+    run must brake). pydrake's DrakeLcm hands a subscription one message per pump (the first), so
     a step that two statuses reached still loses one (docs/hardware.md, Time)."""
 
     def __init__(
