@@ -83,12 +83,25 @@ def pool_results(fn: Callable[..., dict], jobs: list[tuple], workers: int) -> It
     import safesysid.online  # noqa: F401 -- imported once here, not in every forked worker
 
     pool = multiprocessing.Pool(processes=max(1, workers), initializer=_worker_signals)
+    finished = False
     try:
         yield from pool.imap_unordered(_call, [(fn, args) for args in jobs])
-        pool.close()
+        finished = True
     finally:
-        pool.terminate()  # on an interrupt: stop the running jobs (their results were never written)
+        if finished:
+            pool.close()  # every job done: the workers exit on their sentinels
+        else:  # an interrupt: stop the running jobs (their results were never written)
+            _kill_workers(pool)
+            pool.terminate()
         pool.join()
+
+
+def _kill_workers(pool: object) -> None:
+    """SIGKILL every worker: Pool.terminate()'s SIGTERM has been seen to leave a worker idle in
+    its queue's lock forever, and terminate() then waits on it without a timeout."""
+    for worker in getattr(pool, "_pool", ()):
+        if worker.exitcode is None:
+            worker.kill()
 
 
 def run_streamed(
