@@ -21,29 +21,36 @@ from .messages import Status, command_message, parse_command, parse_status, stat
 
 
 class LatestMessage:
-    """The newest message on an LCM channel, kept outside the Context (LcmInterfaceSystem pumps it
-    before each step's events). A subscriber system's abstract state, a Python lcmtype, is deep-
-    copied at every step's unrestricted update (measured: most of the 1 kHz loop's time)."""
+    """The newest message on an LCM channel, kept outside the Context (LcmInterfaceSystem, or a
+    ReceiveThread, pumps it). A subscriber system's abstract state, a Python lcmtype, is deep-
+    copied at every step's unrestricted update (measured: most of the 1 kHz loop's time). Safe
+    to fill from a receive thread: each update is one assignment or one deque operation."""
 
     def __init__(self, lcm: DrakeLcm, channel: str, lcm_type: type, *, backlog: int = 0) -> None:
         """backlog: also keep up to this many of the latest messages for `drain` (0: none)."""
-        self.lcm_type, self.count, self._data, self._decoded = lcm_type, 0, None, (0, lcm_type())
+        self.lcm_type, self._latest, self._decoded = lcm_type, (0, None), (0, lcm_type())
         self._backlog: collections.deque = collections.deque(maxlen=backlog)
         lcm.Subscribe(channel, self._on_message)
 
+    @property
+    def count(self) -> int:
+        return self._latest[0]
+
     def _on_message(self, data: bytes) -> None:
-        self._data, self.count = data, self.count + 1
+        self._latest = (self._latest[0] + 1, data)
         self._backlog.append(data)
 
     def drain(self) -> list:
         """The messages received since the last drain (at most `backlog`, the newest), decoded."""
-        out = [self.lcm_type.decode(data) for data in self._backlog]
-        self._backlog.clear()
+        out = []
+        while self._backlog:
+            out.append(self.lcm_type.decode(self._backlog.popleft()))
         return out
 
     def message(self) -> object:
-        if self._decoded[0] != self.count:  # decode once per new message
-            self._decoded = (self.count, self.lcm_type.decode(self._data))
+        count, data = self._latest
+        if self._decoded[0] != count:  # decode once per new message
+            self._decoded = (count, self.lcm_type.decode(data))
         return self._decoded[1]
 
 
@@ -128,8 +135,8 @@ class StatusReceiver(LeafSystem):
     arm-timestamped samples (estimation/packets.py: every status received since the last step and
     newer than the last delivered one, in the arm's time order; `statuses` must keep a backlog),
     and hold (1.0 once the status stream stopped, jumped or stalled beyond status_timeout_s: the
-    run must brake). pydrake's DrakeLcm hands a subscription one message per pump (the first), so
-    a step that two statuses reached still loses one (docs/hardware.md, Time)."""
+    run must brake). `statuses` is filled by a receive thread (receive_thread.py): a pump once per
+    step would lose the second of two statuses that reached one step (docs/hardware.md, Time)."""
 
     def __init__(
         self, n: int, statuses: LatestMessage, time_step_s: float, *, status_timeout_s: float, q_start: np.ndarray
