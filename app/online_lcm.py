@@ -135,7 +135,7 @@ def _wait_for_arm(arm, scenario: Scenario) -> None:
         if time.monotonic() > deadline:
             channel = scenario.arm.status_channel
             raise ArmNotAnswering(f"arm.status_channel {channel!r}: no status in {FIRST_STATUS_TIMEOUT_S:g} s")
-        arm.status_thread.pump(100)
+        arm.status_thread.HandleSubscriptions(100)
 
 
 def _warm_up(built, ctx) -> None:

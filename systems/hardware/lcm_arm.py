@@ -61,7 +61,7 @@ class LcmArm:
     hold_output: OutputPort
     receiver: StatusReceiver
     statuses: LatestMessage
-    status_thread: ReceiveThread  # pumps `statuses`: start it once the workers are forked
+    status_thread: ReceiveThread  # receives `statuses`: start it once the workers are forked
     lcm: DrakeLcm
     command_channel: str
     time_step: float
@@ -79,7 +79,7 @@ def add_lcm_arm(builder: DiagramBuilder, scenario: Scenario, robot: RobotModel, 
     n, h, cfg = robot.n, scenario.plant.time_step_s, scenario.arm
     _interface(builder, lcm)
     status_thread = ReceiveThread(cfg.lcm_url)  # every status, not one per step (receive_thread.py)
-    statuses = LatestMessage(status_thread.lcm, cfg.status_channel, lcmt_panda_status, backlog=4 * PACKET_ROWS)
+    statuses = LatestMessage(status_thread, cfg.status_channel, lcmt_panda_status, backlog=4 * PACKET_ROWS)
     receiver = builder.AddSystem(
         StatusReceiver(
             n, statuses, h, status_timeout_s=cfg.status_timeout_ms * 1e-3, q_start=np.asarray(scenario.q0_rad)
@@ -122,7 +122,7 @@ def add_arm_driver(builder: DiagramBuilder, arm: RealArm, scenario: Scenario, *,
     cfg, h = scenario.arm, scenario.plant.time_step_s
     _interface(builder, lcm)
     receive_thread = ReceiveThread(cfg.lcm_url)  # the newest command, not the first of a step's
-    commands = LatestMessage(receive_thread.lcm, cfg.command_channel, lcmt_panda_command)
+    commands = LatestMessage(receive_thread, cfg.command_channel, lcmt_panda_command)
     q_start = np.asarray(scenario.q0_rad, float)
     driver = builder.AddSystem(
         ArmDriver(
