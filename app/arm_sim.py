@@ -17,7 +17,6 @@ import argparse
 import gc
 import json
 import signal
-import sys
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -76,7 +75,6 @@ def run_arm_sim(
     """Serve the arm for duration_s of its clock (or until SIGINT/SIGTERM); write the judgement."""
     from pydrake.systems.analysis import Simulator
     from safesysid.systems.hardware.realtime import request_realtime
-    from safesysid.systems.hardware.receive_thread import SWITCH_INTERVAL_S
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -91,8 +89,6 @@ def run_arm_sim(
     for sig in STOP_SIGNALS:
         signal.signal(sig, lambda *_: stop.append(True))
     sim.Initialize()
-    sys.setswitchinterval(SWITCH_INTERVAL_S)  # the commands' thread must not wait 5 ms for the loop
-    driver.receive_thread.start()
     gc.collect()
     gc.freeze()  # the set-up's objects out of the collector: a full collection stalls the loop
     gc.disable()  # and none while the loop runs: the objects it keeps made each one longer (tens of ms)
@@ -102,7 +98,6 @@ def run_arm_sim(
         sim.AdvanceTo(min(duration_s, ctx.get_time() + CHUNK_S))
         gripper.step(ctx)
     wall = time.perf_counter() - wall0
-    driver.receive_thread.stop()
     referee = judge_run(diagram, arm, monitor, loggers, ctx, released_at=gripper.t_release)
     summary = arm_summary(ctx, arm, driver, referee=referee, loggers=loggers, out=out)
     summary.update(gripper.judgement(ctx, safe=summary["safe"]))

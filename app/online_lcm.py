@@ -30,21 +30,24 @@ if TYPE_CHECKING:
     from pydrake.systems.framework import Context
     from safesysid.online_diagram import OnlineDiagram
 
+SWITCH_INTERVAL_S = 1e-4
 CHUNK_S = 0.05  # the run advances in chunks of this much, measuring its lag behind the wall clock
 
 
 def _pace(sim, ctx, end_s: float) -> dict:
     """Advance to end_s at real time; how far the loop fell behind the wall clock [s]."""
     wall0 = time.perf_counter()
-    lags = []
+    lags, times = [], []
     while ctx.get_time() < end_s - 1e-9:
         sim.AdvanceTo(min(end_s, ctx.get_time() + CHUNK_S))
-        lags.append(time.perf_counter() - wall0 - ctx.get_time())
+        times.append(ctx.get_time())
+        lags.append(time.perf_counter() - wall0 - times[-1])
     lag = np.asarray(lags) - (lags[0] if lags else 0.0)
     usage = resource.getrusage(resource.RUSAGE_SELF)
     return {
         "wall_time_s": time.perf_counter() - wall0,
         "max_lag_s": float(lag.max(initial=0.0)),
+        "max_lag_at_s": float(times[int(np.argmax(lag))]) if lags else None,  # the run's clock at the end of that chunk
         "cpu_time_s": usage.ru_utime + usage.ru_stime,  # the whole process, set-up included
     }
 
@@ -72,7 +75,6 @@ def run_wallclock(
     from safesysid.summary import merge_events
     from safesysid.systems.hardware.background import BackgroundWorker
     from safesysid.systems.hardware.realtime import request_realtime
-    from safesysid.systems.hardware.receive_thread import SWITCH_INTERVAL_S
     from safesysid.task_lcm import run_task_lcm
 
     method = method or scenario.method
@@ -81,7 +83,7 @@ def run_wallclock(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     scheduling = request_realtime() if fifo else {"scheduler": "normal", "warning": "real-time scheduling not asked"}
-    worker, built = BackgroundWorker(), None
+    worker = BackgroundWorker()
     try:
         built = build_online(scenario, method, meshcat=meshcat, seed=seed, worker=worker)
         sim = Simulator(built.diagram)
@@ -89,14 +91,13 @@ def run_wallclock(
         ctx = sim.get_mutable_context()
         _wait_for_arm(built.arm, scenario)
         worker.start()  # every system is registered: the forks inherit them
-        built.arm.status_thread.start()  # after the fork (a fork copies only the forking thread)
         sim.Initialize()
         _warm_up(built, ctx)
         built.arm.receiver.rearm(ctx)
         gc.collect()
         gc.freeze()  # the set-up's objects out of the collector: a full collection stalls the loop
         gc.disable()  # and none while the loop runs: the objects it keeps made each one longer (tens of ms)
-        sys.setswitchinterval(SWITCH_INTERVAL_S)  # the worker's result and status threads must not wait 5 ms
+        sys.setswitchinterval(SWITCH_INTERVAL_S)  # the worker's result thread must not hold the loop 5 ms
         sim.ResetStatistics()  # real-time pacing from here, not from before the set-up
         worker.clock_started()
         spec = methods.method_spec(method)
@@ -109,8 +110,6 @@ def run_wallclock(
         _request_hold(built.arm, ctx.get_time())
     finally:
         worker.shutdown()
-        if built is not None:
-            built.arm.status_thread.stop()
     summary = wallclock_summary(built, ctx, scenario, method=method, seed=seed)
     summary.update(timing=timing, scheduling=scheduling, identification_end_s=horizon)
     if task is not None:
@@ -135,7 +134,7 @@ def _wait_for_arm(arm, scenario: Scenario) -> None:
         if time.monotonic() > deadline:
             channel = scenario.arm.status_channel
             raise ArmNotAnswering(f"arm.status_channel {channel!r}: no status in {FIRST_STATUS_TIMEOUT_S:g} s")
-        arm.status_thread.HandleSubscriptions(100)
+        arm.statuses.receive(100)
 
 
 def _warm_up(built, ctx) -> None:

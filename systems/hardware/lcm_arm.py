@@ -18,7 +18,7 @@ from drake import lcmt_panda_command, lcmt_panda_status
 from safesysid.systems.estimation.packets import PACKET_ROWS
 
 from .lcm_systems import ArmDriver, CommandEncoder, LatestMessage, StatusEncoder, StatusReceiver
-from .receive_thread import ReceiveThread
+from .queued_lcm import QueuedLcm
 
 if TYPE_CHECKING:
     from pydrake.lcm import DrakeLcm
@@ -61,7 +61,6 @@ class LcmArm:
     hold_output: OutputPort
     receiver: StatusReceiver
     statuses: LatestMessage
-    status_thread: ReceiveThread  # receives `statuses`: start it once the workers are forked
     lcm: DrakeLcm
     command_channel: str
     time_step: float
@@ -78,8 +77,8 @@ def add_lcm_arm(builder: DiagramBuilder, scenario: Scenario, robot: RobotModel, 
 
     n, h, cfg = robot.n, scenario.plant.time_step_s, scenario.arm
     _interface(builder, lcm)
-    status_thread = ReceiveThread(cfg.lcm_url)  # every status, not one per step (receive_thread.py)
-    statuses = LatestMessage(status_thread, cfg.status_channel, lcmt_panda_status, backlog=4 * PACKET_ROWS)
+    # Every status, not one per step (queued_lcm.py); the receiver hands them over at its step.
+    statuses = LatestMessage(QueuedLcm(cfg.lcm_url), cfg.status_channel, lcmt_panda_status, backlog=4 * PACKET_ROWS)
     receiver = builder.AddSystem(
         StatusReceiver(
             n, statuses, h, status_timeout_s=cfg.status_timeout_ms * 1e-3, q_start=np.asarray(scenario.q0_rad)
@@ -106,7 +105,6 @@ def add_lcm_arm(builder: DiagramBuilder, scenario: Scenario, robot: RobotModel, 
         hold_output=receiver.GetOutputPort("hold"),
         receiver=receiver,
         statuses=statuses,
-        status_thread=status_thread,
         lcm=lcm,
         command_channel=cfg.command_channel,
         time_step=h,
@@ -115,14 +113,12 @@ def add_lcm_arm(builder: DiagramBuilder, scenario: Scenario, robot: RobotModel, 
 
 def add_arm_driver(builder: DiagramBuilder, arm: RealArm, scenario: Scenario, *, lcm: DrakeLcm) -> ArmDriver:
     """Commands -> ArmDriver (watchdog, hold) -> the station's commanded_torque; its status out
-    every plant step. Returns the driver (its torque output is u before saturation: the referee's);
-    its commands arrive on driver.receive_thread (start it before the clock, stop it after)."""
+    every plant step. Returns the driver (its torque output is u before saturation: the referee's)."""
     from pydrake.systems.lcm import LcmPublisherSystem
 
     cfg, h = scenario.arm, scenario.plant.time_step_s
     _interface(builder, lcm)
-    receive_thread = ReceiveThread(cfg.lcm_url)  # the newest command, not the first of a step's
-    commands = LatestMessage(receive_thread, cfg.command_channel, lcmt_panda_command)
+    commands = LatestMessage(QueuedLcm(cfg.lcm_url), cfg.command_channel, lcmt_panda_command)  # the newest of a step's
     q_start = np.asarray(scenario.q0_rad, float)
     driver = builder.AddSystem(
         ArmDriver(
@@ -130,7 +126,6 @@ def add_arm_driver(builder: DiagramBuilder, arm: RealArm, scenario: Scenario, *,
         )
     )
     driver.set_name("arm_driver")
-    driver.receive_thread = receive_thread
     builder.Connect(arm.state_output, driver.state)
     builder.Connect(driver.get_output_port(), arm.commanded_torque_input)
     encoder = builder.AddSystem(StatusEncoder(arm.robot.n))

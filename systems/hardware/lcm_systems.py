@@ -21,16 +21,21 @@ from .messages import Status, command_message, parse_command, parse_status, stat
 
 
 class LatestMessage:
-    """The newest message on an LCM channel, kept outside the Context (LcmInterfaceSystem, or a
-    ReceiveThread, pumps it). A subscriber system's abstract state, a Python lcmtype, is deep-
-    copied at every step's unrestricted update (measured: most of the 1 kHz loop's time). Safe
-    to fill from a receive thread: each update is one assignment or one deque operation."""
+    """The newest message on an LCM channel, kept outside the Context (a DrakeLcm's are pumped by
+    the LcmInterfaceSystem; a QueuedLcm's by `receive`, at the reader's step). A subscriber
+    system's abstract state, a Python lcmtype, is deep-copied at every step's unrestricted update
+    (measured: most of the 1 kHz loop's time)."""
 
     def __init__(self, lcm: DrakeLcm, channel: str, lcm_type: type, *, backlog: int = 0) -> None:
         """backlog: also keep up to this many of the latest messages for `drain` (0: none)."""
         self.lcm_type, self._latest, self._decoded = lcm_type, (0, None), (0, lcm_type())
         self._backlog: collections.deque = collections.deque(maxlen=backlog)
+        self._lcm = lcm
         lcm.Subscribe(channel, self._on_message)
+
+    def receive(self, timeout_ms: int = 0) -> None:
+        """Take in what arrived (waiting up to timeout_ms for a first message)."""
+        self._lcm.HandleSubscriptions(timeout_ms)
 
     @property
     def count(self) -> int:
@@ -83,6 +88,7 @@ class ArmDriver(LeafSystem):
     def _tick(self, context, state):
         guard, q_hold = context.get_abstract_state(int(self._memo)).get_value()
         t = context.get_time()
+        self.commands.receive()
         parsed = parse_command(self.commands.message(), self.n)
         before = guard.tripped
         if parsed is None:
@@ -135,8 +141,8 @@ class StatusReceiver(LeafSystem):
     arm-timestamped samples (estimation/packets.py: every status received since the last step and
     newer than the last delivered one, in the arm's time order; `statuses` must keep a backlog),
     and hold (1.0 once the status stream stopped, jumped or stalled beyond status_timeout_s: the
-    run must brake). `statuses` is filled by a receive thread (receive_thread.py): a pump once per
-    step would lose the second of two statuses that reached one step (docs/hardware.md, Time)."""
+    run must brake). `statuses` must queue (queued_lcm.py): a DrakeLcm pumped once per step loses
+    the second of two statuses that reached one step (docs/hardware.md, Time)."""
 
     def __init__(
         self, n: int, statuses: LatestMessage, time_step_s: float, *, status_timeout_s: float, q_start: np.ndarray
@@ -162,11 +168,13 @@ class StatusReceiver(LeafSystem):
         context = self.GetMyMutableContextFromRoot(root_context)
         guard = self.guard(context)
         fresh = Freshness(guard.limit_s, payload=guard.payload, grace_until_s=context.get_time() + grace_s)
+        self.statuses.receive()
         self.statuses.drain()  # the set-up's statuses: the estimator starts with the clock
         context.get_mutable_abstract_state(int(self._memo)).set_value((fresh, ()))
 
     def _tick(self, context, state):
         guard = self.guard(context)
+        self.statuses.receive()
         received = self.statuses.drain()
         status = parse_status(self.statuses.message(), self.n)
         t = context.get_time()
