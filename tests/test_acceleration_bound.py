@@ -159,3 +159,16 @@ def test_a_derived_bound_needs_a_held_torque_and_no_declared_one(robot):
     for extra in ({"torque_signal": "continuous"}, {"acceleration_bound_rad_s2": 1.0}):
         with pytest.raises(E.EstimatorError, match="derive_acceleration_bound"):
             E.IncrementalEstimator(robot, settings=E.EstimatorSettings(derive_acceleration_bound=True, **extra))
+
+
+def test_a_step_without_a_bound_certifies_nothing(robot, held):
+    """A bound of inf (what the derivation gives a step where no candidate passed): the rows keep
+    A5's own term and say nothing is certified, and nothing is flagged."""
+    t, q, v, tau, _, _ = held
+    rows = {}
+    for bound in (None, np.inf):
+        est = E.IncrementalEstimator(robot, settings=E.EstimatorSettings(set_membership="none"), prior=PRIOR)
+        est.add(t, q, v, tau, acceleration_bound=bound)
+        rows[bound] = est.rows
+    assert not rows[np.inf].a5_certified.any() and not rows[np.inf].accel_violated.any()
+    assert np.array_equal(rows[np.inf].quad, rows[None].quad)
