@@ -278,6 +278,10 @@ class Estimator:
     # declared): each step's quadrature term is then certified without A5, A5 checked against it,
     # and samples that contradict it latch consistent off (estimation/quadrature_certificate.py).
     acceleration_bound_rad_s2: list[float] = dc.field(default_factory=list)
+    # Derive |q̈_j| between the samples per step instead, from the model's dynamics under the held
+    # torque and the estimator's own parameter box (estimation/acceleration_bound.py); needs
+    # torque_signal held and no acceleration_bound_rad_s2.
+    derive_acceleration_bound: bool = False
     # Prune the published box with physical knowledge: J(theta_e) >= 0 and, with a
     # payload.bounding_volume, its density-realizability LMI (estimation/physical.py).
     physical_pruning: bool = False

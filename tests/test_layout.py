@@ -138,7 +138,8 @@ ROLE_IMPORTS = {
     "math": set(),
     "model": {"schema", "math"},
     "controller": {"schema", "math", "model"},
-    "estimation": {"schema", "math", "model"},
+    # estimation: the planner's interval dynamics (one interval RNEA for both: the derived acceleration bound)
+    "estimation": {"schema", "math", "model", "planner"},
     "planner": {"schema", "math", "model", "controller"},
     "hardware": {"schema", "math", "model", "controller", "estimation", "planner", "plant"},
     "plant": {"schema", "math", "model", "controller", "estimation", "planner"},

@@ -67,6 +67,8 @@ T_AFF = "tests/test_reachability_affine.py"
 T_EST = "tests/test_estimator.py"
 QCERT = "systems/estimation/quadrature_certificate.py"
 T_QCERT = "tests/test_quadrature_certificate.py"
+ACCEL = "systems/estimation/acceleration_bound.py"
+T_ACCEL = "tests/test_acceleration_bound.py"
 
 MUTANTS = [
     # -- 1. tracking tube ------------------------------------------------------------------------
@@ -463,6 +465,57 @@ MUTANTS = [
         "tests/test_hardware.py",
         "-k",
         "late_and_duplicated_statuses",
+    ),
+    # -- 5. A5 certified from the dynamics (the derived acceleration bound) ------------------------
+    m(
+        "derived acceleration bound: M bounded below by the armature's upper end (a λ_max-side bound)",
+        ACCEL,
+        "armature_lower",
+        "    ia = _down(centre - radius)",
+        "    ia = _up(centre + radius)",
+        T_ACCEL,
+        "-k",
+        "tight_on_one_joint",
+    ),
+    m(
+        "derived acceleration bound: h(q, q̇) without the friction columns",
+        ACCEL,
+        "residual_bound",
+        "    mid, mag = w.mid, w.mag",
+        "    w.lo[..., 10 * robot.n :] = w.hi[..., 10 * robot.n :] = 0.0\n    mid, mag = w.mid, w.mag",
+        T_ACCEL,
+        "-k",
+        "tight_on_one_joint",
+    ),
+    m(
+        "derived acceleration bound: M⁻¹'s Cauchy–Schwarz factor 1/√Ia_j taken as 1/Ia_j",
+        ACCEL,
+        "from_residual",
+        "    return _up(np.sqrt(energy / ia) * (1 + _REL))",
+        "    return _up(np.sqrt(energy) / ia * (1 + _REL))",
+        T_ACCEL,
+        "-k",
+        "holds_the_model_acceleration",
+    ),
+    m(
+        "a known motion faster than the acceleration bound is not flagged",
+        QCERT,
+        "certify_rows",
+        "    contradicted = (contradicted & ~open_) | (False if exceeded is None else exceeded)",
+        "    contradicted = contradicted & ~open_",
+        T_ACCEL,
+        "-k",
+        "known_motion_faster",
+    ),
+    m(
+        "a step without an acceleration bound certifies its segment",
+        QCERT,
+        "certify_rows",
+        "a5_certified=~(bad | unbounded)",
+        "a5_certified=~bad",
+        T_ACCEL,
+        "-k",
+        "without_a_bound",
     ),
 ]
 

@@ -13,13 +13,13 @@ from numpy.typing import ArrayLike
 from safesysid.systems.model import inertial
 from safesysid.systems.model.uncertainty import parameter_radius
 
+from .acceleration_bound import certify_segments
 from .delay import DelayInverse
 from .enclosure import box_is_consistent, interval_hull, set_membership_bounds, torque_row_radius
 from .estimate import Estimate, quadrature_assumption
 from .lag import LagInverse
 from .log_cholesky import cost_grad_hess, nearest_consistent, solve_log_cholesky
 from .physical import prune_box
-from .quadrature_certificate import certify_rows
 from .segments import Reference, SegmentRows, build_segment_rows, segment_bounds
 from .settings import EstimatorError, EstimatorSettings
 
@@ -69,6 +69,8 @@ class IncrementalEstimator:
         if lag[1] > 0 and st.torque_signal != "held":
             raise EstimatorError(f"estimator.torque_lag_s: {st.torque_lag_s} needs a held torque signal")
         self._unlag = LagInverse(lag, st.segment_gap_s()) if lag[1] > 0 else None
+        if st.derive_acceleration_bound and (st.torque_signal != "held" or st.acceleration_bound_rad_s2 is not None):
+            raise EstimatorError("estimator.derive_acceleration_bound needs a held torque and no declared bound")
         if st.torque_delay_s and not (st.torque_signal == "held" and st.hold_period_s):
             raise EstimatorError(f"estimator.torque_delay_s: {st.torque_delay_s} needs a held torque and its period")
         self._unshift = DelayInverse(st.torque_delay_s, st.hold_period_s) if st.torque_delay_s else None
@@ -149,16 +151,16 @@ class IncrementalEstimator:
                 reading_radius=rho if rho.any() else None,
                 reference=reference,
             )
-            if acceleration_bound is not None:  # A5 certified from the bound (or the step flagged)
-                new = certify_rows(
-                    new,
-                    self.robot,
-                    (t, q, v),
-                    bounds,
-                    self.settings,
-                    theta_box=self.theta_box(),
-                    accel=acceleration_bound,
-                )
+            new = certify_segments(  # A5 certified from a declared or derived bound (or the step flagged)
+                new,
+                self.robot,
+                self.settings,
+                (t, q, v, tau, rho),
+                bounds,
+                theta_box=self.theta_box(),
+                declared=acceleration_bound,
+                reference=reference,
+            )
             if len(self.rows) and len(new) and new.start_index[0] == self.rows.end_index[-1]:
                 new.shared_prev[0] = True
             self.rows = self.rows.concat(new)
@@ -282,9 +284,13 @@ class IncrementalEstimator:
                 f"in {int(self.rows.violated.sum())} segment(s)"
             )
         if np.any(self.rows.accel_violated):
+            bound = (
+                "the dynamics allow under the held torque (derived acceleration bound)"
+                if st.derive_acceleration_bound
+                else f"the declared acceleration bound {st.acceleration_bound_rad_s2} rad/s²"
+            )
             problems.append(
-                f"the joint velocities change faster than the declared acceleration bound "
-                f"{self.settings.acceleration_bound_rad_s2} rad/s² in {int(self.rows.accel_violated.sum())} segment(s)"
+                f"the joint motion is faster than {bound} in {int(self.rows.accel_violated.sum())} segment(s)"
             )
         # The same hull with the other left inverse (rows scaled by their declared bound): also
         # an enclosure, often tighter on the mass; keep the intersection.

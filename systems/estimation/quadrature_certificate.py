@@ -255,30 +255,39 @@ def certify_rows(
     *,
     theta_box: tuple[np.ndarray, np.ndarray],
     accel: np.ndarray,
+    exceeded: np.ndarray | None = None,
 ) -> SegmentRows:
     """The rows of `bounds` (built by segments.build_segment_rows on samples = (t, q, v)) with
     each segment's quadrature term Σ_steps max(A5's bound, `certified_step_bounds`), valid with
-    A5 or without it given |q̈| ≤ accel (n,) between the samples, and never below the samples'
-    own term (equal to it where A5's bound dominates on every step: a5_shown; the increase is
-    added, so a continuous torque's own term stays). A step whose
-    samples contradict the bound certifies nothing: its segment keeps A5's term, accel_violated."""
+    A5 or without it given |q̈| ≤ accel between the samples ((n,), or per step of the samples'
+    range bounds[0, 0]..bounds[-1, 1]: (steps, n); inf: no bound on that step), and never below
+    the samples' own term (equal to it where A5's bound dominates on every step: a5_shown; the
+    increase is added, so a continuous torque's own term stays). A step whose samples contradict
+    the bound, or whose known motion exceeds it (exceeded, (steps,) bool), certifies nothing: its
+    segment keeps A5's term, accel_violated; a segment with an unbounded step keeps A5's term."""
     lo, hi = int(bounds[:, 0].min()), int(bounds[:, 1].max())
     tt, qq, vv = (x[lo : hi + 1] for x in samples)
     loc = bounds - lo
     steps = len(tt) - 1
     accel = np.broadcast_to(np.asarray(accel, float), (steps, robot.n))
-    cert, contradicted = certified_step_bounds(robot, tt, qq, vv, accel, theta_box, integration=settings.integration)
+    open_ = ~np.all(np.isfinite(accel), 1)
+    finite = np.where(open_[:, None], 0.0, accel)
+    cert, contradicted = certified_step_bounds(robot, tt, qq, vv, finite, theta_box, integration=settings.integration)
+    contradicted = (contradicted & ~open_) | (False if exceeded is None else exceeded)
     fric = regressors.friction_columns(vv, kind="rate", smoothing_velocity=robot.coulomb_smoothing)
     rates = integrand_rates(tt, _pair_factors(robot.tree, qq, vv), fric, *theta_box)
     c = 0.5 if settings.integration == "euler" else 0.25
     h2 = np.diff(tt) ** 2
     quad = rows.quad.copy()
-    shown, bad = np.zeros(len(loc), bool), np.zeros(len(loc), bool)
+    shown, bad, unbounded = (np.zeros(len(loc), bool) for _ in range(3))
     for s, (a, b) in enumerate(loc):
         a5 = c * settings.quadrature_safety * h2[a:b, None] * neighbour_max(rates[a:b])
         bad[s] = bool(contradicted[a:b].any())
-        shown[s] = not bad[s] and bool(np.all(cert[a:b] <= a5))
-        if not (shown[s] or bad[s]):  # what the certificate adds over A5's term (a continuous torque's stays)
+        unbounded[s] = bool(open_[a:b].any())
+        shown[s] = not (bad[s] or unbounded[s]) and bool(np.all(cert[a:b] <= a5))
+        if not (
+            shown[s] or bad[s] or unbounded[s]
+        ):  # what the certificate adds over A5's term (a continuous torque's stays)
             both = np.maximum(a5, cert[a:b]).sum(0)
             quad[s] = np.maximum(both, quad[s] + np.maximum(0.0, both - a5.sum(0)))
-    return replace(rows, quad=quad, a5_certified=~bad, a5_shown=shown, accel_violated=bad)
+    return replace(rows, quad=quad, a5_certified=~(bad | unbounded), a5_shown=shown, accel_violated=bad)

@@ -129,6 +129,9 @@ class EstimatorSettings:
     # known): each step's quadrature term is then certified without A5 and A5 checked against it
     # (estimation/quadrature_certificate.py); samples that contradict it latch `consistent` off.
     acceleration_bound_rad_s2: float | tuple[float, ...] | None = None
+    # Derive that bound instead, per step, from the model's dynamics under the held torque with θ in
+    # the estimator's own box (estimation/acceleration_bound.py); needs a held torque and no declared bound.
+    derive_acceleration_bound: bool = False
     newton_steps: int = 50  # max iterations of the exact-Hessian trust-region polish after the NLP
     max_condition: float = 1e10  # above: not identifiable yet, keep the previous estimate
     # Rows scaled by 1 / (their declared error bound) before the least squares ("bound"), or the
