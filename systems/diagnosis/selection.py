@@ -19,6 +19,9 @@ it is significant, i.e. all of
       simulator's own time discretisation, is not a cause.
 A greedy addition past the best pair is the best of the K candidates left, so (1) holds there
 at the family-wise level (family_levels): a larger library must not buy false positives.
+An effect of the best pair that another admissible set explaining the validation data as well
+lacks (equally_good) is not named (`unresolved`): the logs cannot tell which of the two sets
+acts, so only what every equally good set shares is a finding.
 """
 
 from __future__ import annotations
@@ -183,6 +186,7 @@ class Selection:
     single: dict[str, dict]  # effect -> {params, sse, r, sig}: each effect alone
     joints: dict[str, list[int]]  # selected effect -> 1-based joints where it matters
     ambiguous: list[dict] = field(default_factory=list)  # other sets explaining the validation data as well
+    unresolved: list[str] = field(default_factory=list)  # best-pair effects an equally good set lacks: not named
 
 
 def _drop(params, effect):
@@ -222,6 +226,11 @@ def select_effects(ev: Evaluator, effects: Sequence[str], max_effects: int) -> S
         e, cur_params, cur_sse, cur_r, sig = best
         selected.append(e)
         steps.append({"effect": e, "rms_after": rms(cur_r), **sig})
+    unresolved = contested([s["effect"] for s in steps if s.get("phase") == "best pair"], ambiguous)
+    if unresolved:  # name only what every equally good set shares
+        selected = [e for e in selected if e not in unresolved]
+        cur_params, _ = ev.fit_effects(selected)
+        cur_r = ev.check_residual(cur_params)
     # Most important first: the validation loss when an effect is left out of the final set.
     if len(selected) > 1:
         loss = {}
@@ -242,7 +251,12 @@ def select_effects(ev: Evaluator, effects: Sequence[str], max_effects: int) -> S
             )
             js = [j + 1 for j in range(n) if gain[j] > MIN_RELATIVE * np.mean(r_wo[ev.check_joint == j] ** 2)]
         joints[e] = js or list(range(1, n + 1))
-    return Selection(selected, cur_params, cur_r, steps, single, joints, ambiguous)
+    return Selection(selected, cur_params, cur_r, steps, single, joints, ambiguous, unresolved)
+
+
+def contested(best: Sequence[str], ambiguous: Sequence[dict]) -> list[str]:
+    """The effects of the best set that some equally good set (equally_good) lacks."""
+    return [e for e in best if any(e not in a["effects"] for a in ambiguous)]
 
 
 def _best_small_set(ev, effects, single, r0, sse0_fit):
