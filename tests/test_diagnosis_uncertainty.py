@@ -98,11 +98,15 @@ def test_diagnosed_values_carry_intervals_into_the_corrected_model(two_link, tmp
 def test_sets_that_explain_the_logs_equally_well_are_reported_ambiguous(two_link):
     """A payload moved only a little about one pose (its gravity torque nearly constant) is
     explained as well by torque offsets: diagnosis.json says `ambiguous`, with both sets, their
-    scores and the data that would separate them; the same payload on wide motions is not."""
+    scores and the data that would separate them, and names neither (the best set's effect is
+    `unresolved`, absent from the corrected model); the same payload on wide motions is named."""
     payload = {"payload": {"theta": dg.payload_theta(two_link, 0.5, np.random.default_rng(1))}}
     candidates = ("payload", "torque_offset", "viscous_friction")
     logs = _logs(two_link, 3, payload, amplitude=0.01, noise=0.05)
-    amb = dg.diagnose(two_link, logs[:2], logs[2:], effects=candidates).result["ambiguous"]
+    d = dg.diagnose(two_link, logs[:2], logs[2:], effects=candidates)
+    amb = d.result["ambiguous"]
+    assert d.result["cause"] == [] and d.corrected_model.effects == []
+    assert d.result["unresolved"] == amb[0]["sets"][0]["effects"] and set(d.result["unresolved"]) < set(candidates)
     pairs = [{tuple(s["effects"]) for s in a["sets"]} for a in amb]
     assert {("payload",), ("torque_offset",)} in pairs, amb
     a = amb[[("torque_offset",) in p for p in pairs].index(True)]
@@ -110,7 +114,19 @@ def test_sets_that_explain_the_logs_equally_well_are_reported_ambiguous(two_link
     assert "gravity torque" in a["separating_data"]
     logs = _logs(two_link, 3, payload, noise=0.05)
     wide = dg.diagnose(two_link, logs[:2], logs[2:], effects=candidates).result
-    assert wide["cause"] == ["payload"] and wide["ambiguous"] == []
+    assert wide["cause"] == ["payload"] and wide["ambiguous"] == [] and wide["unresolved"] == []
+
+
+def test_only_effects_every_equally_good_set_shares_are_named():
+    """The best set's effects that some equally good set lacks are contested (not named); an
+    effect every alternative shares is kept."""
+    from safesysid.systems.diagnosis.selection import contested
+
+    best = ["viscous_friction", "armature"]
+    assert contested(best, []) == []
+    assert contested(best, [{"effects": ["viscous_friction", "torque_scale"]}]) == ["armature"]
+    both = [{"effects": ["viscous_friction", "torque_scale"]}, {"effects": ["armature", "torque_scale"]}]
+    assert contested(best, both) == best
 
 
 def test_hard_plan_is_two_effects_at_full_noise_without_accelerations():

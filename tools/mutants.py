@@ -464,6 +464,17 @@ MUTANTS = [
         "-k",
         "late_and_duplicated_statuses",
     ),
+    # -- diagnosis: only what every equally good set shares is named (guarantees.md row 45) --------
+    m(
+        "the diagnosis names the best set's effects that an equally good set lacks",
+        "systems/diagnosis/selection.py",
+        "select_effects",
+        "        selected = [e for e in selected if e not in unresolved]",
+        "        selected = list(selected)",
+        "tests/test_diagnosis_uncertainty.py",
+        "-k",
+        "reported_ambiguous",
+    ),
 ]
 
 
