@@ -119,7 +119,8 @@ def test_sets_that_explain_the_logs_equally_well_are_reported_ambiguous(two_link
 
 def test_only_effects_every_equally_good_set_shares_are_named():
     """The best set's effects that some equally good set lacks are contested (not named); an
-    effect every alternative shares is kept."""
+    effect every alternative shares is kept, and so is every effect when the selection holds the
+    alternative too."""
     from safesysid.systems.diagnosis.selection import contested
 
     best = ["viscous_friction", "armature"]
@@ -127,6 +128,8 @@ def test_only_effects_every_equally_good_set_shares_are_named():
     assert contested(best, [{"effects": ["viscous_friction", "torque_scale"]}]) == ["armature"]
     both = [{"effects": ["viscous_friction", "torque_scale"]}, {"effects": ["armature", "torque_scale"]}]
     assert contested(best, both) == best
+    # the greedy additions past the best pair name the alternative's effects too: no rival
+    assert contested(best, both[:1], [*best, "torque_scale"]) == []
 
 
 def test_hard_plan_is_two_effects_at_full_noise_without_accelerations():

@@ -21,7 +21,8 @@ A greedy addition past the best pair is the best of the K candidates left, so (1
 at the family-wise level (family_levels): a larger library must not buy false positives.
 An effect of the best pair that another admissible set explaining the validation data as well
 lacks (equally_good) is not named (`unresolved`): the logs cannot tell which of the two sets
-acts, so only what every equally good set shares is a finding.
+acts, so only what every equally good set shares is a finding. An alternative whose effects
+the greedy additions name anyway does not compete (both sets are in the selection).
 """
 
 from __future__ import annotations
@@ -226,7 +227,7 @@ def select_effects(ev: Evaluator, effects: Sequence[str], max_effects: int) -> S
         e, cur_params, cur_sse, cur_r, sig = best
         selected.append(e)
         steps.append({"effect": e, "rms_after": rms(cur_r), **sig})
-    unresolved = contested([s["effect"] for s in steps if s.get("phase") == "best pair"], ambiguous)
+    unresolved = contested([s["effect"] for s in steps if s.get("phase") == "best pair"], ambiguous, selected)
     if unresolved:  # name only what every equally good set shares
         selected = [e for e in selected if e not in unresolved]
         cur_params, _ = ev.fit_effects(selected)
@@ -254,9 +255,12 @@ def select_effects(ev: Evaluator, effects: Sequence[str], max_effects: int) -> S
     return Selection(selected, cur_params, cur_r, steps, single, joints, ambiguous, unresolved)
 
 
-def contested(best: Sequence[str], ambiguous: Sequence[dict]) -> list[str]:
-    """The effects of the best set that some equally good set (equally_good) lacks."""
-    return [e for e in best if any(e not in a["effects"] for a in ambiguous)]
+def contested(best: Sequence[str], ambiguous: Sequence[dict], selected: Sequence[str] = ()) -> list[str]:
+    """The effects of the best set that some equally good set (equally_good) lacks, among the
+    equally good sets not wholly in the selection (`selected`: the best set and the greedy
+    additions past it)."""
+    rivals = [a["effects"] for a in ambiguous if not set(a["effects"]) <= set(selected)]
+    return [e for e in best if any(e not in r for r in rivals)]
 
 
 def _best_small_set(ev, effects, single, r0, sse0_fit):
