@@ -473,7 +473,7 @@ MUTANTS = [
         "        selected = list(selected)",
         "tests/test_diagnosis_uncertainty.py",
         "-k",
-        "reported_ambiguous",
+        "rival_within_one_standard_error",
     ),
 ]
 

@@ -19,10 +19,11 @@ it is significant, i.e. all of
       simulator's own time discretisation, is not a cause.
 A greedy addition past the best pair is the best of the K candidates left, so (1) holds there
 at the family-wise level (family_levels): a larger library must not buy false positives.
-An effect of the best pair that another admissible set explaining the validation data as well
-lacks (equally_good) is not named (`unresolved`): the logs cannot tell which of the two sets
-acts, so only what every equally good set shares is a finding. An alternative whose effects
-the greedy additions name anyway does not compete (both sets are in the selection).
+An effect of the best pair that a rival lacks is not named (`unresolved`): the logs cannot tell
+which of the two sets acts, so only what the best set and every rival share is a finding. A
+rival is an admissible set of no more effects than the best whose validation residual is within
+Z_NAME = 1 standard error of the best's (the one-standard-error rule; `ambiguous` reports the
+wider Z_AMBIGUOUS band) and whose effects the greedy additions do not name anyway.
 """
 
 from __future__ import annotations
@@ -49,6 +50,7 @@ MIN_EFFECT_RATIO = 0.0025  # effect RMS / measured torque RMS on its most affect
 # z and rank-test p are held to P_BLOCKS / (2 K) (Bonferroni over both tests and the K tried).
 FAMILY_TESTS = 2
 Z_AMBIGUOUS = 2.0  # two admissible sets whose held-out difference is under 2 standard errors: ambiguous
+Z_NAME = 1.0  # a rival within 1 standard error of the best set: their differing effects are not named
 # What excites each effect (and not the others): the data that would tell two effect sets apart.
 EXCITED_BY = {
     "coulomb_friction": "velocity reversals and slow constant-speed motion",
@@ -256,10 +258,15 @@ def select_effects(ev: Evaluator, effects: Sequence[str], max_effects: int) -> S
 
 
 def contested(best: Sequence[str], ambiguous: Sequence[dict], selected: Sequence[str] = ()) -> list[str]:
-    """The effects of the best set that some equally good set (equally_good) lacks, among the
-    equally good sets not wholly in the selection (`selected`: the best set and the greedy
-    additions past it)."""
-    rivals = [a["effects"] for a in ambiguous if not set(a["effects"]) <= set(selected)]
+    """The effects of the best set that a rival lacks. Rivals: the equally good sets (equally_good)
+    within Z_NAME standard errors, of no more effects than `best` (a larger set explaining the data
+    as well is the less parsimonious explanation), not wholly in the selection (`selected`: the
+    best set and the greedy additions past it)."""
+    rivals = [
+        a["effects"]
+        for a in ambiguous
+        if a["difference_z"] < Z_NAME and len(a["effects"]) <= len(best) and not set(a["effects"]) <= set(selected)
+    ]
     return [e for e in best if any(e not in r for r in rivals)]
 
 
