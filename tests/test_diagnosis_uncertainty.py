@@ -119,7 +119,9 @@ def test_sets_that_explain_the_logs_equally_well_are_reported_ambiguous(two_link
 def test_a_rival_within_one_standard_error_leaves_the_contested_effect_unnamed(two_link):
     """A payload moved 0.003 rad about one pose: torque offsets explain the validation data within
     a fraction of a standard error. Neither is named; the best set's payload is `unresolved`,
-    absent from the corrected model, and `ambiguous` lists both sets."""
+    absent from the corrected model, and `ambiguous` lists both sets; report.md says so."""
+    from safesysid.diagnose_report import verdict_lines
+
     payload = {"payload": {"theta": dg.payload_theta(two_link, 0.5, np.random.default_rng(1))}}
     logs = _logs(two_link, 4, payload, amplitude=0.003, noise=0.05)
     d = dg.diagnose(two_link, logs[:2], logs[2:], effects=("payload", "torque_offset", "viscous_friction"))
@@ -127,6 +129,11 @@ def test_a_rival_within_one_standard_error_leaves_the_contested_effect_unnamed(t
     assert [s["effects"] for s in amb["sets"]] == [["payload"], ["torque_offset"]]
     assert amb["difference_z"] < dg.selection.Z_NAME
     assert d.result["cause"] == [] and d.result["unresolved"] == ["payload"] and d.corrected_model.effects == []
+    why = verdict_lines(d.result)[1]
+    assert why.startswith(
+        "**Why:** no effect is named. **Not named:** payload: torque_offset explains the fit logs as well"
+    ), why
+    assert "gravity torque" in why
 
 
 def test_only_effects_every_equally_good_set_shares_are_named():
