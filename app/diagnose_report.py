@@ -6,6 +6,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from safesysid.systems.diagnosis.report_data import unresolved_text
+
 from .diagnose_plots import joint_bars, residual_map_plot
 from .report_html import write_html
 
@@ -341,31 +343,6 @@ def residual_map_lines(residual_map: dict | None) -> list[str]:
         hot = ", ".join(f"{k} ×{r:.1f}" for k, r in sorted(spots, key=lambda x: -x[1]) if r >= 1.5) or "-"
         lines.append(f"| {j['joint']} | {j['rms']:.3f} | {100 * j['share']:.1f}% | {hot} |")
     return lines
-
-
-def unresolved_text(result: dict) -> str:
-    """The best set's effects left unnamed (diagnosis.json `unresolved`), the rival sets that
-    explain the fit logs as well and the data that would separate them; empty when none."""
-    from safesysid.systems.diagnosis.selection import Z_NAME, contested
-
-    unresolved = result.get("unresolved") or []
-    if not unresolved:
-        return ""
-    selected = result["cause"] + unresolved
-    rivals = [
-        a
-        for a in result["ambiguous"]
-        if contested(
-            a["sets"][0]["effects"], [{"effects": a["sets"][1]["effects"], "difference_z": a["difference_z"]}], selected
-        )
-    ]
-    sets = " or ".join(" + ".join(a["sets"][1]["effects"]) for a in rivals)
-    verb = "explains" if len(rivals) == 1 else "explain"
-    separate = "; ".join(dict.fromkeys(a["separating_data"] for a in rivals))
-    return (
-        f" **Not named:** {', '.join(unresolved)}: {sets} {verb} the fit logs as well (within {Z_NAME:g} "
-        f"standard error), so the logs cannot tell which acts; data that would separate them: {separate}."
-    )
 
 
 def _effects_section(res, frozen):

@@ -151,3 +151,85 @@ def test_only_effects_every_equally_good_set_shares_are_named():
     assert contested(best, [rival(["torque_scale"], Z_NAME + 0.1)]) == []
     assert contested(["armature"], [rival(["viscous_friction", "torque_scale"])]) == []
     assert contested(best, both[:1], [*best, "torque_scale"]) == []
+
+
+def test_hard_plan_is_two_effects_at_full_noise_without_accelerations():
+    plan = dg.case_plan(200, np.random.default_rng(0), hard=True)
+    nulls = [p for p in plan if not p["injected"]]
+    assert len(nulls) == 40 and all(len(p["injected"]) == 2 for p in plan if p["injected"])
+    assert all(not p["with_acceleration"] and p["noise_level"] == 0.03 for p in plan)
+    assert 70 <= sum(p["same_joints"] for p in plan) <= 90
+
+
+def test_residual_map_shows_where_the_residual_left_lies(two_link, tmp_path):
+    """Stribeck friction on joint 2 left uncorrected (not a candidate): the residual map puts the
+    residual on joint 2, concentrated near zero velocity and at reversals, and draws it."""
+    from safesysid.diagnose_plots import write_plots
+
+    effects = {"stribeck_friction": {"delta": np.array([0.0, 2.0]), "vs": 0.05}}
+    logs = _logs(two_link, 5, effects, noise=0.05)
+    d = dg.diagnose(two_link, logs[:2], logs[2:], effects=("torque_offset",))
+    joints = d.result["combined"]["residual_map_after"]["joints"]
+    assert joints[1]["share"] > 0.9
+    ratio = {k: c["share"] / c["samples"] for k, c in joints[1]["regimes"].items() if c["samples"] > 0}
+    assert ratio["near_zero_velocity"] > 2 and ratio["reversal"] > 2 and ratio["high_speed"] < 0.5
+    assert sum(b["samples"] for b in joints[1]["pose_bins"]) == pytest.approx(1.0)
+    assert (tmp_path / write_plots(tmp_path, d)["residual_map"]).is_file()
+
+
+def test_interval_factors_are_chosen_on_even_cases_and_scored_on_odd_ones():
+    """calibrated_coverage: each effect's factor is the 90th percentile of the widening its values
+    needed on the even cases; the odd cases are scored with it. spurious_table counts false names
+    per null / non-null case and per effect in the cases that lack it."""
+
+    def case(k, fitted):  # truth 1.0, interval fitted +- 0.05: 0.9 needs 2x widening, 0.95 none
+        rec = {"effect": "time_delay", "key": "delay_s", "index": None, "truth": 1.0}
+        return {
+            "case": k,
+            "injected": ["time_delay"],
+            "false": ["armature"] if k == 3 else [],
+            "fitted": {"time_delay": {"delay_s": fitted}},
+            "coverage": [{**rec, "lo": fitted - 0.05, "hi": fitted + 0.05}],
+        }
+
+    cases = [case(k, 0.95 if k % 4 == 0 else 0.9) for k in range(40)]
+    cov = dg.truth_scores.calibrated_coverage(cases)
+    assert cov["factors"]["time_delay"] == pytest.approx(2.0)
+    assert cov["held_out_values"] == 20 and cov["held_out_rate"] == 1.0
+    sp = dg.truth_scores.spurious_table(cases + [{"injected": [], "false": []}])
+    assert sp["non_null_with_false_effect"] == pytest.approx(1 / 40) and sp["null_with_false_effect"] == 0
+    assert sp["per_effect"]["armature"] == {"cases_lacking": 41, "named_falsely": 1}
+
+
+def test_gear_ripple_candidate_explains_a_torque_periodic_in_the_angle(two_link):
+    """A ripple 0.8 sin(2 q2) N·m left by the library: the gear-ripple candidate, fitted on the fit
+    logs' residual, removes most of the check log's; on a plain noise residual it removes nothing."""
+    from safesysid.systems.diagnosis.candidates import candidate_gain
+    from safesysid.systems.diagnosis.problem import design_residual
+
+    def gain(ripple):
+        logs = _logs(two_link, 6, {}, noise=0.05)
+        for log in logs:
+            log.tau[:, 1] += ripple * np.sin(2 * log.q[:, 1])
+        d = dg.diagnose(two_link, logs[:2], logs[2:], effects=("torque_offset",))
+        fit = [(f, design_residual(f, d.combined_params)) for f in d.fit_designs]
+        return candidate_gain(fit, list(zip(d.check_designs, d.check_residual_after)), "gear_ripple")
+
+    g = gain(0.8)
+    assert g["rms_after_per_joint"][1] < 0.3 * g["rms_before_per_joint"][1]
+    g0 = gain(0.0)
+    assert g0["rms_after"] > 0.95 * g0["rms_before"]
+
+
+def test_hard_self_check_cli_writes_each_case_as_it_finishes(tmp_path):
+    import json
+
+    from safesysid.cli import main
+
+    out = tmp_path / "hard"
+    assert main(["diagnose", "--self-check", "--hard", "--cases", "1", "--seed", "3", "--out", str(out)]) == 0
+    res = json.loads((out / "self_check.json").read_text())
+    assert res["hard"] and res["cases"][0]["injected"] == [] and res["cases"][0]["named"] == []
+    assert res["summary"]["targets"]["hard_cases_with_false_effect<=0.01"]
+    assert len((out / "cases.jsonl").read_text().splitlines()) == 1
+    assert "false naming: 0.0% of 1 null" in (out / "confusion.md").read_text()
