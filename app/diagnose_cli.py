@@ -209,6 +209,11 @@ def _print_summary(d, out):
     print(
         f"held-out (test) RMS {r['gap']['rms_check']:.6f} N·m -> {r['combined']['rms_check_after']:.6f} N·m "
         f"({100 * r['combined']['reduction']:.1f}% less); cause: {', '.join(r['cause']) or 'no significant effect'}"
+        + (
+            f"; not named (a rival set explains the logs as well): {', '.join(r['unresolved'])}"
+            if r["unresolved"]
+            else ""
+        )
     )
     print("per joint before: " + " ".join(f"{x:.2f}" for x in r["gap"]["rms_check_per_joint"]))
     print("per joint after:  " + " ".join(f"{x:.2f}" for x in r["combined"]["rms_check_per_joint_after"]))

@@ -6,6 +6,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from safesysid.systems.diagnosis.report_data import unresolved_text
+
 from .diagnose_plots import joint_bars, residual_map_plot
 from .report_html import write_html
 
@@ -127,8 +129,11 @@ def verdict_lines(result: dict, frozen: bool = False) -> list[str]:
                 else " (selected on the fit logs only, inner cross-validation)."
             )
         )
+    elif result.get("unresolved"):
+        why = "**Why:** no effect is named."
     else:
         why = "**Why:** no effect of the vocabulary explains a significant part of it on the fit logs."
+    why += unresolved_text(result)
     logs = ", ".join(f"`{Path(p).name}`" for p in test["logs"])
     wo = test["without_saturated"]
     change = (

@@ -51,6 +51,7 @@ def _false_naming(cases):
         f"({100 * u / len(cases):.1f} %, 95 % CI {100 * clopper_pearson(u, len(cases))[0]:.1f}-"
         f"{100 * clopper_pearson(u, len(cases))[1]:.1f} %)"
     )
+    _exact_naming(cases)
     missed = sum(len(c["missed"]) for c in cases)
     print(f"injected effects missed: {missed} of {sum(len(c['injected']) for c in cases)}")
     for c in cases:
@@ -59,6 +60,25 @@ def _false_naming(cases):
     print("| effect | cases lacking it | named there |\n|---|---|---|")
     for e, row in sp["per_effect"].items():
         print(f"| {e} | {row['cases_lacking']} | {row['named_falsely']} |")
+
+
+def _exact_naming(cases):
+    """Cases named exactly (the injected set, nothing else), in all cases and in those not reported
+    ambiguous, beside what naming the best set whole would give (named + unresolved: the rule
+    before the contested effects were left unnamed; cases run before it record no `unresolved`)."""
+    exact = lambda c, named: set(named) == set(c["injected"])  # noqa: E731
+    whole = [c["named"] + c.get("unresolved", []) for c in cases]
+    clear = [k for k, c in enumerate(cases) if not c.get("ambiguous")]
+    n_exact = sum(exact(c, c["named"]) for c in cases)
+    n_whole = sum(exact(c, w) for c, w in zip(cases, whole))
+    false_whole = sum(bool(set(w) - set(c["injected"])) for c, w in zip(cases, whole))
+    n_clear = sum(exact(cases[k], cases[k]["named"]) for k in clear)
+    print(
+        f"named exactly: {n_exact} of {len(cases)} cases ({100 * n_exact / len(cases):.1f} %), "
+        f"{n_clear} of {len(clear)} not reported ambiguous ({100 * n_clear / max(len(clear), 1):.1f} %); "
+        f"with unresolved effects: {sum(bool(c.get('unresolved')) for c in cases)} cases; naming the best set "
+        f"whole instead: exactly {n_whole} ({100 * n_whole / len(cases):.1f} %), a false effect in {false_whole}"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:

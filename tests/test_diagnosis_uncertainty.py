@@ -97,12 +97,15 @@ def test_diagnosed_values_carry_intervals_into_the_corrected_model(two_link, tmp
 
 def test_sets_that_explain_the_logs_equally_well_are_reported_ambiguous(two_link):
     """A payload moved only a little about one pose (its gravity torque nearly constant) is
-    explained as well by torque offsets: diagnosis.json says `ambiguous`, with both sets, their
-    scores and the data that would separate them; the same payload on wide motions is not."""
+    explained nearly as well by torque offsets: diagnosis.json says `ambiguous`, with both sets,
+    their scores and the data that would separate them (the payload is still named: its lead is
+    beyond Z_NAME); the same payload on wide motions is not ambiguous."""
     payload = {"payload": {"theta": dg.payload_theta(two_link, 0.5, np.random.default_rng(1))}}
     candidates = ("payload", "torque_offset", "viscous_friction")
     logs = _logs(two_link, 3, payload, amplitude=0.01, noise=0.05)
-    amb = dg.diagnose(two_link, logs[:2], logs[2:], effects=candidates).result["ambiguous"]
+    d = dg.diagnose(two_link, logs[:2], logs[2:], effects=candidates)
+    amb = d.result["ambiguous"]
+    assert d.result["cause"] == ["payload"] and d.result["unresolved"] == []
     pairs = [{tuple(s["effects"]) for s in a["sets"]} for a in amb]
     assert {("payload",), ("torque_offset",)} in pairs, amb
     a = amb[[("torque_offset",) in p for p in pairs].index(True)]
@@ -110,7 +113,44 @@ def test_sets_that_explain_the_logs_equally_well_are_reported_ambiguous(two_link
     assert "gravity torque" in a["separating_data"]
     logs = _logs(two_link, 3, payload, noise=0.05)
     wide = dg.diagnose(two_link, logs[:2], logs[2:], effects=candidates).result
-    assert wide["cause"] == ["payload"] and wide["ambiguous"] == []
+    assert wide["cause"] == ["payload"] and wide["ambiguous"] == [] and wide["unresolved"] == []
+
+
+def test_a_rival_within_one_standard_error_leaves_the_contested_effect_unnamed(two_link):
+    """A payload moved 0.003 rad about one pose: torque offsets explain the validation data within
+    a fraction of a standard error. Neither is named; the best set's payload is `unresolved`,
+    absent from the corrected model, and `ambiguous` lists both sets; report.md says so."""
+    from safesysid.diagnose_report import verdict_lines
+
+    payload = {"payload": {"theta": dg.payload_theta(two_link, 0.5, np.random.default_rng(1))}}
+    logs = _logs(two_link, 4, payload, amplitude=0.003, noise=0.05)
+    d = dg.diagnose(two_link, logs[:2], logs[2:], effects=("payload", "torque_offset", "viscous_friction"))
+    (amb,) = d.result["ambiguous"]
+    assert [s["effects"] for s in amb["sets"]] == [["payload"], ["torque_offset"]]
+    assert amb["difference_z"] < dg.selection.Z_NAME
+    assert d.result["cause"] == [] and d.result["unresolved"] == ["payload"] and d.corrected_model.effects == []
+    why = verdict_lines(d.result)[1]
+    assert why.startswith(
+        "**Why:** no effect is named. **Not named:** payload: torque_offset explains the fit logs as well"
+    ), why
+    assert "gravity torque" in why
+
+
+def test_only_effects_every_equally_good_set_shares_are_named():
+    """The best set's effects that a rival lacks are contested (not named); an effect every rival
+    shares is kept. Not rivals: a set further than Z_NAME standard errors (still `ambiguous`), a
+    larger set, and a set the selection holds too (greedy additions past the best pair)."""
+    from safesysid.systems.diagnosis.selection import Z_NAME, contested
+
+    best = ["viscous_friction", "armature"]
+    rival = lambda effects, z=0.5: {"effects": effects, "difference_z": z}  # noqa: E731
+    assert contested(best, []) == []
+    assert contested(best, [rival(["viscous_friction", "torque_scale"])]) == ["armature"]
+    both = [rival(["viscous_friction", "torque_scale"]), rival(["armature", "torque_scale"])]
+    assert contested(best, both) == best
+    assert contested(best, [rival(["torque_scale"], Z_NAME + 0.1)]) == []
+    assert contested(["armature"], [rival(["viscous_friction", "torque_scale"])]) == []
+    assert contested(best, both[:1], [*best, "torque_scale"]) == []
 
 
 def test_hard_plan_is_two_effects_at_full_noise_without_accelerations():

@@ -517,6 +517,17 @@ MUTANTS = [
         "-k",
         "without_a_bound",
     ),
+    # -- diagnosis: only what every equally good set shares is named (guarantees.md row 44) --------
+    m(
+        "the diagnosis names the best set's effects that an equally good set lacks",
+        "systems/diagnosis/selection.py",
+        "select_effects",
+        "        selected = [e for e in selected if e not in unresolved]",
+        "        selected = list(selected)",
+        "tests/test_diagnosis_uncertainty.py",
+        "-k",
+        "rival_within_one_standard_error",
+    ),
 ]
 
 

@@ -109,6 +109,7 @@ def _diagnose(model, fit_logs, check_logs, effects, form, max_effects, model_pat
             "cross_validation": cross_validation,
             "intervals_note": INTERVALS_NOTE,
             "ambiguous": _ambiguous(final, sel),
+            "unresolved": sel.unresolved,
             "protocol": {
                 "selection_data": "fit logs only (inner cross-validation: " + cv.scheme + ")",
                 "check_logs": "scored once (test)",

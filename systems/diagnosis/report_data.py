@@ -1,5 +1,5 @@
 """Where the gap lies, for diagnosis.json: motion regimes, worst time windows, speed-saturated
-spans, and the contract fields on scored logs.
+spans, and the contract fields on scored logs; the report's sentence on effects left unnamed.
 """
 
 from __future__ import annotations
@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from .design import Design
+from .selection import Z_NAME, contested
 
 REGIME_QUANTILE = 0.75
 POSE_BINS = 4
@@ -179,3 +180,26 @@ def _saturation_summary(designs, residuals):
         "residual_share": float(r2[sat].sum() / (r2.sum() or 1.0)),
         "spans": spans,
     }
+
+
+def unresolved_text(result: dict) -> str:
+    """The best set's effects left unnamed (diagnosis.json `unresolved`), the rival sets that
+    explain the fit logs as well and the data that would separate them; empty when none."""
+    unresolved = result.get("unresolved") or []
+    if not unresolved:
+        return ""
+    selected = result["cause"] + unresolved
+    rivals = [
+        a
+        for a in result["ambiguous"]
+        if contested(
+            a["sets"][0]["effects"], [{"effects": a["sets"][1]["effects"], "difference_z": a["difference_z"]}], selected
+        )
+    ]
+    sets = " or ".join(" + ".join(a["sets"][1]["effects"]) for a in rivals)
+    verb = "explains" if len(rivals) == 1 else "explain"
+    separate = "; ".join(dict.fromkeys(a["separating_data"] for a in rivals))
+    return (
+        f" **Not named:** {', '.join(unresolved)}: {sets} {verb} the fit logs as well (within {Z_NAME:g} "
+        f"standard error), so the logs cannot tell which acts; data that would separate them: {separate}."
+    )

@@ -19,6 +19,11 @@ it is significant, i.e. all of
       simulator's own time discretisation, is not a cause.
 A greedy addition past the best pair is the best of the K candidates left, so (1) holds there
 at the family-wise level (family_levels): a larger library must not buy false positives.
+An effect of the best pair that a rival lacks is not named (`unresolved`): the logs cannot tell
+which of the two sets acts, so only what the best set and every rival share is a finding. A
+rival is an admissible set of no more effects than the best whose validation residual is within
+Z_NAME = 1 standard error of the best's (the one-standard-error rule; `ambiguous` reports the
+wider Z_AMBIGUOUS band) and whose effects the greedy additions do not name anyway.
 """
 
 from __future__ import annotations
@@ -45,6 +50,7 @@ MIN_EFFECT_RATIO = 0.0025  # effect RMS / measured torque RMS on its most affect
 # z and rank-test p are held to P_BLOCKS / (2 K) (Bonferroni over both tests and the K tried).
 FAMILY_TESTS = 2
 Z_AMBIGUOUS = 2.0  # two admissible sets whose held-out difference is under 2 standard errors: ambiguous
+Z_NAME = 1.0  # a rival within 1 standard error of the best set: their differing effects are not named
 # What excites each effect (and not the others): the data that would tell two effect sets apart.
 EXCITED_BY = {
     "coulomb_friction": "velocity reversals and slow constant-speed motion",
@@ -183,6 +189,7 @@ class Selection:
     single: dict[str, dict]  # effect -> {params, sse, r, sig}: each effect alone
     joints: dict[str, list[int]]  # selected effect -> 1-based joints where it matters
     ambiguous: list[dict] = field(default_factory=list)  # other sets explaining the validation data as well
+    unresolved: list[str] = field(default_factory=list)  # best-pair effects an equally good set lacks: not named
 
 
 def _drop(params, effect):
@@ -222,6 +229,11 @@ def select_effects(ev: Evaluator, effects: Sequence[str], max_effects: int) -> S
         e, cur_params, cur_sse, cur_r, sig = best
         selected.append(e)
         steps.append({"effect": e, "rms_after": rms(cur_r), **sig})
+    unresolved = contested([s["effect"] for s in steps if s.get("phase") == "best pair"], ambiguous, selected)
+    if unresolved:  # name only what every equally good set shares
+        selected = [e for e in selected if e not in unresolved]
+        cur_params, _ = ev.fit_effects(selected)
+        cur_r = ev.check_residual(cur_params)
     # Most important first: the validation loss when an effect is left out of the final set.
     if len(selected) > 1:
         loss = {}
@@ -242,7 +254,20 @@ def select_effects(ev: Evaluator, effects: Sequence[str], max_effects: int) -> S
             )
             js = [j + 1 for j in range(n) if gain[j] > MIN_RELATIVE * np.mean(r_wo[ev.check_joint == j] ** 2)]
         joints[e] = js or list(range(1, n + 1))
-    return Selection(selected, cur_params, cur_r, steps, single, joints, ambiguous)
+    return Selection(selected, cur_params, cur_r, steps, single, joints, ambiguous, unresolved)
+
+
+def contested(best: Sequence[str], ambiguous: Sequence[dict], selected: Sequence[str] = ()) -> list[str]:
+    """The effects of the best set that a rival lacks. Rivals: the equally good sets (equally_good)
+    within Z_NAME standard errors, of no more effects than `best` (a larger set explaining the data
+    as well is the less parsimonious explanation), not wholly in the selection (`selected`: the
+    best set and the greedy additions past it)."""
+    rivals = [
+        a["effects"]
+        for a in ambiguous
+        if a["difference_z"] < Z_NAME and len(a["effects"]) <= len(best) and not set(a["effects"]) <= set(selected)
+    ]
+    return [e for e in best if any(e not in r for r in rivals)]
 
 
 def _best_small_set(ev, effects, single, r0, sse0_fit):

@@ -119,6 +119,7 @@ def _run_case(job):
         ],
     }
     case["ambiguous"] = [a["sets"][1]["effects"] for a in d.result["ambiguous"]]
+    case["unresolved"] = d.result["unresolved"]  # not named: an equally good set lacks them
     case["interval_calibration"] = dict(CALIBRATION)  # what the recorded intervals were widened by
     if i % BOOTSTRAP_EVERY == 0 and named:
         case["bootstrap_over_sandwich"] = bootstrap_ratio(model, d, np.random.default_rng([seed, i, 1]))
