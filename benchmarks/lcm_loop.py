@@ -25,7 +25,7 @@ import numpy as np
 
 SCENARIO = Path(__file__).resolve().parents[1] / "scenarios" / "quickstart.yaml"
 GAP_S = 0.002
-OBSERVER_PRIORITY = 60  # above the loops (50): it sleeps in HandleSubscriptions between arrivals
+OBSERVER_PRIORITY = 60  # above the loops (50): it waits in HandleSubscriptions between arrivals
 
 
 def period_stats(arrivals_s: np.ndarray) -> dict:
@@ -43,12 +43,12 @@ def period_stats(arrivals_s: np.ndarray) -> dict:
 
 
 def _observe(channel: str, url: str, arrivals: list, stop: threading.Event) -> None:
-    from pydrake.lcm import DrakeLcm
+    from safesysid.systems.hardware.queued_lcm import QueuedLcm
     from safesysid.systems.hardware.realtime import request_realtime
 
     request_realtime(OBSERVER_PRIORITY)  # this thread only: the observer must not be what is late
 
-    lcm = DrakeLcm(url)
+    lcm = QueuedLcm(url)  # every command of a burst, as the arm's driver receives them
     lcm.Subscribe(channel, lambda _data: arrivals.append(time.perf_counter()))
     while not stop.is_set():
         lcm.HandleSubscriptions(50)
