@@ -14,6 +14,8 @@ Publishing stays with DrakeLcm and the LcmPublisherSystems.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 QUEUE_CAPACITY = 1000  # messages per subscription between two steps: a second of a 1 kHz stream
 
 
@@ -25,7 +27,7 @@ class QueuedLcm:
 
         self._lcm = lcm.LCM(url)
 
-    def Subscribe(self, channel: str, handler) -> None:  # noqa: N802 -- DrakeLcm's name: LatestMessage takes either
+    def Subscribe(self, channel: str, handler: Callable[[bytes], None]) -> None:  # noqa: N802 -- DrakeLcm's name: LatestMessage takes either
         subscription = self._lcm.subscribe(channel, lambda _channel, data: handler(data))
         subscription.set_queue_capacity(QUEUE_CAPACITY)
 
