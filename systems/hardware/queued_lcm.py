@@ -8,7 +8,7 @@ one experiment_a run, a DrakeLcm listener lost 444 of ~10 000 statuses, this one
 `lcm` package (lcm-proj; the same protocol and Drake's lcmtypes' bytes) reads the socket on its
 own C thread into a queue of QUEUE_CAPACITY per subscription; the loop hands every queued
 message over at its step (HandleSubscriptions drains the queue). No Python thread: one that
-handled messages beside the loop crashed the process (a segfault inside the binding, 1 run in 4).
+handled messages beside the loop crashed the process (a segfault inside the binding, 2 of 16 runs).
 Publishing stays with DrakeLcm and the LcmPublisherSystems.
 """
 
