@@ -99,6 +99,7 @@ def run_wallclock(
         gc.disable()  # and none while the loop runs: the objects it keeps made each one longer (tens of ms)
         sys.setswitchinterval(SWITCH_INTERVAL_S)  # the worker's result thread must not hold the loop 5 ms
         sim.ResetStatistics()  # real-time pacing from here, not from before the set-up
+        _trace_stalls(sim, out)
         worker.clock_started()
         spec = methods.method_spec(method)
         horizon = config.excitation_duration_s(spec, scenario) or config.planner_horizon_s(scenario)
@@ -110,6 +111,7 @@ def run_wallclock(
         _request_hold(built.arm, ctx.get_time())
     finally:
         worker.shutdown()
+        _stop_stall_trace()
     summary = wallclock_summary(built, ctx, scenario, method=method, seed=seed)
     summary.update(timing=timing, scheduling=scheduling, identification_end_s=horizon)
     if task is not None:
@@ -117,6 +119,37 @@ def run_wallclock(
     summary["events"] = merge_events(summary["events"])
     (out / "lcm_run.json").write_text(json.dumps(summary, indent=2, default=float))
     return summary
+
+
+STALL_TRACE_ENV = "SAFESYSID_STALL_TRACE"  # a step longer than this many ms dumps every thread's stack
+
+
+def _trace_stalls(sim, out: Path) -> None:
+    """With SAFESYSID_STALL_TRACE=MS: a step of the loop longer than MS ms writes every thread's
+    Python stack to out/stalls.txt (faulthandler's timer, re-armed by the Simulator's monitor at
+    each step: it needs no GIL). A stall of the whole process (the kernel's real-time cap) writes
+    nothing (docs/hardware.md)."""
+    import faulthandler
+    import os
+
+    limit_ms = os.environ.get(STALL_TRACE_ENV)
+    if not limit_ms:
+        return
+    from pydrake.systems.framework import EventStatus
+
+    trace = (out / "stalls.txt").open("w")
+
+    def rearm(_context) -> EventStatus:
+        faulthandler.dump_traceback_later(float(limit_ms) * 1e-3, file=trace)
+        return EventStatus.DidNothing()
+
+    sim.set_monitor(rearm)
+
+
+def _stop_stall_trace() -> None:
+    import faulthandler
+
+    faulthandler.cancel_dump_traceback_later()  # its timer must not outlive the run (nor its file)
 
 
 def wallclock_planner(scenario: Scenario) -> Scenario:

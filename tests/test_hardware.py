@@ -97,6 +97,33 @@ def multicast():
         pytest.skip(reason)
 
 
+def test_a_stalled_step_writes_the_loops_stack(tmp_path, monkeypatch):
+    """SAFESYSID_STALL_TRACE (online_lcm._trace_stalls): a step longer than the limit dumps every
+    thread's stack, naming the function that held the loop; quick steps write nothing."""
+    from pydrake.systems.analysis import Simulator
+    from pydrake.systems.framework import EventStatus, LeafSystem
+    from safesysid.online_lcm import STALL_TRACE_ENV, _stop_stall_trace, _trace_stalls
+
+    class SlowAtTen(LeafSystem):
+        def __init__(self):
+            super().__init__()
+            self.DeclarePeriodicPublishEvent(0.001, 0.0, self.held_the_loop)
+
+        def held_the_loop(self, context):
+            if abs(context.get_time() - 0.010) < 1e-9:
+                time.sleep(0.08)
+            return EventStatus.Succeeded()
+
+    monkeypatch.setenv(STALL_TRACE_ENV, "30")
+    sim = Simulator(SlowAtTen())
+    _trace_stalls(sim, tmp_path)
+    sim.AdvanceTo(0.005)
+    assert (tmp_path / "stalls.txt").read_text() == ""
+    sim.AdvanceTo(0.02)
+    _stop_stall_trace()
+    assert "held_the_loop" in (tmp_path / "stalls.txt").read_text()
+
+
 def test_drake_lcm_hands_a_subscription_one_message_per_pump(multicast):
     """Why a run step that two statuses reached loses one (docs/hardware.md, Time): pydrake's
     DrakeLcm keeps one message per subscription between pumps (the first; later ones are dropped).
