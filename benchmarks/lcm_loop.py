@@ -65,6 +65,8 @@ def measure(seconds: float, out: Path, *, fifo: bool = True) -> dict:
         f"arm: {{command_channel: {command}, status_channel: {status}}}",
         "--scenario-text",
         f"planner: {{num_plans: {plans}}}",
+        "--scenario-text",  # a minute of data: the estimator's LP on a window, its update's cost bounded
+        "estimator: {set_membership_window_s: 3.0}",
     ]
     flags = [] if fifo else ["--no-fifo"]
     cli = [sys.executable, "-m", "safesysid.cli"]

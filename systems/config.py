@@ -259,6 +259,9 @@ class Estimator:
     # LP refinement of [θ_e] (estimation/enclosure.py) of nothing, the mass or all; all, the default, bounds
     # each of the ten parameters as the paper's Fig. 5 does (~2x the update's CPU: docs/identification.md)
     set_membership: str = one_of("none", "mass", "all", default="all")
+    # > 0: that LP on the segments of the last this many seconds only, inside the interval the
+    # older ones gave (an update's cost stops growing with the run); 0: on every segment.
+    set_membership_window_s: float = 0.0
     point_estimate: str = one_of("map", "paper")  # θ0: map (θ_r marginalised), paper (plain least squares)
     # Logged torque: held (zero-order hold, exact left sum), continuous (trapezoid + rate bound).
     torque_signal: str = one_of("held", "continuous")

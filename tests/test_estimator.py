@@ -302,6 +302,33 @@ def test_set_membership_lp_is_certified_and_tighter(robot, dumbbells):
     assert full.widths[0] < 0.9 * plain.widths[0]
 
 
+def test_a_windowed_set_membership_lp_keeps_its_size_and_the_truth(robot, dumbbells, monkeypatch):
+    """estimator.set_membership_window_s: the LP takes the last window's segments only, inside the
+    published data box: its size stops growing with the data, the box still holds the truth and
+    the mass (the LP's parameter) is never looser than without the LP."""
+    from safesysid.systems.estimation import incremental
+
+    rng = np.random.default_rng(33)
+    theta, theta_e = true_theta(rng, robot, dumbbells["6lb"])
+    t, q, v, tau, _ = E.simulate_log(rng, robot, theta, duration_s=6.0, rate_hz=1000.0, centre=CENTRE)
+    sizes = []
+
+    def counted(rows, *args, **kwargs):
+        sizes.append(len(rows))
+        return E.set_membership_bounds(rows, *args, **kwargs)
+
+    monkeypatch.setattr(incremental, "set_membership_bounds", counted)
+    windowed = E.EstimatorSettings(set_membership="mass", set_membership_window_s=1.0)
+    _, history = run_online(robot, t, q, v, tau, settings=windowed)
+    _, plain = run_online(robot, t, q, v, tau, settings=E.EstimatorSettings(set_membership="none"))
+    print("LP segments per update:", sizes)
+    assert sizes[0] > 10 and max(sizes[1:]) <= 11 < len(history) * 10  # 1 s of 0.1 s segments
+    for est, loose in zip(history, plain):
+        assert est.consistent and est.contains(theta_e)
+        assert est.widths[0] <= loose.widths[0] + 1e-12
+    assert history[-1].widths[0] < 0.95 * plain[-1].widths[0]
+
+
 def test_interval_reports_widths_cond_and_radii(robot, dumbbells):
     rng = np.random.default_rng(41)
     theta, theta_e = true_theta(rng, robot, dumbbells["5lb"])

@@ -356,6 +356,11 @@ class SegmentRows:
         vals = {k: np.concatenate([getattr(self, k), getattr(other, k)]) for k in self.__dataclass_fields__}
         return SegmentRows(**vals)
 
+    def since(self, t_s: float) -> SegmentRows:
+        """The segments that end after t_s."""
+        keep = self.t1 > t_s
+        return SegmentRows(**{k: getattr(self, k)[keep] for k in self.__dataclass_fields__})
+
 
 def torque_radius(
     tau_meas: np.ndarray, settings: EstimatorSettings, reading_radius: np.ndarray | None = None

@@ -143,6 +143,10 @@ class EstimatorSettings:
     # certified by weak duality. "mass" (2 LPs), "all" (20 LPs) or "none".
     set_membership: str = "mass"
     lp_generators: int = 40  # θ_r entries kept as LP variables (the rest bounded per row)
+    # > 0: the LP takes only the segments of the last this many seconds, inside the published data
+    # box (which the older segments already bound): an update's cost stops growing with the data
+    # (`IncrementalEstimator._update_box`). 0: every segment.
+    set_membership_window_s: float = 0.0
     # Point estimate θ0: "map" (θ_r marginalised with its box as prior, rows whitened) or
     # "paper" (the paper's ‖Y P(η) − U‖², rows scaled per `row_weighting`); see _left_inverse.
     point_estimate: str = "map"
