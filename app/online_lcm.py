@@ -29,6 +29,7 @@ if TYPE_CHECKING:
     from pydrake.geometry import Meshcat
     from pydrake.systems.framework import Context
     from safesysid.online_diagram import OnlineDiagram
+    from safesysid.systems.hardware.background import BackgroundWorker
 
 SWITCH_INTERVAL_S = 1e-4
 CHUNK_S = 0.05  # the run advances in chunks of this much, measuring its lag behind the wall clock
@@ -36,7 +37,7 @@ CHUNK_S = 0.05  # the run advances in chunks of this much, measuring its lag beh
 
 def _pace(sim, ctx, end_s: float) -> dict:
     """Advance to end_s at real time; how far the loop fell behind the wall clock [s]."""
-    wall0 = time.perf_counter()
+    wall0, cpu0 = time.perf_counter(), time.process_time()
     lags, times = [], []
     while ctx.get_time() < end_s - 1e-9:
         sim.AdvanceTo(min(end_s, ctx.get_time() + CHUNK_S))
@@ -49,6 +50,7 @@ def _pace(sim, ctx, end_s: float) -> dict:
         "max_lag_s": float(lag.max(initial=0.0)),
         "max_lag_at_s": float(times[int(np.argmax(lag))]) if lags else None,  # the run's clock at the end of that chunk
         "cpu_time_s": usage.ru_utime + usage.ru_stime,  # the whole process, set-up included
+        "loop_cpu_time_s": time.process_time() - cpu0,  # this process while paced (every thread)
     }
 
 
@@ -112,7 +114,7 @@ def run_wallclock(
     finally:
         worker.shutdown()
         _stop_stall_trace()
-    summary = wallclock_summary(built, ctx, scenario, method=method, seed=seed)
+    summary = wallclock_summary(built, ctx, scenario, method=method, seed=seed, worker=worker)
     summary.update(timing=timing, scheduling=scheduling, identification_end_s=horizon)
     if task is not None:
         summary.update(task=task, events=summary["events"] + task["events"])
@@ -190,7 +192,9 @@ def _request_hold(arm, t_s: float) -> None:
         time.sleep(0.002)
 
 
-def wallclock_summary(built: OnlineDiagram, ctx: Context, scenario: Scenario, *, method: str, seed: int) -> dict:
+def wallclock_summary(
+    built: OnlineDiagram, ctx: Context, scenario: Scenario, *, method: str, seed: int, worker: BackgroundWorker | None
+) -> dict:
     from safesysid.systems.hardware.lcm_systems import with_events
 
     planner, est = built.planner, built.estimator
@@ -229,6 +233,11 @@ def wallclock_summary(built: OnlineDiagram, ctx: Context, scenario: Scenario, *,
             "within_t_p": float(np.mean(np.asarray(planner_latency + estimator_latency) <= period))
             if planner_latency + estimator_latency
             else None,
+            # each collected call's CPU and duration in its worker (CPU / duration: its share of a core)
+            "worker": {
+                lane: {"cpu_s": [c for c, _ in times], "wall_s": [w for _, w in times]}
+                for lane, times in (worker.job_times.items() if worker is not None else ())
+            },
         },
         "events": events,
     }

@@ -35,13 +35,16 @@ class _Clock:
             self.parts.append(self.pace(self.sim, self.ctx, t_s))
 
     def timing(self) -> dict:
-        parts = self.parts or [{"wall_time_s": 0.0, "max_lag_s": 0.0, "max_lag_at_s": None, "cpu_time_s": 0.0}]
+        parts = self.parts or [
+            {"wall_time_s": 0.0, "max_lag_s": 0.0, "max_lag_at_s": None, "cpu_time_s": 0.0, "loop_cpu_time_s": 0.0}
+        ]
         worst = max(parts, key=lambda p: p["max_lag_s"])
         return {
             "wall_time_s": float(sum(p["wall_time_s"] for p in parts)),
             "max_lag_s": float(worst["max_lag_s"]),
             "max_lag_at_s": worst["max_lag_at_s"],
             "cpu_time_s": float(parts[-1]["cpu_time_s"]),
+            "loop_cpu_time_s": float(sum(p["loop_cpu_time_s"] for p in parts)),
         }
 
 

@@ -97,6 +97,7 @@ def measure(seconds: float, out: Path, *, fifo: bool = True) -> dict:
         "arm_holding": arm_summary["driver"]["holding"],
         "load_average": os.getloadavg(),
         "run_cpu_time_s": lcm_run["timing"]["cpu_time_s"],
+        "run_loop_cpu_time_s": lcm_run["timing"]["loop_cpu_time_s"],
         "run_wall_time_s": lcm_run["timing"]["wall_time_s"],
         "arm_wall_time_s": arm_summary["wall_time_s"],
         "arm_time_s": arm_summary["arm_time_s"],

@@ -295,6 +295,12 @@ def test_two_processes_run_algorithm_2_and_the_arm_ends_holding(multicast, tmp_p
     holds = ("hold_requested", "command_lost", "command_clock_jump")  # asked, or a stall at normal priority
     assert arm["driver"]["commands_received"] and arm["driver"]["holding"] in holds
     assert run["planner"]["iterations"] >= 1 and run["planner"]["status"][0] in ("solved", "best_feasible")
+    # each collected worker call's CPU and duration there (a share of a core: docs/hardware.md)
+    worker = run["latency"]["worker"]
+    for lane, latencies in (("planner", run["latency"]["planner_s"]), ("estimator", run["latency"]["estimator_s"])):
+        assert len(worker[lane]["cpu_s"]) == len(worker[lane]["wall_s"]) == len(latencies), worker
+        assert all(0 <= c <= 1.05 * w + 0.01 for c, w in zip(worker[lane]["cpu_s"], worker[lane]["wall_s"]))
+    assert 0 < run["timing"]["loop_cpu_time_s"] < run["timing"]["cpu_time_s"]
     if run["estimate"] is not None:  # identified: the interval holds the arm's true payload
         truth = np.array(arm["payload_true"]["theta"])
         assert np.all(np.array(run["estimate"]["lower"]) <= truth) and np.all(truth <= run["estimate"]["upper"])

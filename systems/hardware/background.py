@@ -55,6 +55,9 @@ class BackgroundWorker:
         self._jobs = 0
         self._clock_zero = 0.0
         self.fault = os.environ.get(WORKER_FAULT_ENV, "")
+        # Per lane, each collected job's (CPU [s], wall [s]) in its worker: a share well below 1 is a
+        # worker starved of CPU by the loops (docs/hardware.md).
+        self.job_times: dict[str, list[tuple[float, float]]] = {lane: [] for lane in LANE_NICE}
 
     def start(self) -> None:
         """Fork the workers now, before the clock starts (a fork stalls the loop for tens of ms).
@@ -67,7 +70,7 @@ class BackgroundWorker:
         job, self._jobs = self._jobs, self._jobs + 1
         submitted = time.time()
         future = self._pools[lane].submit(_timed, fn, _fault_of(self.fault, job), *args)
-        future.submitted = submitted
+        future.submitted, future.lane = submitted, lane
         return future
 
     def clock_started(self) -> None:
@@ -77,7 +80,8 @@ class BackgroundWorker:
     def latency(self, future: Future) -> tuple[object, float]:
         """(the job's result, its latency [s] from its submission or the clock's start, whichever
         is later: the time it took of the run's clock)."""
-        result, finished = future.result()
+        result, finished, cpu_s, wall_s = future.result()
+        self.job_times[future.lane].append((cpu_s, wall_s))
         return result, max(0.0, finished - max(future.submitted, self._clock_zero))
 
     def shutdown(self) -> None:
@@ -106,12 +110,14 @@ def _fault_of(text: str, job: int) -> str:
 
 
 def _timed(fn, fault: str, *args):
-    """fn(*args) and the wall time it finished [s]."""
+    """(fn(*args), the wall time it finished [s], its CPU time [s], its duration [s])."""
     if fault == "die":
         os._exit(3)
     if fault == "hang":
         time.sleep(3600.0)
-    return fn(*args), time.time()
+    cpu, wall = time.process_time(), time.perf_counter()
+    result = fn(*args)
+    return result, time.time(), time.process_time() - cpu, time.perf_counter() - wall
 
 
 # Systems a forked worker inherits: a job names one by its key (pickling a planner's precomputed
