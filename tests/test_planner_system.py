@@ -234,6 +234,52 @@ def test_outputs_the_parameters_the_executing_plan_was_certified_with(setup):
     assert np.array_equal(np.concatenate(st.thetas), second)
 
 
+class InProcessWorker:
+    """background.BackgroundWorker's interface, each job run at once in this process."""
+
+    def __init__(self):
+        self.job_times = {"planner": [], "estimator": []}
+
+    def submit(self, fn, *args, lane):
+        import time
+        from concurrent.futures import Future
+
+        future = Future()
+        future.set_result((fn(*args), time.time(), 0.0, 0.0))
+        future.submitted, future.lane = time.time(), lane
+        return future
+
+    def latency(self, future):
+        return future.result()[0], 0.0
+
+
+def test_a_wall_clock_plan_executes_with_the_parameters_it_was_certified_with(setup):
+    """Guarantee 6 in wall-clock time: the call for the plan that starts at t_k is submitted at
+    t_(k-1) with the estimate of then; when the estimate tightens in between (0.7 s), the plan
+    started at 1.5 s still runs with the parameters of its submission at 0 s, and only the one
+    submitted at 1.5 s (started at 3.0 s) with the tight box."""
+    from pydrake.systems.primitives import TrajectorySource
+    from pydrake.trajectories import PiecewisePolynomial
+    from safesysid.systems.hardware.background import WallClockPlanner
+
+    robot, planner, (theta0, lo, hi) = setup
+    own = SafePlanner(robot, planner.config, obstacles=[], payload=None, tracking=planner.tracking)
+    tight = (theta0, theta0 - 0.5 * (theta0 - lo), theta0 + 0.5 * (hi - theta0))
+    sources = [
+        TrajectorySource(PiecewisePolynomial.ZeroOrderHold([0.0, 0.7, 10.0], np.stack([a, b, b], 1)))
+        for a, b in zip((theta0, lo, hi), tight)
+    ]
+    system = WallClockPlanner(own, Q0, theta0, lo, hi, num_plans=3, worker=InProcessWorker())
+    st, logs = simulate(system, 3.2, theta_sources=sources)
+    assert [r["ok"] for r in st.records] == [True, True, True]
+    t = logs[3].sample_times()
+    out = np.hstack([log.data().T for log in logs[3:]])
+    prior, new = np.concatenate([theta0, lo, hi]), np.concatenate(tight)
+    before, after = t <= 3.0, t > 3.0  # a log at t shows the outputs before the updates at t
+    assert np.array_equal(out[before], np.broadcast_to(prior, out[before].shape))
+    assert np.array_equal(out[after], np.broadcast_to(new, out[after].shape))
+
+
 def test_an_inconsistent_estimate_is_never_planned_with(setup):
     robot, planner, thetas = setup
     recording = Recording(planner)

@@ -528,6 +528,17 @@ MUTANTS = [
         "-k",
         "rival_within_one_standard_error",
     ),
+    # -- guarantee 6 in wall-clock time: a plan computed one period ahead (guarantees.md row 45) ---
+    m(
+        "a wall-clock plan executes with the estimate at its start, not the one it was certified with",
+        "systems/hardware/background.py",
+        "_PlanAhead._collect",
+        "        return replace(res, thetas=thetas)  # certified with the estimate of its submission",
+        "        return res",
+        T_PS,
+        "-k",
+        "wall_clock_plan_executes",
+    ),
 ]
 
 

@@ -157,7 +157,7 @@ class WallClockPlanner(ExcitingPlanner):
         super().__init__(*args, **kwargs)
         self.worker = worker
         self.key = register(self)
-        self.pending = None  # (future, start time of the plan it computes, its start state)
+        self.pending = None  # (future, start time of the plan it computes, its start state, its thetas)
         self.latencies_s: list[float] = []  # each call's submission-to-result time (vs t_p)
         self._invocations = 0
 
@@ -186,7 +186,7 @@ class _PlanAhead:
         return res
 
     def _collect(self, q, v, a, rng) -> PlanResult:
-        future, t_start, start = self.system.pending
+        future, t_start, start, thetas = self.system.pending
         if not future.done():
             future.cancel()
             reason = f"the call for the plan starting at {t_start:.3f} s had not returned by then"
@@ -196,23 +196,24 @@ class _PlanAhead:
         if not all(np.allclose(x, y, atol=1e-9) for x, y in zip(start, (q, v, a))):
             return PlanResult(ok=False, status="start_mismatch", reason="the plan was computed from another state")
         rng.bit_generator.state = rng_after.bit_generator.state
-        return res
+        return replace(res, thetas=thetas)  # certified with the estimate of its submission
 
     def _submit(self, res: PlanResult, thetas, rng, mode, past) -> None:
         system, t_next = self.system, self.t + self.system._period
         start = Piece(self.t, res.trajectory, res.q_end).evaluate(t_next)
+        thetas = tuple(np.array(x, float) for x in thetas)
         args = (
             system.key,
             time.time(),
             t_next,
             *start,
-            tuple(np.array(x) for x in thetas),
+            thetas,
             res.k,
             copy.deepcopy(rng),
             mode,
             past,
         )
-        system.pending = (system.worker.submit(_plan_job, *args, lane="planner"), t_next, start)
+        system.pending = (system.worker.submit(_plan_job, *args, lane="planner"), t_next, start, thetas)
 
 
 class WallClockEstimator(SysIdEstimator):

@@ -82,6 +82,9 @@ class PlanResult:
     min_clearance_m: float = float("nan")  # smallest verified collision slack
     max_torque_ratio: float = float("nan")  # sup |u| / limit over the plan (rigorous)
     details: dict = field(default_factory=dict)
+    # (θ0, lower, upper) the plan was certified with when not the call's own: a wall-clock plan
+    # is computed one period ahead, with the estimate of its submission (hardware/background.py).
+    thetas: tuple | None = None
 
     def evaluate(self, t: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Desired q, qd, qdd (each (len(t), n)) at times t since the plan's start."""

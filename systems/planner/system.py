@@ -277,8 +277,8 @@ class ExcitingPlanner(LeafSystem):
         new = dataclasses.replace(
             st, calls=calls, records=st.records + (record,), results=st.results + (res,), rng=rng, past=past
         )
-        if res.ok:
-            new.plan, new.t_start, new.thetas = res, t, thetas
+        if res.ok:  # it executes with the parameters it was certified with (guarantee 6)
+            new.plan, new.t_start, new.thetas = res, t, thetas if res.thetas is None else res.thetas
         else:
             # The parameters stay those of the executing plan (before any plan: the constructor's, the
             # prior the hold at q0 was set up with): no plan certified the ones this call was asked with.
