@@ -48,7 +48,11 @@ def build_arm_side(scenario: Scenario, seed: int | None = None) -> tuple:
     # With a placement task the payload can be released (the gripper, app/arm_gripper.py).
     arm = add_real_arm(builder, scenario, seed=seed, releasable=task_enabled(scenario) and not scenario.task.goal_q_rad)
     lcm = make_lcm(scenario)
-    driver = add_arm_driver(builder, arm, scenario, lcm=lcm)
+    if scenario.arm.control_loop == "arm":
+        driver, torque = _add_controller_beside_the_arm(builder, arm, scenario, lcm=lcm)
+    else:
+        driver = add_arm_driver(builder, arm, scenario, lcm=lcm)
+        torque = driver.get_output_port()
     h = scenario.plant.time_step_s
     ignore = [arm.released_body] if arm.released_body is not None else []
     # The referee judges the log afterwards (safety_monitor.judge_log): not in the 1 kHz loop.
@@ -58,15 +62,38 @@ def build_arm_side(scenario: Scenario, seed: int | None = None) -> tuple:
     builder.Connect(arm.query_output, monitor.query_port)
     builder.Connect(arm.plant_state_output, monitor.state_port)
     builder.Connect(arm.motor_torque_output, monitor.torque_port)
-    builder.Connect(driver.get_output_port(), monitor.command_port)
+    builder.Connect(torque, monitor.command_port)
     loggers = {
         "state": LogVectorOutput(arm.state_output, builder, h),
         "measured_torque": LogVectorOutput(arm.measured_torque_output, builder, h),
-        "command": LogVectorOutput(driver.get_output_port(), builder, h),
+        "command": LogVectorOutput(torque, builder, h),
         "true_state": LogVectorOutput(arm.plant_state_output, builder, h),
         "motor_torque": LogVectorOutput(arm.motor_torque_output, builder, h),
     }
     return builder.Build(), arm, driver, monitor, loggers, ArmGripper(scenario, arm, driver, lcm=lcm)
+
+
+def _add_controller_beside_the_arm(builder, arm: RealArm, scenario: Scenario, *, lcm) -> tuple:
+    """`arm.control_loop: arm`: the run's robust controller (the scenario's method's, on the same
+    model and gains) here, on the plans of arm.plan_channel (PlanFollower), and the status out.
+    Returns (the follower, the controller's torque port: u before saturation, the referee's)."""
+    from safesysid.closed_loop import add_controller
+    from safesysid.online import prior
+    from safesysid.online_diagram import THETA_NAMES
+    from safesysid.systems import methods
+    from safesysid.systems.hardware.lcm_arm import add_lcm_interface, add_plan_follower, add_status_publisher
+
+    add_lcm_interface(builder, lcm)
+    theta0, box = prior(arm.robot, scenario, scenario.method)
+    follower = add_plan_follower(builder, scenario, n=arm.robot.n, prior=(theta0, box.lo, box.hi))
+    kind = methods.method_spec(scenario.method).first_controller
+    controller, _ = add_controller(builder, arm, scenario, kind=kind)
+    builder.Connect(follower.GetOutputPort("desired"), controller.GetInputPort("desired"))
+    for name in THETA_NAMES:
+        builder.Connect(follower.GetOutputPort(name), controller.GetInputPort(name))
+    torque = controller.GetOutputPort("torque")
+    add_status_publisher(builder, arm, scenario, lcm=lcm, commanded_torque=torque)
+    return follower, torque
 
 
 def run_arm_sim(

@@ -31,7 +31,7 @@ import numpy as np
 from safesysid.online_diagram import THETA_NAMES, OnlineDiagram
 from safesysid.summary import SimulatedRun, read_logs, summarize
 from safesysid.systems import config, methods
-from safesysid.systems.config import Scenario, task_enabled
+from safesysid.systems.config import Scenario, ScenarioError, task_enabled
 from safesysid.systems.model import parameter_sources
 from safesysid.systems.model.loading import robot_from_scenario
 
@@ -316,14 +316,28 @@ def _connect_controllers(builder, built: OnlineDiagram, scenario: Scenario, spec
     return built.controller.GetOutputPort("torque")
 
 
+def _send_plans(builder, built: OnlineDiagram, scenario: Scenario) -> None:
+    """`arm.control_loop: arm`: the controller runs beside the arm on the plans sent to it; here
+    nothing evaluates it (no command, no command logger). Returns the command port: None."""
+    from safesysid.systems.hardware.lcm_arm import add_plan_sender
+
+    if built.planner is None:
+        raise ScenarioError("arm.control_loop: arm needs a method that plans (ours, random): plans are what crosses")
+    plans = built.planner.GetOutputPort("plan")
+    built.arm.plan_sender = add_plan_sender(builder, scenario, built.planner, plans, lcm=built.arm.lcm)
+
+
 def _add_loggers(builder, built: OnlineDiagram, *, command, desired, h: float) -> dict[str, VectorLogSink]:
+    """command None: the controller is beside the arm (its torque and diagnostics are the arm's)."""
     arm, controller = built.arm, built.controller
     loggers = {
         "state": _add_logger(builder, arm.state_output, h, "state"),
         "measured_torque": _add_logger(builder, arm.measured_torque_output, h, "measured_torque"),
-        "command": _add_logger(builder, command, h, "command"),
         "desired": _add_logger(builder, desired, h, "desired"),
     }
+    if command is None:
+        return loggers
+    loggers["command"] = _add_logger(builder, command, h, "command")
     if controller.HasOutputPort("diagnostics"):  # ARMOUR's [V_bar, h, lambda, |r|, |w_bar|]
         loggers["armour"] = _add_logger(builder, controller.GetOutputPort("diagnostics"), h, "armour")
     if controller.HasOutputPort("estimate"):  # what an adaptive controller identifies
@@ -360,7 +374,10 @@ def build_online(
     arm = _add_arm(builder, scenario, robot, seed=seed, task=task, true_scenario=true_scenario)
     theta0, box = prior(robot, scenario, method)
     switches = task and spec.switches_controller  # grav-pid-ours: ARMOUR identifies, the PID runs the task
-    controller, gains = add_controller(builder, arm, scenario, kind=spec.first_controller, connect=not switches)
+    beside_arm = over_lcm and scenario.arm.control_loop == "arm"  # the arm runs it: here it is never evaluated
+    controller, gains = add_controller(
+        builder, arm, scenario, kind=spec.first_controller, connect=not (switches or beside_arm)
+    )
     # The controller's certified bound (per-joint Kr; sigma_min from the armature lower bounds,
     # which identification never changes) is the tube the planner must respect.
     tracking = tracking_bounds_for(robot, gains.armour, box.lo)
@@ -377,6 +394,8 @@ def build_online(
             builder, built, scenario, spec, excitation=excitation, worker=worker
         )
     command = _connect_controllers(builder, built, scenario, spec, desired=desired, thetas=thetas, switches=switches)
+    if beside_arm:
+        command = _send_plans(builder, built, scenario)
     built.monitor = None if over_lcm else _add_monitor(builder, arm, robot, command)
     built.loggers = _add_loggers(builder, built, command=command, desired=desired, h=scenario.plant.time_step_s)
     if meshcat is not None and over_lcm:  # the live arm from the received status (app/lcm_view.py)

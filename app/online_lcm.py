@@ -94,7 +94,9 @@ def run_wallclock(
         _wait_for_arm(built.arm, scenario)
         worker.start()  # every system is registered: the forks inherit them
         sim.Initialize()
-        _warm_up(built, ctx)
+        sender = built.arm.plan_sender  # arm.control_loop arm: no controller evaluated here
+        if sender is None:
+            _warm_up(built, ctx)
         built.arm.receiver.rearm(ctx)
         gc.collect()
         gc.freeze()  # the set-up's objects out of the collector: a full collection stalls the loop
@@ -103,6 +105,8 @@ def run_wallclock(
         sim.ResetStatistics()  # real-time pacing from here, not from before the set-up
         _trace_stalls(sim, out)
         worker.clock_started()
+        if sender is not None:  # the run's clock starts now: where it is on the arm's
+            sender.start_clock(_arm_time(built.arm), ctx.get_time())
         spec = methods.method_spec(method)
         horizon = config.excitation_duration_s(spec, scenario) or config.planner_horizon_s(scenario)
         task = None
@@ -110,7 +114,8 @@ def run_wallclock(
             task, timing = run_task_lcm(built, sim, scenario, method=method, pace=_pace)
         else:  # one more t_p: the estimator's last update (its samples end at the horizon) is published then
             timing = _pace(sim, ctx, horizon + scenario.planner.replan_period_s + scenario.plant.time_step_s)
-        _request_hold(built.arm, ctx.get_time())
+        if sender is None:  # beside the arm the controller finishes the last plan at rest and holds
+            _request_hold(built.arm, ctx.get_time())
     finally:
         worker.shutdown()
         _stop_stall_trace()
@@ -170,6 +175,16 @@ def _wait_for_arm(arm, scenario: Scenario) -> None:
             channel = scenario.arm.status_channel
             raise ArmNotAnswering(f"arm.status_channel {channel!r}: no status in {FIRST_STATUS_TIMEOUT_S:g} s")
         arm.statuses.receive(100)
+
+
+def _arm_time(arm) -> float:
+    """The arm's clock in its newest status [s] (the set-up's statuses taken in and dropped, as
+    the receiver's rearm does: the estimator starts with the clock)."""
+    from safesysid.systems.hardware.messages import parse_status
+
+    arm.statuses.receive()
+    arm.statuses.drain()
+    return parse_status(arm.statuses.message(), arm.robot.n).t_s
 
 
 def _warm_up(built, ctx) -> None:

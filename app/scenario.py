@@ -217,9 +217,14 @@ def _validate_fourier(s: Scenario, need):
 
 
 def _validate_arm_and_payload(s: Scenario, need):
-    for key in ("watchdog_ms", "status_timeout_ms", "gripper_timeout_ms"):
+    for key in ("watchdog_ms", "status_timeout_ms", "gripper_timeout_ms", "plan_lead_ms"):
         need(getattr(s.arm, key) > 0, f"arm.{key}", "must be > 0")
     need(s.arm.lcm_url.startswith(("udpm://", "memq://")), "arm.lcm_url", "must be an LCM url (udpm://... or memq://)")
+    need(
+        s.arm.control_loop == "run" or not task_enabled(s),
+        "arm.control_loop",
+        "arm (the controller beside the arm) runs the identification phase only: no task section",
+    )
     if s.payload.dumbbell.lower() != "none":
         from safesysid.systems.model.payload import load_dumbbells
 

@@ -306,22 +306,24 @@ def test_a_windowed_set_membership_lp_keeps_its_size_and_the_truth(robot, dumbbe
     """estimator.set_membership_window_s: the LP takes the last window's segments only, inside the
     published data box: its size stops growing with the data, the box still holds the truth and
     the mass (the LP's parameter) is never looser than without the LP."""
-    from safesysid.systems.estimation import incremental
+    from safesysid.systems.estimation import enclosure
 
     rng = np.random.default_rng(33)
     theta, theta_e = true_theta(rng, robot, dumbbells["6lb"])
     t, q, v, tau, _ = E.simulate_log(rng, robot, theta, duration_s=6.0, rate_hz=1000.0, centre=CENTRE)
     sizes = []
 
-    def counted(rows, *args, **kwargs):
-        sizes.append(len(rows))
-        return E.set_membership_bounds(rows, *args, **kwargs)
+    def counted(c, A_ub, *args, **kwargs):  # two rows per joint and segment
+        sizes.append(len(A_ub) // (2 * robot.n))
+        return lp_min(c, A_ub, *args, **kwargs)
 
-    monkeypatch.setattr(incremental, "set_membership_bounds", counted)
+    lp_min = enclosure.certified_lp_min
+    monkeypatch.setattr(enclosure, "certified_lp_min", counted)
     windowed = E.EstimatorSettings(set_membership="mass", set_membership_window_s=1.0)
     _, history = run_online(robot, t, q, v, tau, settings=windowed)
     _, plain = run_online(robot, t, q, v, tau, settings=E.EstimatorSettings(set_membership="none"))
     print("LP segments per update:", sizes)
+    sizes = sizes[::2]  # the mass: 2 LPs per update
     assert sizes[0] > 10 and max(sizes[1:]) <= 11 < len(history) * 10  # 1 s of 0.1 s segments
     for est, loose in zip(history, plain):
         assert est.consistent and est.contains(theta_e)

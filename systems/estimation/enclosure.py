@@ -159,8 +159,10 @@ def set_membership_bounds(
     box_lo: np.ndarray,
     box_hi: np.ndarray,
     params: Iterable[int],
+    previous: tuple | None = None,
 ) -> tuple[np.ndarray, np.ndarray, bool]:
     """Certified [min, max] of θ_e[i] (i in params) over the feasible polytope, by LP.
+    previous: the last consistent data box, for settings.set_membership_window_s (set_membership_window).
 
     Variables x = (θ_e, θ_r); rows |Y θ_e + D_r θ_r − ∫τ| ≤ Σ_k w_k r_k + quadrature term (a
     boundary sample shared by two segments is let vary independently in each: a relaxation,
@@ -168,6 +170,8 @@ def set_membership_bounds(
     Each bound is certified by weak duality (`certified_lp_min`). Returns (lo, hi, feasible);
     lo/hi are NaN where not refined.
     """
+    window_s = settings.set_membership_window_s
+    rows, box_lo, box_hi = set_membership_window(rows, box_lo, box_hi, window_s=window_s, previous=previous)
     S, n = rows.T.shape
     Y2 = rows.Y.reshape(S * n, 10)
     Dr2 = rows.D_r.reshape(S * n, -1)
@@ -202,6 +206,22 @@ def set_membership_bounds(
             else:
                 out_hi[i] = -bound
     return out_lo, out_hi, True
+
+
+def set_membership_window(
+    rows: SegmentRows, lo: np.ndarray, hi: np.ndarray, *, window_s: float, previous: tuple | None
+) -> tuple[SegmentRows, np.ndarray, np.ndarray]:
+    """(rows, box_lo, box_hi) of the set-membership LP: every segment in the update's box [lo, hi];
+    with a window (window_s > 0) and a previous consistent data box, the window's segments in
+    [lo, hi] ∩ that box, which holds the truth (A2) and what the older segments said of it: a
+    relaxation of the LP on every segment (their joint constraints dropped, their box kept), so
+    still an enclosure, at a cost that stops growing with the data."""
+    if window_s <= 0 or previous is None or rows.t1[0] > rows.t1[-1] - window_s:
+        return rows, lo, hi
+    box_lo, box_hi = np.maximum(lo, previous[0]), np.minimum(hi, previous[1])
+    if np.any(box_lo > box_hi):  # the boxes do not meet: the caller reports it
+        return rows, lo, hi
+    return rows.since(rows.t1[-1] - window_s), box_lo, box_hi
 
 
 def certified_lp_min(

@@ -320,9 +320,10 @@ class IncrementalEstimator:
                 problems.append(f"the data box does not meet the prior in {_names(lo > hi)}")
         params = {"none": [], "mass": [0], "all": list(range(10))}[st.set_membership]
         if params and not problems:
-            rows, box_lo, box_hi = self._set_membership_rows(lo, hi)
+            prev = self.estimate if self.consistent else None  # its data box: what older segments said (A2)
+            box = dict(box_lo=lo, box_hi=hi, previous=None if prev is None else (prev.data_lower, prev.data_upper))
             sm_lo, sm_hi, feasible = set_membership_bounds(
-                rows, self.theta_r, self.theta_r_radius, settings=st, box_lo=box_lo, box_hi=box_hi, params=params
+                self.rows, self.theta_r, self.theta_r_radius, settings=st, params=params, **box
             )
             if not feasible:
                 problems.append("the set-membership LP is infeasible")
@@ -330,20 +331,6 @@ class IncrementalEstimator:
                 lo = np.where(np.isnan(sm_lo), lo, np.maximum(lo, sm_lo))
                 hi = np.where(np.isnan(sm_hi), hi, np.minimum(hi, sm_hi))
         return lo, hi
-
-    def _set_membership_rows(self, lo, hi):
-        """(rows, box) of the set-membership LP: every segment in this update's box; with a window,
-        the window's segments in this box intersected with the last consistent data box, which
-        holds the truth (A2) and what the older segments said of it: a relaxation of the LP on
-        every segment (their joint constraints are dropped, their box kept), so still an enclosure."""
-        window = self.settings.set_membership_window_s
-        prev = self.estimate
-        if window <= 0 or prev is None or not self.consistent or self.rows.t1[0] > self.rows.t1[-1] - window:
-            return self.rows, lo, hi
-        box_lo, box_hi = np.maximum(lo, prev.data_lower), np.minimum(hi, prev.data_upper)
-        if np.any(box_lo > box_hi):  # the boxes do not meet: _published_box reports it
-            return self.rows, lo, hi
-        return self.rows.since(self.rows.t1[-1] - window), box_lo, box_hi
 
     def _published_box(self, lo, hi, prev, problems):
         """(data box, published box): the update box intersected with the previous data-driven

@@ -145,10 +145,19 @@ class StatusReceiver(LeafSystem):
     the second of two statuses that reached one step (docs/hardware.md, Time)."""
 
     def __init__(
-        self, n: int, statuses: LatestMessage, time_step_s: float, *, status_timeout_s: float, q_start: np.ndarray
+        self,
+        n: int,
+        statuses: LatestMessage,
+        time_step_s: float,
+        *,
+        status_timeout_s: float,
+        q_start: np.ndarray,
+        resume: bool = False,
     ):
+        """resume: after a trip (an event, as always) take the next status as a new start instead
+        of latching (the controller beside the arm: an outage is only a gap in the samples)."""
         super().__init__()
-        self.n, self.statuses = n, statuses
+        self.n, self.statuses, self.resume = n, statuses, resume
         rest = Status(0.0, np.asarray(q_start, float), np.zeros(n), np.zeros(n), np.zeros(n))
         self._memo = self.DeclareAbstractState(AbstractValue.Make((Freshness(status_timeout_s, payload=rest), ())))
         self.DeclarePeriodicUnrestrictedUpdateEvent(time_step_s, 0.0, self._tick)
@@ -183,6 +192,8 @@ class StatusReceiver(LeafSystem):
         if new.tripped is None and new.last_sent_s != guard.last_sent_s:  # a newer status was accepted
             after = -np.inf if guard.last_sent_s is None else guard.last_sent_s
             rows = _sample_rows(received, self.n, after=after, upto=new.last_sent_s)
+        if new.tripped is not None and self.resume:  # unarmed: the next status starts afresh, no second event
+            new = Freshness(new.limit_s, payload=new.payload, ignored=new.ignored, events=new.events)
         state.get_mutable_abstract_state(int(self._memo)).set_value((new, rows))
         return EventStatus.Succeeded()
 

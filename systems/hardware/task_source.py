@@ -73,7 +73,7 @@ def _result(future, waited_s: float) -> tuple[list, list, dict]:
         detail = f"the task was not made within {TASK_TIMEOUT_S:g} s of the switch: the arm holds"
         return [], [dict(kind="task_error", detail=detail)], {}
     try:
-        (made, events, report), _ = future.result()  # (result, the wall time it finished)
+        (made, events, report), *_ = future.result()  # (result, the wall time it finished, CPU, duration)
     except Exception as err:  # noqa: BLE001 (a dead worker: the task is refused, the arm holds)
         return [], [dict(kind="task_error", detail=f"the worker failed making the task ({err!r}): the arm holds")], {}
     detail = f"made in the worker in {waited_s:.2f} s (the arm held at the switch pose)"
