@@ -539,6 +539,27 @@ MUTANTS = [
         "-k",
         "wall_clock_plan_executes",
     ),
+    # -- the controller beside the arm: the arm takes only an early, continuous plan (rows 46-47) ---
+    m(
+        "the arm takes a plan that arrives after its start",
+        "systems/hardware/plan_follower.py",
+        "PlanFollower._offer",
+        "        if start <= t:",
+        "        if False:",
+        "tests/test_plan_link.py",
+        "-k",
+        "only_new_early_and_continuous",
+    ),
+    m(
+        "the arm takes a plan that does not start where the executing trajectory is",
+        "systems/hardware/plan_follower.py",
+        "PlanFollower._offer",
+        "        if not all(",
+        "        if False and not all(",
+        "tests/test_plan_link.py",
+        "-k",
+        "only_new_early_and_continuous",
+    ),
 ]
 
 
