@@ -27,6 +27,7 @@ if TYPE_CHECKING:
     from pydrake.systems.framework import Context, Diagram
     from safesysid.systems.config import Scenario
     from safesysid.systems.hardware.lcm_systems import ArmDriver
+    from safesysid.systems.hardware.plan_follower import PlanFollower
     from safesysid.systems.plant.arm_plant import RealArm
     from safesysid.systems.plant.safety_monitor import SafetyMonitor
 
@@ -154,7 +155,9 @@ _REFEREE_LOGS = {
 }
 
 
-def arm_summary(ctx: Context, arm: RealArm, driver: ArmDriver, *, referee: dict, loggers: dict, out: Path) -> dict:
+def arm_summary(
+    ctx: Context, arm: RealArm, driver: ArmDriver | PlanFollower, *, referee: dict, loggers: dict, out: Path
+) -> dict:
     """The referee's judgement and the driver's record; the ground truth into out/arm_log.csv."""
     from safesysid.joint_log import write_joint_log
     from safesysid.systems.model.joint_data import JointLog
@@ -167,7 +170,14 @@ def arm_summary(ctx: Context, arm: RealArm, driver: ArmDriver, *, referee: dict,
         out / "arm_log.csv", JointLog(t, state[:, :n], state[:, n:], tau), {f"u{k + 1}": u[:, k] for k in range(n)}
     )
     guard = driver.guard(driver.GetMyContextFromRoot(ctx))
+    from safesysid.systems.hardware.plan_follower import PlanFollower
+
+    plans = None
+    if isinstance(driver, PlanFollower):  # the controller beside the arm: the plans it took
+        taken = driver.following(driver.GetMyContextFromRoot(ctx))
+        plans = {"taken": len(taken.margins_s), "refused": len(taken.refused), "margin_s": list(taken.margins_s)}
     return {
+        "plans": plans,
         "referee": referee,
         "safe": referee["collisions"] == 0 and referee["max_commanded_torque_ratio"] <= 1.0,
         "driver": {

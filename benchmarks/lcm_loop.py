@@ -1,10 +1,13 @@
 """The 1 kHz loop across the process boundary, measured at the arm side (docs/hardware.md).
 
-`python -m safesysid.benchmarks.lcm_loop [--seconds 60] [--no-fifo] [--out DIR]`: starts
-`safesysid arm-sim` and `safesysid run --arm lcm` on quickstart with enough plans for the
+`python -m safesysid.benchmarks.lcm_loop [--seconds 60] [--control-loop run|arm] [--no-fifo] [--out DIR]`:
+starts `safesysid arm-sim` and `safesysid run --arm lcm` on quickstart with enough plans for the
 identification phase to last --seconds (the planner busy all along), and observes, in this process
-beside the arm, the arrival time of every command: period p50/p99/max and the share of gaps over
-2 ms; then the planner's and estimator's latency against t_p (lcm_run.json) and the load average.
+beside the arm, the arrival time of every command (the controller in the run: the torque the arm
+applies) and of every status (the arm's own loop: with the controller beside the arm, the period
+at which its torque is applied): period p50/p99/max and the share of gaps over 2 ms; then the
+planner's and estimator's latency against t_p and the workers' CPU (lcm_run.json), the plans the
+arm took and their margins before their start (arm_summary.json) and the load average.
 Not a timed test: the numbers depend on the machine and on what else runs on it.
 """
 
@@ -42,27 +45,29 @@ def period_stats(arrivals_s: np.ndarray) -> dict:
     }
 
 
-def _observe(channel: str, url: str, arrivals: list, stop: threading.Event) -> None:
+def _observe(arrivals: dict[str, list], url: str, stop: threading.Event) -> None:
     from safesysid.systems.hardware.queued_lcm import QueuedLcm
     from safesysid.systems.hardware.realtime import request_realtime
 
     request_realtime(OBSERVER_PRIORITY)  # this thread only: the observer must not be what is late
 
-    lcm = QueuedLcm(url)  # every command of a burst, as the arm's driver receives them
-    lcm.Subscribe(channel, lambda _data: arrivals.append(time.perf_counter()))
+    lcm = QueuedLcm(url)  # every message of a burst, as the arm's driver receives them
+    for channel, times in arrivals.items():
+        lcm.Subscribe(channel, lambda _data, times=times: times.append(time.perf_counter()))
     while not stop.is_set():
         lcm.HandleSubscriptions(50)
 
 
-def measure(seconds: float, out: Path, *, fifo: bool = True) -> dict:
+def measure(seconds: float, out: Path, *, fifo: bool = True, control_loop: str = "run") -> dict:
     from safesysid.systems.config import Arm
 
     tag = uuid.uuid4().hex[:8]
     command, status = f"BENCH_CMD_{tag}", f"BENCH_STATUS_{tag}"
     plans = max(2, math.ceil((seconds - 3.0) / 1.5) + 1)  # (plans - 1) t_p + t_f >= seconds
+    arm_text = f"command_channel: {command}, status_channel: {status}, plan_channel: BENCH_PLAN_{tag}"
     text = [
         "--scenario-text",
-        f"arm: {{command_channel: {command}, status_channel: {status}}}",
+        f"arm: {{{arm_text}, control_loop: {control_loop}}}",
         "--scenario-text",
         f"planner: {{num_plans: {plans}}}",
         "--scenario-text",  # a minute of data: the estimator's LP on a window, its update's cost bounded
@@ -75,8 +80,8 @@ def measure(seconds: float, out: Path, *, fifo: bool = True) -> dict:
     )
     while not (out / "arm" / "ready").exists():
         time.sleep(0.2)
-    arrivals, stop = [], threading.Event()
-    observer = threading.Thread(target=_observe, args=(command, Arm().lcm_url, arrivals, stop))
+    arrivals, stop = {command: [], status: []}, threading.Event()
+    observer = threading.Thread(target=_observe, args=(arrivals, Arm().lcm_url, stop))
     observer.start()
     run = subprocess.run([*cli, "run", str(SCENARIO), "--arm", "lcm", "--out", str(out / "run"), *flags, *text])
     stop.set()
@@ -88,7 +93,10 @@ def measure(seconds: float, out: Path, *, fifo: bool = True) -> dict:
     return {
         "seconds": seconds,
         "run_exit": run.returncode,
-        "command_period": period_stats(np.array(arrivals)),
+        "control_loop": control_loop,
+        "command_period": period_stats(np.array(arrivals[command])),
+        "status_period": period_stats(np.array(arrivals[status])),
+        "plans_at_the_arm": arm_summary.get("plans"),
         "latency": lcm_run["latency"],
         "planner_status": lcm_run["planner"]["status"],
         "events": [e["kind"] for e in lcm_run["events"]],
@@ -108,11 +116,12 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--no-fifo", action="store_true")
+    parser.add_argument("--control-loop", choices=("run", "arm"), default="run", help="where the controller runs")
     parser.add_argument("--out", default="out/lcm_loop")
     args = parser.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    result = measure(args.seconds, out, fifo=not args.no_fifo)
+    result = measure(args.seconds, out, fifo=not args.no_fifo, control_loop=args.control_loop)
     (out / "lcm_loop.json").write_text(json.dumps(result, indent=2))
     print(json.dumps(result, indent=2))
     return 0
