@@ -192,6 +192,7 @@ def make_estimator_system(
         (np.array(ii.lower, float), np.array(ii.upper, float)),
         np.array(ii.nominal, float),
         stop_time_s=stop_time_s,
+        step_period_s=config.loop_step_s(scenario),
         **extra,
     )
 
@@ -397,7 +398,7 @@ def build_online(
     if beside_arm:
         command = _send_plans(builder, built, scenario)
     built.monitor = None if over_lcm else _add_monitor(builder, arm, robot, command)
-    built.loggers = _add_loggers(builder, built, command=command, desired=desired, h=scenario.plant.time_step_s)
+    built.loggers = _add_loggers(builder, built, command=command, desired=desired, h=config.loop_step_s(scenario))
     if meshcat is not None and over_lcm:  # the live arm from the received status (app/lcm_view.py)
         from safesysid.lcm_view import add_status_view
 

@@ -84,8 +84,7 @@ def run_wallclock(
     scenario = wallclock_planner(scenario)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    scheduling = request_realtime() if fifo else {"scheduler": "normal", "warning": "real-time scheduling not asked"}
-    worker = BackgroundWorker()
+    worker = BackgroundWorker(realtime=fifo)
     try:
         built = build_online(scenario, method, meshcat=meshcat, seed=seed, worker=worker)
         sim = Simulator(built.diagram)
@@ -102,6 +101,11 @@ def run_wallclock(
         gc.freeze()  # the set-up's objects out of the collector: a full collection stalls the loop
         gc.disable()  # and none while the loop runs: the objects it keeps made each one longer (tens of ms)
         sys.setswitchinterval(SWITCH_INTERVAL_S)  # the worker's result thread must not hold the loop 5 ms
+        # Real-time from here: a set-up of seconds (the first plan) at SCHED_FIFO took the CPU
+        # from the arm's loop on this machine (it fell ~180 ms behind its clock, then caught up).
+        scheduling = (
+            request_realtime() if fifo else {"scheduler": "normal", "warning": "real-time scheduling not asked"}
+        )
         sim.ResetStatistics()  # real-time pacing from here, not from before the set-up
         _trace_stalls(sim, out)
         worker.clock_started()

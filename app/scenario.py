@@ -220,6 +220,13 @@ def _validate_arm_and_payload(s: Scenario, need):
     for key in ("watchdog_ms", "status_timeout_ms", "gripper_timeout_ms", "plan_lead_ms"):
         need(getattr(s.arm, key) > 0, f"arm.{key}", "must be > 0")
     need(s.arm.lcm_url.startswith(("udpm://", "memq://")), "arm.lcm_url", "must be an LCM url (udpm://... or memq://)")
+    step, h, period = s.arm.run_step_ms * 1e-3, s.plant.time_step_s, s.planner.replan_period_s
+    multiple = lambda a, b: abs(a / b - round(a / b)) < 1e-6  # noqa: E731
+    need(
+        step > 0 and multiple(step, h) and multiple(period, step),
+        "arm.run_step_ms",
+        "must be a multiple of plant.time_step_s that divides planner.replan_period_s",
+    )
     need(
         s.arm.control_loop == "run" or not task_enabled(s),
         "arm.control_loop",

@@ -431,6 +431,9 @@ class Arm:
     plan_channel: str = "SAFESYSID_ARM_PLAN"  # run -> arm, control_loop arm: lcmt_drake_signal plans
     # control_loop arm: the run's clock starts this far ahead on the arm's (the first plan's transit)
     plan_lead_ms: float = 200.0
+    # control_loop arm: the run's loop period (no controller in it: it hands the statuses received
+    # to the estimator and plans); a multiple of plant.time_step_s dividing planner.replan_period_s
+    run_step_ms: float = 10.0
 
 
 @dc.dataclass
@@ -468,6 +471,14 @@ def excitation_duration_s(spec: MethodSpec, scenario: Scenario) -> float:
     if spec.excitation.trajectory == FOURIER:
         return float(scenario.fourier.period_s)
     return planner_horizon_s(scenario)
+
+
+def loop_step_s(s: Scenario) -> float:
+    """The run's loop period [s]: the plant step, or arm.run_step_ms with the controller beside an
+    arm reached over LCM (arm.control_loop arm)."""
+    if s.arm.driver == "lcm" and s.arm.control_loop == "arm":
+        return s.arm.run_step_ms * 1e-3
+    return s.plant.time_step_s
 
 
 def planner_horizon_s(scenario: Scenario) -> float:

@@ -6,8 +6,9 @@ from __future__ import annotations
 import numpy as np
 
 # At most this many samples reach the estimator per step: a late one beside the current one from a
-# faulty link; over LCM, every status that arrived since the last step (the run's loop lagging).
-PACKET_ROWS = 8
+# faulty link; over LCM, every status that arrived since the last step (the run's loop lagging,
+# or stepping every arm.run_step_ms with the controller beside the arm: ten statuses a step).
+PACKET_ROWS = 32
 
 
 def packet_size(n: int) -> int:

@@ -91,23 +91,26 @@ class SysIdEstimator(LeafSystem):
         prior_nominal: np.ndarray,
         *,
         stop_time_s: float = np.inf,
+        step_period_s: float | None = None,
     ) -> None:
         """settings: the estimator's (EstimatorSettings.from_scenario); sample_period_s: the plant
         step; update_period_s: t_p; prior: (lower, upper) of θ_e; prior_nominal: θ_e published
         before the first update; stop_time_s: after it the estimator neither samples nor updates
-        (the task phase: the controller has latched its box). app/online.py
-        make_estimator_system takes them from a scenario."""
+        (the task phase: the controller has latched its box); step_period_s: how often the samples
+        arrive (default: every sample period; over LCM with the controller beside the arm, in
+        packets every arm.run_step_ms). app/online.py make_estimator_system takes them from a scenario."""
         super().__init__()
         self.robot = robot
         self.stop_time_s = float(stop_time_s)
         self.settings = settings
         self.sample_period_s = float(sample_period_s)
         self.update_period_s = float(update_period_s)
-        self._samples_per_update = int(round(self.update_period_s / self.sample_period_s))
-        if abs(self._samples_per_update * self.sample_period_s - self.update_period_s) > 1e-9 * self.update_period_s:
+        self.step_period_s = self.sample_period_s if step_period_s is None else float(step_period_s)
+        self._steps_per_update = int(round(self.update_period_s / self.step_period_s))
+        if abs(self._steps_per_update * self.step_period_s - self.update_period_s) > 1e-9 * self.update_period_s:
             raise ValueError(
-                f"estimator update period {self.update_period_s} s is not a multiple of the sample "
-                f"period {self.sample_period_s} s"
+                f"estimator update period {self.update_period_s} s is not a multiple of the step "
+                f"period {self.step_period_s} s"
             )
         self.prior = prior
         self.prior_nominal = prior_nominal
@@ -131,7 +134,7 @@ class SysIdEstimator(LeafSystem):
         for name, index in self._groups.items():
             self.DeclareStateOutputPort(name, index)
         self.DeclareInitializationUnrestrictedUpdateEvent(self._on_initialize)
-        self.DeclarePeriodicUnrestrictedUpdateEvent(self.sample_period_s, 0.0, self._on_sample)
+        self.DeclarePeriodicUnrestrictedUpdateEvent(self.step_period_s, 0.0, self._on_sample)
 
     def _initial_state(self):
         return SysIdState(
@@ -161,8 +164,8 @@ class SysIdEstimator(LeafSystem):
         run = self._get(context)
         for row in self._arrived(context):
             run = self._accept(run, row)
-        step = int(round(t / self.sample_period_s))
-        if step > 0 and step % self._samples_per_update == 0:
+        step = int(round(t / self.step_period_s))
+        if step > 0 and step % self._steps_per_update == 0:
             run = self._update(t, run, state)
         state.get_mutable_abstract_state(int(self._run)).set_value(run)
         return EventStatus.Succeeded()

@@ -42,13 +42,14 @@ class BackgroundWorker:
     calls and the estimator's updates (in one process a planning call waited behind an update of
     up to 1 s and missed t_p). The planner's lane runs ahead of the estimator's (LANE_NICE)."""
 
-    def __init__(self) -> None:
+    def __init__(self, *, realtime: bool = True) -> None:
+        """realtime: the loops run SCHED_FIFO (or will): the workers go below them (LANE_NICE)."""
         self._pools = {
             lane: ProcessPoolExecutor(
                 max_workers=1,
                 mp_context=multiprocessing.get_context("fork"),
                 initializer=_worker_init,
-                initargs=(nice,),
+                initargs=(nice if realtime else None,),
             )
             for lane, nice in LANE_NICE.items()
         }
@@ -96,11 +97,13 @@ class BackgroundWorker:
 LANE_NICE = {"planner": -10, "estimator": -5}
 
 
-def _worker_init(nice: int) -> None:
-    """Below the loops' priority (realtime.lower_realtime) and one BLAS thread (2 cores)."""
+def _worker_init(nice: int | None) -> None:
+    """Below the loops' priority (realtime.lower_realtime; None: the loops are not real-time) and
+    one BLAS thread (2 cores)."""
     from threadpoolctl import threadpool_limits
 
-    lower_realtime(nice)
+    if nice is not None:
+        lower_realtime(nice)
     threadpool_limits(1)
 
 

@@ -17,6 +17,7 @@ import numpy as np
 from drake import lcmt_panda_command, lcmt_panda_status
 from safesysid.systems.estimation.packets import PACKET_ROWS
 
+from ..config import loop_step_s
 from .lcm_systems import ArmDriver, CommandEncoder, LatestMessage, StatusEncoder, StatusReceiver
 from .queued_lcm import QueuedLcm
 
@@ -88,7 +89,7 @@ def add_lcm_arm(builder: DiagramBuilder, scenario: Scenario, robot: RobotModel, 
         StatusReceiver(
             n,
             statuses,
-            h,
+            loop_step_s(scenario),
             status_timeout_s=cfg.status_timeout_ms * 1e-3,
             q_start=np.asarray(scenario.q0_rad),
             resume=beside,

@@ -8,6 +8,7 @@ Run side: StatusReceiver decodes the status into the station's outputs; CommandE
 from __future__ import annotations
 
 import collections
+from dataclasses import replace
 
 import numpy as np
 from drake import lcmt_panda_command, lcmt_panda_status
@@ -192,10 +193,22 @@ class StatusReceiver(LeafSystem):
         if new.tripped is None and new.last_sent_s != guard.last_sent_s:  # a newer status was accepted
             after = -np.inf if guard.last_sent_s is None else guard.last_sent_s
             rows = _sample_rows(received, self.n, after=after, upto=new.last_sent_s)
-        if new.tripped is not None and self.resume:  # unarmed: the next status starts afresh, no second event
-            new = Freshness(new.limit_s, payload=new.payload, ignored=new.ignored, events=new.events)
+        if new.tripped is not None and self.resume:
+            new, rows = self._resumed(new, guard, status, received, now_s=t)
         state.get_mutable_abstract_state(int(self._memo)).set_value((new, rows))
         return EventStatus.Succeeded()
+
+    def _resumed(self, tripped: Freshness, before: Freshness, status: Status | None, received: list, *, now_s: float):
+        """(guard, rows) after a trip when resuming: this step's newest status accepted as a new start
+        (the trip stays an event; the statuses are the arm's samples all the same: none is lost)."""
+        fresh = Freshness(tripped.limit_s, payload=tripped.payload, ignored=tripped.ignored, events=tripped.events)
+        if status is None:
+            return fresh, ()
+        after = -np.inf if before.last_sent_s is None else before.last_sent_s
+        rows = _sample_rows(received, self.n, after=after, upto=status.t_s)
+        return replace(
+            fresh, last_sent_s=status.t_s, last_seen_s=status.t_s, last_arrival_s=now_s, payload=status
+        ), rows
 
     def _status(self, context) -> Status:
         return self.guard(context).payload

@@ -5,7 +5,8 @@ the first one, planned from rest before the clock starts, and then each wall-clo
 call's plan the moment its worker returns it, ahead of its start t_k (the arm refuses a plan that
 arrives after its start: plan_follower.py). A call not back by t_k is the run's missed deadline,
 as in the other placement, and nothing is sent for it. Each plan is sent again every period
-until it starts (LCM is best effort; the arm ignores the repeats).
+until it starts on the arm's clock (LCM is best effort: a single message was seen lost; the arm
+ignores the repeats).
 
 The run's clock and the arm's: a plan starting at t on the run's clock starts at t + offset on the
 arm's, offset = (the arm's time of the newest status when the run's clock starts) + arm.plan_lead_ms
@@ -59,8 +60,8 @@ class PlanSender(LeafSystem):
         pending = self.planner.pending
         if pending is not None and pending[0].done() and pending[1] > t:
             self._add_returned(pending, t)
-        for start in [s for s in self.sent if s < t - SEND_PERIOD_S]:
-            del self.sent[start]  # started: no more repeats
+        for start in [s for s in self.sent if s + self.lead_s < t]:
+            del self.sent[start]  # started on the arm's clock: no more repeats
         for data in self.sent.values():
             self.lcm.Publish(self.channel, data)
         return EventStatus.Succeeded()
@@ -77,7 +78,7 @@ class PlanSender(LeafSystem):
             self._add(t_start, res, thetas, t)
 
     def _add(self, t_start: float, res, thetas, t: float) -> None:
-        if t_start in self.sent or t_start < t - SEND_PERIOD_S:
+        if t_start in self.sent or t_start + self.lead_s < t:  # sent, or started on the arm's clock
             return
         piece = Piece(t_start + self.offset_s, res.trajectory, np.asarray(res.q_end, float))
         plan = Plan(piece, tuple(np.asarray(x, float) for x in thetas))

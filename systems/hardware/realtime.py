@@ -35,16 +35,15 @@ def _threads() -> list[int]:
 
 
 def lower_realtime(nice: int) -> None:
-    """A forked worker of a SCHED_FIFO loop: back to normal scheduling at `nice`, so the loops
-    preempt it. Not real-time itself: the kernel caps real-time tasks at sched_rt_runtime_us (95 %)
+    """A forked worker of a SCHED_FIFO loop (or of one about to be): normal scheduling at `nice`,
+    so the loops preempt it. Not real-time itself: the kernel caps real-time tasks at sched_rt_runtime_us (95 %)
     of each second, and a CPU-bound real-time worker used it up and stalled the loops for tens of
     ms (RT throttling, measured: docs/hardware.md). In a session (autogroup) of its own with the
     same nice: the kernel shares the CPU between autogroups first, so a nice within the run's
     group alone left it 10 % of a core beside four other users' sessions."""
     try:
-        if os.sched_getscheduler(0) != os.SCHED_FIFO:
-            return
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        if os.sched_getscheduler(0) == os.SCHED_FIFO:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
         os.setpriority(os.PRIO_PROCESS, 0, nice)
         os.setsid()
         with open("/proc/self/autogroup", "w") as autogroup:
