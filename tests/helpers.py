@@ -150,6 +150,7 @@ def held_torque(robot, motion, t, theta, *, h):
 
 def start_arm_sim(tmp_path, scenario, scenario_text, *, duration_s):
     """`safesysid arm-sim` in a process of its own (normal priority), once it answers: (process, out dir)."""
+    import os
     import subprocess
     import sys
     import time
@@ -160,6 +161,7 @@ def start_arm_sim(tmp_path, scenario, scenario_text, *, duration_s):
         [sys.executable, "-m", "safesysid.cli", *args, "--scenario-text", scenario_text],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
+        env=dict(os.environ, PYTHONFAULTHANDLER="1"),  # a crash prints its stack into the output
     )
     deadline = time.monotonic() + 120
     while not (out / "ready").exists():

@@ -187,7 +187,11 @@ def _start_arm_sim(tmp_path, command, status, duration_s, extra=""):
 
 def _finish(proc, out):
     proc.wait(timeout=180)
-    return json.loads((out / "arm_summary.json").read_text())
+    summary = out / "arm_summary.json"
+    assert summary.exists(), (
+        f"arm-sim exited {proc.returncode} without its summary:\n{proc.stdout.read().decode()[-3000:]}"
+    )
+    return json.loads(summary.read_text())
 
 
 class _Link:
