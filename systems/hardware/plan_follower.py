@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import BasicVector, Context, EventStatus, LeafSystem
-from safesysid.systems.planner.trajectory_source import at_rest, evaluate_pieces
+from safesysid.systems.planner.trajectory_source import at_rest
 
 from .freshness import Freshness
 from .lcm_systems import LatestMessage
@@ -106,21 +106,19 @@ class PlanFollower(LeafSystem):
         started = [k for k, p in enumerate(plans) if p.piece.t_start <= t]
         return plans[started[-1] :] if started else plans
 
-    def _evaluate(self, plans: tuple[Plan, ...], t: float):
-        executing = [p for p in plans if p.piece.t_start <= t]
-        if not executing:
-            return at_rest(self.q_start)
-        return evaluate_pieces([executing[-1].piece], t)
+    @staticmethod
+    def _executing(plans: tuple[Plan, ...], t: float) -> Plan | None:
+        started = [p for p in plans if p.piece.t_start <= t]
+        return started[-1] if started else None
 
-    def _executing(self, context) -> Plan | None:
-        t = context.get_time()
-        executing = [p for p in self.following(context).plans if p.piece.t_start <= t]
-        return executing[-1] if executing else None
+    def _evaluate(self, plans: tuple[Plan, ...], t: float):
+        """(q, v, a) at t: the executing plan's (at rest at its end), or the start pose before any."""
+        plan = self._executing(plans, t)
+        return at_rest(self.q_start) if plan is None else plan.piece.evaluate(t)
 
     def _desired(self, context, output):
-        plans, t = self.following(context).plans, context.get_time()
-        output.SetFromVector(np.concatenate(self._evaluate(plans, t)))
+        output.SetFromVector(np.concatenate(self._evaluate(self.following(context).plans, context.get_time())))
 
     def _thetas(self, context):
-        plan = self._executing(context)
+        plan = self._executing(self.following(context).plans, context.get_time())
         return self.prior if plan is None else plan.thetas
