@@ -2,11 +2,13 @@
 
 On an "open" command (drake.lcmt_schunk_wsg_command, arm.gripper_command_channel) the payload is
 released where it is (RealArm.release, as the simulated-clock task phase does) unless the arm's
-driver holds: a braked arm (watchdog, hold request) or one never commanded drops nothing, and the
-refusal is an event. The gripper's status (lcmt_schunk_wsg_status) goes out between the arm's
-chunks, stamped with the arm's clock. The referee measures the released payload's centre
-task.settle_time_s after the release (or at release, for a place_xyz_m target) against the task's
-target: the criterion of app/task_run.py's placement.
+driver refuses (`release_refusal`): a braked arm (watchdog, hold request) or one never commanded
+drops nothing, nor, with the controller beside the arm, one not at rest at the end of the task
+trajectory (systems/hardware/plan_follower.py); the refusal is an event. The gripper's status
+(lcmt_schunk_wsg_status) goes out between the arm's chunks, stamped with the arm's clock. The
+referee measures the released payload's centre task.settle_time_s after the release (or at
+release, for a place_xyz_m target) against the task's target: the criterion of
+app/task_run.py's placement.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ class ArmGripper:
         self.release_xyz: np.ndarray | None = None
         self.measured: tuple[float, np.ndarray] | None = None  # (arm time, payload centre)
         self.events: list[dict] = []
+        self.refusals: set[str] = set()
 
     def step(self, ctx: Context) -> None:
         """Between the arm's chunks: act on an open command, measure a settled payload, report."""
@@ -47,13 +50,17 @@ class ArmGripper:
         self.server.publish(t)
 
     def _open(self, ctx: Context, t: float) -> None:
-        guard = self.driver.guard(self.driver.GetMyContextFromRoot(ctx))
-        if guard.tripped is not None or not guard.armed or self.arm.released_body is None:
-            if not self.events:  # once: the run repeats its request
-                why = "the arm holds" if guard.tripped is not None or not guard.armed else "nothing to release"
+        driver_ctx = self.driver.GetMyContextFromRoot(ctx)
+        why = self.driver.release_refusal(driver_ctx)
+        if why is None and self.arm.released_body is None:
+            why = "nothing to release"
+        if why is not None:
+            if why not in self.refusals:  # once per reason: the run repeats its request
+                self.refusals.add(why)
                 self.events.append(dict(t=t, kind="release_refused", detail=f"open requested while {why}"))
             return
         self.release_xyz = self.arm.release(ctx).translation()
+        self.driver.payload_released(self.driver.GetMyMutableContextFromRoot(ctx))
         self.t_release, self.server.is_open = t, True
         where = np.round(self.release_xyz, 4).tolist()
         self.events.append(dict(t=t, kind="release", detail=f"gripper opened: payload released at {where} m"))

@@ -76,17 +76,20 @@ def build_arm_side(scenario: Scenario, seed: int | None = None) -> tuple:
 
 def _add_controller_beside_the_arm(builder, arm: RealArm, scenario: Scenario, *, lcm) -> tuple:
     """`arm.control_loop: arm`: the run's robust controller (the scenario's method's, on the same
-    model and gains) here, on the plans of arm.plan_channel (PlanFollower), and the status out.
+    model and gains) here, on the plans of arm.plan_channel (PlanFollower: the task's curves too,
+    the bare end effector's parameters from the payload's release on), and the status out.
     Returns (the follower, the controller's torque port: u before saturation, the referee's)."""
     from safesysid.closed_loop import add_controller
     from safesysid.online import prior
     from safesysid.online_diagram import THETA_NAMES
     from safesysid.systems import methods
     from safesysid.systems.hardware.lcm_arm import add_lcm_interface, add_plan_follower, add_status_publisher
+    from safesysid.task_run import released_parameters
 
     add_lcm_interface(builder, lcm)
     theta0, box = prior(arm.robot, scenario, scenario.method)
-    follower = add_plan_follower(builder, scenario, n=arm.robot.n, prior=(theta0, box.lo, box.hi))
+    released = released_parameters(arm.robot, scenario, scenario.method) if arm.released_body is not None else None
+    follower = add_plan_follower(builder, scenario, n=arm.robot.n, prior=(theta0, box.lo, box.hi), released=released)
     kind = methods.method_spec(scenario.method).first_controller
     controller, _ = add_controller(builder, arm, scenario, kind=kind)
     builder.Connect(follower.GetOutputPort("desired"), controller.GetInputPort("desired"))

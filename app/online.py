@@ -317,15 +317,20 @@ def _connect_controllers(builder, built: OnlineDiagram, scenario: Scenario, spec
     return built.controller.GetOutputPort("torque")
 
 
-def _send_plans(builder, built: OnlineDiagram, scenario: Scenario) -> None:
+def _send_plans(builder, built: OnlineDiagram, scenario: Scenario, *, switches: bool) -> None:
     """`arm.control_loop: arm`: the controller runs beside the arm on the plans sent to it; here
     nothing evaluates it (no command, no command logger). Returns the command port: None."""
     from safesysid.systems.hardware.lcm_arm import add_plan_sender
 
     if built.planner is None:
         raise ScenarioError("arm.control_loop: arm needs a method that plans (ours, random): plans are what crosses")
+    if switches:
+        raise ScenarioError("arm.control_loop: arm runs one controller: not a method that switches it for the task")
     plans = built.planner.GetOutputPort("plan")
-    built.arm.plan_sender = add_plan_sender(builder, scenario, built.planner, plans, lcm=built.arm.lcm)
+    sender = add_plan_sender(builder, scenario, built.planner, plans, lcm=built.arm.lcm)
+    if built.source is not None:  # the task's curves cross as plans too
+        builder.Connect(built.source.GetOutputPort("phase_state"), sender.task)
+    built.arm.plan_sender = sender
 
 
 def _add_loggers(builder, built: OnlineDiagram, *, command, desired, h: float) -> dict[str, VectorLogSink]:
@@ -396,7 +401,7 @@ def build_online(
         )
     command = _connect_controllers(builder, built, scenario, spec, desired=desired, thetas=thetas, switches=switches)
     if beside_arm:
-        command = _send_plans(builder, built, scenario)
+        command = _send_plans(builder, built, scenario, switches=switches)
     built.monitor = None if over_lcm else _add_monitor(builder, arm, robot, command)
     built.loggers = _add_loggers(builder, built, command=command, desired=desired, h=config.loop_step_s(scenario))
     if meshcat is not None and over_lcm:  # the live arm from the received status (app/lcm_view.py)

@@ -3,8 +3,9 @@
 The same diagram as the simulated-clock run (app/online.py build_online) with the station
 swapped for LCM interface systems (systems/hardware/lcm_arm.py), the planner and estimator
 calls in a worker process (systems/hardware/background.py), paced by the Simulator at real time.
-The 1 kHz loop (controller, status in, command out) stays in this process (docs/hardware.md
-says why). With a task, the task phase follows (app/task_lcm.py): the payload's release is a
+The 1 kHz loop (controller, status in, command out) stays in this process, or, with
+arm.control_loop arm, runs beside the arm on the plans sent to it (docs/hardware.md compares the
+two). With a task, the task phase follows (app/task_lcm.py): the payload's release is a
 gripper message the arm side applies. The referee is the arm's (`safesysid arm-sim`'s
 arm_summary.json); lcm_run.json says what the run saw and how well it kept time.
 """

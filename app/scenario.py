@@ -227,11 +227,6 @@ def _validate_arm_and_payload(s: Scenario, need):
         "arm.run_step_ms",
         "must be a multiple of plant.time_step_s that divides planner.replan_period_s",
     )
-    need(
-        s.arm.control_loop == "run" or not task_enabled(s),
-        "arm.control_loop",
-        "arm (the controller beside the arm) runs the identification phase only: no task section",
-    )
     if s.payload.dumbbell.lower() != "none":
         from safesysid.systems.model.payload import load_dumbbells
 

@@ -3,7 +3,10 @@ trajectory as in the simulated clock (app/task_run.py's TaskPhaseSource, its cer
 refusal), the task made in the worker while the loop holds the arm (systems/hardware/
 task_source.py), then the payload's release as a gripper "open" over LCM
 (systems/hardware/gripper.py) and the settling. The placement is judged by the arm's referee
-(`safesysid arm-sim`'s arm_summary.json), which alone sees the payload.
+(`safesysid arm-sim`'s arm_summary.json), which alone sees the payload. With the controller
+beside the arm (arm.control_loop arm) the task's curves cross as plans (systems/hardware/
+plan_sender.py), the open request waits until they end on the arm's clock, and the arm switches
+its controller to the bare end effector at the release (systems/hardware/plan_follower.py).
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ if TYPE_CHECKING:
     from safesysid.systems.config import Scenario
 
 WAIT_CHUNK_S = 0.01  # the run advances this much between looks at the worker and the gripper
+RELEASE_MARGIN_S = 0.05  # controller beside the arm: asking to open this long after the arm's end
 
 
 class _Clock:
@@ -65,7 +69,7 @@ def run_task_lcm(
         clock.to(clock.now() + WAIT_CHUNK_S)
     st = source.phase_state(source.GetMyContextFromRoot(ctx))
     certificate = task_certificate_summary(st, None, arm.robot)  # the truth is the arm's
-    clock.to(max(st.t_end, clock.now()))
+    clock.to(max(st.t_end + _arm_lead_s(arm), clock.now()))
     t_release, events, hold = clock.now(), [], False
     if st.ready:
         hold, events = _release(built, clock, scenario, gripper=gripper, method=method)
@@ -74,6 +78,13 @@ def run_task_lcm(
     return _summary(built, ctx, scenario, st=st, certificate=certificate, times=(t_release, end), events=events) | {
         "hold": hold
     }, clock.timing()
+
+
+def _arm_lead_s(arm) -> float:
+    """How much later the task trajectory ends on the arm's side than on the run's: with the
+    controller beside the arm, the plans' lead (plan_sender.py) and a margin (the gripper opens
+    only at rest at the trajectory's end: plan_follower.py); 0 when this run's controller drives."""
+    return 0.0 if arm.plan_sender is None else arm.plan_sender.lead_s + RELEASE_MARGIN_S
 
 
 def _release(built, clock: _Clock, scenario: Scenario, *, gripper, method: str) -> tuple[bool, list[dict]]:

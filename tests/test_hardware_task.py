@@ -37,6 +37,9 @@ class _Ramp:
         t = np.asarray(ts, float)[:, None]
         return 1.0 + 0.1 * t * np.ones(7), 0.1 * np.ones((len(t), 7)), np.zeros((len(t), 7))
 
+    def evaluate_at(self, t):
+        return tuple(x[0] for x in self.evaluate([t]))
+
 
 class _Worker:
     """A worker whose jobs finish when the test says so."""
@@ -223,3 +226,33 @@ def test_meshcat_shows_the_arm_at_the_received_positions():
         expected = payload.EvalPoseInWorld(plant_context).translation()
         shown = _translation(meshcat._GetPackedTransform(body_path("payload::payload")))
         np.testing.assert_allclose(shown, expected, atol=1e-9)
+
+
+def test_with_the_controller_beside_the_arm_the_task_crosses_as_plans_and_the_payload_is_placed(multicast, tmp_path):
+    """arm.control_loop: arm, experiment_a whole: the identification's plans and then the task's
+    curves cross to the arm, which runs the controller on them, opens the gripper at rest at the
+    task's end (no refusal) and switches to the bare end effector; its referee judges the run safe
+    and the payload placed, and the run's interval holds the arm's true payload."""
+    channels = _channels()
+    beside = f"{LENIENT}, control_loop: arm, plan_channel: TT_PLAN_{channels['status_channel'][-8:]}"
+    proc, out = start_arm_sim(tmp_path, SCENARIO, _arm_text(channels, beside), duration_s=400)
+    run_out = tmp_path / "run"
+    args = ["run", str(SCENARIO), "--arm", "lcm", "--no-fifo", "--out", str(run_out)]
+    done = subprocess.run(
+        [sys.executable, "-m", "safesysid.cli", *args, "--scenario-text", _arm_text(channels, beside)],
+        capture_output=True,
+        text=True,
+        env=dict(os.environ),
+        timeout=300,
+    )
+    arm = _stop(proc, out)
+    assert done.returncode == 0, done.stdout + done.stderr
+    run = json.loads((run_out / "lcm_run.json").read_text())
+    assert run["task"]["executed"] and not run["task"]["hold"], run["events"]
+    assert arm["safe"], arm["referee"]
+    assert arm["success"], arm["placement"]  # placed within task.placement_tolerance_m, by the arm's referee
+    assert [e["kind"] for e in arm["gripper"]["events"]] == ["release"], arm["gripper"]
+    assert [e["kind"] for e in arm["driver"]["events"]] == ["released_parameters"], arm["driver"]
+    assert arm["plans"]["taken"] >= 3 and arm["plans"]["refused"] == 0, arm["plans"]  # the task's two curves too
+    truth = np.array(arm["payload_true"]["theta"])
+    assert np.all(np.array(run["estimate"]["lower"]) <= truth) and np.all(truth <= np.array(run["estimate"]["upper"]))

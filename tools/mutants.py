@@ -560,6 +560,47 @@ MUTANTS = [
         "-k",
         "only_new_early_and_continuous",
     ),
+    # -- the task beside the arm: the release at rest at the task's end, then the bare end effector (rows 48-51)
+    m(
+        "the gripper may open before the arm has reached the end of the task trajectory",
+        "systems/hardware/plan_follower.py",
+        "PlanFollower.release_refusal",
+        "        if context.get_time() < plan.piece.t_end:",
+        "        if False:",
+        "tests/test_plan_link.py",
+        "-k",
+        "lets_the_payload_go_only_at_its_end",
+    ),
+    m(
+        "the controller keeps the payload's parameters after the release",
+        "systems/hardware/plan_follower.py",
+        "PlanFollower._thetas",
+        "        if st.released and self.released is not None:",
+        "        if False:",
+        "tests/test_plan_link.py",
+        "-k",
+        "lets_the_payload_go_only_at_its_end",
+    ),
+    m(
+        "the arm takes a task curve that is not at rest at its end",
+        "systems/hardware/plan_message.py",
+        "_parse_task_curve",
+        "    if max(np.abs(v).max(), np.abs(a).max()) > REST_TOLERANCE:",
+        "    if False:",
+        "tests/test_plan_link.py",
+        "-k",
+        "not_at_rest_at_its_end",
+    ),
+    m(
+        "every task curve is marked as the release plan (the payload could go at the return move's end)",
+        "systems/hardware/plan_sender.py",
+        "PlanSender._add_task",
+        "            self._queue(timed.t_start, Plan(piece, st.thetas, release=k == len(st.curves) - 1), t)",
+        "            self._queue(timed.t_start, Plan(piece, st.thetas, release=True), t)",
+        "tests/test_plan_link.py",
+        "-k",
+        "last_one_marked_release",
+    ),
 ]
 
 

@@ -161,9 +161,12 @@ def add_arm_driver(builder: DiagramBuilder, arm: RealArm, scenario: Scenario, *,
     return driver
 
 
-def add_plan_follower(builder: DiagramBuilder, scenario: Scenario, *, n: int, prior: tuple) -> PlanFollower:
+def add_plan_follower(
+    builder: DiagramBuilder, scenario: Scenario, *, n: int, prior: tuple, released: tuple | None = None
+) -> PlanFollower:
     """The arm side of `arm.control_loop: arm`: the plans of arm.plan_channel, evaluated at the
-    arm's clock, for a controller beside the arm (its desired and parameter inputs)."""
+    arm's clock, for a controller beside the arm (its desired and parameter inputs; `released`:
+    its parameters once the payload is let go)."""
     from drake import lcmt_drake_signal
 
     from .plan_follower import PlanFollower
@@ -171,7 +174,12 @@ def add_plan_follower(builder: DiagramBuilder, scenario: Scenario, *, n: int, pr
     cfg = scenario.arm
     plans = LatestMessage(QueuedLcm(cfg.lcm_url), cfg.plan_channel, lcmt_drake_signal, backlog=64)
     follower = PlanFollower(
-        n, plans, time_step_s=scenario.plant.time_step_s, q_start=np.asarray(scenario.q0_rad, float), prior=prior
+        n,
+        plans,
+        time_step_s=scenario.plant.time_step_s,
+        q_start=np.asarray(scenario.q0_rad, float),
+        prior=prior,
+        released=released,
     )
     follower.set_name("plan_follower")
     return builder.AddSystem(follower)

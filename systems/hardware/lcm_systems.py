@@ -86,6 +86,14 @@ class ArmDriver(LeafSystem):
     def guard(self, context: Context) -> Freshness:
         return context.get_abstract_state(int(self._memo)).get_value()[0]
 
+    def release_refusal(self, context: Context) -> str | None:
+        """Why the gripper must not open now (None: the run's commands drive the arm)."""
+        guard = self.guard(context)
+        return "the arm holds" if guard.tripped is not None or not guard.armed else None
+
+    def payload_released(self, context: Context) -> None:
+        """Nothing here: the run switches its controller on the gripper's status (app/task_lcm.py)."""
+
     def _tick(self, context, state):
         guard, q_hold = context.get_abstract_state(int(self._memo)).get_value()
         t = context.get_time()

@@ -11,6 +11,12 @@ The follower accepts a plan only when it is
 a plan that is not is refused with an event, and the arm finishes the executing plan, which
 brakes to rest (its built-in brake) and holds there: the missed deadline of Algorithm 2. Before
 the first plan the arm holds its start pose with the prior parameters, as the run's controller does.
+
+The task phase crosses the same way (its curves are plans, the last one marked `release`). The
+gripper may let the payload go only when the arm rests at the end of such a plan
+(`release_refusal`: anywhere else the payload would land where nobody planned it), and from the
+release on the controller runs with the bare end effector's parameters (`payload_released`): the
+arm switches at the instant the payload leaves, which the run only learns from the gripper's status.
 """
 
 from __future__ import annotations
@@ -35,6 +41,7 @@ class Following:
     refused: frozenset = frozenset()  # start times refused (their repeats are ignored)
     margins_s: tuple[float, ...] = ()  # per accepted plan: its start minus its arrival [s]
     last_start_s: float | None = None  # the start of the last accepted plan
+    released: bool = False  # the payload was let go: the bare end effector's parameters from here
     events: tuple[dict, ...] = ()
 
     def __deepcopy__(self, memo: dict) -> Following:
@@ -43,13 +50,24 @@ class Following:
 
 class PlanFollower(LeafSystem):
     """Plans (lcmt_drake_signal) -> desired [q, v, a] (3 n) and (θ0, lower, upper) of the plan
-    executing at the arm's clock; before any plan, rest at q_start with `prior`."""
+    executing at the arm's clock; before any plan, rest at q_start with `prior`; after the payload's
+    release, `released` (the bare end effector's (θ0, lower, upper))."""
 
-    def __init__(self, n: int, plans: LatestMessage, *, time_step_s: float, q_start: np.ndarray, prior: tuple) -> None:
+    def __init__(
+        self,
+        n: int,
+        plans: LatestMessage,
+        *,
+        time_step_s: float,
+        q_start: np.ndarray,
+        prior: tuple,
+        released: tuple | None = None,
+    ) -> None:
         super().__init__()
         self.n, self.plans = n, plans
         self.q_start = np.asarray(q_start, float)
         self.prior = tuple(np.asarray(x, float) for x in prior)
+        self.released = None if released is None else tuple(np.asarray(x, float) for x in released)
         self._memo = self.DeclareAbstractState(AbstractValue.Make(Following()))
         self.DeclarePeriodicUnrestrictedUpdateEvent(time_step_s, 0.0, self._tick)
         deps = {self.abstract_state_ticket(self._memo), self.time_ticket()}
@@ -69,6 +87,22 @@ class PlanFollower(LeafSystem):
         st = self.following(context)
         return Freshness(np.inf, last_sent_s=st.last_start_s, ignored=len(st.refused), events=st.events)
 
+    def release_refusal(self, context: Context) -> str | None:
+        """Why the gripper must not open now (None: the arm rests at the end of a release plan)."""
+        plan = self._executing(self.following(context).plans, context.get_time())
+        if plan is None or not plan.release:
+            return "the arm is not on the task trajectory's last plan"
+        if context.get_time() < plan.piece.t_end:
+            return "the arm has not reached the end of the task trajectory"
+        return None
+
+    def payload_released(self, context: Context) -> None:
+        """The gripper let the payload go: the controller gets the bare end effector's parameters."""
+        st = self.following(context)
+        event = dict(t=context.get_time(), kind="released_parameters", detail="controller: bare end effector")
+        new = replace(st, released=True, events=st.events + (event,))
+        context.get_mutable_abstract_state(int(self._memo)).set_value(new)
+
     def _tick(self, context, state):
         st, t = self.following(context), context.get_time()
         self.plans.receive()
@@ -87,9 +121,9 @@ class PlanFollower(LeafSystem):
             return st
         if start <= t:
             return self._refuse(st, t, start, "plan_late", f"the plan starting at {start:.3f} s arrived at {t:.3f} s")
-        curve, expected = plan.piece.curve, self._evaluate(st.plans, start)
+        expected = self._evaluate(st.plans, start)
         if not all(
-            np.allclose(a, b, rtol=0, atol=START_TOLERANCE) for a, b in zip((curve.q0, curve.v0, curve.a0), expected)
+            np.allclose(a, b, rtol=0, atol=START_TOLERANCE) for a, b in zip(plan.piece.evaluate(start), expected)
         ):
             detail = f"the plan starting at {start:.3f} s does not start where the executing trajectory is then"
             return self._refuse(st, t, start, "plan_discontinuous", detail)
@@ -120,5 +154,8 @@ class PlanFollower(LeafSystem):
         output.SetFromVector(np.concatenate(self._evaluate(self.following(context).plans, context.get_time())))
 
     def _thetas(self, context):
-        plan = self._executing(self.following(context).plans, context.get_time())
+        st = self.following(context)
+        if st.released and self.released is not None:
+            return self.released
+        plan = self._executing(st.plans, context.get_time())
         return self.prior if plan is None else plan.thetas

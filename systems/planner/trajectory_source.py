@@ -143,6 +143,10 @@ class TimedCurve:
     def t_end(self) -> float:
         return self.t_start + self.curve.duration
 
+    def evaluate(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(q, qd, qdd) at absolute time t (at rest at its ends outside the curve)."""
+        return self.curve.evaluate_at(t - self.t_start)
+
 
 def evaluate_timed(
     curves: Iterable[TimedCurve], t: float, q_rest: ArrayLike
@@ -153,10 +157,7 @@ def evaluate_timed(
     for c in curves:
         if c.t_start <= t + 1e-12:
             active = c
-    if active is None:
-        return at_rest(q_rest)
-    q, v, a = active.curve.evaluate([t - active.t_start], orders=2)
-    return q[0], v[0], a[0]
+    return at_rest(q_rest) if active is None else active.evaluate(t)
 
 
 @dataclass(frozen=True)
@@ -195,7 +196,7 @@ class TaskPhaseSource(LeafSystem):
     (curves [rest-to-rest, played one after the other], events [{kind, detail}], report {});
     no curves: the arm holds.
     Outputs: desired (3n), theta0, theta_lower, theta_upper (p), phase (1: 0 identification,
-    1 task). `set_thetas` replaces the task parameters (the payload's release).
+    1 task), phase_state (PhaseState). `set_thetas` replaces the task parameters (the payload's release).
     """
 
     def __init__(self, n, num_params, q0, *, switch_time_s, make_task):
@@ -223,6 +224,12 @@ class TaskPhaseSource(LeafSystem):
             "phase",
             BasicVector(1),
             lambda c, out: out.SetFromVector([float(self.phase_state(c).phase == "task")]),
+            prerequisites_of_calc={self.abstract_state_ticket(self._state)},
+        )
+        self.DeclareAbstractOutputPort(  # the task's curves, for a controller beside the arm (plan_sender.py)
+            "phase_state",
+            lambda: AbstractValue.Make(PhaseState()),
+            lambda c, out: out.set_value(self.phase_state(c)),
             prerequisites_of_calc={self.abstract_state_ticket(self._state)},
         )
         self.DeclareInitializationUnrestrictedUpdateEvent(self._on_init)
