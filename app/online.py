@@ -323,9 +323,15 @@ def _send_plans(builder, built: OnlineDiagram, scenario: Scenario, *, switches: 
     from safesysid.systems.hardware.lcm_arm import add_plan_sender
 
     if built.planner is None:
-        raise ScenarioError("arm.control_loop: arm needs a method that plans (ours, random): plans are what crosses")
+        raise ScenarioError(
+            "arm.control_loop: arm needs a method that plans (ours, random): plans are what crosses "
+            "(arm.control_loop: run drives the arm with torques)"
+        )
     if switches:
-        raise ScenarioError("arm.control_loop: arm runs one controller: not a method that switches it for the task")
+        raise ScenarioError(
+            "arm.control_loop: arm runs one controller, not a method that switches it for the task "
+            "(arm.control_loop: run drives the arm with torques)"
+        )
     plans = built.planner.GetOutputPort("plan")
     sender = add_plan_sender(builder, scenario, built.planner, plans, lcm=built.arm.lcm)
     if built.source is not None:  # the task's curves cross as plans too

@@ -5,8 +5,10 @@ task_source.py), then the payload's release as a gripper "open" over LCM
 (systems/hardware/gripper.py) and the settling. The placement is judged by the arm's referee
 (`safesysid arm-sim`'s arm_summary.json), which alone sees the payload. With the controller
 beside the arm (arm.control_loop arm) the task's curves cross as plans (systems/hardware/
-plan_sender.py), the open request waits until they end on the arm's clock, and the arm switches
-its controller to the bare end effector at the release (systems/hardware/plan_follower.py).
+plan_sender.py), the open request waits until they end on the arm's clock (its status), the
+run ends once the arm's clock is past the referee's measurement of the settled payload, and the
+arm switches its controller to the bare end effector at the release
+(systems/hardware/plan_follower.py).
 """
 
 from __future__ import annotations
@@ -22,7 +24,8 @@ if TYPE_CHECKING:
     from safesysid.systems.config import Scenario
 
 WAIT_CHUNK_S = 0.01  # the run advances this much between looks at the worker and the gripper
-RELEASE_MARGIN_S = 0.05  # controller beside the arm: asking to open this long after the arm's end
+ARM_WAIT_S = 30.0  # controller beside the arm: the longest wait for the arm's clock (_wait_for_the_arm)
+SETTLED_MARGIN_S = 0.05  # and past the referee's measurement of the settled payload (its 10 ms chunks)
 
 
 class _Clock:
@@ -69,22 +72,42 @@ def run_task_lcm(
         clock.to(clock.now() + WAIT_CHUNK_S)
     st = source.phase_state(source.GetMyContextFromRoot(ctx))
     certificate = task_certificate_summary(st, None, arm.robot)  # the truth is the arm's
-    clock.to(max(st.t_end + _arm_lead_s(arm), clock.now()))
+    clock.to(max(st.t_end, clock.now()))
+    _wait_for_the_arm(clock, arm, _on_arm_clock(arm, st.t_end))
     t_release, events, hold = clock.now(), [], False
     if st.ready:
         hold, events = _release(built, clock, scenario, gripper=gripper, method=method)
-    end = clock.now() if hold else clock.now() + scenario.task.settle_time_s
-    clock.to(end)
+    if not hold:
+        clock.to(clock.now() + scenario.task.settle_time_s)
+    if st.ready and not hold and arm.plan_sender is not None:  # until the arm's referee measured the payload
+        opened_s = gripper.statuses.message().utime * 1e-6  # the arm's clock (app/arm_gripper.py)
+        _wait_for_the_arm(clock, arm, opened_s + scenario.task.settle_time_s + SETTLED_MARGIN_S)
+    end = clock.now()
     return _summary(built, ctx, scenario, st=st, certificate=certificate, times=(t_release, end), events=events) | {
         "hold": hold
     }, clock.timing()
 
 
-def _arm_lead_s(arm) -> float:
-    """How much later the task trajectory ends on the arm's side than on the run's: with the
-    controller beside the arm, the plans' lead (plan_sender.py) and a margin (the gripper opens
-    only at rest at the trajectory's end: plan_follower.py); 0 when this run's controller drives."""
-    return 0.0 if arm.plan_sender is None else arm.plan_sender.lead_s + RELEASE_MARGIN_S
+def _on_arm_clock(arm, run_time_s: float) -> float | None:
+    """The arm's time of run_time_s with the controller beside the arm (plan_sender.py's offset:
+    the plans' start times there); None when this run's controller drives the arm."""
+    return None if arm.plan_sender is None else run_time_s + arm.plan_sender.offset_s
+
+
+def _wait_for_the_arm(clock: _Clock, arm, arm_time_s: float | None) -> None:
+    """Advance until the arm's newest status is of arm_time_s on its own clock, at most
+    ARM_WAIT_S. The arm's clock is the one that counts with the controller beside the arm (the
+    gripper opens only at rest at the task's end, the referee measures the settled payload on
+    it); a simulated arm falls behind real time when starved of CPU (seconds, measured under a
+    loaded test suite), a real one does not. arm_time_s None: nothing to wait for."""
+    from safesysid.systems.hardware.messages import parse_status
+
+    deadline = clock.now() + ARM_WAIT_S
+    while arm_time_s is not None and clock.now() < deadline:
+        status = parse_status(arm.statuses.message(), arm.robot.n)
+        if status is not None and status.t_s >= arm_time_s:
+            return
+        clock.to(clock.now() + WAIT_CHUNK_S)
 
 
 def _release(built, clock: _Clock, scenario: Scenario, *, gripper, method: str) -> tuple[bool, list[dict]]:

@@ -1,6 +1,6 @@
 """The 1 kHz loop across the process boundary, measured at the arm side (docs/hardware.md).
 
-`python -m safesysid.benchmarks.lcm_loop [--seconds 60] [--control-loop run|arm] [--no-fifo] [--out DIR]`:
+`python -m safesysid.benchmarks.lcm_loop [--seconds 60] [--control-loop arm|run] [--no-fifo] [--out DIR]`:
 starts `safesysid arm-sim` and `safesysid run --arm lcm` on quickstart with enough plans for the
 identification phase to last --seconds (the planner busy all along), and observes, in this process
 beside the arm, the arrival time of every command (the controller in the run: the torque the arm
@@ -58,7 +58,7 @@ def _observe(arrivals: dict[str, list], url: str, stop: threading.Event) -> None
         lcm.HandleSubscriptions(50)
 
 
-def measure(seconds: float, out: Path, *, fifo: bool = True, control_loop: str = "run") -> dict:
+def measure(seconds: float, out: Path, *, fifo: bool = True, control_loop: str = "arm") -> dict:
     from safesysid.systems.config import Arm
 
     tag = uuid.uuid4().hex[:8]
@@ -116,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--no-fifo", action="store_true")
-    parser.add_argument("--control-loop", choices=("run", "arm"), default="run", help="where the controller runs")
+    parser.add_argument("--control-loop", choices=("arm", "run"), default="arm", help="where the controller runs")
     parser.add_argument("--out", default="out/lcm_loop")
     args = parser.parse_args(argv)
     out = Path(args.out)

@@ -425,9 +425,10 @@ class Arm:
     gripper_command_channel: str = "SAFESYSID_GRIPPER_COMMAND"
     gripper_status_channel: str = "SAFESYSID_GRIPPER_STATUS"
     gripper_timeout_ms: float = 500.0  # no "open" status this long after asking: the run holds the arm
-    # Where the 1 kHz robust controller runs: in the run (torques cross at 1 kHz on command_channel)
-    # or beside the arm (`arm-sim` runs it; each certified plan crosses once on plan_channel).
-    control_loop: str = one_of("run", "arm")
+    # Where the 1 kHz robust controller runs: beside the arm (`arm-sim` runs it; each certified
+    # plan crosses once on plan_channel) or in the run (torques cross at 1 kHz on command_channel:
+    # an arm driver that takes torques, e.g. drake-franka-driver).
+    control_loop: str = one_of("arm", "run")
     plan_channel: str = "SAFESYSID_ARM_PLAN"  # run -> arm, control_loop arm: lcmt_drake_signal plans
     # control_loop arm: the run's clock starts this far ahead on the arm's (the first plan's transit)
     plan_lead_ms: float = 200.0

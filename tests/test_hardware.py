@@ -177,12 +177,14 @@ LENIENT = ", watchdog_ms: 150"
 LENIENT_RUN = ", status_timeout_ms: 150"
 
 
-def _arm_overrides(command, status, extra=""):
-    return f"arm: {{command_channel: {command}, status_channel: {status}{extra}}}"
+def _arm_overrides(command, status, extra="", *, loop="run"):
+    """loop: where the controller runs (arm.control_loop); these tests drive torques unless told."""
+    return f"arm: {{command_channel: {command}, status_channel: {status}, control_loop: {loop}{extra}}}"
 
 
-def _start_arm_sim(tmp_path, command, status, duration_s, extra=""):
-    return start_arm_sim(tmp_path, SCENARIO, _arm_overrides(command, status, extra), duration_s=duration_s)
+def _start_arm_sim(tmp_path, command, status, duration_s, extra="", *, loop="run"):
+    text = _arm_overrides(command, status, extra, loop=loop)
+    return start_arm_sim(tmp_path, SCENARIO, text, duration_s=duration_s)
 
 
 def _finish(proc, out):
@@ -267,11 +269,11 @@ def test_the_driver_holds_on_a_clock_jump_of_the_commands(multicast, tmp_path):
 SHORT_RUN = "planner: {num_plans: 2}"  # identification 4.5 s: the run lasts 6 s of wall clock
 
 
-def _run_lcm(tmp_path, command, status, env_extra=None, *, extra=LENIENT_RUN):
+def _run_lcm(tmp_path, command, status, env_extra=None, *, extra=LENIENT_RUN, loop="run"):
     """`safesysid run --arm lcm` as a process; (return code, lcm_run.json or None, its output)."""
     out = tmp_path / "run"
     env = dict(os.environ, **(env_extra or {}))
-    text = _arm_overrides(command, status, extra)
+    text = _arm_overrides(command, status, extra, loop=loop)
     proc = subprocess.run(
         [sys.executable, "-m", "safesysid.cli", "run", str(SCENARIO), "--arm", "lcm", "--no-fifo", "--out", str(out)]
         + ["--scenario-text", text, "--scenario-text", SHORT_RUN],
@@ -315,9 +317,9 @@ def test_with_the_controller_beside_the_arm_only_plans_cross_and_the_arm_identif
     torque crosses); the arm takes them ahead of their start, the referee judges it safe, and the
     run's interval holds the arm's true payload."""
     command, status = _channels()
-    beside = f", control_loop: arm, plan_channel: TEST_PLAN_{status[-8:]}"
-    proc, out = _start_arm_sim(tmp_path, command, status, duration_s=400.0, extra=beside)
-    code, run, text = _run_lcm(tmp_path, command, status, extra=LENIENT_RUN + beside)
+    beside = f", plan_channel: TEST_PLAN_{status[-8:]}"
+    proc, out = _start_arm_sim(tmp_path, command, status, duration_s=400.0, extra=beside, loop="arm")
+    code, run, text = _run_lcm(tmp_path, command, status, extra=LENIENT_RUN + beside, loop="arm")
     proc.send_signal(subprocess.signal.SIGINT)
     arm = _finish(proc, out)
     assert code == 0 and run is not None, text

@@ -20,6 +20,7 @@ SCENARIO = Path(__file__).resolve().parents[1] / "scenarios" / "experiment_a.yam
 URL = "udpm://239.241.129.92:20185?ttl=0"
 # Lenient timing: these processes run at normal priority on a shared 2-core machine.
 LENIENT = "watchdog_ms: 100, status_timeout_ms: 100"
+TORQUES = f"{LENIENT}, control_loop: run"  # the controller in the run: torques cross
 
 
 def test_the_release_is_confirmed_only_by_an_open_status_and_times_out():
@@ -112,7 +113,7 @@ def _channels(tag=None):
     return {name: f"TT_{k}_{tag}" for k, name in enumerate(names)}
 
 
-def _arm_text(channels, extra=LENIENT):
+def _arm_text(channels, extra=TORQUES):
     return "arm: {" + ", ".join(f"{k}: {v}" for k, v in channels.items()) + f", {extra}}}"
 
 
@@ -248,7 +249,8 @@ def test_with_the_controller_beside_the_arm_the_task_crosses_as_plans_and_the_pa
     arm = _stop(proc, out)
     assert done.returncode == 0, done.stdout + done.stderr
     run = json.loads((run_out / "lcm_run.json").read_text())
-    assert run["task"]["executed"] and not run["task"]["hold"], run["events"]
+    seen = {"run": run["events"], "arm": [arm["driver"], arm["gripper"], arm["plans"]]}
+    assert run["task"]["executed"] and not run["task"]["hold"], seen
     assert arm["safe"], arm["referee"]
     assert arm["success"], arm["placement"]  # placed within task.placement_tolerance_m, by the arm's referee
     assert [e["kind"] for e in arm["gripper"]["events"]] == ["release"], arm["gripper"]
