@@ -121,6 +121,21 @@ def _start_arm_sim(tmp_path, channels):
     return start_arm_sim(tmp_path, SCENARIO, _arm_text(channels), duration_s=400)
 
 
+def _run(tmp_path, arm_text, *args):
+    """`safesysid run SCENARIO --arm lcm` as a process: (its lcm_run.json or None, its output)."""
+    run_out = tmp_path / "run"
+    command = ["run", str(SCENARIO), "--arm", "lcm", "--no-fifo", "--out", str(run_out), *args]
+    done = subprocess.run(
+        [sys.executable, "-m", "safesysid.cli", *command, "--scenario-text", arm_text],
+        capture_output=True,
+        text=True,
+        env=dict(os.environ),
+        timeout=300,
+    )
+    report = run_out / "lcm_run.json"
+    return json.loads(report.read_text()) if done.returncode == 0 else None, done.stdout + done.stderr
+
+
 def _stop(proc, out):
     proc.send_signal(subprocess.signal.SIGINT)
     proc.wait(timeout=120)
@@ -167,18 +182,9 @@ def test_a_release_never_confirmed_ends_in_a_hold(multicast, tmp_path, lost):
     channels = _channels()
     proc, out = _start_arm_sim(tmp_path, channels)
     run_channels = dict(channels, **{lost: channels[lost] + "_ELSEWHERE"})
-    run_out = tmp_path / "run"
-    args = ["run", str(SCENARIO), "--arm", "lcm", "--method", "grav-pid", "--no-fifo", "--out", str(run_out)]
-    done = subprocess.run(
-        [sys.executable, "-m", "safesysid.cli", *args, "--scenario-text", _arm_text(run_channels)],
-        capture_output=True,
-        text=True,
-        env=dict(os.environ),
-        timeout=300,
-    )
+    run, text = _run(tmp_path, _arm_text(run_channels), "--method", "grav-pid")
     arm = _stop(proc, out)
-    assert done.returncode == 0, done.stdout + done.stderr
-    run = json.loads((run_out / "lcm_run.json").read_text())
+    assert run is not None, text
     assert run["task"]["hold"] and "gripper_lost" in [e["kind"] for e in run["events"]], run["events"]
     assert arm["driver"]["holding"] in ("hold_requested", "command_lost", "command_clock_jump"), arm["driver"]
     # Collisions, not the torque: grav-pid has no torque bound, and after a stall of the run's loop
@@ -237,18 +243,9 @@ def test_with_the_controller_beside_the_arm_the_task_crosses_as_plans_and_the_pa
     channels = _channels()
     beside = f"{LENIENT}, control_loop: arm, plan_channel: TT_PLAN_{channels['status_channel'][-8:]}"
     proc, out = start_arm_sim(tmp_path, SCENARIO, _arm_text(channels, beside), duration_s=400)
-    run_out = tmp_path / "run"
-    args = ["run", str(SCENARIO), "--arm", "lcm", "--no-fifo", "--out", str(run_out)]
-    done = subprocess.run(
-        [sys.executable, "-m", "safesysid.cli", *args, "--scenario-text", _arm_text(channels, beside)],
-        capture_output=True,
-        text=True,
-        env=dict(os.environ),
-        timeout=300,
-    )
+    run, text = _run(tmp_path, _arm_text(channels, beside))
     arm = _stop(proc, out)
-    assert done.returncode == 0, done.stdout + done.stderr
-    run = json.loads((run_out / "lcm_run.json").read_text())
+    assert run is not None, text
     seen = {"run": run["events"], "arm": [arm["driver"], arm["gripper"], arm["plans"]]}
     assert run["task"]["executed"] and not run["task"]["hold"], seen
     assert arm["safe"], arm["referee"]
