@@ -312,27 +312,6 @@ def test_two_processes_run_algorithm_2_and_the_arm_ends_holding(multicast, tmp_p
         assert np.all(np.array(run["estimate"]["lower"]) <= truth) and np.all(truth <= run["estimate"]["upper"])
 
 
-def test_with_the_controller_beside_the_arm_only_plans_cross_and_the_arm_identifies_safely(multicast, tmp_path):
-    """arm.control_loop: arm: arm-sim runs the robust controller on the plans the run sends (no
-    torque crosses); the arm takes them ahead of their start, the referee judges it safe, and the
-    run's interval holds the arm's true payload."""
-    command, status = _channels()
-    beside = f", plan_channel: TEST_PLAN_{status[-8:]}"
-    proc, out = _start_arm_sim(tmp_path, command, status, duration_s=400.0, extra=beside, loop="arm")
-    code, run, text = _run_lcm(tmp_path, command, status, extra=LENIENT_RUN + beside, loop="arm")
-    proc.send_signal(subprocess.signal.SIGINT)
-    arm = _finish(proc, out)
-    assert code == 0 and run is not None, text
-    assert arm["safe"], arm["referee"]
-    follower = arm["driver"]  # the PlanFollower's record: plans taken (armed), refused (ignored)
-    assert follower["commands_received"] and follower["holding"] is None, follower
-    assert run["planner"]["status"][0] in ("solved", "best_feasible")
-    assert "command" not in " ".join(_kinds(run)) and run["status_stream"]["tripped"] is None
-    if run["estimate"] is not None:
-        truth = np.array(arm["payload_true"]["theta"])
-        assert np.all(np.array(run["estimate"]["lower"]) <= truth) and np.all(truth <= run["estimate"]["upper"])
-
-
 @pytest.mark.parametrize("fault, status", [("die", "planner_error"), ("hang", "deadline_missed")])
 def test_a_dead_or_hung_worker_brakes_on_the_verified_plan(multicast, tmp_path, fault, status):
     command, channel = _channels()

@@ -253,5 +253,8 @@ def test_with_the_controller_beside_the_arm_the_task_crosses_as_plans_and_the_pa
     assert [e["kind"] for e in arm["gripper"]["events"]] == ["release"], arm["gripper"]
     assert [e["kind"] for e in arm["driver"]["events"]] == ["released_parameters"], arm["driver"]
     assert arm["plans"]["taken"] >= 3 and arm["plans"]["refused"] == 0, arm["plans"]  # the task's two curves too
+    assert arm["driver"]["commands_received"] and arm["driver"]["holding"] is None, arm["driver"]  # plans taken
+    assert not [e for e in run["events"] if "command" in e["kind"]], run["events"]  # no torque crossed
+    assert run["status_stream"]["tripped"] is None, run["status_stream"]  # an outage is a gap, not a hold
     truth = np.array(arm["payload_true"]["theta"])
     assert np.all(np.array(run["estimate"]["lower"]) <= truth) and np.all(truth <= np.array(run["estimate"]["upper"]))
