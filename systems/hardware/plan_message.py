@@ -96,7 +96,7 @@ def _parse_task_curve(values: np.ndarray, n: int) -> tuple | None:
         return None
     points = values[4 : 4 + int(size)].reshape(int(num_pieces), 6, n).copy()
     curve = PiecewiseBezier(points, float(values[1]))
-    _, v, a = curve.evaluate([curve.duration], orders=2)
+    _, v, a = curve.evaluate_at(curve.duration)  # the arm parses every repeat: the 1 kHz loop's path
     if max(np.abs(v).max(), np.abs(a).max()) > REST_TOLERANCE:
         return None  # the arm rests at a plan's end: a curve that does not would jump there
     return TimedCurve(float(values[0]), curve), values[4 + int(size) :], bool(values[3])
